@@ -1,0 +1,1 @@
+"""hapticproxy.cli"""

@@ -1,0 +1,37 @@
+#!/bin/sh
+# Set up (or reuse) .venv/ at the repository root from requirements.lock, then run a job.
+#   sh run.sh demo        -> .venv/bin/hapticproxy demo
+#   sh run.sh test [ARGS] -> the test suite (pytest ARGS)
+#   sh run.sh <any hapticproxy subcommand ...>
+set -eu
+cd "$(dirname "$0")"
+ROOT=$(pwd)
+PY=${PYTHON:-}
+if [ -z "$PY" ]; then
+  if command -v python3.11 >/dev/null 2>&1; then PY=python3.11; else PY=python3; fi
+fi
+"$PY" -c 'import sys; sys.exit(0 if sys.version_info[:2] == (3, 11) else 1)' || {
+  echo "run.sh: Python 3.11 is required (found: $("$PY" --version 2>&1))" >&2; exit 2; }
+
+VENV="$ROOT/.venv"
+STAMP="$VENV/.hapticproxy-installed"
+WANT=$(cat requirements.lock pyproject.toml | cksum | cut -d' ' -f1)
+if [ ! -x "$VENV/bin/python" ]; then
+  "$PY" -m venv "$VENV"
+fi
+if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
+  echo "run.sh: installing pinned dependencies into .venv/ ..." >&2
+  "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r requirements.lock
+  "$VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
+  echo "$WANT" > "$STAMP"
+fi
+
+job=${1:-demo}
+[ $# -gt 0 ] && shift
+case "$job" in
+  test)
+    # pytest exits 5 when no test ran; that is a failure too.
+    exec "$VENV/bin/python" -m pytest "$@" ;;
+  *)
+    exec "$VENV/bin/hapticproxy" "$job" "$@" ;;
+esac
