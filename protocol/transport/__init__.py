@@ -1,0 +1,212 @@
+"""Datagram transports for protocol v1: one small interface, three backends.
+
+Open an endpoint with :func:`open_transport`::
+
+    server = open_transport("udp://127.0.0.1:0", role="server")
+    client = open_transport(server.url, role="client")
+    client.send(update_bytes)
+    nbytes, peer = server.recv_into(buf)       # (0, None) at once when nothing is waiting
+    server.send(ack_bytes, peer)
+
+URL formats (options may also be given as a mapping or as keyword arguments; keyword arguments
+win over mapping entries, which win over URL query parameters; unknown options raise
+``ValueError`` naming them):
+
+``mem://NAME``
+    In-process bus for tests (:class:`~.mem.MemTransport`). Options: ``max_packet_bytes``,
+    ``queue_capacity``. Open the server before its clients.
+``udp://HOST:PORT``
+    Server: bind ``HOST:PORT`` (``PORT`` 0 = any free port, see ``.url``). Client: connect to the
+    server at ``HOST:PORT`` (:class:`~.udp.UdpTransport`). IPv6 hosts in brackets
+    (``udp://[::1]:9000``). Options: ``max_packet_bytes``, ``rcvbuf_bytes``, ``sndbuf_bytes``.
+``zenoh://HOST:PORT/SESSION``
+    Zenoh 1.x (:class:`~.zenoh_backend.ZenohTransport`), key expressions ``hapticproxy/SESSION/...``.
+    Default ``mode=peer``: the server listens on ``tcp/HOST:PORT`` and the client connects
+    there directly, multicast scouting off (the embedded, loopback default; ``PORT`` 0 = pick a
+    free port for the server, see ``.url``). ``mode=client``: both sides connect as Zenoh
+    clients to a router at ``HOST:PORT`` (multi-machine set-ups). Options: ``mode``
+    (``peer``/``client``), ``protocol`` (link protocol, default ``tcp``; ``tls`` with a TLS
+    config), ``config`` (path of a Zenoh JSON5 config file used as the base, e.g. one from
+    ``deploy/zenoh/``), ``max_packet_bytes``, ``ring_capacity``, ``connect_timeout_s``,
+    ``express``.
+
+The ``zenoh`` package is imported only when a ``zenoh://`` endpoint is opened, so the rest of
+the protocol package needs only the standard library.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+from urllib.parse import parse_qsl, unquote, urlsplit
+
+from .base import (
+    DEFAULT_DRAIN_MAX_PACKETS,
+    DEFAULT_MAX_PACKET_BYTES,
+    MAX_DATAGRAM_BYTES,
+    Peer,
+    Transport,
+    TransportClosedError,
+    TransportCounters,
+    TransportError,
+)
+from .mem import MemTransport
+from .udp import UdpTransport
+
+__all__ = [
+    "DEFAULT_DRAIN_MAX_PACKETS",
+    "DEFAULT_MAX_PACKET_BYTES",
+    "MAX_DATAGRAM_BYTES",
+    "MemTransport",
+    "Peer",
+    "SCHEMES",
+    "Transport",
+    "TransportClosedError",
+    "TransportCounters",
+    "TransportError",
+    "TransportUrl",
+    "UdpTransport",
+    "open_transport",
+    "parse_transport_url",
+]
+
+SCHEMES = ("mem", "udp", "zenoh")
+
+# Allowed options per scheme and how to convert them from URL query strings.
+_INT = int
+
+
+def _bool(value: Any) -> bool:
+    if isinstance(value, bool):
+        return value
+    text = str(value).strip().lower()
+    if text in ("1", "true", "yes", "on"):
+        return True
+    if text in ("0", "false", "no", "off"):
+        return False
+    raise ValueError(f"expected a boolean, got {value!r}")
+
+
+def _float(value: Any) -> float:
+    return float(value)
+
+
+def _str(value: Any) -> str:
+    return str(value)
+
+
+_OPTIONS: dict[str, dict[str, Any]] = {
+    "mem": {"max_packet_bytes": _INT, "queue_capacity": _INT},
+    "udp": {"max_packet_bytes": _INT, "rcvbuf_bytes": _INT, "sndbuf_bytes": _INT},
+    "zenoh": {
+        "max_packet_bytes": _INT,
+        "mode": _str,
+        "protocol": _str,
+        "config": _str,
+        "ring_capacity": _INT,
+        "connect_timeout_s": _float,
+        "express": _bool,
+    },
+}
+
+
+@dataclass(frozen=True)
+class TransportUrl:
+    """A parsed transport URL: ``scheme``, ``host``, ``port``, ``name`` and query ``options``.
+
+    ``name`` is the mem bus name or the zenoh session name (URL path); ``host``/``port`` are
+    empty/0 for ``mem``.
+    """
+
+    scheme: str
+    host: str = ""
+    port: int = 0
+    name: str = ""
+    options: dict[str, str] = field(default_factory=dict)
+
+
+def parse_transport_url(url: str) -> TransportUrl:
+    """Parse a transport URL (see the module docstring); ``ValueError`` if malformed."""
+    if not isinstance(url, str) or "://" not in url:
+        raise ValueError(f"transport url must look like 'scheme://...', got {url!r}")
+    parts = urlsplit(url)
+    scheme = parts.scheme.lower()
+    if scheme not in SCHEMES:
+        raise ValueError(f"transport url scheme must be one of {', '.join(SCHEMES)}; got {scheme!r} in {url!r}")
+    options: dict[str, str] = {}
+    for key, value in parse_qsl(parts.query, keep_blank_values=True, strict_parsing=False):
+        if key in options:
+            raise ValueError(f"transport url option {key!r} given twice in {url!r}")
+        options[key] = value
+    if scheme == "mem":
+        name = unquote(parts.netloc + parts.path)
+        if not name:
+            raise ValueError(f"mem url needs a name: 'mem://NAME', got {url!r}")
+        return TransportUrl("mem", name=name, options=options)
+    try:
+        host = parts.hostname or ""
+        port = parts.port
+    except ValueError as exc:
+        raise ValueError(f"bad host:port in transport url {url!r}: {exc}") from None
+    if not host or port is None:
+        raise ValueError(f"{scheme} url needs HOST:PORT, e.g. '{scheme}://127.0.0.1:7447', got {url!r}")
+    name = unquote(parts.path.lstrip("/"))
+    if scheme == "udp" and name:
+        raise ValueError(f"udp url takes no path, got {parts.path!r} in {url!r}")
+    return TransportUrl(scheme, host=host, port=port, name=name, options=options)
+
+
+def _merge_options(parsed: TransportUrl, config: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:
+    allowed = _OPTIONS[parsed.scheme]
+    merged: dict[str, Any] = {}
+    for source in (parsed.options, config, overrides):
+        for key, value in source.items():
+            if key not in allowed:
+                raise ValueError(
+                    f"unknown option {key!r} for {parsed.scheme} transport; allowed: {', '.join(sorted(allowed))}"
+                )
+            try:
+                merged[key] = allowed[key](value)
+            except (TypeError, ValueError):
+                raise ValueError(f"option {key!r} has a bad value {value!r}") from None
+    return merged
+
+
+def open_transport(url_or_config: str | Mapping[str, Any], role: str = "server", **options: Any) -> Transport:
+    """Open a transport endpoint.
+
+    Args:
+        url_or_config: a URL string (formats in the module docstring) or a mapping with a
+            ``"url"`` key plus option keys, e.g. ``{"url": "udp://127.0.0.1:0", "rcvbuf_bytes":
+            65536}`` (what a config file would hold).
+        role: ``"server"`` (listens, many peers) or ``"client"`` (one peer, the server).
+        **options: backend options, overriding those of the mapping and of the URL query.
+
+    Raises:
+        ValueError: malformed URL, unknown option or bad option value (the message names it).
+        TransportError: the endpoint could not be set up (name taken, no server, Zenoh peer
+            not reachable within ``connect_timeout_s``).
+        OSError: the socket could not be bound/connected (e.g. port in use).
+    """
+    if role not in ("server", "client"):
+        raise ValueError(f"role must be 'server' or 'client', got {role!r}")
+    if isinstance(url_or_config, str):
+        url, config = url_or_config, {}
+    elif isinstance(url_or_config, Mapping):
+        if "url" not in url_or_config:
+            raise ValueError("transport config mapping needs a 'url' key")
+        config = dict(url_or_config)
+        url = config.pop("url")
+    else:
+        raise ValueError(f"url_or_config must be a URL string or a mapping, got {type(url_or_config).__name__}")
+    parsed = parse_transport_url(url)
+    kwargs = _merge_options(parsed, config, options)
+    if parsed.scheme == "mem":
+        return MemTransport(parsed.name, role, **kwargs)
+    if parsed.scheme == "udp":
+        return UdpTransport(parsed.host, parsed.port, role, **kwargs)
+    # Imported here so that only zenoh users need the zenoh package (layering: protocol stays
+    # standard library + numpy + msgpack except for this one optional backend).
+    from .zenoh_backend import ZenohTransport
+
+    return ZenohTransport(parsed.host, parsed.port, parsed.name or "default", role, **kwargs)
