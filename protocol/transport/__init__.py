@@ -28,7 +28,7 @@ win over mapping entries, which win over URL query parameters; unknown options r
     (``peer``/``client``), ``protocol`` (link protocol, default ``tcp``; ``tls`` with a TLS
     config), ``config`` (path of a Zenoh JSON5 config file used as the base, e.g. one from
     ``deploy/zenoh/``), ``max_packet_bytes``, ``ring_capacity``, ``connect_timeout_s``,
-    ``express``.
+    ``express``, ``lowlatency`` (both ends must agree).
 
 The ``zenoh`` package is imported only when a ``zenoh://`` endpoint is opened, so the rest of
 the protocol package needs only the standard library.
@@ -106,6 +106,7 @@ _OPTIONS: dict[str, dict[str, Any]] = {
         "ring_capacity": _INT,
         "connect_timeout_s": _float,
         "express": _bool,
+        "lowlatency": _bool,
     },
 }
 

@@ -284,6 +284,11 @@ class Transport(abc.ABC):
         state = "closed" if self._closed else "open"
         return f"<{type(self).__name__} {self.role} {self.describe()} {state}>"
 
+    @property
+    def url(self) -> str:
+        """A URL reaching the server side of this link (a server's own, a client's server's)."""
+        raise NotImplementedError
+
     def describe(self) -> str:
         """A short human-readable address, for logs and reports."""
         return ""

@@ -102,6 +102,11 @@ class MemTransport(Transport):
         return self._server_peer if self.role == "client" else None
 
     @property
+    def url(self) -> str:
+        """``mem://NAME``: what a client opens to reach this bus's server."""
+        return f"mem://{self.name}"
+
+    @property
     def client_id(self) -> int:
         """This client's peer id as the server sees it (0 for a server)."""
         return self._client_id

@@ -133,8 +133,9 @@ class UdpTransport(Transport):
 
     @property
     def url(self) -> str:
-        """``udp://HOST:PORT`` of this endpoint's bound address (what a client connects to)."""
-        host, port = self.local_address[0], self.local_address[1]
+        """``udp://HOST:PORT`` of the server side: a server's bound address, a client's server."""
+        addr = self._peer if self.role == "client" else self.local_address
+        host, port = addr[0], addr[1]  # type: ignore[index]
         if ":" in host:
             host = f"[{host}]"
         return f"udp://{host}:{port}"

@@ -1,0 +1,361 @@
+"""Zenoh transport (``zenoh://HOST:PORT/SESSION``), eclipse-zenoh 1.x.
+
+This is the only module of ``hapticproxy.protocol`` that imports ``zenoh``, and it is imported
+only when a ``zenoh://`` endpoint is opened.
+
+Key expressions (``SESSION`` is the URL path, default ``default``; ``CLIENT`` is the client's
+Zenoh session id, ``ZenohId`` as lowercase hex, which is also the peer id the server sees):
+
+==========================================  =============  ==============================
+key expression                              publisher      subscriber
+==========================================  =============  ==============================
+``hapticproxy/SESSION/c2s/CLIENT``          client         server (``hapticproxy/SESSION/c2s/*``)
+``hapticproxy/SESSION/s2c/CLIENT``          server         that client only
+==========================================  =============  ==============================
+
+Each sample's payload is exactly one protocol datagram, the same bytes UDP carries; nothing is
+added (no attachment, the encoding left at its default).
+
+Deployment modes:
+
+- ``mode=peer`` (default, embedded): the server's Zenoh session listens on
+  ``PROTOCOL/HOST:PORT`` (``tcp/127.0.0.1:7447`` style) and each client session connects to that
+  endpoint directly. Multicast and gossip scouting are off, so two processes find each other only
+  through the explicit endpoint: nothing is discovered on, or leaked to, the LAN.
+- ``mode=client``: both sides are Zenoh *clients* of a router (``zenohd``) at ``HOST:PORT``;
+  use it across machines, with the router's config carrying TLS / authentication
+  (``deploy/zenoh/``).
+- ``config=PATH`` loads a Zenoh JSON5 file as the base configuration (TLS certificates,
+  user/password, buffer sizes); mode, endpoints and scouting are then set from the URL on top.
+
+Latency choices (measured with ``hapticproxy bench transport``): publishers are declared with
+``express=True`` (the message bypasses the batching queue and leaves at once),
+``CongestionControl.DROP`` (a slow link drops our newest-wins traffic instead of blocking the
+haptic thread) and ``Priority.REAL_TIME``. Shared memory is off (payloads are far below its
+3 kB threshold; it would only reserve a pool). ``lowlatency=True`` additionally switches the
+unicast transport to Zenoh's low-latency mode (QoS lanes off); both ends must agree on it.
+
+Receiving: each subscriber uses a ``zenoh.handlers.RingChannel(ring_capacity)`` which Zenoh's
+own threads fill; :meth:`recv_into` only calls ``try_recv()``, so no Python callback ever runs
+and the haptic thread never blocks. A full ring drops its *oldest* sample, which Zenoh does not
+report, so ``counters.dropped_overflow`` stays 0 for this backend.
+
+Start-up: the client constructor waits (up to ``connect_timeout_s``) until its publisher is
+matched by the server's subscriber, so its first datagram is not published into the void. Its
+own reply subscriber is declared before that, on the same link, so the server learns of it
+before the client's first datagram arrives; :meth:`ZenohTransport.peer_ready` lets a server
+check that a reply to a given peer has a matched subscriber.
+"""
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+
+from .base import DEFAULT_MAX_PACKET_BYTES, Peer, Transport, TransportError
+
+KEY_PREFIX = "hapticproxy"
+DEFAULT_SESSION = "default"
+DEFAULT_RING_CAPACITY = 256
+DEFAULT_CONNECT_TIMEOUT_S = 5.0
+#: Bound on distinct client ids a server remembers (and keeps a reply publisher for); beyond it
+#: the table is cleared and rebuilt from traffic, so a flood of fake ids cannot grow memory.
+MAX_REMEMBERED_PEERS = 1024
+
+_MODES = ("peer", "client")
+_FORBIDDEN_KEY_CHARS = set("/*$?#")
+
+
+def c2s_key(session: str, client_id: str) -> str:
+    """Key expression a client publishes on (and the server receives from)."""
+    return f"{KEY_PREFIX}/{session}/c2s/{client_id}"
+
+
+def s2c_key(session: str, client_id: str) -> str:
+    """Key expression the server replies on to one client."""
+    return f"{KEY_PREFIX}/{session}/s2c/{client_id}"
+
+
+def _check_chunk(name: str, value: str) -> str:
+    if not isinstance(value, str) or not value or _FORBIDDEN_KEY_CHARS & set(value):
+        raise ValueError(f"{name} must be a non-empty key chunk without any of '/*$?#', got {value!r}")
+    return value
+
+
+def _free_tcp_port(host: str) -> int:
+    # Zenoh 1.x has no Python API reporting the port an ephemeral listener got, so pick one
+    # ourselves. The small race (someone else takes it before Zenoh binds) is retried by caller.
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def _endpoint(protocol: str, host: str, port: int) -> str:
+    if ":" in host and not host.startswith("["):
+        host = f"[{host}]"
+    return f"{protocol}/{host}:{port}"
+
+
+class ZenohTransport(Transport):
+    """A Zenoh endpoint speaking the datagram contract over pub/sub.
+
+    Args:
+        host, port: peer mode: server listens / client connects there (server ``port`` 0 = pick
+            a free one, see :attr:`url`); client mode: the router's address (both roles).
+        session: the session name in the key expressions (no ``/*$?#``).
+        role: ``"server"`` or ``"client"``.
+        max_packet_bytes: datagram size limit enforced on send and receive.
+        mode: ``"peer"`` (default, direct loopback link) or ``"client"`` (via a router).
+        protocol: Zenoh link protocol for the endpoint (``tcp``, ``tls``, ``quic``, ...).
+        config: path of a Zenoh JSON5 config file used as the base.
+        ring_capacity: samples buffered per subscriber before the oldest is dropped.
+        connect_timeout_s: how long the constructor may wait to reach the other side.
+        express: publish without batching (lower latency; default ``True``).
+        lowlatency: Zenoh unicast low-latency mode (QoS off); both ends must match.
+    """
+
+    scheme = "zenoh"
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        session: str = DEFAULT_SESSION,
+        role: str = "server",
+        max_packet_bytes: int = DEFAULT_MAX_PACKET_BYTES,
+        mode: str = "peer",
+        protocol: str = "tcp",
+        config: str | None = None,
+        ring_capacity: int = DEFAULT_RING_CAPACITY,
+        connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S,
+        express: bool = True,
+        lowlatency: bool = False,
+    ) -> None:
+        super().__init__(role, max_packet_bytes)
+        self._closed = True  # until the session exists
+        if not isinstance(host, str) or not host:
+            raise ValueError(f"host must be a non-empty string, got {host!r}")
+        try:
+            port = int(port)
+        except (TypeError, ValueError):
+            raise ValueError(f"port must be an integer, got {port!r}") from None
+        if not 0 <= port <= 65535:
+            raise ValueError(f"port must be in 0..65535, got {port}")
+        if mode not in _MODES:
+            raise ValueError(f"mode must be 'peer' or 'client', got {mode!r}")
+        if port == 0 and not (mode == "peer" and role == "server"):
+            raise ValueError("port 0 (pick a free port) is only valid for a peer-mode server")
+        if not isinstance(protocol, str) or not protocol.isalnum():
+            raise ValueError(f"protocol must be a Zenoh link protocol name like 'tcp', got {protocol!r}")
+        self.session_name = _check_chunk("session", session)
+        ring_capacity = int(ring_capacity)
+        if ring_capacity < 1:
+            raise ValueError(f"ring_capacity must be >= 1, got {ring_capacity}")
+        connect_timeout_s = float(connect_timeout_s)
+        if not connect_timeout_s > 0:
+            raise ValueError(f"connect_timeout_s must be > 0, got {connect_timeout_s}")
+        if config is not None and not os.path.isfile(config):
+            raise ValueError(f"config file not found: {config!r}")
+
+        import zenoh  # lazy: the only zenoh import in hapticproxy.protocol
+
+        self._zenoh = zenoh
+        self.mode = mode
+        self.protocol = protocol
+        self.host = host
+        self.ring_capacity = ring_capacity
+        self.express = bool(express)
+        self.lowlatency = bool(lowlatency)
+        self.connect_timeout_s = connect_timeout_s
+        self._config_path = config
+        self._session = None
+        self._sub = None
+        self._pub = None  # client: its one publisher
+        self._publishers: dict[str, object] = {}  # server: reply publisher per client id
+        self._peer_by_key: dict[str, str] = {}  # server: received key -> client id
+        self._c2s_prefix = f"{KEY_PREFIX}/{self.session_name}/c2s/"
+
+        attempts = 5 if port == 0 else 1
+        last_exc: Exception | None = None
+        for _ in range(attempts):
+            self.port = _free_tcp_port(host) if port == 0 else port
+            try:
+                self._session = zenoh.open(self._build_config())
+                break
+            except zenoh.ZError as exc:
+                last_exc = exc
+        if self._session is None:
+            raise TransportError(f"could not open Zenoh session ({self.describe()}): {last_exc}")
+        self._closed = False
+        try:
+            self._declare()
+        except BaseException:
+            self.close()
+            raise
+
+    # ------------------------------------------------------------------ set-up
+
+    def _build_config(self):
+        zenoh = self._zenoh
+        cfg = zenoh.Config.from_file(self._config_path) if self._config_path else zenoh.Config()
+        endpoint = _endpoint(self.protocol, self.host, self.port)
+        timeout_ms = int(self.connect_timeout_s * 1000)
+        cfg.insert_json5("mode", json.dumps(self.mode))
+        # Explicit endpoints only: no multicast discovery, no gossip-relayed peers.
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        cfg.insert_json5("scouting/gossip/enabled", "false")
+        if self.mode == "peer" and self.role == "server":
+            cfg.insert_json5("listen/endpoints", json.dumps([endpoint]))
+            cfg.insert_json5("connect/endpoints", "[]")
+        else:
+            cfg.insert_json5("listen/endpoints", "[]")
+            cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+            # Fail the open (clear error) instead of retrying in the background forever.
+            cfg.insert_json5("connect/timeout_ms", str(timeout_ms))
+            cfg.insert_json5("connect/exit_on_failure", "true")
+        cfg.insert_json5("transport/shared_memory/enabled", "false")
+        if self.lowlatency:
+            cfg.insert_json5("transport/unicast/lowlatency", "true")
+            cfg.insert_json5("transport/unicast/qos/enabled", "false")
+        return cfg
+
+    def _publisher(self, key: str):
+        zenoh = self._zenoh
+        return self._session.declare_publisher(
+            key,
+            congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.REAL_TIME,
+            express=self.express,
+        )
+
+    def _declare(self) -> None:
+        zenoh = self._zenoh
+        session = self._session
+        if self.role == "server":
+            self._sub = session.declare_subscriber(
+                self._c2s_prefix + "*", zenoh.handlers.RingChannel(self.ring_capacity)
+            )
+            self.client_id = ""
+            return
+        self.client_id = str(session.zid())
+        # Subscriber first: its declaration precedes our first datagram on the same link.
+        self._sub = session.declare_subscriber(
+            s2c_key(self.session_name, self.client_id), zenoh.handlers.RingChannel(self.ring_capacity)
+        )
+        self._pub = self._publisher(c2s_key(self.session_name, self.client_id))
+        deadline = time.monotonic() + self.connect_timeout_s
+        while not self._pub.matching_status.matching:
+            if time.monotonic() > deadline:
+                raise TransportError(
+                    f"no Zenoh server subscribed to {c2s_key(self.session_name, self.client_id)!r} "
+                    f"within {self.connect_timeout_s} s ({self.describe()})"
+                )
+            time.sleep(0.001)
+
+    # ------------------------------------------------------------------ properties
+
+    @property
+    def default_peer(self) -> Peer | None:
+        return self.server_peer if self.role == "client" else None
+
+    @property
+    def server_peer(self) -> str:
+        """The client's one peer id: ``"zenoh:SESSION"``."""
+        return f"zenoh:{self.session_name}"
+
+    @property
+    def endpoint(self) -> str:
+        """The Zenoh endpoint this side listens on (peer server) or connects to."""
+        return _endpoint(self.protocol, self.host, self.port)
+
+    @property
+    def url(self) -> str:
+        """A URL a client can open to reach this endpoint (mode and protocol included)."""
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        query = []
+        if self.mode != "peer":
+            query.append(f"mode={self.mode}")
+        if self.protocol != "tcp":
+            query.append(f"protocol={self.protocol}")
+        if self.lowlatency:
+            query.append("lowlatency=true")
+        return f"zenoh://{host}:{self.port}/{self.session_name}" + ("?" + "&".join(query) if query else "")
+
+    def describe(self) -> str:
+        return f"zenoh {self.mode} {self.endpoint} session={self.session_name}"
+
+    def peer_ready(self, peer: Peer) -> bool:
+        """Server: ``True`` if a reply to ``peer`` currently has a matching subscriber."""
+        if self.role != "server":
+            return self._pub is not None and self._pub.matching_status.matching
+        pub = self._publishers.get(peer)  # type: ignore[arg-type]
+        if pub is None:
+            if peer not in self._publishers and peer not in self._peer_by_key.values():
+                return False
+            pub = self._publishers[peer] = self._publisher(s2c_key(self.session_name, peer))  # type: ignore[arg-type]
+        return pub.matching_status.matching
+
+    # ------------------------------------------------------------------ backend hooks
+
+    def _send(self, payload: bytes | bytearray | memoryview, peer: Peer | None) -> bool:
+        if isinstance(payload, memoryview):
+            payload = payload.tobytes()  # zenoh takes bytes/bytearray only
+        if self.role == "client":
+            if peer is not None and peer != self.server_peer:
+                raise ValueError(f"a Zenoh client can only send to its server {self.server_peer!r}, not {peer!r}")
+            pub = self._pub
+        else:
+            pub = self._publishers.get(peer)  # type: ignore[arg-type]
+            if pub is None:
+                # Only reply to clients we have heard from: a peer id is a client's ZenohId.
+                if peer not in self._peer_by_key.values():
+                    return False
+                pub = self._publishers[peer] = self._publisher(s2c_key(self.session_name, peer))  # type: ignore[arg-type]
+        try:
+            pub.put(payload)
+        except self._zenoh.ZError:
+            return False
+        return True
+
+    def _recv_into(self, buffer: bytearray | memoryview) -> tuple[int, Peer | None]:
+        sub = self._sub
+        limit = self.max_packet_bytes
+        counters = self.counters
+        while True:
+            sample = sub.try_recv()
+            if sample is None:
+                return 0, None
+            zbytes = sample.payload
+            n = len(zbytes)
+            if n > limit:
+                counters.dropped_oversize_recv += 1
+                continue
+            if n == 0:
+                counters.dropped_empty += 1
+                continue
+            if self.role == "client":
+                peer = self.server_peer
+            else:
+                key = str(sample.key_expr)
+                peer = self._peer_by_key.get(key)
+                if peer is None:
+                    peer = key[len(self._c2s_prefix):]
+                    if len(self._peer_by_key) >= MAX_REMEMBERED_PEERS:
+                        self._peer_by_key.clear()
+                        self._publishers.clear()
+                    self._peer_by_key[key] = peer
+            buffer[:n] = zbytes.to_bytes()
+            return n, peer
+
+    def _close(self) -> None:
+        session, self._session = self._session, None
+        self._publishers.clear()
+        self._pub = None
+        self._sub = None
+        if session is not None:
+            try:
+                session.close()
+            except Exception:  # closing twice or a dead runtime: nothing left to release
+                pass
