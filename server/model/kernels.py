@@ -1,0 +1,837 @@
+"""Numba kernels of the local model of interaction (Constantinescu, Salcudean, Croft).
+
+Two entry points per tool family, each one compiled call per haptic step / model update:
+
+- ``step_rigid(kind, par, st, C, CI, cnt, wk, hand)``: local collision detection (eq. 3), the
+  contact state machine (section IV-A), simultaneous collision impulses (eq. 11) rendered as the
+  impulsive wrench (eq. 12), penalty + stick-slip friction (eq. 7), the force to the hand through
+  the dynamically consistent inverse of the hand Jacobian (eq. 8), and one semi-implicit Euler
+  step of the proxy.
+- ``update_rigid(kind, ..., keys, cp, n, d, vc, n_in, sel, newF, newI)``: validation, the
+  capacity rule, and the update rule table of the notes (eqs. 1/4/5/6).
+
+The tool-specific part is only the kinematics (``_kin_rigid``: D(q), gravity, the contact point
+Jacobians J_i(q) and the hand Jacobian J_h(q)) and the integrator; ``_core`` works in the tool's
+d-dimensional configuration space on whatever D, J_i and J_h it is given, so a linkage supplies
+its own kinematics and reuses ``_core`` unchanged.
+
+Eq. 11 without an m x m pseudo-inverse: with D = L L^T and B = Jc L^-T (m x d),
+    D^-1 Jc^T (Jc D^-1 Jc^T)^+ Jc = L^-T (B^+ B) L^T,
+and B^+ B is the orthogonal projector onto the row space of B, of rank r <= d. Gram-Schmidt of
+the m rows b_i = L^-1 Jc_i^T gives an orthonormal basis U (r x d), so the velocity jump is
+    w = L^T qd0,  dw = -(1 + e) U^T U w,  qd1 = qd0 + L^-T dw,
+costing O(m d^2) instead of an O(m^3) SVD. Kinetic energy is |w|^2 / 2 and the projected part
+of w is scaled by -e, so for e in [0, 1] it never increases (e = 1 keeps it). The per-contact
+impulses p (the minimum-norm solution, which is what the pseudo-inverse returns) come from the
+r x r system (C^T C) alpha = U dw with rows c_i = U b_i, p_i = c_i . alpha.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .layout import (
+    C_CP, C_D, C_FN, C_FT, C_IMP, C_N, C_P, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
+    CI_AGE, CI_KEY, CI_SLIP, CI_STATE,
+    CS_COLLIDING, CS_IMPENDING, CS_PENETRATING, CS_SEPARATING,
+    E_CONTACT_NONFINITE, E_DUPLICATE_KEY, E_HAND_NONFINITE, E_LINK_OUT_OF_RANGE,
+    E_NORMAL_NOT_UNIT, E_NORMAL_OUT_OF_PLANE, E_OK, E_TOO_MANY,
+    K_COLLISIONS, K_DEFORMED, K_DROPPED, K_LEFT, K_M, K_N_COLLIDING, K_N_IMPENDING,
+    K_N_PENETRATING, K_N_SEPARATING, K_NEW, K_NONFINITE, K_PROXY, K_RANK, K_SLIPPING, K_STEPS,
+    K_UPDATES,
+    MAX_DOF, NCOLS_F, NCOLS_I,
+    P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
+    P_ORIGIN, P_POLICY,
+    POLICY_RIGID, PS_COLLIDING, PS_FREE, PS_RESTING,
+    S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_Q, S_QD, S_T,
+    TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL, UNIT_TOL,
+)
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+
+#: Relative Gram-Schmidt threshold: a constraint row whose component outside the span of the
+#: previous rows is below this fraction of its own norm adds no rank (exactly opposing or
+#: coincident normals give residuals ~1e-16).
+RANK_TOL = 1e-9
+
+# rows of the vector scratch block
+_V_QD0 = 0     # velocity at the start of the step
+_V_QD = 1      # velocity after the impulse
+_V_W = 2       # L^T qd
+_V_T1 = 3
+_V_T2 = 4
+_V_TAU = 5     # generalized penalty + friction force
+_V_TAUG = 6    # generalized gravity force
+_V_GIMP = 7    # generalized impulse
+_V_TOT = 8     # total generalized force
+_V_HV = 9      # hand-space temporaries
+_NVEC = 12
+
+
+def workspace_size(capacity: int) -> int:
+    """Float64 elements of the scratch array for ``capacity`` contacts."""
+    m = MAX_DOF
+    return 5 * m * m + 6 * m + capacity * (3 * m + 3 * m + 3 + 3) + _NVEC * m
+
+
+@njit(**_JIT)
+def _views(wk, cap):
+    m = MAX_DOF
+    o = 0
+    D = wk[o:o + m * m].reshape((m, m)); o += m * m
+    L = wk[o:o + m * m].reshape((m, m)); o += m * m
+    U = wk[o:o + m * m].reshape((m, m)); o += m * m
+    G = wk[o:o + m * m].reshape((m, m)); o += m * m
+    Y = wk[o:o + m * m].reshape((m, m)); o += m * m
+    Jh = wk[o:o + 6 * m].reshape((6, m)); o += 6 * m
+    Jpt = wk[o:o + cap * 3 * m].reshape((cap, 3, m)); o += cap * 3 * m
+    Jn = wk[o:o + cap * m].reshape((cap, m)); o += cap * m
+    Bm = wk[o:o + cap * m].reshape((cap, m)); o += cap * m
+    Cm = wk[o:o + cap * m].reshape((cap, m)); o += cap * m
+    X = wk[o:o + cap * 3].reshape((cap, 3)); o += cap * 3
+    Zn = wk[o:o + cap * 3].reshape((cap, 3)); o += cap * 3
+    V = wk[o:o + _NVEC * m].reshape((_NVEC, m)); o += _NVEC * m
+    return D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V
+
+
+# --------------------------------------------------------------------------------------------
+# small dense linear algebra (d <= MAX_DOF), no allocation
+# --------------------------------------------------------------------------------------------
+@njit(**_JIT)
+def _chol(A, L, n):
+    """L L^T = A (lower); False if A is not positive definite."""
+    for i in range(n):
+        for j in range(i + 1):
+            s = A[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            if i == j:
+                if not s > 0.0:
+                    return False
+                L[i, i] = math.sqrt(s)
+            else:
+                L[i, j] = s / L[j, j]
+        for j in range(i + 1, n):
+            L[i, j] = 0.0
+    return True
+
+
+@njit(**_JIT)
+def _fwd(L, b, x, n):
+    """Solve L x = b (x may alias b)."""
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= L[i, k] * x[k]
+        x[i] = s / L[i, i]
+
+
+@njit(**_JIT)
+def _bwd(L, b, x, n):
+    """Solve L^T x = b (x may alias b)."""
+    for i in range(n - 1, -1, -1):
+        s = b[i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
+
+
+@njit(**_JIT)
+def _quat_to_rot(qw, qx, qy, qz, R):
+    R[0, 0] = 1.0 - 2.0 * (qy * qy + qz * qz)
+    R[0, 1] = 2.0 * (qx * qy - qw * qz)
+    R[0, 2] = 2.0 * (qx * qz + qw * qy)
+    R[1, 0] = 2.0 * (qx * qy + qw * qz)
+    R[1, 1] = 1.0 - 2.0 * (qx * qx + qz * qz)
+    R[1, 2] = 2.0 * (qy * qz - qw * qx)
+    R[2, 0] = 2.0 * (qx * qz - qw * qy)
+    R[2, 1] = 2.0 * (qy * qz + qw * qx)
+    R[2, 2] = 1.0 - 2.0 * (qx * qx + qy * qy)
+
+
+# --------------------------------------------------------------------------------------------
+# rigid-tool kinematics: body <-> world points, D(q), gravity, J_i(q), J_h(q)
+# --------------------------------------------------------------------------------------------
+@njit(**_JIT)
+def _rigid_pose(kind, par, st, R, c):
+    """Body-to-world rotation R (3x3) and COM position c (3) of a rigid tool."""
+    for i in range(3):
+        for j in range(3):
+            R[i, j] = 1.0 if i == j else 0.0
+    if kind == TOOL_1DOF:
+        x = st[S_Q]
+        for j in range(3):
+            c[j] = par[P_ORIGIN + j] + x * par[P_AXIS + j]
+    elif kind == TOOL_PLANAR:
+        th = st[S_Q + 2]
+        ct = math.cos(th)
+        sn = math.sin(th)
+        R[0, 0] = ct; R[0, 1] = -sn
+        R[1, 0] = sn; R[1, 1] = ct
+        c[0] = st[S_Q]; c[1] = st[S_Q + 1]; c[2] = 0.0
+    else:
+        _quat_to_rot(st[S_Q + 3], st[S_Q + 4], st[S_Q + 5], st[S_Q + 6], R)
+        c[0] = st[S_Q]; c[1] = st[S_Q + 1]; c[2] = st[S_Q + 2]
+
+
+@njit(**_JIT)
+def _kin_rigid(kind, par, st, C, m, R, c, D, taug, Jpt, X, Jh):
+    """Fill D(q) (d x d), generalized gravity taug = -G(q), the world contact points X_i, the
+    point Jacobians J_i(q) (3 x d, world velocity of the point) and J_h(q) (h x d)."""
+    _rigid_pose(kind, par, st, R, c)
+    mass = par[P_MASS]
+    if kind == TOOL_1DOF:
+        D[0, 0] = mass
+        taug[0] = mass * (par[P_GRAV] * par[P_AXIS] + par[P_GRAV + 1] * par[P_AXIS + 1]
+                          + par[P_GRAV + 2] * par[P_AXIS + 2])
+        Jh[0, 0] = 1.0
+        for i in range(m):
+            for j in range(3):
+                X[i, j] = c[j] + C[i, C_P + j]
+                Jpt[i, j, 0] = par[P_AXIS + j]
+    elif kind == TOOL_PLANAR:
+        for a in range(3):
+            for b in range(3):
+                D[a, b] = 0.0
+        D[0, 0] = mass
+        D[1, 1] = mass
+        D[2, 2] = par[P_INERTIA + 8]
+        taug[0] = mass * par[P_GRAV]
+        taug[1] = mass * par[P_GRAV + 1]
+        taug[2] = 0.0
+        hx = R[0, 0] * par[P_HAND] + R[0, 1] * par[P_HAND + 1]
+        hy = R[1, 0] * par[P_HAND] + R[1, 1] * par[P_HAND + 1]
+        Jh[0, 0] = 1.0; Jh[0, 1] = 0.0; Jh[0, 2] = -hy
+        Jh[1, 0] = 0.0; Jh[1, 1] = 1.0; Jh[1, 2] = hx
+        Jh[2, 0] = 0.0; Jh[2, 1] = 0.0; Jh[2, 2] = 1.0
+        for i in range(m):
+            rx = R[0, 0] * C[i, C_P] + R[0, 1] * C[i, C_P + 1]
+            ry = R[1, 0] * C[i, C_P] + R[1, 1] * C[i, C_P + 1]
+            X[i, 0] = c[0] + rx
+            X[i, 1] = c[1] + ry
+            X[i, 2] = 0.0
+            Jpt[i, 0, 0] = 1.0; Jpt[i, 0, 1] = 0.0; Jpt[i, 0, 2] = -ry
+            Jpt[i, 1, 0] = 0.0; Jpt[i, 1, 1] = 1.0; Jpt[i, 1, 2] = rx
+            Jpt[i, 2, 0] = 0.0; Jpt[i, 2, 1] = 0.0; Jpt[i, 2, 2] = 0.0
+    else:
+        for a in range(6):
+            for b in range(6):
+                D[a, b] = 0.0
+        D[0, 0] = mass
+        D[1, 1] = mass
+        D[2, 2] = mass
+        # world inertia R I_body R^T
+        for a in range(3):
+            for b in range(3):
+                s = 0.0
+                for k in range(3):
+                    for l in range(3):
+                        s += R[a, k] * par[P_INERTIA + 3 * k + l] * R[b, l]
+                D[3 + a, 3 + b] = s
+        for a in range(3):
+            taug[a] = mass * par[P_GRAV + a]
+            taug[3 + a] = 0.0
+        hx = R[0, 0] * par[P_HAND] + R[0, 1] * par[P_HAND + 1] + R[0, 2] * par[P_HAND + 2]
+        hy = R[1, 0] * par[P_HAND] + R[1, 1] * par[P_HAND + 1] + R[1, 2] * par[P_HAND + 2]
+        hz = R[2, 0] * par[P_HAND] + R[2, 1] * par[P_HAND + 1] + R[2, 2] * par[P_HAND + 2]
+        for a in range(6):
+            for b in range(6):
+                Jh[a, b] = 1.0 if a == b else 0.0
+        # v_hand = v + omega x r_h = v - [r_h]x omega
+        Jh[0, 4] = hz; Jh[0, 5] = -hy
+        Jh[1, 3] = -hz; Jh[1, 5] = hx
+        Jh[2, 3] = hy; Jh[2, 4] = -hx
+        for i in range(m):
+            px = C[i, C_P]; py = C[i, C_P + 1]; pz = C[i, C_P + 2]
+            rx = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz
+            ry = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz
+            rz = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz
+            X[i, 0] = c[0] + rx
+            X[i, 1] = c[1] + ry
+            X[i, 2] = c[2] + rz
+            for a in range(3):
+                for b in range(3):
+                    Jpt[i, a, b] = 1.0 if a == b else 0.0
+            Jpt[i, 0, 3] = 0.0; Jpt[i, 0, 4] = rz; Jpt[i, 0, 5] = -ry
+            Jpt[i, 1, 3] = -rz; Jpt[i, 1, 4] = 0.0; Jpt[i, 1, 5] = rx
+            Jpt[i, 2, 3] = ry; Jpt[i, 2, 4] = -rx; Jpt[i, 2, 5] = 0.0
+
+
+@njit(**_JIT)
+def _integrate_rigid(kind, st, qd, dt):
+    """Semi-implicit Euler position update with the already-updated velocity qd."""
+    if kind == TOOL_1DOF:
+        st[S_Q] += dt * qd[0]
+    elif kind == TOOL_PLANAR:
+        st[S_Q] += dt * qd[0]
+        st[S_Q + 1] += dt * qd[1]
+        st[S_Q + 2] += dt * qd[2]
+    else:
+        st[S_Q] += dt * qd[0]
+        st[S_Q + 1] += dt * qd[1]
+        st[S_Q + 2] += dt * qd[2]
+        wx = qd[3]; wy = qd[4]; wz = qd[5]
+        wn = math.sqrt(wx * wx + wy * wy + wz * wz)
+        half = 0.5 * wn * dt
+        if wn > 0.0:
+            sc = math.sin(half) / wn
+        else:
+            sc = 0.5 * dt
+        dw = math.cos(half); dx = sc * wx; dy = sc * wy; dz = sc * wz
+        qw = st[S_Q + 3]; qx = st[S_Q + 4]; qy = st[S_Q + 5]; qz = st[S_Q + 6]
+        # world-frame angular velocity: q <- dq (x) q
+        nw = dw * qw - dx * qx - dy * qy - dz * qz
+        nx = dw * qx + dx * qw + dy * qz - dz * qy
+        ny = dw * qy - dx * qz + dy * qw + dz * qx
+        nz = dw * qz + dx * qy - dy * qx + dz * qw
+        inv = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+        st[S_Q + 3] = nw * inv
+        st[S_Q + 4] = nx * inv
+        st[S_Q + 5] = ny * inv
+        st[S_Q + 6] = nz * inv
+
+
+# --------------------------------------------------------------------------------------------
+# the tool-independent step (configuration space, dimension d; hand space, dimension h)
+# --------------------------------------------------------------------------------------------
+@njit(**_JIT)
+def _render(d, h, L, Jh, Y, G, tau, out, V):
+    """out = Jbar_h^T tau = (J_h D^-1 J_h^T)^-1 J_h D^-1 tau (eq. 8, Khatib's inverse)."""
+    u = V[_V_T1]
+    _fwd(L, tau, u, d)                       # u = L^-1 tau
+    for r in range(h):
+        for a in range(d):
+            Y[r, a] = Jh[r, a]
+        _fwd(L, Y[r], Y[r], d)               # y_r = L^-1 J_h[r]^T
+    hv = V[_V_HV]
+    for r in range(h):
+        s = 0.0
+        for a in range(d):
+            s += Y[r, a] * u[a]
+        hv[r] = s                            # J_h D^-1 tau
+        for c in range(r + 1):
+            g = 0.0
+            for a in range(d):
+                g += Y[r, a] * Y[c, a]
+            G[r, c] = g                      # J_h D^-1 J_h^T (lower part)
+            G[c, r] = g
+    Lh = Y  # reuse: Y is no longer needed once G is built
+    if not _chol(G, Lh, h):
+        return False
+    _fwd(Lh, hv, hv, h)
+    _bwd(Lh, hv, out, h)
+    return True
+
+
+@njit(**_JIT)
+def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V, m):
+    """Everything after the kinematics. Reads qd from st, leaves the new velocity in V[_V_QD]
+    and the rendered wrenches in st; returns False when the result is not finite."""
+    dt = par[P_DT]
+    k = par[P_K]
+    b = par[P_B]
+    e = par[P_E]
+    mus = par[P_MUS]
+    muk = par[P_MUK]
+    kt = par[P_KT]
+    bt = par[P_BT]
+    t = st[S_T]
+    qd0 = V[_V_QD0]
+    qd = V[_V_QD]
+    for a in range(d):
+        qd0[a] = st[S_QD + a]
+        qd[a] = qd0[a]
+    if not _chol(D, L, d):
+        return False
+
+    # local collision detection (eq. 3) and contact states (section IV-A)
+    n_imp = 0
+    n_col = 0
+    n_pen = 0
+    n_sep = 0
+    for i in range(m):
+        n0 = C[i, C_N]; n1 = C[i, C_N + 1]; n2 = C[i, C_N + 2]
+        # the constraint moves with v_constr along n since its update (eq. 2)
+        s = (n0 * (X[i, 0] - C[i, C_CP]) + n1 * (X[i, 1] - C[i, C_CP + 1])
+             + n2 * (X[i, 2] - C[i, C_CP + 2]) - C[i, C_VC] * (t - C[i, C_TU]))
+        vn = -C[i, C_VC]
+        for a in range(d):
+            jn = n0 * Jpt[i, 0, a] + n1 * Jpt[i, 1, a] + n2 * Jpt[i, 2, a]
+            Jn[i, a] = jn
+            vn += jn * qd0[a]
+        sprev = C[i, C_S]
+        C[i, C_SPREV] = sprev
+        C[i, C_S] = s
+        C[i, C_VN] = vn
+        C[i, C_IMP] = 0.0
+        if s > 0.0:
+            CI[i, CI_STATE] = CS_IMPENDING
+            n_imp += 1
+        elif vn > 0.0:
+            CI[i, CI_STATE] = CS_SEPARATING
+            n_sep += 1
+        elif sprev > 0.0:
+            CI[i, CI_STATE] = CS_COLLIDING
+            n_col += 1
+        else:
+            CI[i, CI_STATE] = CS_PENETRATING
+            n_pen += 1
+    cnt[K_N_IMPENDING] = n_imp
+    cnt[K_N_COLLIDING] = n_col
+    cnt[K_N_PENETRATING] = n_pen
+    cnt[K_N_SEPARATING] = n_sep
+    if n_col > 0:
+        cnt[K_PROXY] = PS_COLLIDING
+    elif n_imp == m:
+        cnt[K_PROXY] = PS_FREE
+    else:
+        cnt[K_PROXY] = PS_RESTING
+
+    # simultaneous collision impulses at colliding + penetrating contacts (eqs. 10-12), with the
+    # constraints momentarily static: v_n = n^T J qd
+    gimp = V[_V_GIMP]
+    for a in range(d):
+        gimp[a] = 0.0
+    w = V[_V_W]
+    for a in range(d):
+        s = 0.0
+        for k2 in range(a, d):
+            s += L[k2, a] * qd0[k2]
+        w[a] = s                              # w = L^T qd0
+    ke0 = 0.0
+    for a in range(d):
+        ke0 += w[a] * w[a]
+    ke0 *= 0.5
+    st[S_KE_PRE] = ke0
+    st[S_KE_POST] = ke0
+    if n_col > 0:
+        r = 0
+        tmp = V[_V_T1]
+        for i in range(m):
+            stt = CI[i, CI_STATE]
+            if stt != CS_COLLIDING and stt != CS_PENETRATING:
+                continue
+            _fwd(L, Jn[i], Bm[i], d)          # b_i = L^-1 Jc_i^T
+            nb = 0.0
+            for a in range(d):
+                tmp[a] = Bm[i, a]
+                nb += tmp[a] * tmp[a]
+            nb = math.sqrt(nb)
+            if r >= d or not nb > 0.0:
+                continue
+            for _pass in range(2):            # re-orthogonalize once for accuracy
+                for q_ in range(r):
+                    c = 0.0
+                    for a in range(d):
+                        c += U[q_, a] * tmp[a]
+                    for a in range(d):
+                        tmp[a] -= c * U[q_, a]
+            nr = 0.0
+            for a in range(d):
+                nr += tmp[a] * tmp[a]
+            nr = math.sqrt(nr)
+            if nr > RANK_TOL * nb:
+                for a in range(d):
+                    U[r, a] = tmp[a] / nr
+                r += 1
+        cnt[K_RANK] = r
+        # dw = -(1 + e) U^T U w, in the r coordinates: beta = U w
+        beta = V[_V_T2]
+        for q_ in range(r):
+            s = 0.0
+            for a in range(d):
+                s += U[q_, a] * w[a]
+            beta[q_] = -(1.0 + e) * s
+        dw = V[_V_TOT]
+        for a in range(d):
+            s = 0.0
+            for q_ in range(r):
+                s += U[q_, a] * beta[q_]
+            dw[a] = s
+        ke1 = 0.0
+        for a in range(d):
+            ke1 += (w[a] + dw[a]) * (w[a] + dw[a])
+        st[S_KE_POST] = 0.5 * ke1
+        # generalized impulse Jc^T p = D (qd1 - qd0) = L dw
+        for a in range(d):
+            s = 0.0
+            for k2 in range(a + 1):
+                s += L[a, k2] * dw[k2]
+            gimp[a] = s
+        _bwd(L, dw, tmp, d)                   # L^-T dw
+        for a in range(d):
+            qd[a] = qd0[a] + tmp[a]
+        # per-contact impulses: minimum-norm p with Jc^T p = L dw (what the pseudo-inverse gives)
+        if r > 0:
+            for q_ in range(r):
+                for c2 in range(r):
+                    G[q_, c2] = 0.0
+            for i in range(m):
+                stt = CI[i, CI_STATE]
+                if stt != CS_COLLIDING and stt != CS_PENETRATING:
+                    continue
+                for q_ in range(r):
+                    s = 0.0
+                    for a in range(d):
+                        s += U[q_, a] * Bm[i, a]
+                    Cm[i, q_] = s
+                for q_ in range(r):
+                    for c2 in range(q_ + 1):
+                        G[q_, c2] += Cm[i, q_] * Cm[i, c2]
+            for q_ in range(r):
+                for c2 in range(q_ + 1, r):
+                    G[q_, c2] = G[c2, q_]
+            if _chol(G, Y, r):
+                _fwd(Y, beta, beta, r)
+                _bwd(Y, beta, beta, r)
+                for i in range(m):
+                    stt = CI[i, CI_STATE]
+                    if stt != CS_COLLIDING and stt != CS_PENETRATING:
+                        continue
+                    s = 0.0
+                    for q_ in range(r):
+                        s += Cm[i, q_] * beta[q_]
+                    C[i, C_IMP] = s
+        cnt[K_COLLISIONS] += 1
+
+    # penalty (never pulling) and stick-slip friction at contacts with s <= 0, from the
+    # post-impulse velocity
+    tau = V[_V_TAU]
+    for a in range(d):
+        tau[a] = 0.0
+    n_slip = 0
+    for i in range(m):
+        n0 = C[i, C_N]; n1 = C[i, C_N + 1]; n2 = C[i, C_N + 2]
+        s = C[i, C_S]
+        if s > 0.0:
+            C[i, C_FN] = 0.0
+            for j in range(3):
+                C[i, C_FT + j] = 0.0
+                Zn[i, j] = 0.0
+            CI[i, CI_SLIP] = 0
+            continue
+        vn = -C[i, C_VC]
+        for a in range(d):
+            vn += Jn[i, a] * qd[a]
+        C[i, C_VN] = vn
+        fn = -k * s - b * vn
+        if fn < 0.0:
+            fn = 0.0
+        C[i, C_FN] = fn
+        f0 = fn * n0
+        f1 = fn * n1
+        f2 = fn * n2
+        if (mus > 0.0 or muk > 0.0) and fn > 0.0:
+            # tangential velocity of the proxy point (the engine reports no tangential
+            # constraint velocity, so friction acts against the proxy's own sliding)
+            v0 = 0.0; v1 = 0.0; v2 = 0.0
+            for a in range(d):
+                v0 += Jpt[i, 0, a] * qd[a]
+                v1 += Jpt[i, 1, a] * qd[a]
+                v2 += Jpt[i, 2, a] * qd[a]
+            vdn = v0 * n0 + v1 * n1 + v2 * n2
+            v0 -= vdn * n0; v1 -= vdn * n1; v2 -= vdn * n2
+            z0 = C[i, C_Z]; z1 = C[i, C_Z + 1]; z2 = C[i, C_Z + 2]
+            zdn = z0 * n0 + z1 * n1 + z2 * n2     # normals may turn at updates
+            z0 += dt * v0 - zdn * n0
+            z1 += dt * v1 - zdn * n1
+            z2 += dt * v2 - zdn * n2
+            t0 = -kt * z0 - bt * v0
+            t1 = -kt * z1 - bt * v1
+            t2 = -kt * z2 - bt * v2
+            tn = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+            if tn > mus * fn:
+                # breakaway: the stick point jumps so the spring holds the kinetic force
+                zn = math.sqrt(z0 * z0 + z1 * z1 + z2 * z2)
+                if zn > 0.0 and kt > 0.0:
+                    sc = muk * fn / (kt * zn)
+                    z0 *= sc; z1 *= sc; z2 *= sc
+                    t0 = -kt * z0; t1 = -kt * z1; t2 = -kt * z2
+                else:
+                    t0 = 0.0; t1 = 0.0; t2 = 0.0
+                CI[i, CI_SLIP] = 1
+                n_slip += 1
+            else:
+                CI[i, CI_SLIP] = 0
+            Zn[i, 0] = z0; Zn[i, 1] = z1; Zn[i, 2] = z2
+            C[i, C_FT] = t0; C[i, C_FT + 1] = t1; C[i, C_FT + 2] = t2
+            f0 += t0; f1 += t1; f2 += t2
+        else:
+            for j in range(3):
+                C[i, C_FT + j] = 0.0
+                Zn[i, j] = 0.0
+            CI[i, CI_SLIP] = 0
+        for a in range(d):
+            tau[a] += Jpt[i, 0, a] * f0 + Jpt[i, 1, a] * f1 + Jpt[i, 2, a] * f2
+    cnt[K_SLIPPING] = n_slip
+
+    # proxy dynamics (eq. 7, Coriolis neglected): D qdd = tau + J_h^T F_h - G
+    tot = V[_V_TOT]
+    taug = V[_V_TAUG]
+    for a in range(d):
+        s = tau[a] + taug[a]
+        for r in range(h):
+            s += Jh[r, a] * st[S_FH + r]
+        tot[a] = s
+    _fwd(L, tot, tot, d)
+    _bwd(L, tot, tot, d)
+    for a in range(d):
+        qd[a] += dt * tot[a]
+
+    # what the hand feels: penalty + friction (eq. 8) and the impulsive wrench (eq. 12)
+    fpen = V[_V_T2]
+    if not _render(d, h, L, Jh, Y, G, tau, fpen, V):
+        return False
+    for r in range(h):
+        st[S_FPEN + r] = fpen[r]
+    for a in range(d):
+        tot[a] = gimp[a] / dt
+    if not _render(d, h, L, Jh, Y, G, tot, fpen, V):
+        return False
+    for r in range(h):
+        st[S_FIMP + r] = fpen[r]
+        st[S_FENV + r] = st[S_FPEN + r] + fpen[r]
+
+    ok = True
+    for a in range(d):
+        if not math.isfinite(qd[a]):
+            ok = False
+    for r in range(h):
+        if not math.isfinite(st[S_FENV + r]):
+            ok = False
+    return ok
+
+
+@njit(**_JIT)
+def _zero_outputs(st):
+    for r in range(6):
+        st[S_FENV + r] = 0.0
+        st[S_FIMP + r] = 0.0
+        st[S_FPEN + r] = 0.0
+
+
+@njit(**_JIT)
+def step_rigid(kind, par, st, C, CI, cnt, wk, hand):
+    """One haptic step of a rigid tool. ``hand``: wrench on the proxy at the hand point, world
+    frame (1dof: force along the axis; planar: fx, fy, tau_z; spatial: f (3), tau (3)).
+    Returns an E_* code; on a non-finite result the state is kept, the rendered wrench is zero
+    and K_NONFINITE counts it."""
+    if kind == TOOL_1DOF:
+        d = 1; h = 1
+    elif kind == TOOL_PLANAR:
+        d = 3; h = 3
+    else:
+        d = 6; h = 6
+    for r in range(h):
+        if not math.isfinite(hand[r]):
+            return E_HAND_NONFINITE
+    for r in range(h):
+        st[S_FH + r] = hand[r]
+    cap = C.shape[0]
+    m = cnt[K_M]
+    D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V = _views(wk, cap)
+    R = Y  # 3x3 rotation in the corner of a scratch matrix not yet in use
+    c = V[_V_T1]
+    _kin_rigid(kind, par, st, C, m, R, c, D, V[_V_TAUG], Jpt, X, Jh)
+    ok = _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V, m)
+    if ok:
+        qd = V[_V_QD]
+        for a in range(d):
+            st[S_QD + a] = qd[a]
+        for i in range(m):
+            for j in range(3):
+                C[i, C_Z + j] = Zn[i, j]
+        _integrate_rigid(kind, st, qd, par[P_DT])
+        ke = 0.0
+        for a in range(d):
+            s = 0.0
+            for b in range(d):
+                s += D[a, b] * qd[b]
+            ke += qd[a] * s
+        st[S_KE] = 0.5 * ke
+    else:
+        _zero_outputs(st)
+        cnt[K_NONFINITE] += 1
+    st[S_T] += par[P_DT]
+    cnt[K_STEPS] += 1
+    return E_OK
+
+
+# --------------------------------------------------------------------------------------------
+# model update (the notes' rule table)
+# --------------------------------------------------------------------------------------------
+@njit(**_JIT)
+def _select_smallest(dsep, n_in, cap, sel):
+    """Indices of the ``cap`` contacts with the smallest separation, in incoming order."""
+    if n_in <= cap:
+        for j in range(n_in):
+            sel[j] = j
+        return n_in
+    # threshold by repeated selection: O(n_in * cap) worst case, no allocation
+    for j in range(n_in):
+        sel[j] = j
+    # partial selection sort on the first cap slots of sel (cap is small: default 64)
+    for a in range(cap):
+        best = a
+        for j in range(a + 1, n_in):
+            ij = sel[j]
+            ib = sel[best]
+            if dsep[ij] < dsep[ib] or (dsep[ij] == dsep[ib] and ij < ib):
+                best = j
+        tmp = sel[a]
+        sel[a] = sel[best]
+        sel[best] = tmp
+    # back to incoming order so the store is deterministic and order-stable
+    for a in range(1, cap):
+        v = sel[a]
+        j = a - 1
+        while j >= 0 and sel[j] > v:
+            sel[j + 1] = sel[j]
+            j -= 1
+        sel[j + 1] = v
+    return cap
+
+
+@njit(**_JIT)
+def validate_contacts(kind, n_links, keys, cp, nrm, dsep, vc, n_in):
+    """E_* code for a contact set; touches nothing."""
+    if n_in > keys.shape[0] or n_in > cp.shape[0] or n_in > nrm.shape[0] or n_in > dsep.shape[0] \
+            or n_in > vc.shape[0]:
+        return E_TOO_MANY
+    for j in range(n_in):
+        for a in range(3):
+            if not (math.isfinite(cp[j, a]) and math.isfinite(nrm[j, a])):
+                return E_CONTACT_NONFINITE
+        if not (math.isfinite(dsep[j]) and math.isfinite(vc[j])):
+            return E_CONTACT_NONFINITE
+        nn = math.sqrt(nrm[j, 0] ** 2 + nrm[j, 1] ** 2 + nrm[j, 2] ** 2)
+        if abs(nn - 1.0) > UNIT_TOL:
+            return E_NORMAL_NOT_UNIT
+        if kind == TOOL_PLANAR and abs(nrm[j, 2]) > UNIT_TOL:
+            return E_NORMAL_OUT_OF_PLANE
+        if keys[j, 0] < 0 or keys[j, 0] >= n_links:
+            return E_LINK_OUT_OF_RANGE
+    return E_OK
+
+
+@njit(**_JIT)
+def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, sel, newF, newI):
+    """Replace the local contact set by the engine's (validated first; on error nothing changes).
+    Contacts absent from the update leave the model. The proxy's q and qd are never touched."""
+    code = validate_contacts(kind, 1, keys, cp, nrm, dsep, vc, n_in)
+    if code != E_OK:
+        return code
+    cap = C.shape[0]
+    if n_in > sel.shape[0]:
+        return E_TOO_MANY
+    nk = _select_smallest(dsep, n_in, cap, sel)
+    for a in range(nk):
+        ja = sel[a]
+        for b2 in range(a):
+            jb = sel[b2]
+            if keys[ja, 0] == keys[jb, 0] and keys[ja, 1] == keys[jb, 1] and keys[ja, 2] == keys[jb, 2]:
+                return E_DUPLICATE_KEY
+    # --- validated: from here on the update is applied ---
+    m = cnt[K_M]
+    D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V = _views(wk, cap)
+    R = Y
+    c = V[_V_T1]
+    _rigid_pose(kind, par, st, R, c)
+    t = st[S_T]
+    policy = int(par[P_POLICY])
+    # current world points and proxy separations s_p of the existing contacts
+    # Zn[:, 0] (friction scratch of the step) holds s_p here
+    for i in range(m):
+        for a in range(3):
+            s = c[a]
+            for b2 in range(3):
+                s += R[a, b2] * C[i, C_P + b2]
+            X[i, a] = s
+        s = -C[i, C_VC] * (t - C[i, C_TU])
+        for a in range(3):
+            s += C[i, C_N + a] * (X[i, a] - C[i, C_CP + a])
+        Zn[i, 0] = s
+    matched = 0
+    n_new = 0
+    n_def = 0
+    for a in range(nk):
+        j = sel[a]
+        found = -1
+        for i in range(m):
+            if CI[i, CI_KEY] == keys[j, 0] and CI[i, CI_KEY + 1] == keys[j, 1] \
+                    and CI[i, CI_KEY + 2] == keys[j, 2]:
+                found = i
+                break
+        dj = dsep[j]
+        # offset along n of the target world point from c_p (eq. 1/6: d, eq. 5: s_p, eq. 4: 0)
+        if found >= 0:
+            matched += 1
+            s_p = Zn[found, 0]
+            if policy == POLICY_RIGID or dj > 0.0 or s_p < dj:
+                off = dj
+            elif s_p <= 0.0:
+                off = s_p
+                n_def += 1
+            else:
+                off = 0.0
+                n_def += 1
+            newF[a, C_S] = C[found, C_S]
+            newF[a, C_SPREV] = C[found, C_SPREV]
+            for q_ in range(3):
+                newF[a, C_Z + q_] = C[found, C_Z + q_]
+            newI[a, CI_SLIP] = CI[found, CI_SLIP]
+            newI[a, CI_STATE] = CI[found, CI_STATE]
+            newI[a, CI_AGE] = CI[found, CI_AGE] + 1
+        else:
+            n_new += 1
+            if policy == POLICY_RIGID or dj > 0.0:
+                off = dj
+            else:
+                off = 0.0
+                n_def += 1
+            newF[a, C_S] = np.inf             # has just arisen: next step may be a collision
+            newF[a, C_SPREV] = np.inf
+            for q_ in range(3):
+                newF[a, C_Z + q_] = 0.0
+            newI[a, CI_SLIP] = 0
+            newI[a, CI_STATE] = CS_IMPENDING
+            newI[a, CI_AGE] = 0
+        for q_ in range(3):
+            newI[a, CI_KEY + q_] = keys[j, q_]
+            newF[a, C_CP + q_] = cp[j, q_]
+            newF[a, C_N + q_] = nrm[j, q_]
+        if kind == TOOL_PLANAR:
+            newF[a, C_CP + 2] = 0.0
+            newF[a, C_N + 2] = 0.0
+        newF[a, C_D] = dj
+        newF[a, C_VC] = vc[j]
+        newF[a, C_TU] = t
+        newF[a, C_VN] = 0.0
+        newF[a, C_FN] = 0.0
+        newF[a, C_IMP] = 0.0
+        for q_ in range(3):
+            newF[a, C_FT + q_] = 0.0
+        # local contact point in the body frame: p = R^T (c_p + off n - c)   (eqs. 1, 4, 5, 6)
+        for q_ in range(3):
+            X[0, q_] = newF[a, C_CP + q_] + off * newF[a, C_N + q_] - c[q_]
+        for q_ in range(3):
+            s = 0.0
+            for b2 in range(3):
+                s += R[b2, q_] * X[0, b2]
+            newF[a, C_P + q_] = s
+        if kind == TOOL_PLANAR:
+            newF[a, C_P + 2] = 0.0
+    for a in range(nk):
+        for q_ in range(NCOLS_F):
+            C[a, q_] = newF[a, q_]
+        for q_ in range(NCOLS_I):
+            CI[a, q_] = newI[a, q_]
+    cnt[K_M] = nk
+    cnt[K_UPDATES] += 1
+    cnt[K_DROPPED] += n_in - nk
+    cnt[K_NEW] += n_new
+    cnt[K_DEFORMED] += n_def
+    cnt[K_LEFT] += m - matched
+    return E_OK

@@ -1,0 +1,136 @@
+"""Array layouts shared by the numba kernels, the numpy reference and the thin model class.
+
+Everything the haptic step touches lives in a handful of preallocated arrays whose columns are
+named here, so kernels index by constant and no Python object is touched per step.
+
+Frames: "world" is the environment's frame (the engine's). "body" is the proxy's own frame (its
+centre of mass, rotated with it); the paper's proxy-frame contact point p~ is stored in body
+coordinates. Units are SI throughout (m, kg, s, N, N m, N s).
+"""
+from __future__ import annotations
+
+# --- tool kinds -------------------------------------------------------------------------------
+TOOL_1DOF = 0
+TOOL_PLANAR = 1
+TOOL_SPATIAL = 2
+TOOL_KIND_NAMES = {"1dof": TOOL_1DOF, "planar": TOOL_PLANAR, "spatial": TOOL_SPATIAL}
+#: (configuration-space dimension d, hand-wrench dimension h, number of position coordinates nq)
+TOOL_DIMS = {TOOL_1DOF: (1, 1, 1), TOOL_PLANAR: (3, 3, 3), TOOL_SPATIAL: (6, 6, 7)}
+#: Largest configuration space the generic kernels size their workspace for (linkages <= 12 joints).
+MAX_DOF = 12
+
+# --- update policies --------------------------------------------------------------------------
+POLICY_RIGID = 0        # eq. 1 at every update: no deformation (the paper's Fig. 6a / IR baseline)
+POLICY_DEFORM = 1       # eqs. 4/5/6 rule table of the notes (LM0 when the engine sends epsilon = 0)
+POLICY_NAMES = {"rigid": POLICY_RIGID, "deformation": POLICY_DEFORM}
+
+# --- local contact states (section IV-A) ------------------------------------------------------
+CS_IMPENDING = 0
+CS_COLLIDING = 1
+CS_PENETRATING = 2
+CS_SEPARATING = 3
+CONTACT_STATE_NAMES = ("impending", "colliding", "penetrating", "separating")
+
+# --- proxy states -----------------------------------------------------------------------------
+PS_FREE = 0
+PS_COLLIDING = 1
+PS_RESTING = 2
+PROXY_STATE_NAMES = ("free", "colliding", "resting")
+
+# --- contact store, float64 columns (capacity rows; the first `m` rows are live) -------------
+C_CP = 0            # 0..2 constraint position c_p at the update, world, m
+C_N = 3             # 3..5 constraint normal n, unit, world, environment -> tool
+C_D = 6             # real-tool separation d reported by the engine, m (positive apart)
+C_VC = 7            # constraint normal velocity v_constr = n . v(c_p), m/s (eq. 2)
+C_TU = 8            # model time of the update that set this constraint, s
+C_P = 9             # 9..11 local contact point p~, body frame of its link, m
+C_S = 12            # separation s_t at this step (eq. 3), m
+C_SPREV = 13        # separation s_{t-1}; +inf for a contact that has just arisen
+C_VN = 14           # proxy normal velocity relative to the (moving) constraint, m/s
+C_FN = 15           # penalty normal force this step, N (>= 0: never pulling)
+C_Z = 16            # 16..18 friction bristle (stick spring elongation), world, m
+C_FT = 19           # 19..21 friction force on the proxy, world, N
+C_IMP = 22          # collision impulse at this contact this step, N s (eq. 11)
+NCOLS_F = 23
+
+# --- contact store, int64 columns -------------------------------------------------------------
+CI_KEY = 0          # 0..2 stable key: (tool link, environment body, feature)
+CI_STATE = 3        # CS_* of this step
+CI_SLIP = 4         # 1 while the friction bristle slips (kinetic), 0 while it sticks
+CI_AGE = 5          # number of model updates this contact has survived
+NCOLS_I = 6
+
+# --- parameters (float64) ---------------------------------------------------------------------
+P_DT = 0            # haptic step, s
+P_K = 1             # local contact stiffness k_lc, N/m
+P_B = 2             # local contact damping b_lc, N s/m
+P_E = 3             # restitution e in [0, 1]
+P_MUS = 4           # static friction coefficient
+P_MUK = 5           # kinetic friction coefficient
+P_KT = 6            # tangential (bristle) stiffness, N/m
+P_BT = 7            # tangential damping while sticking, N s/m
+P_MASS = 8          # tool mass, kg
+P_INERTIA = 9       # 9..17 body-frame inertia about the COM, row-major 3x3, kg m^2
+P_GRAV = 18         # 18..20 gravity, world, m/s^2
+P_AXIS = 21         # 21..23 1-DOF translation axis, unit, world
+P_ORIGIN = 24       # 24..26 1-DOF COM position at q = 0, world, m
+P_HAND = 27         # 27..29 hand (grasp) point, body frame, m
+P_POLICY = 30       # POLICY_* (stored as float)
+P_EPS = 31          # epsilon granted to the engine, m (metadata: the engine applies it)
+NPAR = 32
+
+# --- state (float64) --------------------------------------------------------------------------
+S_T = 0             # model time, s
+S_Q = 1             # 1..7 configuration q (1dof: x; planar: x, y, theta; spatial: x, y, z, qw, qx, qy, qz)
+S_QD = 8            # 8..19 configuration velocity qd (spatial: v world, omega world), up to MAX_DOF
+S_FH = 20           # 20..25 hand wrench applied to the proxy, world, at the hand point (input)
+S_FENV = 26         # 26..31 environment wrench rendered to the hand, eq. 8 + eq. 12 (output)
+S_FIMP = 32         # 32..37 impulsive part of S_FENV (eq. 12)
+S_FPEN = 38         # 38..43 penalty + friction part of S_FENV (eq. 8)
+S_KE = 44           # proxy kinetic energy after the step, J
+S_KE_PRE = 45       # kinetic energy before this step's collision impulse, J
+S_KE_POST = 46      # kinetic energy right after it, J
+S_GIMP = 47         # 47..58 generalized impulse Jc^T p of this step, config space
+NSTATE = 59
+
+# --- counters (int64) -------------------------------------------------------------------------
+K_M = 0             # live contacts
+K_PROXY = 1         # PS_* of the last step
+K_STEPS = 2
+K_UPDATES = 3
+K_DROPPED = 4       # contacts dropped over capacity (smallest separations kept), cumulative
+K_COLLISIONS = 5    # steps in which an impulse was applied
+K_NONFINITE = 6     # steps whose result was not finite: state kept, zero wrench rendered
+K_NEW = 7           # contacts that entered the model, cumulative
+K_DEFORMED = 8      # update rule applications that deformed the proxy (eq. 4 or 5), cumulative
+K_LEFT = 9          # contacts that left the model at an update, cumulative
+K_N_IMPENDING = 10  # counts of this step, by state
+K_N_COLLIDING = 11
+K_N_PENETRATING = 12
+K_N_SEPARATING = 13
+K_RANK = 14         # rank of the collision constraint set at the last impulse
+K_SLIPPING = 15     # contacts slipping this step
+NCOUNT = 16
+
+# --- step / update return codes (0 = ok); the class turns them into ValueError ----------------
+E_OK = 0
+E_HAND_NONFINITE = 1
+E_CONTACT_NONFINITE = 2
+E_NORMAL_NOT_UNIT = 3
+E_NORMAL_OUT_OF_PLANE = 4
+E_LINK_OUT_OF_RANGE = 5
+E_TOO_MANY = 6
+E_DUPLICATE_KEY = 7
+
+ERROR_FIELDS = {
+    E_HAND_NONFINITE: ("hand_wrench", "must be finite"),
+    E_CONTACT_NONFINITE: ("contacts", "position_m, normal, separation_m and v_constr_m_per_s must be finite"),
+    E_NORMAL_NOT_UNIT: ("normal", "must be unit length within 1e-6"),
+    E_NORMAL_OUT_OF_PLANE: ("normal", "must lie in the x-y plane (|n_z| <= 1e-6) for a planar tool"),
+    E_LINK_OUT_OF_RANGE: ("keys", "tool link (column 0) out of range for this tool"),
+    E_TOO_MANY: ("contacts", "more contacts than the update buffer holds"),
+    E_DUPLICATE_KEY: ("keys", "duplicate contact key in one update"),
+}
+
+#: Unit-length tolerance on normals (the issue's 1e-6).
+UNIT_TOL = 1e-6

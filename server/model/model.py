@@ -1,0 +1,489 @@
+"""The local model of interaction: a thin class that owns the preallocated arrays and calls one
+numba kernel per haptic step (``step``) and one per model update (``update``).
+
+Typical use, one haptic step at a time::
+
+    model = LocalModel(ToolSpec.planar(mass_kg=0.2, inertia_kg_m2=2e-4),
+                       ContactParams(stiffness_n_per_m=4000, damping_n_s_per_m=30),
+                       period_s=1 / 512)
+    model.update(keys, position_m, normal, separation_m, v_constr_m_per_s)   # at 30-60 Hz
+    wrench_to_hand = model.step(hand_wrench)                                  # every step
+
+Bad input raises ``ValueError`` naming the field and leaves the model exactly as it was.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from . import kernels as _k
+from .layout import (
+    C_CP, C_D, C_FN, C_FT, C_IMP, C_N, C_P, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
+    CI_AGE, CI_KEY, CI_SLIP, CI_STATE, CONTACT_STATE_NAMES, E_OK, ERROR_FIELDS,
+    K_COLLISIONS, K_DEFORMED, K_DROPPED, K_LEFT, K_M, K_N_COLLIDING, K_N_IMPENDING,
+    K_N_PENETRATING, K_N_SEPARATING, K_NEW, K_NONFINITE, K_PROXY, K_RANK, K_SLIPPING, K_STEPS,
+    K_UPDATES, NCOLS_F, NCOLS_I, NCOUNT, NPAR, NSTATE,
+    P_AXIS, P_B, P_BT, P_DT, P_E, P_EPS, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK,
+    P_MUS, P_ORIGIN, P_POLICY, POLICY_NAMES, PROXY_STATE_NAMES,
+    S_FENV, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_Q, S_QD, S_T,
+    TOOL_1DOF, TOOL_DIMS, TOOL_KIND_NAMES, TOOL_PLANAR, TOOL_SPATIAL, UNIT_TOL,
+)
+
+DEFAULT_CAPACITY = 64
+#: Most contacts one update may carry before the capacity rule; larger sets are refused.
+DEFAULT_MAX_UPDATE_CONTACTS = 1024
+
+
+def _finite_float(name: str, value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a number, got {value!r}") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{name}: must be finite, got {v!r}")
+    return v
+
+
+def _vec3(name: str, value) -> np.ndarray:
+    a = np.asarray(value, dtype=np.float64)
+    if a.shape != (3,):
+        raise ValueError(f"{name}: expected 3 numbers, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: must be finite, got {a.tolist()}")
+    return a
+
+
+@dataclass(frozen=True)
+class ToolSpec:
+    """The virtual tool the proxy stands for. Build with ``one_dof``, ``planar`` or ``spatial``.
+
+    ``inertia_kg_m2`` is about the centre of mass in the body frame (3x3); ``hand_point_m`` is
+    where the hand holds the tool, body frame (the hand wrench acts there). A 1-DOF tool
+    translates along the unit world ``axis`` and has its COM at ``origin_m + q * axis``.
+    """
+
+    kind: str
+    mass_kg: float
+    inertia_kg_m2: tuple = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    axis: tuple = (1.0, 0.0, 0.0)
+    origin_m: tuple = (0.0, 0.0, 0.0)
+    hand_point_m: tuple = (0.0, 0.0, 0.0)
+
+    @classmethod
+    def one_dof(cls, mass_kg: float, axis=(1.0, 0.0, 0.0), origin_m=(0.0, 0.0, 0.0)) -> "ToolSpec":
+        return cls("1dof", mass_kg, axis=tuple(axis), origin_m=tuple(origin_m))
+
+    @classmethod
+    def planar(cls, mass_kg: float, inertia_kg_m2: float, hand_point_m=(0.0, 0.0)) -> "ToolSpec":
+        """Rigid body in the x-y plane; ``inertia_kg_m2`` is I_zz about the COM."""
+        izz = float(inertia_kg_m2)
+        hp = tuple(hand_point_m) + (0.0,) * (3 - len(tuple(hand_point_m)))
+        return cls("planar", mass_kg, inertia_kg_m2=((izz, 0, 0), (0, izz, 0), (0, 0, izz)), hand_point_m=hp)
+
+    @classmethod
+    def spatial(cls, mass_kg: float, inertia_kg_m2, hand_point_m=(0.0, 0.0, 0.0)) -> "ToolSpec":
+        """Rigid body in 3-D; ``inertia_kg_m2``: 3x3 matrix or 3 principal moments."""
+        inertia = np.asarray(inertia_kg_m2, dtype=np.float64)
+        if inertia.shape == (3,):
+            inertia = np.diag(inertia)
+        return cls("spatial", mass_kg, inertia_kg_m2=tuple(map(tuple, inertia.tolist())),
+                   hand_point_m=tuple(hand_point_m))
+
+    @property
+    def kind_id(self) -> int:
+        return TOOL_KIND_NAMES[self.kind]
+
+    def validated(self) -> None:
+        if self.kind not in TOOL_KIND_NAMES:
+            raise ValueError(f"tool.kind: expected one of {sorted(TOOL_KIND_NAMES)}, got {self.kind!r}")
+        mass = _finite_float("tool.mass_kg", self.mass_kg)
+        if not mass > 0:
+            raise ValueError(f"tool.mass_kg: must be positive, got {mass!r}")
+        inertia = np.asarray(self.inertia_kg_m2, dtype=np.float64)
+        if inertia.shape != (3, 3) or not np.all(np.isfinite(inertia)):
+            raise ValueError("tool.inertia_kg_m2: expected a finite 3x3 matrix")
+        if self.kind == "planar" and not inertia[2, 2] > 0:
+            raise ValueError(f"tool.inertia_kg_m2: I_zz must be positive, got {inertia[2, 2]!r}")
+        if self.kind == "spatial":
+            if not np.allclose(inertia, inertia.T, rtol=1e-9, atol=1e-15):
+                raise ValueError("tool.inertia_kg_m2: must be symmetric")
+            if not np.all(np.linalg.eigvalsh(inertia) > 0):
+                raise ValueError("tool.inertia_kg_m2: must be positive definite (negative or zero inertia)")
+        axis = _vec3("tool.axis", self.axis)
+        if self.kind == "1dof" and abs(np.linalg.norm(axis) - 1.0) > UNIT_TOL:
+            raise ValueError(f"tool.axis: must be a unit vector, got {axis.tolist()}")
+        _vec3("tool.origin_m", self.origin_m)
+        _vec3("tool.hand_point_m", self.hand_point_m)
+
+
+@dataclass(frozen=True)
+class ContactParams:
+    """Dynamic properties shared by all local contacts (section III-A of the paper)."""
+
+    stiffness_n_per_m: float = 4000.0
+    damping_n_s_per_m: float = 30.0
+    restitution: float = 0.0
+    mu_static: float = 0.0
+    mu_kinetic: float = 0.0
+    #: Stiffness of the stick spring of the friction model; None: the contact stiffness.
+    tangential_stiffness_n_per_m: float | None = None
+    #: Damping of the stick spring while sticking; None: the contact damping.
+    tangential_damping_n_s_per_m: float | None = None
+
+    def validated(self) -> None:
+        for name in ("stiffness_n_per_m", "damping_n_s_per_m", "mu_static", "mu_kinetic"):
+            v = _finite_float(f"contact.{name}", getattr(self, name))
+            if v < 0:
+                raise ValueError(f"contact.{name}: must be >= 0, got {v!r}")
+        e = _finite_float("contact.restitution", self.restitution)
+        if not 0.0 <= e <= 1.0:
+            raise ValueError(f"contact.restitution: must be in [0, 1], got {e!r}")
+        if self.mu_kinetic > self.mu_static:
+            raise ValueError(f"contact.mu_kinetic: must not exceed mu_static ({self.mu_kinetic!r} > {self.mu_static!r})")
+        for name in ("tangential_stiffness_n_per_m", "tangential_damping_n_s_per_m"):
+            v = getattr(self, name)
+            if v is not None and not _finite_float(f"contact.{name}", v) >= 0:
+                raise ValueError(f"contact.{name}: must be >= 0, got {v!r}")
+
+
+@dataclass
+class ContactSnapshot:
+    """A copy of the live local contacts (for tests, telemetry and plots; not for the hot path)."""
+
+    keys: np.ndarray
+    position_m: np.ndarray
+    normal: np.ndarray
+    separation_reported_m: np.ndarray
+    v_constr_m_per_s: np.ndarray
+    local_point_body_m: np.ndarray
+    separation_m: np.ndarray
+    separation_prev_m: np.ndarray
+    normal_velocity_m_per_s: np.ndarray
+    normal_force_n: np.ndarray
+    friction_force_n: np.ndarray
+    bristle_m: np.ndarray
+    impulse_n_s: np.ndarray
+    state: list = field(default_factory=list)
+    slipping: np.ndarray | None = None
+    age_updates: np.ndarray | None = None
+
+
+class LocalModel:
+    """The paper's local model for one rigid tool (1-DOF, planar or spatial).
+
+    Parameters
+    ----------
+    tool: the virtual tool (mass, inertia, hand point).
+    contact: stiffness, damping, restitution and friction of the local contacts.
+    period_s: the haptic step (fixed-step semi-implicit Euler).
+    policy: ``"deformation"`` (eqs. 4/5/6; LM0 when the engine sends epsilon = 0) or
+        ``"rigid"`` (eq. 1 at every update: the no-deformation baseline).
+    epsilon_m: the epsilon granted to the engine (it inflates its tool; the model only records it).
+    capacity: most local contacts kept; an update with more keeps the smallest separations
+        and counts the rest in ``counters()["dropped"]``.
+    gravity_m_per_s2: world gravity acting on the proxy (default none: the device carries it).
+    warm: compile / load the cached kernels now, not at the first haptic step.
+    """
+
+    def __init__(
+        self,
+        tool: ToolSpec,
+        contact: ContactParams = ContactParams(),
+        *,
+        period_s: float = 1e-3,
+        policy: str = "deformation",
+        epsilon_m: float = 0.0,
+        capacity: int = DEFAULT_CAPACITY,
+        gravity_m_per_s2: Sequence[float] = (0.0, 0.0, 0.0),
+        max_update_contacts: int = DEFAULT_MAX_UPDATE_CONTACTS,
+        warm: bool = True,
+    ) -> None:
+        tool.validated()
+        contact.validated()
+        dt = _finite_float("period_s", period_s)
+        if not dt > 0:
+            raise ValueError(f"period_s: must be positive, got {dt!r}")
+        if policy not in POLICY_NAMES:
+            raise ValueError(f"policy: expected one of {sorted(POLICY_NAMES)}, got {policy!r}")
+        eps = _finite_float("epsilon_m", epsilon_m)
+        if eps < 0:
+            raise ValueError(f"epsilon_m: must be >= 0, got {eps!r}")
+        if not isinstance(capacity, (int, np.integer)) or capacity < 1:
+            raise ValueError(f"capacity: must be a positive integer, got {capacity!r}")
+        if not isinstance(max_update_contacts, (int, np.integer)) or max_update_contacts < capacity:
+            raise ValueError(f"max_update_contacts: must be an integer >= capacity, got {max_update_contacts!r}")
+        grav = _vec3("gravity_m_per_s2", gravity_m_per_s2)
+
+        self.tool = tool
+        self.contact = contact
+        self.kind = tool.kind_id
+        self.dof, self.hand_dim, self.nq = TOOL_DIMS[self.kind]
+        self.capacity = int(capacity)
+        self.policy = policy
+
+        par = np.zeros(NPAR)
+        par[P_DT] = dt
+        par[P_K] = contact.stiffness_n_per_m
+        par[P_B] = contact.damping_n_s_per_m
+        par[P_E] = contact.restitution
+        par[P_MUS] = contact.mu_static
+        par[P_MUK] = contact.mu_kinetic
+        par[P_KT] = (contact.stiffness_n_per_m if contact.tangential_stiffness_n_per_m is None
+                     else contact.tangential_stiffness_n_per_m)
+        par[P_BT] = (contact.damping_n_s_per_m if contact.tangential_damping_n_s_per_m is None
+                     else contact.tangential_damping_n_s_per_m)
+        par[P_MASS] = tool.mass_kg
+        par[P_INERTIA:P_INERTIA + 9] = np.asarray(tool.inertia_kg_m2, dtype=np.float64).ravel()
+        par[P_GRAV:P_GRAV + 3] = grav
+        par[P_AXIS:P_AXIS + 3] = tool.axis
+        par[P_ORIGIN:P_ORIGIN + 3] = tool.origin_m
+        par[P_HAND:P_HAND + 3] = tool.hand_point_m
+        par[P_POLICY] = POLICY_NAMES[policy]
+        par[P_EPS] = eps
+        self._par = par
+        self._st = np.zeros(NSTATE)
+        self._C = np.zeros((self.capacity, NCOLS_F))
+        self._CI = np.zeros((self.capacity, NCOLS_I), dtype=np.int64)
+        self._cnt = np.zeros(NCOUNT, dtype=np.int64)
+        self._wk = np.zeros(_k.workspace_size(self.capacity))
+        self._hand = np.zeros(6)
+        self._sel = np.zeros(int(max_update_contacts), dtype=np.int64)
+        self._newF = np.zeros((self.capacity, NCOLS_F))
+        self._newI = np.zeros((self.capacity, NCOLS_I), dtype=np.int64)
+        self._fenv = self._st[S_FENV:S_FENV + self.hand_dim]
+        self.reset()
+        if warm:
+            warm_up()
+
+    # -- state ---------------------------------------------------------------------------------
+    def reset(self, q: Sequence[float] | None = None, qd: Sequence[float] | None = None) -> None:
+        """Put the proxy at configuration q with velocity qd, empty the contact store, zero time.
+        Spatial q is (x, y, z, qw, qx, qy, qz); it is normalised."""
+        qv = np.zeros(self.nq)
+        if self.kind == TOOL_SPATIAL:
+            qv[3] = 1.0
+        if q is not None:
+            qa = np.asarray(q, dtype=np.float64).ravel()
+            if qa.shape != (self.nq,) or not np.all(np.isfinite(qa)):
+                raise ValueError(f"q: expected {self.nq} finite numbers for a {self.tool.kind} tool")
+            qv = qa.copy()
+            if self.kind == TOOL_SPATIAL:
+                nrm = np.linalg.norm(qv[3:7])
+                if not nrm > 0:
+                    raise ValueError("q: the orientation quaternion must be non-zero")
+                qv[3:7] /= nrm
+        qdv = np.zeros(self.dof)
+        if qd is not None:
+            qda = np.asarray(qd, dtype=np.float64).ravel()
+            if qda.shape != (self.dof,) or not np.all(np.isfinite(qda)):
+                raise ValueError(f"qd: expected {self.dof} finite numbers for a {self.tool.kind} tool")
+            qdv = qda
+        self._st[:] = 0.0
+        self._st[S_Q:S_Q + self.nq] = qv
+        self._st[S_QD:S_QD + self.dof] = qdv
+        self._C[:] = 0.0
+        self._CI[:] = 0
+        self._cnt[:] = 0
+
+    # -- the two operations --------------------------------------------------------------------
+    def update(self, keys, position_m, normal, separation_m, v_constr_m_per_s=None) -> None:
+        """Replace the local contacts by the engine's set (world frame, SI units).
+
+        keys: (n, 3) int (tool link, environment body, feature); position_m: (n, 3) constraint
+        positions c_p; normal: (n, 3) unit normals, environment towards tool; separation_m: (n,)
+        real-tool separation d (negative when penetrating); v_constr_m_per_s: (n,) n . v(c_p).
+        """
+        keys = np.asarray(keys)
+        n_in = keys.shape[0] if keys.ndim == 2 else -1
+        if keys.ndim != 2 or keys.shape[1] != 3 or not np.issubdtype(keys.dtype, np.integer):
+            if not (keys.size == 0 and keys.ndim in (1, 2)):
+                raise ValueError(f"keys: expected an (n, 3) integer array, got {keys.dtype} {keys.shape}")
+            n_in = 0
+            keys = np.zeros((0, 3), dtype=np.int64)
+        cp = self._as_f64("position_m", position_m, (n_in, 3))
+        nrm = self._as_f64("normal", normal, (n_in, 3))
+        dsep = self._as_f64("separation_m", separation_m, (n_in,))
+        vc = (np.zeros(n_in) if v_constr_m_per_s is None
+              else self._as_f64("v_constr_m_per_s", v_constr_m_per_s, (n_in,)))
+        if n_in > self._sel.shape[0]:
+            raise ValueError(f"contacts: {n_in} exceeds max_update_contacts={self._sel.shape[0]}")
+        keys = np.ascontiguousarray(keys, dtype=np.int64)
+        code = _k.update_rigid(self.kind, self._par, self._st, self._C, self._CI, self._cnt, self._wk,
+                               keys, cp, nrm, dsep, vc, n_in, self._sel, self._newF, self._newI)
+        if code != E_OK:
+            fld, why = ERROR_FIELDS[code]
+            raise ValueError(f"{fld}: {why}")
+
+    def update_arrays(self, keys, position_m, normal, separation_m, v_constr_m_per_s, n: int) -> int:
+        """Hot-path variant of ``update`` for already-validated, preallocated arrays (the first n
+        rows are used); returns the kernel's E_* code instead of raising."""
+        return _k.update_rigid(self.kind, self._par, self._st, self._C, self._CI, self._cnt, self._wk,
+                               keys, position_m, normal, separation_m, v_constr_m_per_s, n,
+                               self._sel, self._newF, self._newI)
+
+    def step(self, hand_wrench) -> np.ndarray:
+        """Advance one haptic step with the hand wrench on the proxy (world frame, at the hand
+        point; 1dof: (f,), planar: (fx, fy, tau_z), spatial: (fx, fy, fz, tx, ty, tz)).
+        Returns the environment wrench for the hand (a view, overwritten next step)."""
+        hand = hand_wrench if (isinstance(hand_wrench, np.ndarray) and hand_wrench.dtype == np.float64
+                               and hand_wrench.shape[0] >= self.hand_dim) else self._copy_hand(hand_wrench)
+        code = _k.step_rigid(self.kind, self._par, self._st, self._C, self._CI, self._cnt, self._wk, hand)
+        if code != E_OK:
+            fld, why = ERROR_FIELDS[code]
+            raise ValueError(f"{fld}: {why}")
+        return self._fenv
+
+    def _copy_hand(self, hand_wrench) -> np.ndarray:
+        a = np.asarray(hand_wrench, dtype=np.float64).ravel()
+        if a.shape != (self.hand_dim,):
+            raise ValueError(f"hand_wrench: expected {self.hand_dim} numbers for a {self.tool.kind} tool, got {a.shape}")
+        self._hand[:self.hand_dim] = a
+        return self._hand
+
+    def _as_f64(self, name, value, shape):
+        a = np.asarray(value, dtype=np.float64)
+        if a.size == 0 and shape[0] == 0:
+            return np.zeros(shape)
+        if a.shape != shape:
+            raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
+        return np.ascontiguousarray(a)
+
+    # -- read-outs -----------------------------------------------------------------------------
+    @property
+    def period_s(self) -> float:
+        return float(self._par[P_DT])
+
+    @property
+    def time_s(self) -> float:
+        return float(self._st[S_T])
+
+    @property
+    def q(self) -> np.ndarray:
+        return self._st[S_Q:S_Q + self.nq]
+
+    @property
+    def qd(self) -> np.ndarray:
+        return self._st[S_QD:S_QD + self.dof]
+
+    @property
+    def env_wrench(self) -> np.ndarray:
+        """Total wrench rendered to the hand at the last step: penalty/friction + impulsive."""
+        return self._fenv
+
+    @property
+    def impulsive_wrench(self) -> np.ndarray:
+        return self._st[S_FIMP:S_FIMP + self.hand_dim]
+
+    @property
+    def penalty_wrench(self) -> np.ndarray:
+        return self._st[S_FPEN:S_FPEN + self.hand_dim]
+
+    @property
+    def generalized_impulse(self) -> np.ndarray:
+        """Jc^T p of the last step, configuration space (N s, N m s)."""
+        return self._st[S_GIMP:S_GIMP + self.dof]
+
+    @property
+    def kinetic_energy_j(self) -> float:
+        return float(self._st[S_KE])
+
+    @property
+    def collision_energy_j(self) -> tuple[float, float]:
+        """Kinetic energy just before and just after the last step's collision impulse."""
+        return float(self._st[S_KE_PRE]), float(self._st[S_KE_POST])
+
+    @property
+    def contact_count(self) -> int:
+        return int(self._cnt[K_M])
+
+    @property
+    def proxy_state(self) -> str:
+        return PROXY_STATE_NAMES[int(self._cnt[K_PROXY])]
+
+    def counters(self) -> dict[str, int]:
+        c = self._cnt
+        return {
+            "contacts": int(c[K_M]), "steps": int(c[K_STEPS]), "updates": int(c[K_UPDATES]),
+            "dropped": int(c[K_DROPPED]), "collisions": int(c[K_COLLISIONS]),
+            "nonfinite": int(c[K_NONFINITE]), "new": int(c[K_NEW]), "deformed": int(c[K_DEFORMED]),
+            "left": int(c[K_LEFT]), "impending": int(c[K_N_IMPENDING]),
+            "colliding": int(c[K_N_COLLIDING]), "penetrating": int(c[K_N_PENETRATING]),
+            "separating": int(c[K_N_SEPARATING]), "rank": int(c[K_RANK]),
+            "slipping": int(c[K_SLIPPING]),
+        }
+
+    def contacts(self) -> ContactSnapshot:
+        m = int(self._cnt[K_M])
+        C = self._C[:m].copy()
+        CI = self._CI[:m].copy()
+        return ContactSnapshot(
+            keys=CI[:, CI_KEY:CI_KEY + 3], position_m=C[:, C_CP:C_CP + 3], normal=C[:, C_N:C_N + 3],
+            separation_reported_m=C[:, C_D], v_constr_m_per_s=C[:, C_VC],
+            local_point_body_m=C[:, C_P:C_P + 3], separation_m=C[:, C_S], separation_prev_m=C[:, C_SPREV],
+            normal_velocity_m_per_s=C[:, C_VN], normal_force_n=C[:, C_FN],
+            friction_force_n=C[:, C_FT:C_FT + 3], bristle_m=C[:, C_Z:C_Z + 3], impulse_n_s=C[:, C_IMP],
+            state=[CONTACT_STATE_NAMES[s] for s in CI[:, CI_STATE]], slipping=CI[:, CI_SLIP].astype(bool),
+            age_updates=CI[:, CI_AGE],
+        )
+
+    def proxy_separations(self) -> np.ndarray:
+        """Separation of the proxy at every live contact for the current pose and time (eq. 3),
+        computed now (not the value of the last step). Not for the hot path."""
+        m = int(self._cnt[K_M])
+        out = np.empty(m)
+        R, c = self.pose_matrix()
+        t = self.time_s
+        for i in range(m):
+            x = c + R @ self._C[i, C_P:C_P + 3]
+            n = self._C[i, C_N:C_N + 3]
+            out[i] = n @ (x - self._C[i, C_CP:C_CP + 3]) - self._C[i, C_VC] * (t - self._C[i, C_TU])
+        return out
+
+    def pose_matrix(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R body-to-world 3x3, COM position world) of the proxy."""
+        R = np.zeros((12, 12))
+        c = np.zeros(3)
+        _k._rigid_pose(self.kind, self._par, self._st, R, c)
+        return R[:3, :3].copy(), c
+
+    # -- raw arrays (for the reference implementation and for tests) --------------------------
+    def arrays(self):
+        return self._par, self._st, self._C, self._CI, self._cnt
+
+
+_WARM = False
+
+
+def warm_up() -> None:
+    """Load (or compile, first time on a machine) every kernel for every tool kind, once per
+    process, on throw-away arrays: the first haptic step must not pay for it."""
+    global _WARM
+    if _WARM:
+        return
+    for kind in (TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL):
+        par = np.zeros(NPAR)
+        par[P_DT] = 1e-3
+        par[P_MASS] = 1.0
+        par[P_INERTIA:P_INERTIA + 9] = np.eye(3).ravel()
+        par[P_AXIS] = 1.0
+        par[P_K] = 1000.0
+        st = np.zeros(NSTATE)
+        st[S_Q + 3] = 1.0
+        cap = 2
+        C = np.zeros((cap, NCOLS_F))
+        CI = np.zeros((cap, NCOLS_I), dtype=np.int64)
+        cnt = np.zeros(NCOUNT, dtype=np.int64)
+        wk = np.zeros(_k.workspace_size(cap))
+        keys = np.zeros((1, 3), dtype=np.int64)
+        cp = np.zeros((1, 3))
+        nrm = np.zeros((1, 3)); nrm[0, 0] = 1.0
+        dsep = np.zeros(1); vc = np.zeros(1)
+        sel = np.zeros(4, dtype=np.int64)
+        _k.update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, 1, sel,
+                        np.zeros((cap, NCOLS_F)), np.zeros((cap, NCOLS_I), dtype=np.int64))
+        st[S_QD] = -0.1
+        _k.step_rigid(kind, par, st, C, CI, cnt, wk, np.zeros(6))
+    _WARM = True
