@@ -46,7 +46,7 @@ from .layout import (
     P_ORIGIN, P_POLICY,
     POLICY_RIGID, PS_COLLIDING, PS_FREE, PS_RESTING,
     S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_Q, S_QD, S_T,
-    TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL, UNIT_TOL,
+    TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL, TOUCH_TOL_M, UNIT_TOL,
 )
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
@@ -366,7 +366,7 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
         C[i, C_S] = s
         C[i, C_VN] = vn
         C[i, C_IMP] = 0.0
-        if s > 0.0:
+        if s > TOUCH_TOL_M:
             CI[i, CI_STATE] = CS_IMPENDING
             n_imp += 1
         elif vn > 0.0:
@@ -495,6 +495,8 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
                         s += Cm[i, q_] * beta[q_]
                     C[i, C_IMP] = s
         cnt[K_COLLISIONS] += 1
+    for a in range(d):
+        st[S_GIMP + a] = gimp[a]
 
     # penalty (never pulling) and stick-slip friction at contacts with s <= 0, from the
     # post-impulse velocity
@@ -505,7 +507,7 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
     for i in range(m):
         n0 = C[i, C_N]; n1 = C[i, C_N + 1]; n2 = C[i, C_N + 2]
         s = C[i, C_S]
-        if s > 0.0:
+        if s > TOUCH_TOL_M:
             C[i, C_FN] = 0.0
             for j in range(3):
                 C[i, C_FT + j] = 0.0

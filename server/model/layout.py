@@ -134,3 +134,7 @@ ERROR_FIELDS = {
 
 #: Unit-length tolerance on normals (the issue's 1e-6).
 UNIT_TOL = 1e-6
+#: A local contact counts as touching when its separation is at most this (m). The update rules
+#: put deformed contacts at exactly s = 0, which rounding turns into +-1e-19; without a margin
+#: the contact state there would flip on the last bit.
+TOUCH_TOL_M = 1e-12
