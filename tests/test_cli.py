@@ -1,0 +1,58 @@
+"""The command-line entry point and its first subcommands."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+EXE = str(Path(sys.executable).parent / "hapticproxy")
+
+
+def run(*args, cwd=None, timeout=600):
+    return subprocess.run([EXE, *args], capture_output=True, text=True, cwd=cwd, timeout=timeout)
+
+
+def test_help_lists_subcommands():
+    out = run("--help")
+    assert out.returncode == 0
+    for name in ("demo", "bench", "protocol"):
+        assert name in out.stdout
+
+
+def test_unknown_command_and_bench_target_fail_cleanly():
+    out = run("frobnicate")
+    assert out.returncode == 2 and "unknown command" in out.stderr and "Traceback" not in out.stderr
+    out = run("bench", "nosuch")
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+
+
+def test_demo_writes_a_plot_and_one_summary_line(tmp_path):
+    out = run("demo", "--out", str(tmp_path / "demo"), "--seconds", "3")
+    assert out.returncode == 0, out.stderr
+    lines = [ln for ln in out.stdout.splitlines() if ln.strip()]
+    assert len(lines) == 1
+    assert "rigid UNSTABLE" in lines[0] and "deformation bounded" in lines[0]
+    png = tmp_path / "demo" / "fig6_peg_in_hole.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_bench_model_prints_rows_with_the_documented_keys():
+    out = run("bench", "model", "--json", "--steps", "300", "--numpy-steps", "5", "--tools", "planar,spatial",
+              "--contacts", "0,8")
+    assert out.returncode == 0, out.stderr
+    rows = json.loads(out.stdout)
+    assert [(r["tool"], r["contacts"]) for r in rows] == [("planar", 0), ("planar", 8), ("spatial", 0), ("spatial", 8)]
+    for r in rows:
+        for key in ("numba_median_us", "numba_p99_us", "numpy_median_us", "speedup"):
+            assert isinstance(r[key], float) and r[key] > 0
+        assert r["speedup"] == round(r["numpy_median_us"] / r["numba_median_us"], 1) or \
+            abs(r["speedup"] - r["numpy_median_us"] / r["numba_median_us"]) < 0.1
+        assert r["nonfinite"] == 0
+    assert rows[1]["collision_steps"] > 0 and rows[1]["resting_steps"] > 0
+    assert "warm start" in out.stderr
+
+
+def test_bench_model_rejects_bad_arguments():
+    out = run("bench", "model", "--tools", "hexapod")
+    assert out.returncode == 2 and "Traceback" not in out.stderr

@@ -1,0 +1,83 @@
+"""Dependency direction: protocol imports only the standard library, numpy and msgpack; server
+and clients import protocol and never each other."""
+from __future__ import annotations
+
+import ast
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = {"protocol": "hapticproxy.protocol", "server": "hapticproxy.server", "clients": "hapticproxy.clients"}
+STDLIB = set(sys.stdlib_module_names) | {"__future__"}
+#: The one optional third-party import of the protocol package: the Zenoh backend, imported
+#: lazily inside its own module.
+PROTOCOL_EXTRA = {"zenoh": "transport/zenoh"}
+
+
+def imports_of(source: str, module: str, is_package: bool) -> set[str]:
+    """Absolute names of everything a module imports (relative imports resolved)."""
+    tree = ast.parse(source)
+    base = module.split(".") if is_package else module.split(".")[:-1]
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parent = base[: len(base) - (node.level - 1)]
+                name = ".".join(parent + ([node.module] if node.module else []))
+                if node.module is None:
+                    out.update(f"{name}.{a.name}" for a in node.names)
+                    continue
+            else:
+                name = node.module or ""
+            out.add(name)
+    return out
+
+
+def violations(folder: str, files: dict[str, str]) -> list[str]:
+    """files: path relative to the folder -> source. Returns the offending imports."""
+    pkg = PACKAGES[folder]
+    bad = []
+    for rel, source in files.items():
+        parts = rel[:-3].split("/")
+        is_package = parts[-1] == "__init__"
+        if is_package:
+            parts = parts[:-1]
+        module = ".".join([pkg] + parts)
+        for name in sorted(imports_of(source, module, is_package)):
+            top = name.split(".")[0]
+            if folder == "protocol":
+                if top in STDLIB or top in ("numpy", "msgpack") or name.startswith("hapticproxy.protocol"):
+                    continue
+                if top in PROTOCOL_EXTRA and PROTOCOL_EXTRA[top] in rel:
+                    continue
+                bad.append(f"protocol/{rel}: {name}")
+            elif folder == "server" and name.startswith("hapticproxy.clients"):
+                bad.append(f"server/{rel}: {name}")
+            elif folder == "clients" and name.startswith("hapticproxy.server"):
+                bad.append(f"clients/{rel}: {name}")
+            elif name.startswith("hapticproxy.") and not name.startswith(("hapticproxy.protocol", PACKAGES[folder])):
+                bad.append(f"{folder}/{rel}: {name}")
+    return bad
+
+
+@pytest.mark.parametrize("folder", sorted(PACKAGES))
+def test_dependency_direction(folder):
+    files = {str(p.relative_to(ROOT / folder)): p.read_text() for p in (ROOT / folder).rglob("*.py")}
+    assert files, f"{folder}/ has no modules"
+    assert violations(folder, files) == []
+
+
+def test_the_checker_catches_violations():
+    assert violations("protocol", {"codec.py": "import numba\n"}) == ["protocol/codec.py: numba"]
+    assert violations("protocol", {"codec.py": "from ..server import model\n"}) == \
+        ["protocol/codec.py: hapticproxy.server"]
+    assert violations("protocol", {"transport/udp.py": "import zenoh\n"}) == ["protocol/transport/udp.py: zenoh"]
+    assert violations("protocol", {"transport/zenoh.py": "import zenoh\n"}) == []
+    assert violations("server", {"loop.py": "from hapticproxy.clients import pymunk_client\n"}) != []
+    assert violations("clients", {"a/b.py": "from ...server.model import LocalModel\n"}) != []
+    assert violations("server", {"loop.py": "from hapticproxy.cli import main\n"}) != []
+    assert violations("server", {"loop.py": "from hapticproxy.protocol import messages\nimport numba\n"}) == []
