@@ -20,9 +20,14 @@ if [ ! -x "$VENV/bin/python" ]; then
   "$PY" -m venv "$VENV"
 fi
 if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
-  echo "run.sh: installing pinned dependencies into .venv/ ..." >&2
-  "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r requirements.lock
-  "$VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
+  echo "run.sh: installing pinned dependencies into .venv/ (log: .venv/install.log) ..." >&2
+  if ! { "$VENV/bin/python" -m pip install --disable-pip-version-check -r requirements.lock &&
+         "$VENV/bin/python" -m pip install --disable-pip-version-check --no-deps --no-build-isolation -e .; \
+       } >"$VENV/install.log" 2>&1; then
+    tail -n 30 "$VENV/install.log" >&2
+    echo "run.sh: installation failed (full log: .venv/install.log)" >&2
+    exit 1
+  fi
   echo "$WANT" > "$STAMP"
 fi
 
