@@ -31,7 +31,10 @@ Deployment modes:
 Latency choices (measured with ``hapticproxy bench transport``): publishers are declared with
 ``express=True`` (the message bypasses the batching queue and leaves at once),
 ``CongestionControl.DROP`` (a slow link drops our newest-wins traffic instead of blocking the
-haptic thread) and ``Priority.REAL_TIME``. Shared memory is off (payloads are far below its
+haptic thread) and ``Priority.REAL_TIME``, whose TX queue is raised from Zenoh's 2 batches to
+16 (:data:`TX_QUEUE_REAL_TIME_BATCHES`): a burst of up to 16 datagrams is queued, beyond that
+Zenoh may drop datagrams after :data:`WAIT_BEFORE_DROP_US` without telling the publisher (so no
+counter can see them; the session layer's sequence numbers do). Shared memory is off (payloads are far below its
 3 kB threshold; it would only reserve a pool). ``lowlatency=True`` additionally switches the
 unicast transport to Zenoh's low-latency mode (QoS lanes off); both ends must agree on it.
 
@@ -59,6 +62,12 @@ KEY_PREFIX = "hapticproxy"
 DEFAULT_SESSION = "default"
 DEFAULT_RING_CAPACITY = 256
 DEFAULT_CONNECT_TIMEOUT_S = 5.0
+#: Zenoh TX queue depth for our priority, in batches (= datagrams, since we publish express):
+#: the largest burst one endpoint can send before Zenoh's congestion control may drop (silently:
+#: Zenoh does not report it to the publisher). 16 is the maximum Zenoh accepts.
+TX_QUEUE_REAL_TIME_BATCHES = 16
+#: How long a put may wait for room in a full TX queue before the datagram is dropped.
+WAIT_BEFORE_DROP_US = 100
 #: Bound on distinct client ids a server remembers (and keeps a reply publisher for); beyond it
 #: the table is cleared and rebuilt from traffic, so a flood of fake ids cannot grow memory.
 MAX_REMEMBERED_PEERS = 1024
@@ -216,6 +225,15 @@ class ZenohTransport(Transport):
             cfg.insert_json5("connect/timeout_ms", str(timeout_ms))
             cfg.insert_json5("connect/exit_on_failure", "true")
         cfg.insert_json5("transport/shared_memory/enabled", "false")
+        # Our samples travel at REAL_TIME priority, whose queue defaults to 2 batches (with
+        # express, 2 datagrams): a burst of 3 while Zenoh's TX thread is descheduled lost the
+        # 3rd (seen in the contract tests on a loaded 2-core box). 16 is Zenoh's maximum.
+        cfg.insert_json5("transport/link/tx/queue/size/real_time", str(TX_QUEUE_REAL_TIME_BATCHES))
+        # A put into a full queue waits this long before dropping (default 1000 us, i.e. a whole
+        # 1 kHz haptic step); newest-wins traffic is better served by dropping sooner.
+        cfg.insert_json5(
+            "transport/link/tx/queue/congestion_control/drop/wait_before_drop", str(WAIT_BEFORE_DROP_US)
+        )
         if self.lowlatency:
             cfg.insert_json5("transport/unicast/lowlatency", "true")
             cfg.insert_json5("transport/unicast/qos/enabled", "false")
