@@ -22,7 +22,11 @@ MAX_DOF = 12
 # --- update policies --------------------------------------------------------------------------
 POLICY_RIGID = 0        # eq. 1 at every update: no deformation (the paper's Fig. 6a / IR baseline)
 POLICY_DEFORM = 1       # eqs. 4/5/6 rule table of the notes (LM0 when the engine sends epsilon = 0)
-POLICY_NAMES = {"rigid": POLICY_RIGID, "deformation": POLICY_DEFORM}
+#: The three selectable policies: "rigid" (eq. 1, no deformation), "lm0" (deformation with active
+#: geometry only: the engine is granted epsilon = 0) and "lm" (deformation with epsilon-active
+#: geometry, any epsilon >= 0). One rule set serves both "lm0" and "lm": the engine folds epsilon
+#: into the separation it reports (d = s_eps + epsilon). "deformation" is an alias of "lm".
+POLICY_NAMES = {"rigid": POLICY_RIGID, "lm0": POLICY_DEFORM, "lm": POLICY_DEFORM, "deformation": POLICY_DEFORM}
 
 # --- local contact states (section IV-A) ------------------------------------------------------
 CS_IMPENDING = 0

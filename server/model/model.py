@@ -179,8 +179,9 @@ class LocalModel:
     tool: the virtual tool (mass, inertia, hand point).
     contact: stiffness, damping, restitution and friction of the local contacts.
     period_s: the haptic step (fixed-step semi-implicit Euler).
-    policy: ``"deformation"`` (eqs. 4/5/6; LM0 when the engine sends epsilon = 0) or
-        ``"rigid"`` (eq. 1 at every update: the no-deformation baseline).
+    policy: ``"rigid"`` (eq. 1 at every update: the no-deformation baseline), ``"lm0"`` (proxy
+        deformation, eqs. 4/5/6, with active geometry only: epsilon must be 0) or ``"lm"`` (proxy
+        deformation with epsilon-active geometry, any epsilon >= 0; alias ``"deformation"``).
     epsilon_m: the epsilon granted to the engine (it inflates its tool; the model only records it).
     capacity: most local contacts kept; an update with more keeps the smallest separations
         and counts the rest in ``counters()["dropped"]``.
@@ -211,6 +212,8 @@ class LocalModel:
         eps = _finite_float("epsilon_m", epsilon_m)
         if eps < 0:
             raise ValueError(f"epsilon_m: must be >= 0, got {eps!r}")
+        if policy == "lm0" and eps != 0.0:
+            raise ValueError(f"epsilon_m: policy 'lm0' is the local model with epsilon = 0, got {eps!r}")
         if not isinstance(capacity, (int, np.integer)) or capacity < 1:
             raise ValueError(f"capacity: must be a positive integer, got {capacity!r}")
         if not isinstance(max_update_contacts, (int, np.integer)) or max_update_contacts < capacity:

@@ -95,6 +95,7 @@ def test_bad_tool_is_refused(make, match):
     (dict(period_s=float("nan")), "period_s"),
     (dict(policy="magic"), "policy"),
     (dict(epsilon_m=-0.001), "epsilon_m"),
+    (dict(policy="lm0", epsilon_m=0.005), "epsilon_m"),
     (dict(capacity=0), "capacity"),
     (dict(gravity_m_per_s2=(0, 0, float("inf"))), "gravity"),
 ])

@@ -221,3 +221,11 @@ def test_friction_slips_above_mu_s_at_the_kinetic_level(make_model, cs):
     assert fn == pytest.approx(10.0, rel=2e-2)
     assert np.linalg.norm(snap.friction_force_n, axis=1).sum() == pytest.approx(0.3 * fn, rel=1e-9)
     assert m.qd[0] > 0.1                               # accelerating at (6 - 3) / 1 m/s^2
+
+
+@pytest.mark.parametrize("policy, eps", [("lm0", 0.0), ("lm", 0.005), ("deformation", 0.0)])
+def test_lm_policies_share_the_deformation_rules(make_model, cs, policy, eps):
+    from hapticproxy.server.model import ContactParams, LocalModel, ToolSpec
+    m = LocalModel(ToolSpec.one_dof(1.0), ContactParams(), policy=policy, epsilon_m=eps)
+    m.update(*cs([(1, [0.0, 0, 0], [-1, 0, 0], -0.004)]))
+    np.testing.assert_allclose(m.proxy_separations(), [0.0], atol=1e-15)     # eq. 4, not eq. 1
