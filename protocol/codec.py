@@ -706,9 +706,12 @@ class Codec:
                 msg = decoder(obj)
         except ProtocolError as exc:
             exc.type_id, exc.major, exc.session_id, exc.token = type_id, major, session_id, token
-            if exc.seq == 0 and len(obj) > HEADER_LEN and type(obj[HEADER_LEN]) is int \
-                    and type_id in (MessageType.CONTACT_UPDATE, MessageType.PROXY_STATE, MessageType.HEARTBEAT):
-                exc.seq = obj[HEADER_LEN]
+            first = obj[HEADER_LEN] if len(obj) > HEADER_LEN else None
+            if type(first) is int and 0 <= first <= _U64_MAX:
+                if exc.seq == 0 and type_id in (MessageType.CONTACT_UPDATE, MessageType.PROXY_STATE, MessageType.HEARTBEAT):
+                    exc.seq = first
+                elif exc.client_nonce == 0 and type_id == MessageType.HELLO:
+                    exc.client_nonce = first  # lets the server answer a bad Hello with Reject
             raise
         msg.minor = minor
         msg.session_id = session_id

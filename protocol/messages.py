@@ -319,9 +319,8 @@ CONTACT_UPDATE = MessageSpec(
 
 PROXY_STATE = MessageSpec(
     "ProxyState", MessageType.PROXY_STATE, "server -> client", True,
-    "Acknowledges a ContactUpdate with the proxy state, sent at the start of the haptic step "
-    "that applied it (at most one per ContactUpdate; also sent on its own at most once per "
-    "heartbeat interval when no update arrives).",
+    "Acknowledges a ContactUpdate with the proxy state, sent in the haptic step that applied it "
+    "(at most one per accepted ContactUpdate).",
     (
         FieldSpec("seq", "u64", check="pos", doc="server's own sequence, 1, 2, 3, ...; newest wins"),
         FieldSpec("ack_seq", "u64", doc="seq of the newest ContactUpdate applied, 0 if none yet"),
@@ -350,8 +349,8 @@ HEARTBEAT = MessageSpec(
 
 BYE = MessageSpec(
     "Bye", MessageType.BYE, "both", False,
-    "Ends the session. Sent up to 3 times (it may be lost); the receiver frees the session at "
-    "once and ignores the repeats as unknown-session packets.",
+    "Ends the session. Sent 3 times in a row (one may be lost); the receiver ends the session "
+    "at the first and counts the repeats as unknown-session packets.",
     (
         FieldSpec("code", "u16", doc="ErrorCode 60-79"),
         FieldSpec("reason", "str", doc="human-readable reason"),
