@@ -91,6 +91,7 @@ _UNIT_SQ_LO = (1.0 - UNIT_TOLERANCE) ** 2
 _UNIT_SQ_HI = (1.0 + UNIT_TOLERANCE) ** 2
 _MAX_ABS = MAX_ABS_FLOAT
 _POSE = struct.Struct("<7d")
+_QUAT = struct.Struct("<4d")
 
 
 # ------------------------------------------------------------------------------- limits
@@ -424,6 +425,7 @@ def _v_bin_f64(f: FieldSpec, limits: Limits):
     kind = f.type
     fixed = None if kind.endswith("[J]") else int(kind[kind.index("[") + 1:-1])
     max_len = limits.max_links
+    is_pose = kind == "bin f64[7]"
 
     def check(v):
         if type(v) is not bytes:
@@ -436,11 +438,15 @@ def _v_bin_f64(f: FieldSpec, limits: Limits):
             raise _bad(ErrorCode.BAD_SHAPE, name, f"expected {fixed} float64, got {k}")
         if fixed is None and k > max_len:
             raise _bad(ErrorCode.BAD_SHAPE, name, f"{k} values > max_links {max_len}")
-        a = np.frombuffer(v, _F8)
-        if k:
+        a = _ndarray((k,), _F8, v)
+        if k and not _vdot(a, a) <= _MAX_ABS_SQ:  # sufficient test first, exact one on failure
             _check_float_array(name, a)
-        if kind == "bin f64[7]":
-            _check_unit(name + ".quaternion", a[3:].tolist())
+        if is_pose:
+            qw, qx, qy, qz = _QUAT.unpack_from(v, 24)
+            qn = qw * qw + qx * qx + qy * qy + qz * qz
+            if not _UNIT_SQ_LO <= qn <= _UNIT_SQ_HI:
+                raise _bad(ErrorCode.NOT_UNIT, name + ".quaternion",
+                           f"|q| = {math.sqrt(qn)!r} is not 1 within {UNIT_TOLERANCE:g}")
         return a
 
     return check
@@ -582,7 +588,11 @@ def _encoder(f: FieldSpec):
         conv = int if t == "version" else float
         return lambda v: [conv(x) for x in np.asarray(v).ravel().tolist()]
     if t.startswith("bin f64["):
-        return lambda v: np.ascontiguousarray(v, dtype=_F8).ravel().tobytes()
+        def enc_bin(v):
+            if type(v) is np.ndarray and v.dtype == _F8:
+                return v.tobytes()  # C order, whatever the strides
+            return np.asarray(v, dtype=_F8).tobytes()
+        return enc_bin
     if t == "links":
         link_enc = [_encoder(lf) for lf in LINK_FIELDS]
 
@@ -600,6 +610,10 @@ def _encoder(f: FieldSpec):
 
 
 # ------------------------------------------------------------------------------- the codec
+_EMPTY = np.zeros(0)
+_EMPTY.flags.writeable = False
+
+
 class Codec:
     """Encoder/decoder with its :class:`Limits` and :class:`CodecCounters`.
 
@@ -627,8 +641,10 @@ class Codec:
             self._classes[tid] = cls
             if spec is CONTACT_UPDATE:
                 self._decoders[tid] = self._decode_contact_update
-            elif spec.type_id == MessageType.CONTACT_UPDATE:
-                raise ValueError("a modified ContactUpdate declaration needs its own decoder")
+            elif spec is PROXY_STATE:
+                self._decoders[tid] = self._decode_proxy_state
+            elif spec.type_id in (MessageType.CONTACT_UPDATE, MessageType.PROXY_STATE):
+                raise ValueError(f"a modified {spec.name} declaration needs its own decoder")
             else:
                 self._decoders[tid] = self._generic_decoder(spec, cls)
             self._encoders[tid] = [(f.name, _encoder(f), _validator(f, lim)) for f in spec.fields] \
@@ -645,6 +661,8 @@ class Codec:
         self._max_str_len = lim.max_str_bytes
         self._max_array_len = lim.max_array_len
         self._max_contacts = lim.max_contacts
+        self._max_links = lim.max_links
+        self._proxy_cls = ProxyState
         self._key_structs = [struct.Struct(f"{8 * KEY_INTS}s" * k) for k in range(lim.max_contacts + 1)]
         # The hand-written ContactUpdate decoder matches the v1 declaration only.
         self._cu_fast = self._specs.get(int(MessageType.CONTACT_UPDATE)) is CONTACT_UPDATE
@@ -866,6 +884,60 @@ class Codec:
         msg.v_constr_m_per_s = sv[1]
         return msg
 
+    def _decode_proxy_state(self, obj: list) -> Message:
+        # Hand-specialised like ContactUpdate (field order of messages.PROXY_STATE): the six
+        # float bins are validated as one array, then handed out as views of it.
+        nf = len(obj) - HEADER_LEN
+        if nf < 9:
+            raise _bad(ErrorCode.MISSING_FIELD, PROXY_STATE.fields[nf].name, f"ProxyState needs 9 fields, got {nf}")
+        extra = nf - 9
+        if extra:
+            self.counters.unknown_trailing_fields += extra
+            self.counters.packets_with_unknown_fields += 1
+        seq, ack, t, pose_b, tw_b, wr_b, jq_b, jv_b, je_b = obj[5:14]
+        for name, v, lo in (("seq", seq, 1), ("ack_seq", ack, 0)):
+            if type(v) is not int:
+                raise _bad(ErrorCode.WRONG_TYPE, name, f"expected an integer, got {type(v).__name__}")
+            if not lo <= v <= _U64_MAX:
+                raise _bad(ErrorCode.OUT_OF_RANGE, name, f"{v} not in [{lo}, 2^64-1]")
+        if type(t) is not float or not -_MAX_ABS <= t <= _MAX_ABS:
+            t = _float_value("server_time_s", t)
+        for name, v, nb in (("proxy_pose", pose_b, 56), ("proxy_twist", tw_b, 48), ("wrench", wr_b, 48)):
+            if type(v) is not bytes:
+                raise _bad(ErrorCode.WRONG_TYPE, name, f"expected bin, got {type(v).__name__}")
+            if len(v) != nb:
+                raise _bad(ErrorCode.BAD_SHAPE, name, f"expected {nb // 8} float64, got {len(v)} bytes")
+        nj = len(jq_b) if type(jq_b) is bytes else -1
+        for name, v in (("joint_position", jq_b), ("joint_velocity", jv_b), ("joint_effort", je_b)):
+            if type(v) is not bytes:
+                raise _bad(ErrorCode.WRONG_TYPE, name, f"expected bin, got {type(v).__name__}")
+            if len(v) != nj or nj % 8 or nj > 8 * self._max_links:
+                raise _bad(ErrorCode.BAD_SHAPE, name,
+                           f"joint arrays must hold the same number (<= max_links) of float64, got {len(v)} bytes")
+        allb = b"".join((pose_b, tw_b, wr_b, jq_b, jv_b, je_b))
+        a = _ndarray((len(allb) >> 3,), _F8, allb)
+        if not _vdot(a, a) <= _MAX_ABS_SQ:
+            for name, lo, hi in (("proxy_pose", 0, 7), ("proxy_twist", 7, 13), ("wrench", 13, 19)):
+                _check_float_array(name, a[lo:hi])
+            _check_float_array("joint arrays", a[19:])
+        qw, qx, qy, qz = _QUAT.unpack_from(pose_b, 24)
+        qn = qw * qw + qx * qx + qy * qy + qz * qz
+        if not _UNIT_SQ_LO <= qn <= _UNIT_SQ_HI:
+            raise _bad(ErrorCode.NOT_UNIT, "proxy_pose.quaternion", f"|q| = {math.sqrt(qn)!r} is not 1 within {UNIT_TOLERANCE:g}")
+        j = nj >> 3
+        msg = _new(self._proxy_cls)
+        msg.seq = seq
+        msg.ack_seq = ack
+        msg.server_time_s = t
+        msg.proxy_pose = a[0:7]
+        msg.proxy_twist = a[7:13]
+        msg.wrench = a[13:19]
+        msg.joint_position = a[19:19 + j]
+        msg.joint_velocity = a[19 + j:19 + 2 * j]
+        msg.joint_effort = a[19 + 2 * j:]
+        msg.unknown_fields = extra
+        return msg
+
     # ------------------------------------------------------------------------ encoding
     def encode(self, msg: Message) -> bytes:
         """Encode any message (header from ``msg.session_id`` / ``msg.token``). Values are
@@ -875,6 +947,10 @@ class Codec:
             return self.encode_contact_update(
                 msg.session_id, msg.token, msg.seq, msg.env_time_s, msg.tool_pose, msg.keys,
                 msg.position_m, msg.normal, msg.separation_m, msg.v_constr_m_per_s, check=True)
+        if tid == MessageType.PROXY_STATE:
+            return self.encode_proxy_state(
+                msg.session_id, msg.token, msg.seq, msg.ack_seq, msg.server_time_s, msg.proxy_pose, msg.proxy_twist,
+                msg.wrench, msg.joint_position, msg.joint_velocity, msg.joint_effort)
         encoders = self._encoders.get(tid)
         if encoders is None:
             raise ValueError(f"message type {type(msg).__name__} not declared in this codec")
@@ -885,6 +961,40 @@ class Codec:
             out.append(value)
         self.counters.encoded += 1
         return self._pack(out)
+
+    def encode_proxy_state(self, session_id: int, token: int, seq: int, ack_seq: int, server_time_s: float,
+                           proxy_pose, proxy_twist, wrench, joint_position=_EMPTY, joint_velocity=_EMPTY,
+                           joint_effort=_EMPTY) -> bytes:
+        """Encode a ProxyState from arrays (the server's acknowledgement). Every value rule of the
+        decoder is applied (one vectorised test); ``ValueError`` names the bad field."""
+        bins = []
+        for name, v, k in (("proxy_pose", proxy_pose, 7), ("proxy_twist", proxy_twist, 6), ("wrench", wrench, 6),
+                           ("joint_position", joint_position, -1), ("joint_velocity", joint_velocity, -1),
+                           ("joint_effort", joint_effort, -1)):
+            if type(v) is not np.ndarray or v.dtype != _F8:
+                v = np.asarray(v, dtype=_F8)
+            if v.ndim != 1 or (k > 0 and v.shape[0] != k):
+                raise ValueError(f"{name} must be {k if k > 0 else 'J'} float64 values, got shape {v.shape}")
+            bins.append(v.tobytes())
+        packet = self._pack([PROTOCOL_MAJOR, self.minor, 5, _u(session_id, "session_id", 0xFFFF_FFFF),
+                             _u(token, "token", _U64_MAX), _u(seq, "seq", _U64_MAX), _u(ack_seq, "ack_seq", _U64_MAX),
+                             float(server_time_s)] + bins)
+        # The decoder's value rules, on all six arrays at once.
+        allb = b"".join(bins)
+        a = _ndarray((len(allb) >> 3,), _F8, allb)
+        if not _vdot(a, a) <= _MAX_ABS_SQ:
+            _check_float_array("ProxyState arrays", a)
+        qw, qx, qy, qz = _QUAT.unpack_from(allb, 24)
+        if not _UNIT_SQ_LO <= qw * qw + qx * qx + qy * qy + qz * qz <= _UNIT_SQ_HI:
+            raise ValueError("proxy_pose: quaternion is not unit within 1e-6")
+        if not len(bins[3]) == len(bins[4]) == len(bins[5]) <= 8 * self._max_links:
+            raise ValueError("joint_position, joint_velocity, joint_effort must have the same length <= max_links")
+        if not -_MAX_ABS <= float(server_time_s) <= _MAX_ABS:
+            raise ValueError(f"server_time_s must be finite, got {server_time_s!r}")
+        if seq < 1:
+            raise ValueError("seq must be >= 1")
+        self.counters.encoded += 1
+        return packet
 
     def encode_contact_update(self, session_id: int, token: int, seq: int, env_time_s: float, tool_pose,
                               keys: np.ndarray, position_m: np.ndarray, normal: np.ndarray,

@@ -471,3 +471,19 @@ def test_counters_cover_every_code_below_20():
     for code in ErrorCode:
         if code < 20:
             assert code.name.lower() in names
+
+
+def test_proxy_state_encoder_refuses_bad_values():
+    codec = Codec()
+    good = dict(session_id=1, token=2, seq=1, ack_seq=0, server_time_s=0.0, proxy_pose=IDENTITY,
+                proxy_twist=np.zeros(6), wrench=np.zeros(6))
+    codec.encode_proxy_state(**good)
+    for change, match in [(dict(wrench=np.array([0, 0, math.nan, 0, 0, 0])), "ProxyState arrays"),
+                          (dict(proxy_pose=(0, 0, 0, 2.0, 0, 0, 0)), "quaternion"),
+                          (dict(proxy_twist=np.zeros(5)), "proxy_twist"),
+                          (dict(joint_position=[0.1], joint_velocity=[]), "same length"),
+                          (dict(seq=0), "seq"),
+                          (dict(server_time_s=math.inf), "server_time_s")]:
+        with pytest.raises(ValueError, match=match):
+            codec.encode_proxy_state(**{**good, **change})
+    assert codec.counters.encoded == 1
