@@ -139,6 +139,7 @@ class Transport(abc.ABC):
         self._closed = False
         # Scratch buffer for recv()/drain(): one allocation per transport, not per call.
         self._scratch = bytearray(self.max_packet_bytes)
+        self._scratch_view = memoryview(self._scratch)
 
     # ------------------------------------------------------------------ public API
 
@@ -211,14 +212,18 @@ class Transport(abc.ABC):
 
         Returns ``(nbytes, peer, count)``: the newest datagram in ``buffer`` and how many were
         read (``count - 1`` were superseded and are counted in ``counters.superseded``).
-        ``(0, None, 0)`` if nothing was waiting. Allocation-free, but *arrival* order is not
+        ``(0, None, 0)`` if nothing was waiting. Copies payloads without creating ``bytes``
+        objects, but *arrival* order is not
         send order on UDP and it ignores which peer sent what: use it on a client (one peer)
         where the session layer re-checks the sequence number; servers with several peers want
         :meth:`drain` with ``newest_per_peer=True``.
         """
         if max_packets < 1:
             raise ValueError(f"max_packets must be >= 1, got {max_packets}")
+        # Receive into our scratch buffer, not the caller's: a backend may write an oversize
+        # datagram into the buffer before discarding it, which would clobber the newest so far.
         scratch = self._scratch
+        scratch_view = self._scratch_view
         count = 0
         nbytes, peer = 0, None
         while count < max_packets:
@@ -227,8 +232,7 @@ class Transport(abc.ABC):
                 break
             count += 1
             nbytes, peer = n, p
-            # Copy only the winner-so-far; the final copy is the newest arrival.
-            buffer[:n] = scratch[:n]
+            buffer[:n] = scratch_view[:n]  # a view slice: one payload copy, no bytes object
         if count > 1:
             self.counters.superseded += count - 1
         return nbytes, peer, count

@@ -124,6 +124,7 @@ class UdpTransport(Transport):
         self._read_bytes = self.max_packet_bytes if _MSG_TRUNC else self.max_packet_bytes + 1
         if not _MSG_TRUNC:
             self._scratch = bytearray(self._read_bytes)
+            self._scratch_view = memoryview(self._scratch)
 
     # ------------------------------------------------------------------ properties
 

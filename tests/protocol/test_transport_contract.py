@@ -226,6 +226,25 @@ def test_oversize_arrival_is_dropped_and_counted(net):
     assert _recv_wait(client) == (b"w" * 1024, client.default_peer)
 
 
+def test_drain_into_keeps_the_newest_valid_datagram_past_an_oversize_one(net):
+    server = net.server(max_packet_bytes=1024)
+    client = net.client(server, max_packet_bytes=4096)
+    assert client.send(b"keep-me")
+    assert client.send(b"\xee" * 2000)  # arrives after, and must not clobber the newest
+    buf = bytearray(b"\x00" * 1024)
+    valid = 0
+    deadline = time.monotonic() + HANG_GUARD_S
+    while (valid < 1 or server.counters.dropped_oversize_recv < 1) and time.monotonic() < deadline:
+        nbytes, peer, count = server.drain_into(buf)
+        if count:
+            valid += count
+            last = (nbytes, peer)
+        else:
+            time.sleep(0.0002)
+    assert valid == 1 and server.counters.dropped_oversize_recv == 1
+    assert last[0] == 7 and bytes(buf[:7]) == b"keep-me" and buf[7] == 0
+
+
 @pytest.mark.parametrize("bad", [0, -1, 65508, "big"])
 def test_bad_max_packet_bytes_is_a_value_error(net, bad):
     with pytest.raises(ValueError, match="max_packet_bytes"):
