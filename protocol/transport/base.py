@@ -16,9 +16,10 @@ Semantics (the contract ``tests/protocol/test_transport_contract.py`` checks for
 - **Peer ids** are opaque hashables, stable for the life of the remote endpoint: UDP gives the
   ``(host, port)`` source address, mem an ``int`` client number, Zenoh the client's id string.
 - **Never blocks.** :meth:`Transport.recv_into` returns ``(0, None)`` at once when nothing is
-  waiting, so a 1-4 kHz haptic step can poll at its start. It copies into a caller-owned buffer
-  so a steady-state poll allocates nothing beyond what the backend itself forces (UDP servers:
-  the source-address tuple; Zenoh: the sample object).
+  waiting, so a 1-4 kHz haptic step can poll at its start. It copies into a caller-owned buffer,
+  so an empty poll allocates nothing and a datagram costs no payload-sized allocation on mem and
+  UDP (only the small result tuple, plus the source-address tuple on a UDP server); Zenoh
+  necessarily creates a sample and a ``bytes`` copy of its payload per datagram.
 - **Size limit.** ``max_packet_bytes`` is enforced on both sides: an oversize send is refused
   (returns ``False``) and an oversize arrival is discarded; both are counted, never raised, so a
   bad packet cannot stop a haptic loop.
