@@ -251,7 +251,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--no-pin", action="store_true", help="do not pin the two polling threads to different CPUs"
     )
+    parser.add_argument(
+        "--zenoh-runtime",
+        default=None,
+        metavar="RON",
+        help="set ZENOH_RUNTIME (Zenoh's process-wide thread pools, RON syntax) for both processes, "
+        "e.g. '(rx: (handover: app), acc: (handover: app))'; must precede any Zenoh use in this process",
+    )
     args = parser.parse_args(argv)
+    if args.zenoh_runtime is not None:
+        if not args.zenoh_runtime.strip():
+            parser.error("--zenoh-runtime must not be empty")
+        # Inherited by the spawned echo process; read by Zenoh when its runtime first starts.
+        os.environ["ZENOH_RUNTIME"] = args.zenoh_runtime
     variants = [t.strip() for t in args.transports.split(",") if t.strip()]
     for t in variants:
         if t not in VARIANTS:
@@ -277,6 +289,8 @@ def main(argv: list[str] | None = None) -> int:
                 not args.no_pin,
             )
             row["transport"] = variant
+            if backend == "zenoh":
+                row["zenoh_runtime"] = os.environ.get("ZENOH_RUNTIME")
             row["poll"] = {
                 "idle_every": idle_every,
                 "idle": (
