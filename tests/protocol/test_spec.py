@@ -64,3 +64,11 @@ def test_check_flag_detects_staleness(tmp_path, monkeypatch):
 def test_module_entry_point_checks_the_real_file():
     out = subprocess.run([sys.executable, "-m", "hapticproxy.protocol.spec", "--check"], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
+
+
+def test_spec_names_the_zenoh_key_expressions_the_code_uses():
+    from hapticproxy.protocol.transport import zenoh_backend as zb
+    text = spec.SPEC_PATH.read_text(encoding="utf-8")
+    assert f"`{zb.c2s_key('SESSION', 'CLIENT')}`" in text
+    assert f"`{zb.s2c_key('SESSION', 'CLIENT')}`" in text
+    assert f"{zb.KEY_PREFIX}/SESSION/c2s/*" in text
