@@ -114,6 +114,27 @@ def load_hmac_key(path: str | os.PathLike | None = None, *, environ: dict | None
     return None
 
 
+
+def _unwrap(endpoint, data):
+    """The common front of both endpoints' receive paths: size check, HMAC check, decode.
+    Returns the message, a counted ProtocolError, or None when the datagram was dropped (and
+    counted) before decoding."""
+    c = endpoint.counters
+    if len(data) > endpoint._max_datagram:
+        c.oversize += 1
+        endpoint.codec.counters.count(ErrorCode.OVERSIZE)
+        return None
+    if endpoint._mac is not None:
+        packet = endpoint._mac.open(data)
+        if packet is None:
+            c.bad_mac += 1
+            return None
+        data = packet
+    msg = endpoint.codec.try_decode(data)
+    if isinstance(msg, ProtocolError):
+        c.decode_errors += 1
+    return msg
+
 class MacFramer:
     """Shared-secret framing: ``datagram = packet || HMAC-SHA256(key, packet)[:16]``."""
 
@@ -387,19 +408,10 @@ class ServerEndpoint:
 
     def _receive(self, data, peer: Peer, now: int) -> ContactUpdate | None:
         c = self.counters
-        if len(data) > self._max_datagram:
-            c.oversize += 1
-            self.codec.counters.count(ErrorCode.OVERSIZE)
+        msg = _unwrap(self, data)
+        if msg is None:
             return None
-        if self._mac is not None:
-            packet = self._mac.open(data)
-            if packet is None:
-                c.bad_mac += 1
-                return None
-            data = packet
-        msg = self.codec.try_decode(data)
         if isinstance(msg, ProtocolError):
-            c.decode_errors += 1
             self._on_decode_error(msg, peer, now)
             return None
         tid = msg.TYPE_ID
@@ -687,19 +699,10 @@ class ClientEndpoint:
 
     def _receive(self, data, peer: Peer, now: int) -> ProxyState | None:
         c = self.counters
-        if len(data) > self._max_datagram:
-            c.oversize += 1
-            self.codec.counters.count(ErrorCode.OVERSIZE)
+        msg = _unwrap(self, data)
+        if msg is None:
             return None
-        if self._mac is not None:
-            packet = self._mac.open(data)
-            if packet is None:
-                c.bad_mac += 1
-                return None
-            data = packet
-        msg = self.codec.try_decode(data)
         if isinstance(msg, ProtocolError):
-            c.decode_errors += 1
             if (self.state == ClientState.ESTABLISHED and msg.session_id == self.session_id
                     and msg.token == self.token and peer == self.server_peer and msg.type_id != MessageType.ERROR
                     and self._errors.take(now)):
