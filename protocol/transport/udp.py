@@ -24,7 +24,6 @@
 """
 from __future__ import annotations
 
-import errno
 import socket
 import sys
 
@@ -36,9 +35,6 @@ DEFAULT_RCVBUF_BYTES = 256 * 1024
 DEFAULT_SNDBUF_BYTES = 256 * 1024
 
 _MSG_TRUNC = getattr(socket, "MSG_TRUNC", 0) if sys.platform.startswith("linux") else 0
-
-#: Errors after which a receive loop should simply report "nothing waiting".
-_TRANSIENT_RECV_ERRNOS = {errno.EAGAIN, errno.EWOULDBLOCK, errno.EINTR}
 
 
 def _family_for(host: str) -> socket.AddressFamily:
@@ -190,11 +186,9 @@ class UdpTransport(Transport):
                 # An earlier send drew ICMP port-unreachable; the error is consumed, try again.
                 counters.recv_errors += 1
                 continue
-            except OSError as exc:
+            except OSError:
+                # Transient or per-datagram errors alike: report nothing this call rather than spin.
                 counters.recv_errors += 1
-                if exc.errno in _TRANSIENT_RECV_ERRNOS:
-                    return 0, None
-                # Other per-datagram errors: report nothing this call rather than spin.
                 return 0, None
             if n > limit:
                 counters.dropped_oversize_recv += 1

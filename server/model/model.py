@@ -32,6 +32,7 @@ from .layout import (
     TOOL_1DOF, TOOL_DIMS, TOOL_KIND_NAMES, TOOL_PLANAR, TOOL_SPATIAL, UNIT_TOL,
 )
 
+_F64 = np.dtype(np.float64)
 DEFAULT_CAPACITY = 64
 #: Most contacts one update may carry before the capacity rule; larger sets are refused.
 DEFAULT_MAX_UPDATE_CONTACTS = 1024
@@ -331,8 +332,9 @@ class LocalModel:
         """Advance one haptic step with the hand wrench on the proxy (world frame, at the hand
         point; 1dof: (f,), planar: (fx, fy, tau_z), spatial: (fx, fy, fz, tx, ty, tz)).
         Returns the environment wrench for the hand (a view, overwritten next step)."""
-        hand = hand_wrench if (isinstance(hand_wrench, np.ndarray) and hand_wrench.dtype == np.float64
-                               and hand_wrench.shape[0] >= self.hand_dim) else self._copy_hand(hand_wrench)
+        # the server's path (a preallocated float64 array) is checked without building objects
+        hand = hand_wrench if (type(hand_wrench) is np.ndarray and hand_wrench.dtype is _F64
+                               and len(hand_wrench) >= self.hand_dim) else self._copy_hand(hand_wrench)
         code = _k.step_rigid(self.kind, self._par, self._st, self._C, self._CI, self._cnt, self._wk, hand)
         if code != E_OK:
             fld, why = ERROR_FIELDS[code]
