@@ -6,6 +6,7 @@ compilation, and so that each subsystem owns its own argument parsing:
 - ``demo``                      -> hapticproxy.experiments.demo.main(argv)
 - ``bench TARGET ...``          -> hapticproxy.benchmarks.bench_<TARGET>.main(argv)
 - ``protocol check-client|check-server ...`` -> hapticproxy.protocol.conformance.main(argv)
+- ``serve``, ``status``, ``plot``, ``client``, ``device``: see ``COMMANDS``
 """
 from __future__ import annotations
 
@@ -22,6 +23,11 @@ BENCH_TARGETS = {
 COMMANDS = {
     "demo": ("hapticproxy.experiments.demo", "run the main demo (headless) and write a plot"),
     "protocol": ("hapticproxy.protocol.conformance", "protocol conformance kit: check-client, check-server"),
+    "serve": ("hapticproxy.server.daemon", "run the haptics server daemon (--config FILE)"),
+    "status": ("hapticproxy.server.status", "ask a running server for its live figures (--json)"),
+    "plot": ("hapticproxy.server.plot", "write PNG plots from a telemetry recording"),
+    "client": ("hapticproxy.clients.cli", "run an environment client: pymunk | pybullet | stub"),
+    "device": ("hapticproxy.server.devices.remote", "run a device program that streams to a server over UDP"),
 }
 
 
