@@ -719,9 +719,17 @@ def validate_contacts(kind, n_links, keys, cp, nrm, dsep, vc, n_in):
 
 
 @njit(**_JIT)
-def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, sel, newF, newI):
+def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, sel, newF, newI,
+                 qe, use_qe, st_e, Re, ce):
     """Replace the local contact set by the engine's (validated first; on error nothing changes).
-    Contacts absent from the update leave the model. The proxy's q and qd are never touched."""
+    Contacts absent from the update leave the model. The proxy's q and qd are never touched.
+
+    ``use_qe`` = 0: the paper's eq. 1, the reported feature point ``c_p + d n`` is taken relative
+    to the proxy's COM (the engine's tool is assumed to be where the proxy is). ``use_qe`` = 1:
+    ``qe`` is the engine's tool configuration at which the contacts were computed; the feature
+    point is taken in the engine tool's body frame and carried onto the proxy, and the rule table
+    compares the proxy's separation against that true geometry (``s_w``) instead of ``d``. When
+    the engine's tool is where the proxy is, both are the same. ``st_e``, ``Re``, ``ce``: scratch."""
     code = validate_contacts(kind, 1, keys, cp, nrm, dsep, vc, n_in)
     if code != E_OK:
         return code
@@ -741,6 +749,11 @@ def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, s
     R = Y
     c = V[_V_T1]
     _rigid_pose(kind, par, st, R, c)
+    if use_qe:
+        nq = 1 if kind == TOOL_1DOF else (3 if kind == TOOL_PLANAR else 7)
+        for a in range(nq):
+            st_e[S_Q + a] = qe[a]
+        _rigid_pose(kind, par, st_e, Re, ce)
     t = st[S_T]
     policy = int(par[P_POLICY])
     # current world points and proxy separations s_p of the existing contacts
@@ -766,7 +779,24 @@ def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, s
                     and CI[i, CI_KEY + 2] == keys[j, 2]:
                 found = i
                 break
-        dj = dsep[j]
+        # the tool feature as the proxy carries it (Xp) and its separation s_w along n
+        if use_qe:
+            fx = cp[j, 0] + dsep[j] * nrm[j, 0] - ce[0]
+            fy = cp[j, 1] + dsep[j] * nrm[j, 1] - ce[1]
+            fz = cp[j, 2] + dsep[j] * nrm[j, 2] - ce[2]
+            bx = Re[0, 0] * fx + Re[1, 0] * fy + Re[2, 0] * fz
+            by = Re[0, 1] * fx + Re[1, 1] * fy + Re[2, 1] * fz
+            bz = Re[0, 2] * fx + Re[1, 2] * fy + Re[2, 2] * fz
+            xp0 = c[0] + R[0, 0] * bx + R[0, 1] * by + R[0, 2] * bz
+            xp1 = c[1] + R[1, 0] * bx + R[1, 1] * by + R[1, 2] * bz
+            xp2 = c[2] + R[2, 0] * bx + R[2, 1] * by + R[2, 2] * bz
+            dj = (nrm[j, 0] * (xp0 - cp[j, 0]) + nrm[j, 1] * (xp1 - cp[j, 1])
+                  + nrm[j, 2] * (xp2 - cp[j, 2]))
+        else:
+            dj = dsep[j]
+            xp0 = cp[j, 0] + dj * nrm[j, 0]
+            xp1 = cp[j, 1] + dj * nrm[j, 1]
+            xp2 = cp[j, 2] + dj * nrm[j, 2]
         # offset along n of the target world point from c_p (eq. 1/6: d, eq. 5: s_p, eq. 4: 0)
         if found >= 0:
             matched += 1
@@ -807,7 +837,7 @@ def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, s
         if kind == TOOL_PLANAR:
             newF[a, C_CP + 2] = 0.0
             newF[a, C_N + 2] = 0.0
-        newF[a, C_D] = dj
+        newF[a, C_D] = dsep[j]
         newF[a, C_VC] = vc[j]
         newF[a, C_TU] = t
         newF[a, C_VN] = 0.0
@@ -815,9 +845,11 @@ def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, s
         newF[a, C_IMP] = 0.0
         for q_ in range(3):
             newF[a, C_FT + q_] = 0.0
-        # local contact point in the body frame: p = R^T (c_p + off n - c)   (eqs. 1, 4, 5, 6)
-        for q_ in range(3):
-            X[0, q_] = newF[a, C_CP + q_] + off * newF[a, C_N + q_] - c[q_]
+        # local contact point in the body frame: p = R^T (Xp + (off - s_w) n - c); with the
+        # engine at the proxy's pose Xp = c_p + d n, s_w = d: p = R^T (c_p + off n - c)  (eqs. 1, 4, 5, 6)
+        X[0, 0] = xp0 + (off - dj) * newF[a, C_N] - c[0]
+        X[0, 1] = xp1 + (off - dj) * newF[a, C_N + 1] - c[1]
+        X[0, 2] = xp2 + (off - dj) * newF[a, C_N + 2] - c[2]
         for q_ in range(3):
             s = 0.0
             for b2 in range(3):

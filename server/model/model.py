@@ -257,6 +257,10 @@ class LocalModel:
         self._sel = np.zeros(int(max_update_contacts), dtype=np.int64)
         self._newF = np.zeros((self.capacity, NCOLS_F))
         self._newI = np.zeros((self.capacity, NCOLS_I), dtype=np.int64)
+        self._qe = np.zeros(7)  # placeholder engine configuration when none is given
+        self._st_e = np.zeros(NSTATE)
+        self._Re = np.zeros((3, 3))
+        self._ce = np.zeros(3)
         self._fenv = self._st[S_FENV:S_FENV + self.hand_dim]
         self.reset()
         if warm:
@@ -293,13 +297,26 @@ class LocalModel:
         self._cnt[:] = 0
 
     # -- the two operations --------------------------------------------------------------------
-    def update(self, keys, position_m, normal, separation_m, v_constr_m_per_s=None) -> None:
+    def update(self, keys, position_m, normal, separation_m, v_constr_m_per_s=None, tool_q=None) -> None:
         """Replace the local contacts by the engine's set (world frame, SI units).
 
         keys: (n, 3) int (tool link, environment body, feature); position_m: (n, 3) constraint
         positions c_p; normal: (n, 3) unit normals, environment towards tool; separation_m: (n,)
-        real-tool separation d (negative when penetrating); v_constr_m_per_s: (n,) n . v(c_p).
+        real-tool separation d (negative when penetrating); v_constr_m_per_s: (n,) n . v(c_p);
+        tool_q: the engine's tool configuration (like ``q``) at which they were computed, or
+        ``None`` for the paper's eq. 1 (see ``update_arrays``).
         """
+        qe = None
+        if tool_q is not None:
+            qe = np.asarray(tool_q, dtype=np.float64).ravel()
+            if qe.shape != (self.nq,) or not np.all(np.isfinite(qe)):
+                raise ValueError(f"tool_q: expected {self.nq} finite numbers for a {self.tool.kind} tool")
+            if self.kind == TOOL_SPATIAL:
+                nrm_q = np.linalg.norm(qe[3:7])
+                if not nrm_q > 0:
+                    raise ValueError("tool_q: the orientation quaternion must be non-zero")
+                qe = qe.copy()
+                qe[3:7] /= nrm_q
         keys = np.asarray(keys)
         n_in = keys.shape[0] if keys.ndim == 2 else -1
         if keys.ndim != 2 or keys.shape[1] != 3 or not np.issubdtype(keys.dtype, np.integer):
@@ -316,17 +333,28 @@ class LocalModel:
             raise ValueError(f"contacts: {n_in} exceeds max_update_contacts={self._sel.shape[0]}")
         keys = np.ascontiguousarray(keys, dtype=np.int64)
         code = _k.update_rigid(self.kind, self._par, self._st, self._C, self._CI, self._cnt, self._wk,
-                               keys, cp, nrm, dsep, vc, n_in, self._sel, self._newF, self._newI)
+                               keys, cp, nrm, dsep, vc, n_in, self._sel, self._newF, self._newI,
+                               self._qe if qe is None else qe, 0 if qe is None else 1,
+                               self._st_e, self._Re, self._ce)
         if code != E_OK:
             fld, why = ERROR_FIELDS[code]
             raise ValueError(f"{fld}: {why}")
 
-    def update_arrays(self, keys, position_m, normal, separation_m, v_constr_m_per_s, n: int) -> int:
+    def update_arrays(self, keys, position_m, normal, separation_m, v_constr_m_per_s, n: int,
+                      tool_q: np.ndarray | None = None) -> int:
         """Hot-path variant of ``update`` for already-validated, preallocated arrays (the first n
-        rows are used); returns the kernel's E_* code instead of raising."""
+        rows are used); returns the kernel's E_* code instead of raising.
+
+        ``tool_q`` (float64[nq], finite, checked by the caller): the engine's tool configuration
+        (COM pose, like ``q``) at which the contacts were computed. Given, the reported feature
+        points are taken in the engine tool's frame and carried onto the proxy, so the proxy
+        feels the geometry where the engine has it even when the engine's tool lags the proxy
+        or is held back by what it touches. ``None``: the paper's eq. 1 (relative to the proxy)."""
+        use = 0 if tool_q is None else 1
         return _k.update_rigid(self.kind, self._par, self._st, self._C, self._CI, self._cnt, self._wk,
                                keys, position_m, normal, separation_m, v_constr_m_per_s, n,
-                               self._sel, self._newF, self._newI)
+                               self._sel, self._newF, self._newI,
+                               self._qe if tool_q is None else tool_q, use, self._st_e, self._Re, self._ce)
 
     def step(self, hand_wrench) -> np.ndarray:
         """Advance one haptic step with the hand wrench on the proxy (world frame, at the hand
@@ -458,6 +486,11 @@ class LocalModel:
     def arrays(self):
         return self._par, self._st, self._C, self._CI, self._cnt
 
+    def kernel_args(self):
+        """``(kind, par, st, C, CI, cnt, wk)``: the arguments of ``kernels.step_rigid`` before the
+        hand wrench, for callers that fuse the model step into their own kernel (the server loop)."""
+        return self.kind, self._par, self._st, self._C, self._CI, self._cnt, self._wk
+
 
 _WARM = False
 
@@ -487,8 +520,12 @@ def warm_up() -> None:
         nrm = np.zeros((1, 3)); nrm[0, 0] = 1.0
         dsep = np.zeros(1); vc = np.zeros(1)
         sel = np.zeros(4, dtype=np.int64)
-        _k.update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, 1, sel,
-                        np.zeros((cap, NCOLS_F)), np.zeros((cap, NCOLS_I), dtype=np.int64))
+        for use_qe in (0, 1):
+            qe = np.zeros(7)
+            qe[3] = 1.0
+            _k.update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, 1, sel,
+                            np.zeros((cap, NCOLS_F)), np.zeros((cap, NCOLS_I), dtype=np.int64),
+                            qe, use_qe, np.zeros(NSTATE), np.zeros((3, 3)), np.zeros(3))
         st[S_QD] = -0.1
         _k.step_rigid(kind, par, st, C, CI, cnt, wk, np.zeros(6))
     _WARM = True
