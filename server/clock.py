@@ -1,0 +1,136 @@
+"""Clocks for the haptic loop: one interface, a real one and a simulated one.
+
+The loop is scheduled on absolute deadlines (``deadline += period_ns``), so a late wake-up does
+not shift every later step. ``wait_until(deadline_ns)`` returns the wake-up time; lateness is
+``wake - deadline``.
+
+``MonotonicClock`` waits in two phases (hybrid wait): a sleep until ``spin_ns`` before the
+deadline, then a spin on the monotonic clock. The sleep phase always runs when there is time for
+it, so the loop never spins a whole period (which under real-time scheduling would starve the
+rest of the machine); ``spin_ns`` is calibrated from the measured sleep overshoot at start-up.
+
+``SimClock`` is simulated time for deterministic tests: waiting jumps to the deadline, and a
+test may add a compute time or a stall per step.
+"""
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import time
+
+_NS = 1_000_000_000
+
+
+class Clock:
+    """Interface: ``now_ns()`` and ``wait_until(deadline_ns) -> wake_ns``."""
+
+    simulated = False
+
+    def now_ns(self) -> int:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def wait_until(self, deadline_ns: int) -> int:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+class MonotonicClock(Clock):
+    """``time.monotonic_ns`` with a hybrid sleep-then-spin wait."""
+
+    def __init__(self, spin_ns: int = 100_000) -> None:
+        if spin_ns < 0:
+            raise ValueError(f"spin_ns: must be >= 0, got {spin_ns}")
+        self.spin_ns = int(spin_ns)
+        self.now_ns = time.monotonic_ns  # bound builtin: no Python frame per call
+
+    def wait_until(self, deadline_ns: int) -> int:
+        now = time.monotonic_ns()
+        sleep_ns = deadline_ns - self.spin_ns - now
+        if sleep_ns > 0:
+            time.sleep(sleep_ns * 1e-9)
+            now = time.monotonic_ns()
+        while now < deadline_ns:
+            now = time.monotonic_ns()
+        return now
+
+    def calibrate(self, samples: int = 200, sleep_ns: int = 200_000, quantile: float = 0.99,
+                  floor_ns: int = 20_000, ceiling_ns: int = 400_000) -> int:
+        """Measure how late ``time.sleep`` wakes and set ``spin_ns`` to its ``quantile`` plus a
+        margin, clamped to [floor_ns, ceiling_ns]. Returns the chosen ``spin_ns``."""
+        late = []
+        for _ in range(samples):
+            t0 = time.monotonic_ns()
+            time.sleep(sleep_ns * 1e-9)
+            late.append(time.monotonic_ns() - t0 - sleep_ns)
+        late.sort()
+        q = late[min(len(late) - 1, int(quantile * len(late)))]
+        self.spin_ns = int(min(max(q + 10_000, floor_ns), ceiling_ns))
+        return self.spin_ns
+
+
+class SimClock(Clock):
+    """Simulated time: ``wait_until`` jumps to the deadline (or stays if already past).
+
+    ``step_cost_ns`` is added by ``charge()`` (the loop calls it after each step's work) to model
+    compute time; ``stall(ns)`` makes the next wake-up late by ``ns`` (a stopped process).
+    """
+
+    simulated = True
+
+    def __init__(self, start_ns: int = 0, step_cost_ns: int = 0) -> None:
+        self.t = int(start_ns)
+        self.step_cost_ns = int(step_cost_ns)
+        self._stall = 0
+
+    def now_ns(self) -> int:
+        return self.t
+
+    def wait_until(self, deadline_ns: int) -> int:
+        if self.t < deadline_ns:
+            self.t = deadline_ns
+        if self._stall:
+            self.t += self._stall
+            self._stall = 0
+        return self.t
+
+    def charge(self) -> None:
+        self.t += self.step_cost_ns
+
+    def advance(self, ns: int) -> None:
+        self.t += int(ns)
+
+    def stall(self, ns: int) -> None:
+        self._stall += int(ns)
+
+
+# ------------------------------------------------------------------------------ process tuning
+def set_timer_slack_ns(ns: int = 1) -> bool:
+    """Linux ``prctl(PR_SET_TIMERSLACK)``: the default 50 us slack makes every sleep that late."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        return libc.prctl(29, ctypes.c_ulong(max(1, int(ns))), 0, 0, 0) == 0  # PR_SET_TIMERSLACK
+    except (OSError, AttributeError):
+        return False
+
+
+def try_realtime(priority: int = 80) -> tuple[bool, str]:
+    """Ask for SCHED_FIFO at ``priority``; return (granted, why not)."""
+    if not hasattr(os, "sched_setscheduler"):
+        return False, "no sched_setscheduler on this platform"
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        return True, ""
+    except PermissionError as exc:
+        return False, f"SCHED_FIFO refused: {exc.strerror} (needs CAP_SYS_NICE or an rtprio limit)"
+    except OSError as exc:
+        return False, f"SCHED_FIFO refused: {exc.strerror}"
+
+
+def pin_to_cpu(cpu: int | None) -> bool:
+    if cpu is None or not hasattr(os, "sched_setaffinity"):
+        return False
+    try:
+        os.sched_setaffinity(0, {int(cpu)})
+        return True
+    except (OSError, ValueError):
+        return False

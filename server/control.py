@@ -1,0 +1,533 @@
+"""Controllers between the device and the proxy, and the safety layer, as one numba kernel.
+
+``haptic_step`` is the whole per-step computation after the device has been read: map the
+device into the world, run the controller, step the local model, map the command back to the
+device, then the safety filter (finite check, fade, per-axis caps, rate limit). One compiled
+call per haptic step; the arrays are owned by :class:`Controller`.
+
+Controllers (the paper's section II and V; Sirouspour's four-channel architecture):
+
+- ``four_channel``: force channels (measured hand wrench -> proxy, environment wrench -> device)
+  plus position channels (translational and rotational spring-dampers between the device
+  handle and the proxy hand point). Proxy: ``F_h + F_c``; device: ``F_env - F_c``, where
+  ``F_c = K (x_dev - x_proxy) + B (v_dev - v_proxy)`` (world, at the hand point).
+- ``coupler`` (virtual coupler): the spring-damper only. Proxy ``F_c``; device ``-F_c``.
+- ``direct`` (direct coupling, the intermediate-representation baseline of Berkelman et al.): the
+  device *is* the tool: the proxy state is set to the device state every step and the device
+  gets the environment wrench; no position coordination.
+
+Frames: the device reports its handle pose in device coordinates; the world pose of the handle
+is ``R_off p_dev + p_off`` (orientation ``q_off * q_dev``). With ``mapping = "index"`` the
+offset is set when a session engages so that the handle maps exactly onto the proxy's hand
+point (no jump; the classic indexing of haptic workspaces); ``absolute`` keeps the identity.
+The hand point is the tool frame's origin (``-com_m`` in the body frame).
+
+Safety (order matters): a non-finite command or device state -> zero output and a latched
+``NONFINITE`` code (the loop disables the device); device speed over its limit -> the gain
+target drops to 0 (a fade-out) and a trip is counted; then ``gain`` moves towards its target by
+``dt / ramp_in_s`` (up) or ``dt / fade_s`` (down); the scaled command is capped per axis
+(counted) and scaled by the gain (so while ramping in the output is at most ``gain * cap``), then
+its change per step is capped at the rate limit (counted). Because the previous output and the
+capped target both lie within the caps, the rate-limited output does too.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .model.kernels import _rigid_pose, step_rigid
+from .model.layout import P_AXIS, P_HAND, P_ORIGIN, S_FENV, S_Q, S_QD, TOOL_1DOF, TOOL_PLANAR
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+
+CTRL_FOUR_CHANNEL = 0
+CTRL_COUPLER = 1
+CTRL_DIRECT = 2
+CONTROLLER_IDS = {"four_channel": CTRL_FOUR_CHANNEL, "coupler": CTRL_COUPLER, "direct": CTRL_DIRECT}
+
+# ---- parameters (float64[NCP])
+CP_TYPE = 0
+CP_KT = 1          # translational spring, N/m
+CP_BT = 2          # translational damper, N s/m
+CP_KR = 3          # rotational spring, N m/rad
+CP_BR = 4          # rotational damper, N m s/rad
+CP_HG = 5          # hand force-channel gain
+CP_EG = 6          # environment force-channel gain
+CP_ROFF = 7        # 7..15 device -> world rotation, row-major
+CP_POFF = 16       # 16..18 device -> world translation, m
+CP_QOFF = 19       # 19..22 the same rotation as a quaternion (w x y z)
+CP_FMAX = 23       # force cap per axis, N
+CP_TMAX = 24       # torque cap per axis, N m
+CP_FRATE = 25      # largest force change per step, N
+CP_TRATE = 26      # largest torque change per step, N m
+CP_VMAX = 27       # device speed limit, m/s
+CP_WMAX = 28       # device angular speed limit, rad/s
+CP_FADE = 29       # gain decrement per step (dt / fade_s)
+CP_RAMP = 30       # gain increment per step (dt / ramp_in_s)
+CP_MASK = 31       # 31..36 components the device renders (1/0)
+NCP = 37
+
+# ---- state (float64[NCS]); rows for telemetry and the ProxyState
+CS_GAIN = 0
+CS_TARGET = 1
+CS_PREV = 2        # 2..7 previous output, device frame
+CS_FC = 8          # 8..13 coupling wrench on the proxy, world
+CS_HAND = 14       # 14..19 wrench applied to the proxy at the hand point, world
+CS_ENV = 20        # 20..25 environment wrench at the hand point, world
+CS_DPOSE = 26      # 26..32 device handle pose, world (x y z qw qx qy qz)
+CS_DTWIST = 33     # 33..38 device handle twist, world
+CS_PPOSE = 39      # 39..45 proxy hand-point (tool-frame) pose, world, after the step
+CS_PTWIST = 46     # 46..51 proxy hand-point twist, world, after the step
+CS_CMDW = 52       # 52..57 controller command before safety, world
+NCS = 58
+
+# ---- counters (int64[NCC])
+CC_STEPS = 0
+CC_SATURATED = 1       # steps in which a cap clipped some axis
+CC_RATE_LIMITED = 2    # steps in which the rate limit clipped some axis
+CC_SPEED_TRIPS = 3     # steps over the speed limit
+CC_NONFINITE = 4       # steps with a non-finite command or device state
+CC_HAND_MISSING = 5    # steps with no (finite) measured hand wrench in four-channel
+NCC = 6
+
+RC_OK = 0
+RC_NONFINITE = 1
+RC_SPEED = 2
+
+
+@njit(**_JIT)
+def _rot(R, off, x, y, z, out, o):
+    out[o] = R[off] * x + R[off + 1] * y + R[off + 2] * z
+    out[o + 1] = R[off + 3] * x + R[off + 4] * y + R[off + 5] * z
+    out[o + 2] = R[off + 6] * x + R[off + 7] * y + R[off + 8] * z
+
+
+@njit(**_JIT)
+def _rot_t(R, off, x, y, z, out, o):
+    out[o] = R[off] * x + R[off + 3] * y + R[off + 6] * z
+    out[o + 1] = R[off + 1] * x + R[off + 4] * y + R[off + 7] * z
+    out[o + 2] = R[off + 2] * x + R[off + 5] * y + R[off + 8] * z
+
+
+@njit(**_JIT)
+def _qmul(aw, ax, ay, az, bw, bx, by, bz, out, o):
+    out[o] = aw * bw - ax * bx - ay * by - az * bz
+    out[o + 1] = aw * bx + ax * bw + ay * bz - az * by
+    out[o + 2] = aw * by - ax * bz + ay * bw + az * bx
+    out[o + 3] = aw * bz + ax * by - ay * bx + az * bw
+
+
+@njit(**_JIT)
+def _wrap(a):
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@njit(**_JIT)
+def proxy_hand_state(kind, par, st, R, c, out, o):
+    """Proxy hand-point pose (7) at out[o:o+7] and twist (6) at out[o+7:o+13], world."""
+    _rigid_pose(kind, par, st, R, c)
+    hx = R[0, 0] * par[P_HAND] + R[0, 1] * par[P_HAND + 1] + R[0, 2] * par[P_HAND + 2]
+    hy = R[1, 0] * par[P_HAND] + R[1, 1] * par[P_HAND + 1] + R[1, 2] * par[P_HAND + 2]
+    hz = R[2, 0] * par[P_HAND] + R[2, 1] * par[P_HAND + 1] + R[2, 2] * par[P_HAND + 2]
+    out[o] = c[0] + hx
+    out[o + 1] = c[1] + hy
+    out[o + 2] = c[2] + hz
+    for j in range(13):
+        if j >= 3:
+            out[o + j] = 0.0
+    out[o + 3] = 1.0
+    if kind == TOOL_1DOF:
+        for j in range(3):
+            out[o + 7 + j] = st[S_QD] * par[P_AXIS + j]
+    elif kind == TOOL_PLANAR:
+        th = st[S_Q + 2]
+        out[o + 3] = math.cos(0.5 * th)
+        out[o + 6] = math.sin(0.5 * th)
+        w = st[S_QD + 2]
+        out[o + 7] = st[S_QD] - w * hy
+        out[o + 8] = st[S_QD + 1] + w * hx
+        out[o + 12] = w
+    else:
+        for j in range(4):
+            out[o + 3 + j] = st[S_Q + 3 + j]
+        wx = st[S_QD + 3]; wy = st[S_QD + 4]; wz = st[S_QD + 5]
+        out[o + 7] = st[S_QD] + wy * hz - wz * hy
+        out[o + 8] = st[S_QD + 1] + wz * hx - wx * hz
+        out[o + 9] = st[S_QD + 2] + wx * hy - wy * hx
+        out[o + 10] = wx
+        out[o + 11] = wy
+        out[o + 12] = wz
+
+
+@njit(**_JIT)
+def _safety(cp, cs, cc, cmd):
+    """Finite check, fade gain, per-axis caps, rate limit. ``cmd`` (device frame) in/out."""
+    ok = True
+    for j in range(6):
+        if not math.isfinite(cmd[j]):
+            ok = False
+    if not ok:
+        for j in range(6):
+            cmd[j] = 0.0
+            cs[CS_PREV + j] = 0.0
+        cs[CS_GAIN] = 0.0
+        cs[CS_TARGET] = 0.0
+        cc[CC_NONFINITE] += 1
+        return RC_NONFINITE
+    g = cs[CS_GAIN]
+    if cs[CS_TARGET] > g:
+        g = min(cs[CS_TARGET], g + cp[CP_RAMP])
+    elif cs[CS_TARGET] < g:
+        g = max(cs[CS_TARGET], g - cp[CP_FADE])
+    cs[CS_GAIN] = g
+    sat = False
+    lim = False
+    for j in range(6):
+        cap = cp[CP_FMAX] if j < 3 else cp[CP_TMAX]
+        rate = cp[CP_FRATE] if j < 3 else cp[CP_TRATE]
+        # cap first, then the gain: while ramping in, the output is at most gain * cap
+        v = cmd[j] * cp[CP_MASK + j]
+        if v > cap:
+            v = cap
+            sat = True
+        elif v < -cap:
+            v = -cap
+            sat = True
+        v *= g
+        prev = cs[CS_PREV + j]
+        if v > prev + rate:
+            v = prev + rate
+            lim = True
+        elif v < prev - rate:
+            v = prev - rate
+            lim = True
+        cmd[j] = v
+        cs[CS_PREV + j] = v
+    if sat:
+        cc[CC_SATURATED] += 1
+    if lim:
+        cc[CC_RATE_LIMITED] += 1
+    return RC_OK
+
+
+@njit(**_JIT)
+def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, hand, R, c):
+    """One haptic step after the device read. ``dev``: device state row (see devices.base);
+    ``cmd`` (6): output, device frame. ``active``: a session has engaged the model.
+    ``hand`` (6), ``R`` (3x3), ``c`` (3): scratch. Returns RC_*."""
+    cc[CC_STEPS] += 1
+    rc = RC_OK
+    for j in range(13):
+        if not math.isfinite(dev[j]):
+            for k in range(6):
+                cmd[k] = 0.0
+                cs[CS_PREV + k] = 0.0
+            cs[CS_GAIN] = 0.0
+            cs[CS_TARGET] = 0.0
+            cc[CC_NONFINITE] += 1
+            return RC_NONFINITE
+    # device handle -> world
+    _rot(cp, CP_ROFF, dev[0], dev[1], dev[2], cs, CS_DPOSE)
+    for j in range(3):
+        cs[CS_DPOSE + j] += cp[CP_POFF + j]
+    _qmul(cp[CP_QOFF], cp[CP_QOFF + 1], cp[CP_QOFF + 2], cp[CP_QOFF + 3],
+          dev[3], dev[4], dev[5], dev[6], cs, CS_DPOSE + 3)
+    _rot(cp, CP_ROFF, dev[7], dev[8], dev[9], cs, CS_DTWIST)
+    _rot(cp, CP_ROFF, dev[10], dev[11], dev[12], cs, CS_DTWIST + 3)
+    speed = math.sqrt(dev[7] ** 2 + dev[8] ** 2 + dev[9] ** 2)
+    wspeed = math.sqrt(dev[10] ** 2 + dev[11] ** 2 + dev[12] ** 2)
+    if speed > cp[CP_VMAX] or wspeed > cp[CP_WMAX]:
+        cs[CS_TARGET] = 0.0
+        cc[CC_SPEED_TRIPS] += 1
+        rc = RC_SPEED
+    ctype = int(cp[CP_TYPE])
+    for j in range(6):
+        cs[CS_ENV + j] = 0.0
+        cs[CS_HAND + j] = 0.0
+        cs[CS_FC + j] = 0.0
+        cs[CS_CMDW + j] = 0.0
+    if active:
+        proxy_hand_state(kind, par, st, R, c, cs, CS_PPOSE)
+        # position channels: device minus proxy at the hand point, world
+        ex = cs[CS_DPOSE] - cs[CS_PPOSE]
+        ey = cs[CS_DPOSE + 1] - cs[CS_PPOSE + 1]
+        ez = cs[CS_DPOSE + 2] - cs[CS_PPOSE + 2]
+        evx = cs[CS_DTWIST] - cs[CS_PTWIST]
+        evy = cs[CS_DTWIST + 1] - cs[CS_PTWIST + 1]
+        evz = cs[CS_DTWIST + 2] - cs[CS_PTWIST + 2]
+        erx = 0.0; ery = 0.0; erz = 0.0
+        ewx = cs[CS_DTWIST + 3] - cs[CS_PTWIST + 3]
+        ewy = cs[CS_DTWIST + 4] - cs[CS_PTWIST + 4]
+        ewz = cs[CS_DTWIST + 5] - cs[CS_PTWIST + 5]
+        if kind == TOOL_1DOF:
+            ax = par[P_AXIS]; ay = par[P_AXIS + 1]; az = par[P_AXIS + 2]
+            e = ex * ax + ey * ay + ez * az
+            ev = evx * ax + evy * ay + evz * az
+            ex = e * ax; ey = e * ay; ez = e * az
+            evx = ev * ax; evy = ev * ay; evz = ev * az
+            ewx = 0.0; ewy = 0.0; ewz = 0.0
+        elif kind == TOOL_PLANAR:
+            thd = 2.0 * math.atan2(cs[CS_DPOSE + 6], cs[CS_DPOSE + 3])
+            erz = _wrap(thd - st[S_Q + 2])
+            ez = 0.0; evz = 0.0; ewx = 0.0; ewy = 0.0
+        else:
+            # rotation vector of q_dev * conj(q_proxy)
+            pw = cs[CS_PPOSE + 3]; px = cs[CS_PPOSE + 4]; py = cs[CS_PPOSE + 5]; pz = cs[CS_PPOSE + 6]
+            _qmul(cs[CS_DPOSE + 3], cs[CS_DPOSE + 4], cs[CS_DPOSE + 5], cs[CS_DPOSE + 6],
+                  pw, -px, -py, -pz, hand, 0)
+            qw = hand[0]; qx = hand[1]; qy = hand[2]; qz = hand[3]
+            if qw < 0.0:
+                qw = -qw; qx = -qx; qy = -qy; qz = -qz
+            vn = math.sqrt(qx * qx + qy * qy + qz * qz)
+            if vn > 1e-12:
+                ang = 2.0 * math.atan2(vn, qw)
+                erx = ang * qx / vn; ery = ang * qy / vn; erz = ang * qz / vn
+        kt = cp[CP_KT]; bt = cp[CP_BT]; kr = cp[CP_KR]; br = cp[CP_BR]
+        cs[CS_FC] = kt * ex + bt * evx
+        cs[CS_FC + 1] = kt * ey + bt * evy
+        cs[CS_FC + 2] = kt * ez + bt * evz
+        cs[CS_FC + 3] = kr * erx + br * ewx
+        cs[CS_FC + 4] = kr * ery + br * ewy
+        cs[CS_FC + 5] = kr * erz + br * ewz
+        if ctype == CTRL_DIRECT:
+            # the device is the tool: proxy COM state from the handle (hand point = tool origin)
+            _rigid_pose(kind, par, st, R, c)
+            if kind == TOOL_1DOF:
+                s = 0.0
+                v = 0.0
+                for j in range(3):
+                    s += (cs[CS_DPOSE + j] - par[P_HAND + j] - par[P_ORIGIN + j]) * par[P_AXIS + j]
+                    v += cs[CS_DTWIST + j] * par[P_AXIS + j]
+                st[S_Q] = s
+                st[S_QD] = v
+            elif kind == TOOL_PLANAR:
+                th = st[S_Q + 2] + _wrap(2.0 * math.atan2(cs[CS_DPOSE + 6], cs[CS_DPOSE + 3]) - st[S_Q + 2])
+                ct = math.cos(th); sn = math.sin(th)
+                hx = ct * par[P_HAND] - sn * par[P_HAND + 1]
+                hy = sn * par[P_HAND] + ct * par[P_HAND + 1]
+                w = cs[CS_DTWIST + 5]
+                st[S_Q] = cs[CS_DPOSE] - hx
+                st[S_Q + 1] = cs[CS_DPOSE + 1] - hy
+                st[S_Q + 2] = th
+                st[S_QD] = cs[CS_DTWIST] + w * hy
+                st[S_QD + 1] = cs[CS_DTWIST + 1] - w * hx
+                st[S_QD + 2] = w
+            else:
+                for j in range(4):
+                    st[S_Q + 3 + j] = cs[CS_DPOSE + 3 + j]
+                _rigid_pose(kind, par, st, R, c)
+                hx = R[0, 0] * par[P_HAND] + R[0, 1] * par[P_HAND + 1] + R[0, 2] * par[P_HAND + 2]
+                hy = R[1, 0] * par[P_HAND] + R[1, 1] * par[P_HAND + 1] + R[1, 2] * par[P_HAND + 2]
+                hz = R[2, 0] * par[P_HAND] + R[2, 1] * par[P_HAND + 1] + R[2, 2] * par[P_HAND + 2]
+                wx = cs[CS_DTWIST + 3]; wy = cs[CS_DTWIST + 4]; wz = cs[CS_DTWIST + 5]
+                st[S_Q] = cs[CS_DPOSE] - hx
+                st[S_Q + 1] = cs[CS_DPOSE + 1] - hy
+                st[S_Q + 2] = cs[CS_DPOSE + 2] - hz
+                # v_com = v_hand - w x r_h
+                st[S_QD] = cs[CS_DTWIST] - (wy * hz - wz * hy)
+                st[S_QD + 1] = cs[CS_DTWIST + 1] - (wz * hx - wx * hz)
+                st[S_QD + 2] = cs[CS_DTWIST + 2] - (wx * hy - wy * hx)
+                st[S_QD + 3] = wx
+                st[S_QD + 4] = wy
+                st[S_QD + 5] = wz
+        else:
+            hg = 0.0
+            if ctype == CTRL_FOUR_CHANNEL:
+                hg = cp[CP_HG]
+                have = True
+                for j in range(6):
+                    if not math.isfinite(dev[13 + j]):
+                        have = False
+                if not have:
+                    hg = 0.0
+                    cc[CC_HAND_MISSING] += 1
+            if hg != 0.0:
+                _rot(cp, CP_ROFF, dev[13], dev[14], dev[15], cs, CS_HAND)
+                _rot(cp, CP_ROFF, dev[16], dev[17], dev[18], cs, CS_HAND + 3)
+                for j in range(6):
+                    cs[CS_HAND + j] *= hg
+            for j in range(6):
+                cs[CS_HAND + j] += cs[CS_FC + j]
+        # reduce the hand wrench to the tool's hand space and step the model
+        if kind == TOOL_1DOF:
+            hand[0] = (cs[CS_HAND] * par[P_AXIS] + cs[CS_HAND + 1] * par[P_AXIS + 1]
+                       + cs[CS_HAND + 2] * par[P_AXIS + 2])
+        elif kind == TOOL_PLANAR:
+            hand[0] = cs[CS_HAND]
+            hand[1] = cs[CS_HAND + 1]
+            hand[2] = cs[CS_HAND + 5]
+        else:
+            for j in range(6):
+                hand[j] = cs[CS_HAND + j]
+        if step_rigid(kind, par, st, C, CI, cnt, wk, hand) != 0:
+            for k in range(6):
+                cmd[k] = 0.0
+                cs[CS_PREV + k] = 0.0
+            cs[CS_GAIN] = 0.0
+            cs[CS_TARGET] = 0.0
+            cc[CC_NONFINITE] += 1
+            return RC_NONFINITE
+        if kind == TOOL_1DOF:
+            for j in range(3):
+                cs[CS_ENV + j] = st[S_FENV] * par[P_AXIS + j]
+        elif kind == TOOL_PLANAR:
+            cs[CS_ENV] = st[S_FENV]
+            cs[CS_ENV + 1] = st[S_FENV + 1]
+            cs[CS_ENV + 5] = st[S_FENV + 2]
+        else:
+            for j in range(6):
+                cs[CS_ENV + j] = st[S_FENV + j]
+        if ctype == CTRL_FOUR_CHANNEL:
+            for j in range(6):
+                cs[CS_CMDW + j] = cp[CP_EG] * cs[CS_ENV + j] - cs[CS_FC + j]
+        elif ctype == CTRL_COUPLER:
+            for j in range(6):
+                cs[CS_CMDW + j] = -cs[CS_FC + j]
+        else:
+            for j in range(6):
+                cs[CS_CMDW + j] = cs[CS_ENV + j]
+        proxy_hand_state(kind, par, st, R, c, cs, CS_PPOSE)
+    # world -> device frame
+    _rot_t(cp, CP_ROFF, cs[CS_CMDW], cs[CS_CMDW + 1], cs[CS_CMDW + 2], cmd, 0)
+    _rot_t(cp, CP_ROFF, cs[CS_CMDW + 3], cs[CS_CMDW + 4], cs[CS_CMDW + 5], cmd, 3)
+    src = _safety(cp, cs, cc, cmd)
+    if src != RC_OK:
+        return src
+    return rc
+
+
+@njit(**_JIT)
+def fade_only(cp, cs, cc, cmd):
+    """Safety filter alone on a zero command (the loop's step when no device data is usable)."""
+    for j in range(6):
+        cmd[j] = 0.0
+    return _safety(cp, cs, cc, cmd)
+
+
+class Controller:
+    """Owns the controller/safety arrays; ``configure`` from validated settings."""
+
+    def __init__(self, settings, device_kind: str, device_limits=None) -> None:
+        from .devices.base import KIND_WRENCH_MASK
+
+        ctl = settings["controller"]
+        saf = settings["safety"]
+        dt = settings.period_ns * 1e-9
+        self.cp = np.zeros(NCP)
+        self.cs = np.zeros(NCS)
+        self.cc = np.zeros(NCC, dtype=np.int64)
+        self.cmd = np.zeros(6)
+        self.hand = np.zeros(6)
+        self.R = np.zeros((3, 3))
+        self.c = np.zeros(3)
+        cp = self.cp
+        cp[CP_TYPE] = CONTROLLER_IDS[ctl["type"]]
+        cp[CP_KT] = ctl["stiffness_n_per_m"]
+        cp[CP_BT] = ctl["damping_n_s_per_m"]
+        cp[CP_KR] = ctl["rot_stiffness_n_m_per_rad"]
+        cp[CP_BR] = ctl["rot_damping_n_m_s_per_rad"]
+        cp[CP_HG] = ctl["hand_gain"]
+        cp[CP_EG] = ctl["env_gain"]
+        fmax, tmax = saf["max_force_n"], saf["max_torque_n_m"]
+        vmax, wmax = saf["max_speed_m_per_s"], saf["max_angular_speed_rad_per_s"]
+        if device_limits is not None:  # never command more than the hardware can take
+            fmax = min(fmax, device_limits.max_force_n)
+            tmax = min(tmax, device_limits.max_torque_n_m)
+            vmax = min(vmax, device_limits.max_speed_m_per_s)
+            wmax = min(wmax, device_limits.max_angular_speed_rad_per_s)
+        cp[CP_FMAX] = fmax
+        cp[CP_TMAX] = tmax
+        cp[CP_FRATE] = saf["force_rate_n_per_s"] * dt
+        cp[CP_TRATE] = saf["torque_rate_n_m_per_s"] * dt
+        cp[CP_VMAX] = vmax
+        cp[CP_WMAX] = wmax
+        cp[CP_FADE] = dt / saf["fade_s"]
+        cp[CP_RAMP] = dt / saf["ramp_in_s"]
+        cp[CP_MASK:CP_MASK + 6] = KIND_WRENCH_MASK[device_kind]
+        self.set_offset(np.eye(3), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+        self.cs[CS_DPOSE + 3] = 1.0
+        self.cs[CS_PPOSE + 3] = 1.0
+
+    @property
+    def controller_type(self) -> int:
+        return int(self.cp[CP_TYPE])
+
+    @property
+    def force_cap_n(self) -> float:
+        return float(self.cp[CP_FMAX])
+
+    @property
+    def force_rate_n_per_step(self) -> float:
+        return float(self.cp[CP_FRATE])
+
+    def set_offset(self, R_off: np.ndarray, p_off: np.ndarray, q_off: np.ndarray) -> None:
+        self.cp[CP_ROFF:CP_ROFF + 9] = np.asarray(R_off, dtype=float).reshape(9)
+        self.cp[CP_POFF:CP_POFF + 3] = p_off
+        self.cp[CP_QOFF:CP_QOFF + 4] = q_off
+
+    def set_target(self, engaged: bool) -> None:
+        self.cs[CS_TARGET] = 1.0 if engaged else 0.0
+
+    @property
+    def gain(self) -> float:
+        return float(self.cs[CS_GAIN])
+
+    def counters(self) -> dict[str, int]:
+        names = ("steps", "saturated", "rate_limited", "speed_trips", "nonfinite", "hand_missing")
+        return {n: int(self.cc[i]) for i, n in enumerate(names)}
+
+
+# ------------------------------------------------------------------------------ mapping
+def quat_to_matrix(q) -> np.ndarray:
+    w, x, y, z = (float(v) for v in q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def quat_mul(a, b) -> np.ndarray:
+    out = np.zeros(4)
+    _qmul(a[0], a[1], a[2], a[3], b[0], b[1], b[2], b[3], out, 0)
+    return out
+
+
+def index_offset(kind: str, device_pose: np.ndarray, proxy_pose: np.ndarray, tool_axis=None,
+                 device_axis=None):
+    """Offset (R_off, p_off, q_off) that maps the device handle pose onto the proxy hand pose.
+
+    planar: a rotation about +z only; 1dof: the rotation taking the device axis onto the tool
+    axis (no rotation if they agree); spatial: the full rotation.
+    """
+    pd = np.asarray(device_pose[:3], dtype=float)
+    qd = np.asarray(device_pose[3:7], dtype=float)
+    pp = np.asarray(proxy_pose[:3], dtype=float)
+    qp = np.asarray(proxy_pose[3:7], dtype=float)
+    if kind == "planar":
+        th = 2 * math.atan2(qp[3], qp[0]) - 2 * math.atan2(qd[3], qd[0])
+        q_off = np.array([math.cos(th / 2), 0.0, 0.0, math.sin(th / 2)])
+    elif kind == "spatial":
+        q_off = quat_mul(qp, qd * np.array([1.0, -1.0, -1.0, -1.0]))
+        q_off /= np.linalg.norm(q_off)
+    else:
+        a = np.asarray(device_axis if device_axis is not None else (1.0, 0.0, 0.0), dtype=float)
+        b = np.asarray(tool_axis if tool_axis is not None else a, dtype=float)
+        a /= np.linalg.norm(a)
+        b /= np.linalg.norm(b)
+        v = np.cross(a, b)
+        cw = 1.0 + float(a @ b)
+        if cw < 1e-9:  # opposite axes: half turn about any perpendicular
+            perp = np.cross(a, [1.0, 0.0, 0.0])
+            if np.linalg.norm(perp) < 1e-6:
+                perp = np.cross(a, [0.0, 1.0, 0.0])
+            perp /= np.linalg.norm(perp)
+            q_off = np.array([0.0, *perp])
+        else:
+            q_off = np.array([cw, *v])
+            q_off /= np.linalg.norm(q_off)
+    R_off = quat_to_matrix(q_off)
+    p_off = pp - R_off @ pd
+    return R_off, p_off, q_off

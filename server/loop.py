@@ -1,0 +1,586 @@
+"""The haptic loop: a fixed-rate schedule of poll -> update/ack -> read -> control+model -> write.
+
+``HapticLoop`` knows no engine and no particular device: it owns a transport (any backend), the
+protocol's ``ServerEndpoint``, a device driver, the controller/safety arrays and, once a client
+has engaged it, a ``LocalModel`` built from the client's ``Hello``. Each step, in this order:
+
+1. wait for the absolute deadline (``deadline += period_ns``; the clock is injected);
+2. poll the transport without blocking (at most ``max_packets_per_step`` datagrams, so a flood
+   cannot stretch a step); the session layer keeps the newest ContactUpdate;
+3. on a new ContactUpdate: update the local model and acknowledge with a ``ProxyState``;
+4. read the device;
+5. run the controller, the model step and the safety filter (one numba kernel);
+6. write the device command;
+7. account: lateness, compute time, telemetry row (one numba kernel, no allocation).
+
+Every ``housekeeping_s`` (10 ms) it also runs the session timers (heartbeats, timeouts), the
+supervisor's requests (stop, re-arm) and publishes its counters to the shared status block.
+
+Loop states: ``idle`` (no session: zero force), ``engaged`` (a client drives the model),
+``fading`` (environment silent past the watchdog, or its session ended: the model keeps its last
+geometry while the force fades to zero), ``fault`` (non-finite value, device fault or speed trip:
+device disabled or faded, waits for a re-arm), ``stopping`` (ramping down before exit).
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+from numba import njit
+
+from hapticproxy.protocol.messages import ToolKind
+from hapticproxy.protocol.session import ServerConfig, ServerEndpoint
+
+from . import control as ctl
+from .devices.base import DEV_FAULT_NAMES, DEV_NSTATE, DS_TIME, empty_state, load_device
+from .model.model import ContactParams, LocalModel, ToolSpec, warm_up as model_warm_up
+from .shm import CT, HBINS, LS, ST, SharedState
+
+_KIND_TO_TOOLKIND = {"1dof": ToolKind.ONE_DOF, "planar": ToolKind.PLANAR, "spatial": ToolKind.SPATIAL}
+_TOOLKIND_TO_KIND = {v: k for k, v in _KIND_TO_TOOLKIND.items()}
+
+WD_OK = 0
+WD_SILENT = 1
+WD_SESSION_ENDED = 2
+
+FAULT_NONE = 0
+FAULT_NONFINITE = 1
+FAULT_DEVICE = 2
+FAULT_SPEED = 3
+FAULT_NAMES = {FAULT_NONE: "none", FAULT_NONFINITE: "non-finite value before the device",
+               FAULT_DEVICE: "device fault", FAULT_SPEED: "device speed over its limit"}
+
+
+@njit(cache=True, nogil=True)
+def _account(ring, head, hist_late, hist_step, status, period_ns, late_ns, comp_ns, t_s, state, gain,
+             contacts, updates, cs, dev, cmd):
+    """Histograms, maxima and one telemetry row; no allocation."""
+    lu = late_ns / 1000.0
+    cu = comp_ns / 1000.0
+    bl = int(lu) if lu > 0.0 else 0
+    bc = int(cu) if cu > 0.0 else 0
+    hist_late[bl if bl < HBINS - 1 else HBINS - 1] += 1
+    hist_step[bc if bc < HBINS - 1 else HBINS - 1] += 1
+    status[1] += 1.0  # steps
+    if lu > status[7]:
+        status[7] = lu
+    if cu > status[8]:
+        status[8] = cu
+    if late_ns + comp_ns > period_ns:
+        status[9] += 1.0  # overruns: the step finished after the next deadline
+    rows = ring.shape[0]
+    i = head[0] % rows
+    r = ring[i]
+    r[0] = t_s
+    r[1] = lu
+    r[2] = cu
+    r[3] = state
+    r[4] = gain
+    r[5] = contacts
+    r[6] = updates
+    for j in range(13):
+        r[7 + j] = cs[ctl.CS_DPOSE + j]
+        r[20 + j] = cs[ctl.CS_PPOSE + j]
+    for j in range(6):
+        r[33 + j] = cmd[j]
+        r[39 + j] = cs[ctl.CS_ENV + j]
+        r[45 + j] = dev[13 + j]
+        r[51 + j] = cs[ctl.CS_FC + j]
+    head[0] += 1
+
+
+def tool_from_hello(hello) -> ToolSpec:
+    """The proxy's ToolSpec from a client's Hello; the hand holds the tool at its tool-frame origin."""
+    kind = _TOOLKIND_TO_KIND.get(hello.tool_kind)
+    if kind is None:
+        raise ValueError(f"tool_kind {hello.tool_kind!r} is not a rigid tool this server models")
+    com = np.asarray(hello.com_m, dtype=float)
+    ixx, iyy, izz, ixy, ixz, iyz = (float(v) for v in hello.inertia_kg_m2)
+    inertia = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
+    if kind == "1dof":
+        return ToolSpec("1dof", float(hello.mass_kg), axis=tuple(float(a) for a in hello.axis),
+                        hand_point_m=tuple(-com))
+    if kind == "planar":
+        return ToolSpec.planar(float(hello.mass_kg), izz, hand_point_m=tuple(-com[:2]))
+    return ToolSpec.spatial(float(hello.mass_kg), inertia, hand_point_m=tuple(-com))
+
+
+def q_from_tool_pose(kind: str, pose: np.ndarray, com_m, axis=None) -> np.ndarray:
+    """COM configuration q of the proxy from the engine's tool-frame pose (x y z qw qx qy qz)."""
+    p = np.asarray(pose[:3], dtype=float)
+    q = np.asarray(pose[3:7], dtype=float)
+    n = np.linalg.norm(q)
+    q = q / n if n > 0 else np.array([1.0, 0.0, 0.0, 0.0])
+    R = ctl.quat_to_matrix(q)
+    com = np.asarray(com_m, dtype=float)
+    if kind == "1dof":
+        c = p + com
+        return np.array([float(c @ np.asarray(axis, dtype=float))])
+    if kind == "planar":
+        th = 2 * math.atan2(q[3], q[0])
+        c = p + R @ com
+        return np.array([c[0], c[1], th])
+    c = p + R @ com
+    return np.concatenate([c, q])
+
+
+class HapticLoop:
+    """The server loop. Build with validated settings; ``run()`` or ``step()`` by hand in tests."""
+
+    def __init__(self, settings, *, clock=None, transport=None, device=None, shared: SharedState | None = None,
+                 hmac_key: bytes | None = None, max_packets_per_step: int = 32) -> None:
+        from hapticproxy.protocol.transport import open_transport
+
+        from .clock import MonotonicClock
+
+        self.settings = settings
+        self.period_ns = settings.period_ns
+        self.dt_s = self.period_ns * 1e-9
+        self.clock = clock or MonotonicClock()
+        self.kind = settings.tool_kind
+        self.max_packets_per_step = int(max_packets_per_step)
+        self.shared = shared or SharedState.local(max(16, int(settings["telemetry"]["ring_s"] * settings.rate_hz)))
+        self._owns_transport = transport is None
+        self.transport = transport if transport is not None else open_transport(settings["transport"]["url"], "server")
+        tcfg = settings["transport"]
+        mcfg = settings["model"]
+        self.server_config = ServerConfig(
+            haptic_rate_hz=settings.rate_hz,
+            max_epsilon_m=0.0 if mcfg["policy"] == "lm0" else mcfg["epsilon_m"],
+            max_contacts=mcfg["capacity"],
+            heartbeat_interval_s=tcfg["heartbeat_interval_s"],
+            silence_timeout_s=tcfg["silence_timeout_s"],
+            max_sessions=tcfg["max_sessions"],
+            supported_tools=frozenset({_KIND_TO_TOOLKIND[self.kind]}),
+        )
+        self.endpoint = ServerEndpoint(self.transport.send, self.server_config, hmac_key=hmac_key)
+        self._owns_device = device is None
+        self.device = device if device is not None else load_device(
+            settings["device"]["driver"], dict(settings["device"]), period_s=self.dt_s, clock_ns=self.clock.now_ns)
+        self.ctrl = ctl.Controller(settings, self.device.kind, self.device.limits)
+        self.contact = ContactParams(
+            stiffness_n_per_m=mcfg["stiffness_n_per_m"], damping_n_s_per_m=mcfg["damping_n_s_per_m"],
+            restitution=mcfg["restitution"], mu_static=mcfg["mu_static"], mu_kinetic=mcfg["mu_kinetic"])
+        self.dev = empty_state()
+        self.rxbuf = bytearray(self.transport.max_packet_bytes)
+        # model state (set when a client engages)
+        self.model: LocalModel | None = None
+        self._margs = None
+        self.session_id = 0
+        self.com_m = np.zeros(3)
+        self.last_update_ns = 0
+        self.last_env_time_s = math.nan
+        self.env_rate_hz = 0.0
+        self.updates = 0
+        self.acks = 0
+        self.update_errors = 0
+        self.engagements = 0
+        self.state = LS["idle"]
+        self.watchdog = WD_OK
+        self.fault = FAULT_NONE
+        self.device_fault = 0
+        self.faults_total = 0
+        self.stopping = False
+        self.stopped = False
+        self._stop_flag = False
+        self._deadline = 0
+        self._t0 = 0
+        self.watchdog_ns = int(settings["safety"]["watchdog_s"] * 1e9)
+        self._use_engine_frame = mcfg["contact_frame"] == "engine"
+        self._hk_every = max(1, int(round(0.01 * settings.rate_hz)))
+        self._hk_count = 0
+        self._stop_deadline = 0
+        self._scratch_pose = np.zeros(13)
+        self._R = np.zeros((3, 3))
+        self._c = np.zeros(3)
+        # arrays the kernel gets while no model is engaged (active = 0: never stepped)
+        self._dummy = LocalModel(ToolSpec.one_dof(1.0), period_s=self.dt_s, capacity=1, warm=False).kernel_args()
+        st = self.shared.status
+        st[ST["period_ns"]] = self.period_ns
+        st[ST["force_cap_n"]] = self.ctrl.force_cap_n
+        st[ST["rate_limit_n_per_step"]] = self.ctrl.force_rate_n_per_step
+        st[ST["loop_state"]] = LS["starting"]
+
+    # ---------------------------------------------------------------------------- set-up
+    def warm_up(self) -> None:
+        """Compile/load every kernel this loop calls, on throw-away arrays, before the first step."""
+        model_warm_up()
+        s = self.settings
+        c = ctl.Controller(s, self.device.kind, self.device.limits)
+        tmp = LocalModel(ToolSpec.planar(1.0, 1e-3) if self.kind == "planar" else
+                         ToolSpec.one_dof(1.0) if self.kind == "1dof" else ToolSpec.spatial(1.0, (1e-3,) * 3),
+                         period_s=self.dt_s, capacity=4, warm=False)
+        dev = empty_state()
+        for active in (0, 1):
+            ctl.haptic_step(c.cp, c.cs, c.cc, dev, c.cmd, active, *tmp.kernel_args(), c.hand, c.R, c.c)
+        ctl.fade_only(c.cp, c.cs, c.cc, c.cmd)
+        ring = np.zeros((4, self.shared.ring.shape[1]))
+        head = np.zeros(1, dtype=np.int64)
+        hist = np.zeros(HBINS, dtype=np.int64)
+        status = np.zeros_like(self.shared.status)
+        _account(ring, head, hist, hist.copy(), status, self.period_ns, 1, 1, 0.0, 0.0, 0.0, 0.0, 0.0,
+                 c.cs, dev, c.cmd)
+        ctl.proxy_hand_state(tmp.kind, tmp.kernel_args()[1], tmp.kernel_args()[2], c.R, c.c, self._scratch_pose, 0)
+        warm = getattr(self.device, "warm_up", None)
+        if callable(warm):
+            warm()
+
+    def start(self) -> None:
+        """Arm the device and set the first deadline one period from now."""
+        self.device.enable()
+        now = self.clock.now_ns()
+        self._t0 = now
+        self._deadline = now + self.period_ns
+        st = self.shared.status
+        st[ST["t_start_ns"]] = now
+        st[ST["loop_state"]] = self.state
+        st[ST["ready"]] = 1.0
+
+    # ---------------------------------------------------------------------------- the step
+    def step(self) -> bool:
+        """One haptic step. Returns ``False`` once the loop has stopped."""
+        clock = self.clock
+        deadline = self._deadline
+        wake = clock.wait_until(deadline)
+        late = wake - deadline
+        if late >= self.period_ns:  # missed whole periods: skip them rather than burst
+            missed = late // self.period_ns
+            self.shared.status[10] += missed  # missed_deadlines
+            self._deadline = deadline + (missed + 1) * self.period_ns
+        else:
+            self._deadline = deadline + self.period_ns
+        # 1-2: poll without blocking; newest ContactUpdate wins
+        tr = self.transport
+        ep = self.endpoint
+        buf = self.rxbuf
+        upd = None
+        for _ in range(self.max_packets_per_step):
+            n, peer = tr.recv_into(buf)
+            if peer is None:
+                break
+            m = ep.receive(buf[:n], peer, wake)  # bytearray slice: a copy the update may keep
+            if m is not None:
+                upd = m
+        if upd is not None:
+            self._on_update(upd, wake)
+        elif self.state == LS["engaged"] and wake - self.last_update_ns > self.watchdog_ns:
+            self.state = LS["fading"]
+            self.watchdog = WD_SILENT
+            self.ctrl.set_target(False)
+        # 3: device
+        dev = self.dev
+        rc_dev = self.device.read(dev)
+        # 4: controller + model + safety
+        c = self.ctrl
+        margs = self._margs
+        active = 1
+        if margs is None:
+            margs = self._dummy
+            active = 0
+        kind, par, st_, C, CI, cnt, wk = margs
+        rc = ctl.haptic_step(c.cp, c.cs, c.cc, dev, c.cmd, active, kind, par, st_, C, CI, cnt, wk, c.hand, c.R, c.c)
+        # 5: device command
+        rc_w = self.device.write(c.cmd)
+        if rc or rc_dev or rc_w:
+            self._on_fault(rc, rc_dev or rc_w)
+        if self.state == LS["fading"] or self.state == LS["stopping"]:
+            if c.cs[ctl.CS_GAIN] <= 0.0:
+                self._after_fade()
+        # 6: account
+        if clock.simulated:
+            clock.charge()
+        end = clock.now_ns()
+        sh = self.shared
+        _account(sh.ring, sh.head, sh.hist_late, sh.hist_step, sh.status, self.period_ns, late, end - wake,
+                 (wake - self._t0) * 1e-9, self.state, c.cs[ctl.CS_GAIN], self._contacts(), self.updates,
+                 c.cs, dev, c.cmd)
+        self._hk_count += 1
+        if self._hk_count >= self._hk_every:
+            self._hk_count = 0
+            self._housekeeping(end)
+        return not self.stopped
+
+    def _contacts(self) -> float:
+        return float(self._margs[5][0]) if self._margs is not None else 0.0
+
+    # ---------------------------------------------------------------------------- events
+    def _on_update(self, upd, now: int) -> None:
+        sid = upd.session_id
+        if sid != self.session_id or self.model is None:
+            if self.model is not None and self.session_id in self.endpoint.sessions:
+                return  # another session owns the model; its updates are the only ones applied
+            if self.stopping:
+                return
+            self._engage(upd, now)
+        else:
+            n = upd.keys.shape[0]
+            m = self.model
+            self._kbuf[:n] = upd.keys
+            self._pbuf[:n] = upd.position_m
+            self._nbuf[:n] = upd.normal
+            self._sbuf[:n] = upd.separation_m
+            self._vbuf[:n] = upd.v_constr_m_per_s
+            code = m.update_arrays(self._kbuf, self._pbuf, self._nbuf, self._sbuf, self._vbuf, n,
+                                   self._engine_q(upd))
+            if code != 0:
+                self.update_errors += 1
+                return
+        self._track_env(upd, now)
+        self.updates += 1
+        if self.state == LS["fading"] and self.watchdog == WD_SILENT:
+            self.state = LS["engaged"]
+            self.watchdog = WD_OK
+            if self.ctrl.cs[ctl.CS_GAIN] <= 0.0:
+                self._reindex()  # the hand moved freely while the force was off: no spring kick
+            self.ctrl.set_target(True)
+        self._ack(now)
+
+    def _engine_q(self, upd):
+        """The engine's tool configuration for the update (None: the paper's eq. 1)."""
+        if self._use_engine_frame:
+            return q_from_tool_pose(self._tool_kind, upd.tool_pose, self._hello_com, self._hello_axis)
+        return None
+
+    def _track_env(self, upd, now: int) -> None:
+        if self.last_update_ns:
+            dt = (now - self.last_update_ns) * 1e-9
+            if dt > 0:
+                r = 1.0 / dt
+                self.env_rate_hz = r if self.env_rate_hz == 0 else 0.9 * self.env_rate_hz + 0.1 * r
+        self.last_update_ns = now
+        self.last_env_time_s = upd.env_time_s
+
+    def _ack(self, now: int) -> None:
+        cs = self.ctrl.cs
+        m = self.model
+        kind, par, st_ = self._margs[0], self._margs[1], self._margs[2]
+        ctl.proxy_hand_state(kind, par, st_, self._R, self._c, self._scratch_pose, 0)
+        if self.endpoint.send_proxy_state(self.session_id, now, self._scratch_pose[:7], self._scratch_pose[7:13],
+                                          cs[ctl.CS_HAND:ctl.CS_HAND + 6], server_time_s=m.time_s):
+            self.acks += 1
+
+    def _engage(self, upd, now: int) -> None:
+        sess = self.endpoint.sessions.get(upd.session_id)
+        if sess is None:
+            return
+        s = self.settings
+        mcfg = s["model"]
+        hello = sess.hello
+        tool = tool_from_hello(hello)
+        eps = 0.0 if mcfg["policy"] == "lm0" else float(sess.epsilon_m)
+        model = LocalModel(tool, self.contact, period_s=self.dt_s, policy=mcfg["policy"], epsilon_m=eps,
+                           capacity=mcfg["capacity"], gravity_m_per_s2=mcfg["gravity_m_per_s2"],
+                           max_update_contacts=max(mcfg["capacity"], sess.max_contacts), warm=False)
+        model.reset(q_from_tool_pose(tool.kind, upd.tool_pose, hello.com_m, hello.axis))
+        cap = max(mcfg["capacity"], sess.max_contacts)
+        self._kbuf = np.zeros((cap, 3), dtype=np.int64)
+        self._pbuf = np.zeros((cap, 3))
+        self._nbuf = np.zeros((cap, 3))
+        self._sbuf = np.zeros(cap)
+        self._vbuf = np.zeros(cap)
+        n = upd.keys.shape[0]
+        self._kbuf[:n] = upd.keys
+        self._pbuf[:n] = upd.position_m
+        self._nbuf[:n] = upd.normal
+        self._sbuf[:n] = upd.separation_m
+        self._vbuf[:n] = upd.v_constr_m_per_s
+        self._hello_com = np.asarray(hello.com_m, dtype=float)
+        self._hello_axis = np.asarray(hello.axis, dtype=float)
+        self._tool_kind = tool.kind
+        if model.update_arrays(self._kbuf, self._pbuf, self._nbuf, self._sbuf, self._vbuf, n,
+                               self._engine_q(upd)) != 0:
+            self.update_errors += 1
+        self.model = model
+        self._margs = model.kernel_args()
+        self.session_id = upd.session_id
+        self.com_m = np.asarray(hello.com_m, dtype=float)
+        self._tool_axis = tool.axis
+        self._reindex()
+        c = self.ctrl
+        c.cs[ctl.CS_PREV:ctl.CS_PREV + 6] = c.cmd  # rate limit continues from the last output
+        self.engagements += 1
+        self.last_update_ns = now
+        self.env_rate_hz = 0.0
+        self.watchdog = WD_OK
+        if self.fault == FAULT_NONE:
+            self.state = LS["engaged"]
+            c.set_target(True)
+
+    def _reindex(self) -> None:
+        """Map the device onto the proxy's hand point (no jump), unless mapping is absolute."""
+        if self.settings["controller"]["mapping"] != "index" or self._margs is None:
+            return
+        kind, par, st_ = self._margs[0], self._margs[1], self._margs[2]
+        ctl.proxy_hand_state(kind, par, st_, self._R, self._c, self._scratch_pose, 0)
+        self.device.read(self.dev)
+        dev_axis = self.settings["device"].get("axis", (1.0, 0.0, 0.0))
+        R_off, p_off, q_off = ctl.index_offset(self._tool_kind, self.dev[:7], self._scratch_pose[:7],
+                                               tool_axis=self._tool_axis, device_axis=dev_axis)
+        self.ctrl.set_offset(R_off, p_off, q_off)
+
+    def _after_fade(self) -> None:
+        """Gain reached zero while fading or stopping."""
+        if self.state == LS["stopping"]:
+            self.endpoint.close_all("server stopping")
+            self.stopped = True
+            self.state = LS["stopped"]
+            self.shared.status[ST["loop_state"]] = self.state
+            return
+        if self.watchdog == WD_SESSION_ENDED:
+            self.model = None
+            self._margs = None
+            self.session_id = 0
+            self.state = LS["idle"]
+            self.watchdog = WD_OK
+
+    def _on_fault(self, rc: int, dev_code: int) -> None:
+        if self.state == LS["fault"]:
+            return
+        if rc == ctl.RC_SPEED and not dev_code:
+            self.fault = FAULT_SPEED  # fade out (the kernel dropped the gain target), device stays on
+        elif dev_code:
+            self.fault = FAULT_DEVICE
+            self.device_fault = dev_code
+            self.device.disable()
+        else:
+            self.fault = FAULT_NONFINITE
+            self.device.disable()
+        self.faults_total += 1
+        self.state = LS["fault"]
+        self.ctrl.set_target(False)
+
+    def rearm(self) -> bool:
+        """Clear a fault: re-enable the device; force ramps back in from zero."""
+        if self.state != LS["fault"]:
+            return False
+        self.device.enable()
+        if self.device.fault:
+            return False
+        self.fault = FAULT_NONE
+        self.device_fault = 0
+        c = self.ctrl
+        c.cs[ctl.CS_GAIN] = 0.0
+        if self.model is not None and self.session_id in self.endpoint.sessions:
+            self.state = LS["engaged"]
+            self._reindex()
+            c.set_target(True)
+        else:
+            self.state = LS["idle"]
+            c.set_target(False)
+        return True
+
+    def request_stop(self) -> None:
+        """Ramp forces down, then send Bye and stop (the next steps do it)."""
+        if self.stopping:
+            return
+        self.stopping = True
+        self.state = LS["stopping"]
+        self.ctrl.set_target(False)
+        if self.ctrl.cs[ctl.CS_GAIN] <= 0.0:
+            self._after_fade()
+
+    # ---------------------------------------------------------------------------- housekeeping
+    def _housekeeping(self, now: int) -> None:
+        ep = self.endpoint
+        ep.poll(now)
+        if self.session_id and self.session_id not in ep.sessions and self.state in (LS["engaged"], LS["fading"]):
+            self.state = LS["fading"]
+            self.watchdog = WD_SESSION_ENDED
+            self.ctrl.set_target(False)
+        sh = self.shared
+        ctrl_ = sh.control
+        if ctrl_[CT["stop"]] != ctrl_[CT["stop_ack"]] or self._stop_flag:
+            ctrl_[CT["stop_ack"]] = ctrl_[CT["stop"]]
+            self.request_stop()
+        if ctrl_[CT["rearm"]] != ctrl_[CT["rearm_ack"]]:
+            ctrl_[CT["rearm_ack"]] = ctrl_[CT["rearm"]]
+            self.rearm()
+        if ctrl_[CT["reset_stats"]] != ctrl_[CT["reset_ack"]]:
+            ctrl_[CT["reset_ack"]] = ctrl_[CT["reset_stats"]]
+            sh.hist_late[:] = 0
+            sh.hist_step[:] = 0
+            sh.status[ST["lateness_max_us"]] = 0.0
+            sh.status[ST["compute_max_us"]] = 0.0
+            sh.status[ST["overruns"]] = 0.0
+            sh.status[ST["missed_deadlines"]] = 0.0
+        self.publish(now)
+
+    def publish(self, now: int) -> None:
+        st = self.shared.status
+        ec = ep_c = self.endpoint.counters  # noqa: F841
+        tc = self.transport.counters
+        cc = self.ctrl.cc
+        st[ST["t_last_ns"]] = now
+        st[ST["updates"]] = self.updates
+        st[ST["acks_sent"]] = self.acks
+        st[ST["stale_or_duplicate"]] = ec.stale + ec.duplicate
+        st[ST["decode_errors"]] = ep_c.decode_errors
+        st[ST["dropped_packets"]] = ep_c.dropped + getattr(tc, "dropped_oversize_recv", 0)
+        st[ST["contacts"]] = self._contacts()
+        st[ST["session_id"]] = self.session_id
+        st[ST["sessions_opened"]] = ep_c.sessions_opened
+        st[ST["loop_state"]] = self.state
+        st[ST["watchdog"]] = self.watchdog
+        st[ST["gain"]] = self.ctrl.cs[ctl.CS_GAIN]
+        st[ST["fault"]] = self.fault
+        st[ST["device_fault"]] = self.device_fault
+        st[ST["model_nonfinite"]] = self.model.counters()["nonfinite"] if self.model is not None else 0
+        st[ST["saturated"]] = cc[ctl.CC_SATURATED]
+        st[ST["rate_limited"]] = cc[ctl.CC_RATE_LIMITED]
+        st[ST["speed_trips"]] = cc[ctl.CC_SPEED_TRIPS]
+        st[ST["env_silence_ms"]] = (now - self.last_update_ns) * 1e-6 if self.last_update_ns else -1.0
+        st[ST["env_rate_hz"]] = self.env_rate_hz
+        st[ST["engagements"]] = self.engagements
+        st[ST["faults_total"]] = self.faults_total
+        st[ST["telemetry_overwritten"]] = max(0, int(self.shared.head[0]) - self.shared.ring_rows)
+
+    # ---------------------------------------------------------------------------- running
+    def run(self, *, max_steps: int | None = None, duration_s: float | None = None) -> None:
+        """Step until stopped (or ``max_steps`` / ``duration_s`` of loop time, then stop cleanly)."""
+        end_ns = None if duration_s is None else self.clock.now_ns() + int(duration_s * 1e9)
+        n = 0
+        step = self.step
+        while step():
+            n += 1
+            if (max_steps is not None and n >= max_steps) or (end_ns is not None and self._deadline >= end_ns):
+                if not self.stopping:
+                    self.request_stop()
+                    # bounded: the fade takes fade_s; then one more step closes the sessions
+                    max_steps = None
+                    end_ns = None
+        self.publish(self.clock.now_ns())
+
+    def close(self) -> None:
+        """Stop output and release what this loop opened."""
+        try:
+            self.device.disable()
+        finally:
+            if self._owns_device:
+                self.device.close()
+            if self._owns_transport:
+                self.transport.close()
+
+    # ---------------------------------------------------------------------------- views
+    def counters(self) -> dict:
+        d = {
+            "updates": self.updates, "acks": self.acks, "update_errors": self.update_errors,
+            "engagements": self.engagements, "faults_total": self.faults_total,
+            "state": self.state_name, "fault": FAULT_NAMES[self.fault],
+            "device_fault": DEV_FAULT_NAMES.get(self.device_fault, str(self.device_fault)),
+        }
+        d.update({f"ctrl_{k}": v for k, v in self.ctrl.counters().items()})
+        d.update({f"session_{k}": v for k, v in self.endpoint.counters.as_dict().items()})
+        return d
+
+    @property
+    def state_name(self) -> str:
+        from .shm import LOOP_STATES
+
+        return LOOP_STATES[int(self.state)]
+
+    def device_time_s(self) -> float:
+        return float(self.dev[DS_TIME])
+
+
+__all__ = ["HapticLoop", "tool_from_hello", "q_from_tool_pose", "DEV_NSTATE"]

@@ -1,0 +1,259 @@
+"""Harness for server-loop tests in simulated time: a scriptable point device, an analytic wall
+environment that speaks the real protocol over the in-memory transport, and a loop factory.
+
+Everything runs in one thread on a ``SimClock``, so a test is deterministic: the environment
+steps at its own (variable) rate in simulated time, between haptic steps.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from hapticproxy.protocol.messages import ToolKind
+from hapticproxy.protocol.codec import Hello
+from hapticproxy.protocol.session import ClientEndpoint
+from hapticproxy.protocol.transport import open_transport
+from hapticproxy.server import config as cfg
+from hapticproxy.server.clock import SimClock
+from hapticproxy.server.devices.base import (
+    DEV_FAULT_DISABLED, DEV_FAULT_NONFINITE_COMMAND, DEV_OK, DeviceDriver, DeviceLimits, empty_state,
+)
+from hapticproxy.server.loop import HapticLoop
+
+_names = itertools.count(1)
+
+
+class PointDevice(DeviceDriver):
+    """A point-mass device (1dof along x, or planar x, y, theta) with a scripted hand force.
+
+    ``hand(t) -> (fx, fy, tz)`` is the user's wrench; the device integrates
+    M a = F_hand + F_cmd - B v with semi-implicit Euler at ``period_s``.
+    """
+
+    name = "point"
+
+    def __init__(self, kind="planar", mass_kg=0.5, inertia_kg_m2=5e-4, damping=2.0, rot_damping=0.002,
+                 period_s=1e-3, hand=None, pose=(0.0, 0.0, 0.0), limits=None):
+        self.kind = kind
+        self.m = mass_kg
+        self.I = inertia_kg_m2
+        self.b = damping
+        self.br = rot_damping
+        self.dt = period_s
+        self.hand = hand or (lambda t: (0.0, 0.0, 0.0))
+        self.x = np.array(pose, dtype=float)  # x, y, theta
+        self.v = np.zeros(3)
+        self.t = 0.0
+        self._limits = limits or DeviceLimits(40.0, 2.0, 5.0, 100.0)
+        self._enabled = False
+        self._fault = DEV_OK
+        self.commands = []  # every wrench actually rendered (after the driver's own checks)
+        self.nan_state_at = None  # step index at which read() reports NaN, for fault tests
+
+    @property
+    def limits(self):
+        return self._limits
+
+    def enable(self):
+        self._enabled = True
+        self._fault = DEV_OK
+
+    def disable(self):
+        self._enabled = False
+
+    @property
+    def enabled(self):
+        return self._enabled
+
+    @property
+    def fault(self):
+        return self._fault
+
+    def read(self, s):
+        th = self.x[2]
+        s[0], s[1], s[2] = self.x[0], self.x[1], 0.0
+        s[3], s[4], s[5], s[6] = math.cos(th / 2), 0.0, 0.0, math.sin(th / 2)
+        s[7], s[8], s[9] = self.v[0], self.v[1], 0.0
+        s[10], s[11], s[12] = 0.0, 0.0, self.v[2]
+        fx, fy, tz = self.hand(self.t)
+        s[13:19] = (fx, fy, 0.0, 0.0, 0.0, tz)
+        s[19] = self.t
+        if self.nan_state_at is not None and len(self.commands) >= self.nan_state_at:
+            s[0] = math.nan
+        return self._fault
+
+    def write(self, w):
+        if not np.all(np.isfinite(w)):
+            self._fault = DEV_FAULT_NONFINITE_COMMAND
+        f = np.array([w[0], w[1], w[5]]) if (self._enabled and self._fault == DEV_OK) else np.zeros(3)
+        if self.kind == "1dof":
+            f[1] = f[2] = 0.0
+        self.commands.append(f.copy())
+        fx, fy, tz = self.hand(self.t)
+        h = np.array([fx, fy, tz])
+        if self.kind == "1dof":
+            h[1] = h[2] = 0.0
+        acc = np.array([(h[0] + f[0] - self.b * self.v[0]) / self.m,
+                        (h[1] + f[1] - self.b * self.v[1]) / self.m,
+                        (h[2] + f[2] - self.br * self.v[2]) / self.I])
+        self.v += self.dt * acc
+        self.x += self.dt * self.v
+        self.t += self.dt
+        return self._fault if self._fault else (DEV_OK if self._enabled else DEV_FAULT_DISABLED * 0)
+
+
+class WallEnv:
+    """Environment client: a planar box tool (half sizes ``hx``, ``hy``) and a floor at y = ``wall_y``
+    (normal +y). The engine's tool follows the proxy pose it last received (kinematic drive).
+    Reports the two bottom corners within ``epsilon`` of the floor. Steps at ``rate_hz`` with an
+    optional jitter pattern, in simulated time."""
+
+    def __init__(self, url, clock, *, hx=0.02, hy=0.01, wall_y=0.0, epsilon=0.005, rate_hz=60.0,
+                 jitter=0.0, start_pose=(0.0, 0.05, 0.0), mass_kg=0.2, inertia=2e-4, kind="planar", seed=1,
+                 rigid=True):
+        self.rigid = rigid  # True: the engine's tool is held at the floor; False: kinematic, penetrates
+        self.tr = open_transport(url, "client")
+        self.clock = clock
+        self.hx, self.hy, self.wall_y, self.eps = hx, hy, wall_y, epsilon
+        self.rate_hz = rate_hz
+        self.jitter = jitter
+        self.rng = np.random.default_rng(seed)
+        self.pose = np.array([start_pose[0], start_pose[1], 0.0, math.cos(start_pose[2] / 2), 0, 0,
+                              math.sin(start_pose[2] / 2)])
+        tk = ToolKind.PLANAR if kind == "planar" else ToolKind.ONE_DOF
+        axis = (0.0, 1.0, 0.0) if kind == "1dof" else (1.0, 0.0, 0.0)
+        self.hello = Hello(client_nonce=1, engine="wall-env", tool_kind=tk, mass_kg=mass_kg,
+                           inertia_kg_m2=(inertia, inertia, inertia, 0, 0, 0), axis=axis,
+                           max_contacts=8, epsilon_m=epsilon, env_rate_hz=rate_hz)
+        self.ep = ClientEndpoint(self.tr.send, self.hello)
+        self.next_ns = 0
+        self.updates_sent = 0
+        self.proxy_states = 0
+        self.last_proxy = None
+        self.alive = True
+        self.started = False
+
+    def _stop_at_wall(self):
+        # the engine's tool cannot enter the floor (a rigid engine resolves that itself)
+        th = 2 * math.atan2(self.pose[6], self.pose[3])
+        c, s = math.cos(th), math.sin(th)
+        low = min(self.pose[1] + s * bx + c * by for bx, by in ((-self.hx, -self.hy), (self.hx, -self.hy)))
+        if low < self.wall_y:
+            self.pose[1] += self.wall_y - low
+
+    def contacts(self):
+        th = 2 * math.atan2(self.pose[6], self.pose[3])
+        c, s = math.cos(th), math.sin(th)
+        keys, pos, nor, sep = [], [], [], []
+        for i, (bx, by) in enumerate(((-self.hx, -self.hy), (self.hx, -self.hy))):
+            x = self.pose[0] + c * bx - s * by
+            y = self.pose[1] + s * bx + c * by
+            d = y - self.wall_y
+            if d <= self.eps:
+                keys.append((0, 1, i))
+                pos.append((x, self.wall_y, 0.0))
+                nor.append((0.0, 1.0, 0.0))
+                sep.append(d)
+        n = len(keys)
+        return (np.array(keys, dtype=np.int64).reshape(n, 3), np.array(pos, dtype=float).reshape(n, 3),
+                np.array(nor, dtype=float).reshape(n, 3), np.array(sep, dtype=float), np.zeros(n))
+
+    def service(self):
+        """Receive everything waiting; on the env's own schedule, step and send contacts."""
+        if not self.alive:
+            return
+        now = self.clock.now_ns()
+        if not self.started:
+            self.ep.start(now)
+            self.started = True
+            self.next_ns = now
+        while True:
+            item = self.tr.recv()
+            if item is None:
+                break
+            ps = self.ep.receive(item[0], item[1], now)
+            if ps is not None:
+                self.proxy_states += 1
+                self.last_proxy = ps
+                self.pose = np.array(ps.proxy_pose, dtype=float)
+                if self.rigid:
+                    self._stop_at_wall()
+        self.ep.poll(now)
+        if now >= self.next_ns and self.ep.established:
+            k, p, n, d, v = self.contacts()
+            self.ep.send_contacts(now, now * 1e-9, self.pose, k, p, n, d, v)
+            self.updates_sent += 1
+            period = 1.0 / self.rate_hz
+            if self.jitter:
+                period *= 1.0 + self.jitter * (2 * self.rng.random() - 1)
+            self.next_ns = now + int(period * 1e9)
+
+    def kill(self):
+        """Vanish without a Bye (a killed process)."""
+        self.alive = False
+
+    def bye(self):
+        self.ep.close(now_ns=self.clock.now_ns())
+        self.alive = False
+
+    def close(self):
+        self.tr.close()
+
+
+def make_settings(**sections):
+    base = {"loop": {"rate_hz": 1000.0}, "transport": {"url": f"mem://loop-test-{next(_names)}"},
+            "device": {"driver": "sim", "kind": "planar"}, "telemetry": {"ring_s": 2.0}}
+    for k, v in sections.items():
+        base.setdefault(k, {}).update(v)
+    return cfg.load(base)
+
+
+class Rig:
+    """A loop + device + wall environment in simulated time."""
+
+    def __init__(self, settings, device, env_kwargs=None, clock=None):
+        self.clock = clock or SimClock(start_ns=1_000_000_000)
+        self.settings = settings
+        self.device = device
+        self.loop = HapticLoop(settings, clock=self.clock, device=device)
+        self.loop.warm_up()
+        self.loop.start()
+        self.env = WallEnv(settings["transport"]["url"], self.clock, **(env_kwargs or {}))
+        self.rows = []
+
+    def run(self, seconds, record=True, on_step=None):
+        n = int(round(seconds * self.settings.rate_hz))
+        first = len(self.rows)
+        for i in range(n):
+            self.env.service()
+            alive = self.loop.step()
+            if record:
+                self.rows.append(self.loop.shared.ring[(int(self.loop.shared.head[0]) - 1) % self.loop.shared.ring_rows].copy())
+            if on_step is not None:
+                on_step(i)
+            if not alive:
+                break
+        return np.array(self.rows[first:])
+
+    def close(self):
+        self.env.close()
+        self.loop.close()
+
+
+@pytest.fixture
+def rig_factory():  # re-exported by conftest.py
+    made = []
+
+    def make(settings=None, device=None, env_kwargs=None, **sections):
+        s = settings or make_settings(**sections)
+        dev = device or PointDevice(kind=s["device"]["kind"], period_s=s.period_ns * 1e-9)
+        r = Rig(s, dev, env_kwargs)
+        made.append(r)
+        return r
+
+    yield make
+    for r in made:
+        r.close()
