@@ -74,6 +74,11 @@ class Engine(abc.ABC):
     def set_epsilon(self, epsilon_m: float) -> None:
         """Inflate the tool by a sphere of this radius for contact queries (the granted epsilon)."""
 
+    def next_step_s(self) -> float | None:
+        """Length [s] of the next step when the engine chooses it (variable-rate engines draw it
+        here); ``None`` (the default) means a fixed step of ``1 / SceneInfo.env_rate_hz``."""
+        return None
+
     @abc.abstractmethod
     def step(self, dt_s: float) -> None:
         """Advance the world by ``dt_s`` (the engine's own, possibly variable, step)."""
@@ -96,6 +101,10 @@ class Engine(abc.ABC):
     @abc.abstractmethod
     def time_s(self) -> float:
         """Simulation time [s]."""
+
+    def warm_up(self) -> None:
+        """Pay one-time costs (JIT compilation, caches) now: the runner calls this once before it
+        connects, so the first steps of a session are not late. Default: nothing."""
 
     def close(self) -> None:
         """Release the engine (windows, physics servers)."""

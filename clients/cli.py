@@ -1,0 +1,223 @@
+"""``hapticproxy client ENGINE --scene NAME --connect URL``: run an environment client.
+
+Examples::
+
+    hapticproxy client pymunk --scene testbed                       # udp://127.0.0.1:9870
+    hapticproxy client stub --scene wall --connect 10.0.0.5:9870 --seed 7
+    hapticproxy client pymunk --scene push --connect zenoh://10.0.0.5:7447/lab --gui
+    hapticproxy client pybullet --list-scenes
+
+Engines are found by name in :data:`ENGINES` (``"module:Class"``) and imported only when chosen,
+so an engine whose library is missing does not affect the others. Exit status: 0 after a normal
+stop (``--duration`` over, Ctrl-C / SIGTERM, or the session ended with ``--no-reconnect``), 1
+when the server refused the session or could not be reached within ``--connect-timeout``, 2 for
+bad arguments; every failure is one line on stderr, never a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import inspect
+import json
+import math
+import signal
+import sys
+import threading
+
+__all__ = ["ENGINES", "load_engine_class", "main"]
+
+#: engine name -> "module:Class" (modules relative to this package)
+ENGINES: dict[str, str] = {
+    "pymunk": "hapticproxy.clients.pymunk_engine:PymunkEngine",
+    "pybullet": "hapticproxy.clients.pybullet_engine:PybulletEngine",
+    "stub": "hapticproxy.clients.stub_engine:StubEngine",
+}
+#: library each engine module needs (for a clear message when it is missing)
+_ENGINE_LIBRARIES = {"pymunk": "pymunk", "pybullet": "pybullet"}
+PROG = "hapticproxy client"
+
+
+class _UsageError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, no usage block
+        raise _UsageError(message)
+
+
+def load_engine_class(name: str):
+    """The engine class registered as ``name``; ``ValueError`` (one line) if unknown or unavailable."""
+    if name not in ENGINES:
+        raise ValueError(f"unknown engine {name!r}; choose one of: {', '.join(ENGINES)}")
+    module_name, _, cls_name = ENGINES[name].partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        missing = exc.name or ""
+        if module_name.startswith(missing) and missing:
+            raise ValueError(f"engine {name!r} is not available in this build ({module_name} is missing)") from None
+        lib = _ENGINE_LIBRARIES.get(name)
+        raise ValueError(f"engine {name!r} needs the {missing or lib!r} package, which is not installed") from None
+    cls = getattr(module, cls_name, None)
+    if cls is None:
+        raise ValueError(f"engine {name!r}: {module_name} has no class {cls_name}")
+    return cls
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = _Parser(prog=PROG, description="Run an environment client (physics engine) against a haptics server.",
+                epilog="Units are SI: --epsilon is in metres (0.005 = 5 mm).")
+    p.add_argument("engine", help="engine: " + ", ".join(ENGINES))
+    p.add_argument("--scene", default="testbed", help="scene name (see --list-scenes; default testbed)")
+    p.add_argument("--connect", "--server", dest="connect", default="udp://127.0.0.1:9870",
+                   help="server transport URL (udp://HOST:PORT, zenoh://HOST:PORT/SESSION, mem://NAME) or HOST:PORT "
+                        "(default udp://127.0.0.1:9870)")
+    p.add_argument("--transport", choices=("udp", "zenoh"), default="udp",
+                   help="transport for a --connect given as HOST:PORT (default udp)")
+    p.add_argument("--epsilon", type=float, default=0.005, help="epsilon of active geometry to request [m] (default 0.005)")
+    p.add_argument("--max-contacts", type=int, default=16, help="contact capacity to request (default 16)")
+    p.add_argument("--rate", type=float, default=None, help="fixed engine step rate [Hz] (engines with a fixed rate)")
+    p.add_argument("--seed", type=int, default=None, help="random seed (stub: its variable step rate)")
+    p.add_argument("--gui", action="store_true", help="live window (pymunk; needs pygame: pip install 'hapticproxy[gui]')")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: run until Ctrl-C)")
+    p.add_argument("--connect-timeout", type=float, default=10.0,
+                   help="give up if no session opens within this many seconds (default 10)")
+    p.add_argument("--no-reconnect", action="store_true", help="stop when the session ends instead of reconnecting")
+    p.add_argument("--free-run", action="store_true", help="step back-to-back instead of at the engine's real-time rate")
+    p.add_argument("--hmac-key-file", default=None,
+                   help="shared secret as hex in a mode-600 file (or set HAPTICPROXY_HMAC_KEY[_FILE])")
+    p.add_argument("--list-scenes", action="store_true", help="print the engine's scenes and exit")
+    p.add_argument("--json", action="store_true", help="print the final statistics as JSON on stdout")
+    p.add_argument("--quiet", action="store_true", help="no session messages on stderr")
+    return p
+
+
+def _url(connect: str, transport: str) -> str:
+    from hapticproxy.protocol.transport import parse_transport_url
+
+    url = connect if "://" in connect else f"{transport}://{connect}"
+    parse_transport_url(url)  # ValueError naming the problem
+    return url
+
+
+def _engine_kwargs(cls, args) -> dict:
+    params = inspect.signature(cls).parameters
+    wanted = {"seed": args.seed, "rate_hz": args.rate, "gui": args.gui or None}
+    flags = {"seed": "--seed", "rate_hz": "--rate", "gui": "--gui"}
+    kwargs = {}
+    for key, value in wanted.items():
+        if value is None:
+            continue
+        if key not in params:
+            raise ValueError(f"{flags[key]} is not an option of engine {args.engine!r}")
+        kwargs[key] = value
+    return kwargs
+
+
+def _check_numbers(args) -> None:
+    if not (math.isfinite(args.epsilon) and args.epsilon >= 0):
+        raise ValueError(f"--epsilon: must be a finite number of metres >= 0, got {args.epsilon!r}")
+    if args.epsilon >= 1.0:
+        raise ValueError(f"--epsilon is in metres: {args.epsilon!r} m is not plausible (5 mm is 0.005)")
+    if args.max_contacts < 1:
+        raise ValueError(f"--max-contacts: must be >= 1, got {args.max_contacts}")
+    for flag, v in (("--rate", args.rate), ("--duration", args.duration), ("--connect-timeout", args.connect_timeout)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise ValueError(f"{flag}: must be a finite number > 0, got {v!r}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        args = _parser().parse_args(argv)
+    except _UsageError as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return 2
+    except SystemExit as exc:  # --help
+        return int(exc.code or 0)
+    try:
+        _check_numbers(args)
+        cls = load_engine_class(args.engine)
+        if args.list_scenes:
+            for name in cls.scenes():
+                print(name)
+            return 0
+        if "/" in args.scene or args.scene.endswith((".json", ".toml", ".yaml", ".py")):
+            raise ValueError(f"--scene takes a scene name, not a file ({args.scene!r}); choose one of: "
+                             f"{', '.join(cls.scenes())}")
+        if args.scene not in cls.scenes():
+            raise ValueError(f"unknown scene {args.scene!r} for engine {args.engine}; choose one of: "
+                             f"{', '.join(cls.scenes())}")
+        kwargs = _engine_kwargs(cls, args)
+        if args.gui and importlib.util.find_spec("pygame") is None:
+            raise ValueError("--gui needs pygame, which is not installed (pip install 'hapticproxy[gui]')")
+        url = _url(args.connect, args.transport)
+        from hapticproxy.protocol.session import load_hmac_key
+
+        key = load_hmac_key(args.hmac_key_file)
+    except _UsageError as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return 2
+    except (ValueError, OSError) as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return 2
+    return _run(cls, kwargs, url, key, args)
+
+
+def _run(cls, kwargs: dict, url: str, key, args) -> int:
+    from .runner import ClientError, ClientRunner
+
+    def log(msg: str) -> None:
+        if not args.quiet:
+            print(f"{PROG}: {msg}", file=sys.stderr, flush=True)
+
+    stop = threading.Event()
+    engine = None
+    runner = None
+    code = 0
+    previous = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
+    if previous is not None:
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        try:
+            engine = cls(**kwargs)
+            runner = ClientRunner(engine, url, scene=args.scene, epsilon_m=args.epsilon, max_contacts=args.max_contacts,
+                                  hmac_key=key, realtime=not args.free_run, reconnect=not args.no_reconnect,
+                                  connect_timeout_s=args.connect_timeout, log=log)
+            window = getattr(engine, "window", None)  # the GUI (opened by load_scene) stops us when closed
+            if window is not None:
+                window.on_close = stop.set
+            runner.run(stop, duration_s=args.duration)
+        except KeyboardInterrupt:
+            pass
+        except ClientError as exc:
+            print(f"{PROG}: {exc}", file=sys.stderr)
+            code = 1
+        except (ValueError, OSError) as exc:
+            print(f"{PROG}: {exc}", file=sys.stderr)
+            code = 2 if runner is None else 1
+        except Exception as exc:  # noqa: BLE001 - an engine bug: one line, not a traceback
+            print(f"{PROG}: internal error in {args.engine}: {type(exc).__name__}: {exc}", file=sys.stderr)
+            code = 1
+    finally:
+        if engine is not None:
+            try:
+                engine.close()
+            except Exception:  # noqa: BLE001
+                pass
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    if runner is not None:
+        st = runner.stats()
+        if code == 0:
+            log(f"stopped ({st['end_reason'] or 'interrupted'}): {st['steps']} steps, {st['updates_sent']} updates, "
+                f"{st['proxy_applied']} proxy states applied, {st['sessions']} session(s)")
+        if args.json:
+            print(json.dumps(st, default=str, sort_keys=True))
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

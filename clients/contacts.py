@@ -1,0 +1,144 @@
+"""Shared contact helpers of the environment clients: feature keys, planar poses, clustering.
+
+Feature ids (the third int64 of a contact key) name the *pair of features* in contact, so that a
+contact keeps its key across steps while the same two features touch::
+
+    feature = kind << 32 | tool_feature << 16 | env_feature
+
+``kind`` is one of :data:`VERTEX_FACE` (a tool vertex on an environment face),
+:data:`FACE_VERTEX` (an environment vertex on a tool face), :data:`VERTEX_VERTEX` (two corners:
+the planar counterpart of a 3-D edge-edge contact) and :data:`FACE_FACE` (a fallback for
+engines that cannot tell which corner a face-face point came from). ``tool_feature`` and
+``env_feature`` are the vertex or face (edge) indices within the tool's and the environment
+body's polygon; a face-face contact is reported as its vertex-face / face-vertex ends, as the
+protocol requires.
+
+Clustering (the paper, after Kim, Otaduy, Lin and Manocha 2003): when an engine finds more
+contacts than the server granted, :func:`reduce_contacts` merges the nearest ones (distance in
+position plus a large penalty for differing normals) until the count fits; every cluster is
+represented by its *deepest* member, a real basic contact with its own stable key, so the deepest
+contact of all is always kept and no synthetic contact is ever invented.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .engine import ContactBuffer
+
+VERTEX_FACE = 1
+FACE_VERTEX = 2
+VERTEX_VERTEX = 3
+FACE_FACE = 4
+KIND_NAMES = {VERTEX_FACE: "vertex-face", FACE_VERTEX: "face-vertex", VERTEX_VERTEX: "vertex-vertex",
+              FACE_FACE: "face-face"}
+
+
+def feature_id(kind: int, tool_feature: int, env_feature: int) -> int:
+    """Pack a feature pair into the contact key's third int64 (see the module docstring)."""
+    return (kind << 32) | ((tool_feature & 0xFFFF) << 16) | (env_feature & 0xFFFF)
+
+
+def split_feature(feature: int) -> tuple[int, int, int]:
+    """Inverse of :func:`feature_id`: ``(kind, tool_feature, env_feature)``."""
+    feature = int(feature)
+    return feature >> 32, (feature >> 16) & 0xFFFF, feature & 0xFFFF
+
+
+# ------------------------------------------------------------------------- planar poses
+def planar_pose(x: float, y: float, angle_rad: float, out: np.ndarray) -> np.ndarray:
+    """Fill ``out`` (7,) with the pose of a planar tool: x y 0, rotation ``angle_rad`` about +z."""
+    half = 0.5 * angle_rad
+    out[0] = x
+    out[1] = y
+    out[2] = 0.0
+    out[3] = math.cos(half)
+    out[4] = 0.0
+    out[5] = 0.0
+    out[6] = math.sin(half)
+    return out
+
+
+def planar_angle(pose) -> float:
+    """Rotation about +z [rad] of a pose (x y z qw qx qy qz) of a planar tool, in (-pi, pi]."""
+    return wrap_angle(2.0 * math.atan2(float(pose[6]), float(pose[3])))
+
+
+def wrap_angle(a: float) -> float:
+    """``a`` wrapped into (-pi, pi]."""
+    a = math.fmod(a + math.pi, 2.0 * math.pi)
+    if a <= 0.0:
+        a += 2.0 * math.pi
+    return a - math.pi
+
+
+# ----------------------------------------------------------------------------- clustering
+#: Normal penalty of the clustering distance [m]: two contacts whose normals differ by 90 deg are as
+#: far apart as two contacts 10 cm apart with the same normal, so clusters form along one wall
+#: before constraints of different directions are merged.
+NORMAL_WEIGHT_M = 0.1
+
+
+def copy_contacts(src: ContactBuffer, dst: ContactBuffer, rows) -> int:
+    """Copy ``rows`` (indices into ``src``) into ``dst`` in the given order; set ``dst.n``."""
+    n = len(rows)
+    if n > dst.capacity:
+        raise ValueError(f"rows: {n} contacts do not fit a buffer of capacity {dst.capacity}")
+    if isinstance(rows, range) and rows.start == 0 and rows.step == 1:
+        dst.keys[:n] = src.keys[:n]
+        dst.position_m[:n] = src.position_m[:n]
+        dst.normal[:n] = src.normal[:n]
+        dst.separation_m[:n] = src.separation_m[:n]
+        dst.v_constr_m_per_s[:n] = src.v_constr_m_per_s[:n]
+    elif n:
+        idx = np.asarray(rows, dtype=np.intp)
+        dst.keys[:n] = src.keys[idx]
+        dst.position_m[:n] = src.position_m[idx]
+        dst.normal[:n] = src.normal[idx]
+        dst.separation_m[:n] = src.separation_m[idx]
+        dst.v_constr_m_per_s[:n] = src.v_constr_m_per_s[idx]
+    dst.n = n
+    return n
+
+
+def cluster_rows(src: ContactBuffer, max_contacts: int, normal_weight_m: float = NORMAL_WEIGHT_M) -> list[int]:
+    """Indices (into ``src``, ascending) of the contacts that represent at most ``max_contacts``
+    clusters of ``src``'s ``n`` contacts.
+
+    Agglomerative and deterministic: contacts are ranked deepest first (ties by key); the two
+    closest representatives, by ``|p_i - p_j| + normal_weight_m * (1 - n_i . n_j)``, merge and the
+    deeper one represents the union; repeat until the count fits. Representatives are real
+    contacts, so keys stay unique and stable and the deepest contact is always kept.
+    """
+    if max_contacts < 1:
+        raise ValueError(f"max_contacts: must be >= 1, got {max_contacts}")
+    n = src.n
+    if n <= max_contacts:
+        return list(range(n))
+    keys = src.keys[:n]
+    # Deepest first; keys break ties so equal-depth contacts (a face flat on a face) rank the
+    # same way every step.
+    order = np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0], src.separation_m[:n]))
+    p = src.position_m[:n][order]
+    nr = src.normal[:n][order]
+    diff = p[:, None, :] - p[None, :, :]
+    dist = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff)) + normal_weight_m * (1.0 - nr @ nr.T)
+    # Only pairs (i, j) with i < j: i ranks deeper, so it survives a merge with j.
+    dist[np.tril_indices(n)] = np.inf
+    removed = np.zeros(n, dtype=bool)
+    for _ in range(n - max_contacts):
+        j = int(np.argmin(dist)) % n
+        removed[j] = True  # j joins the cluster of a deeper i and stops representing anything
+        dist[j, :] = np.inf
+        dist[:, j] = np.inf
+    return sorted(int(order[i]) for i in np.flatnonzero(~removed))
+
+
+def reduce_contacts(src: ContactBuffer, dst: ContactBuffer, max_contacts: int) -> int:
+    """Copy ``src`` into ``dst``, clustered down to ``min(max_contacts, dst.capacity)``
+    contacts when there are more; return and set ``dst.n``. Order: as in ``src``."""
+    cap = min(max_contacts, dst.capacity)
+    if src.n <= cap:
+        return copy_contacts(src, dst, range(src.n))
+    return copy_contacts(src, dst, cluster_rows(src, cap))

@@ -1,0 +1,346 @@
+"""The pymunk (Chipmunk2D) engine: the paper's planar testbed and a scene with movable bodies.
+
+Scenes (geometry in :mod:`.scenes`, SI units, pymunk works in metres directly):
+``testbed`` (the paper's Fig. 12: enclosure, tight hole in the bottom wall, peg at the origin),
+``hole`` (the peg rotated 90 deg and resting in the hole: Figs. 16/17), ``wall`` (the Fig. 14 wall
+alone: touched at y_COM = 124 mm) and ``push`` (a closed enclosure with three movable boxes).
+Half-planes become static slabs 0.2 m thick. No gravity (a horizontal device); ``push``'s boxes
+slide on a damped floor (``Space.damping`` 0.3: 70 % of their speed is lost per second).
+
+**Driving the tool** (a coupling constraint in the engine): the tool is a dynamic body. A kinematic
+control body is placed at the newest proxy pose with the proxy's velocity (clamped to
+``max_speed_m_per_s``), and a ``PivotJoint`` plus a ``GearJoint`` tie the tool to it. Chipmunk
+solves them at the velocity level together with the contacts: the tool is given the proxy's
+velocity plus a position correction of at most ``max_speed_m_per_s`` (``max_bias``), with at most
+``max_force_n`` / ``max_torque_n_m`` (``max_force``), contacts are perfectly plastic (elasticity
+0) and the solver only removes relative velocity, so the coupling cannot inject energy beyond
+the proxy's own motion. Tunnelling: the tool moves at most ``2 * max_speed_m_per_s / (rate_hz *
+substeps)`` per substep (5 mm with the defaults), less than the thinnest obstacle (the 20 mm peg
+itself against 40 mm walls). The server's ``wrench`` is applied to the tool as an external force
+only with ``use_wrench=True``.
+
+**Epsilon-active contacts**: a second polygon with the tool's vertices and ``radius = epsilon``
+(Chipmunk's rounded polygon is exactly the tool swept by a disc of radius epsilon) is attached to
+the tool body, never added to the space, and given to ``Space.shape_query`` after every step. Each
+returned point has the inflated tool's separation ``s_eps`` (``distance``), so the real tool's is
+``d = s_eps + epsilon``; ``point_b`` lies on the environment shape (``c_p``); the normal is
+Chipmunk's negated (it points from the tool, shape a, to the environment). Chipmunk returns up to
+two points per shape pair (the ends of a clipped face-face overlap); each is classified by
+geometry into vertex-face / face-vertex / vertex-vertex with the feature indices, which makes the
+keys stable. ``v_constr = n . v(c_p)`` for movable bodies.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pymunk
+
+from .contacts import FACE_FACE, FACE_VERTEX, VERTEX_FACE, VERTEX_VERTEX, feature_id, planar_angle, planar_pose, reduce_contacts
+from .engine import ContactBuffer, Engine, SceneInfo, ToolDescription
+from .scenes import TOOL_IZZ_KG_M2, TOOL_LENGTH_M, TOOL_MASS_KG, TOOL_WIDTH_M, Box, HalfPlane, scene
+
+_RAW_CAPACITY = 256
+_TOOL_GROUP = 1
+_SLAB_THICKNESS_M = 0.2
+_SLAB_HALF_LENGTH_M = 0.5
+#: distance under which a contact point is taken to be at a vertex [m]
+_VERTEX_TOL_M = 1e-6
+
+
+class _EnvShape:
+    """Bookkeeping of one environment shape: its key id and (for static shapes) cached geometry."""
+
+    __slots__ = ("body_id", "shape", "static", "vx", "vy", "nx", "ny")
+
+    def __init__(self, body_id: int, shape: pymunk.Poly, static: bool) -> None:
+        self.body_id = body_id
+        self.shape = shape
+        self.static = static
+        self.vx = self.vy = self.nx = self.ny = None
+        if static:
+            self.vx, self.vy, self.nx, self.ny = _world_geometry(shape)
+
+
+def _world_geometry(shape: pymunk.Poly):
+    """World vertices and outward unit edge normals of a polygon (edge j from vertex j to j+1)."""
+    body = shape.body
+    verts = [body.local_to_world(v) for v in shape.get_vertices()]
+    m = len(verts)
+    vx = [v.x for v in verts]
+    vy = [v.y for v in verts]
+    area2 = sum(vx[j] * vy[(j + 1) % m] - vx[(j + 1) % m] * vy[j] for j in range(m))
+    sign = 1.0 if area2 > 0 else -1.0  # counter-clockwise: outward = edge rotated by -90 deg
+    nx, ny = [], []
+    for j in range(m):
+        ex, ey = vx[(j + 1) % m] - vx[j], vy[(j + 1) % m] - vy[j]
+        length = math.hypot(ex, ey)
+        nx.append(sign * ey / length)
+        ny.append(-sign * ex / length)
+    return vx, vy, nx, ny
+
+
+def _feature(px: float, py: float, ux: float, uy: float, vx, vy, nx, ny) -> tuple[bool, int]:
+    """Which feature of a polygon the point p (on its surface) lies on: ``(True, vertex)`` if p is
+    at a vertex, else ``(False, face)`` with the face whose outward normal best matches u."""
+    tol2 = _VERTEX_TOL_M * _VERTEX_TOL_M
+    for k in range(len(vx)):
+        dx, dy = px - vx[k], py - vy[k]
+        if dx * dx + dy * dy <= tol2:
+            return True, k
+    best, face = -2.0, 0
+    for j in range(len(nx)):
+        c = nx[j] * ux + ny[j] * uy
+        if c > best:
+            best, face = c, j
+    return False, face
+
+
+class PymunkEngine(Engine):
+    """pymunk 7 world with the peg as the tool (see the module docstring)."""
+
+    name = f"pymunk {pymunk.version}"
+
+    def __init__(self, rate_hz: float = 60.0, *, substeps: int = 2, max_speed_m_per_s: float = 0.3,
+                 max_force_n: float = 40.0, max_torque_n_m: float = 1.0, max_spin_rad_per_s: float = 6.0,
+                 use_wrench: bool = False, gui: bool = False) -> None:
+        for nm, v in (("rate_hz", rate_hz), ("max_speed_m_per_s", max_speed_m_per_s), ("max_force_n", max_force_n),
+                      ("max_torque_n_m", max_torque_n_m), ("max_spin_rad_per_s", max_spin_rad_per_s)):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{nm}: must be a finite number > 0, got {v!r}")
+        if not (isinstance(substeps, int) and 1 <= substeps <= 100):
+            raise ValueError(f"substeps: must be an int in 1..100, got {substeps!r}")
+        self.rate_hz = float(rate_hz)
+        self.substeps = substeps
+        self.max_speed_m_per_s = float(max_speed_m_per_s)
+        self.max_force_n = float(max_force_n)
+        self.max_torque_n_m = float(max_torque_n_m)
+        self.max_spin_rad_per_s = float(max_spin_rad_per_s)
+        self.use_wrench = bool(use_wrench)
+        self._gui_wanted = bool(gui)
+        self.window = None
+        self.space: pymunk.Space | None = None
+        self._eps = 0.0
+        self._t = 0.0
+        self._raw = ContactBuffer(_RAW_CAPACITY)
+        self.steps = 0
+        #: contacts found by the last ``contacts()`` before clustering (informative)
+        self.contacts_found = 0
+
+    # ------------------------------------------------------------------------ interface
+    @classmethod
+    def scenes(cls) -> tuple[str, ...]:
+        return ("testbed", "hole", "wall", "push")
+
+    def load_scene(self, name: str) -> SceneInfo:
+        sc = scene(name, self.scenes())
+        space = pymunk.Space()
+        space.gravity = (0.0, 0.0)
+        space.iterations = 20
+        space.collision_slop = 1e-4  # 0.1 mm: the default (0.1) assumes pixels
+        space.damping = 0.3 if any(isinstance(o, Box) and o.mass_kg for o in sc.obstacles) else 1.0
+        self._env: dict[pymunk.Shape, _EnvShape] = {}
+        self.movable: list[pymunk.Body] = []
+        for body_id, ob in enumerate(sc.obstacles, start=1):
+            if isinstance(ob, HalfPlane):
+                shape = pymunk.Poly(space.static_body, _slab(ob))
+                static = True
+            elif ob.mass_kg is None:
+                shape = pymunk.Poly(space.static_body, ob.vertices())
+                static = True
+            else:
+                body = pymunk.Body(ob.mass_kg, pymunk.moment_for_box(ob.mass_kg, ob.size))
+                body.position = ob.centre
+                body.angle = ob.angle
+                shape = pymunk.Poly.create_box(body, ob.size)
+                space.add(body)
+                self.movable.append(body)
+                static = False
+            shape.friction = 0.5
+            shape.elasticity = 0.0
+            space.add(shape)
+            self._env[shape] = _EnvShape(body_id, shape, static)
+        # The tool and its driver.
+        half_l, half_w = TOOL_LENGTH_M / 2, TOOL_WIDTH_M / 2
+        self._tool_local = [(-half_l, -half_w), (half_l, -half_w), (half_l, half_w), (-half_l, half_w)]
+        tool = pymunk.Body(TOOL_MASS_KG, TOOL_IZZ_KG_M2)
+        x, y, th = sc.tool_start
+        tool.position = (x, y)
+        tool.angle = th
+        tool_shape = pymunk.Poly(tool, self._tool_local)
+        tool_shape.friction = 0.5
+        tool_shape.elasticity = 0.0
+        tool_shape.filter = pymunk.ShapeFilter(group=_TOOL_GROUP)
+        control = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
+        control.position = (x, y)
+        control.angle = th
+        pivot = pymunk.PivotJoint(control, tool, (0.0, 0.0), (0.0, 0.0))
+        pivot.max_bias = self.max_speed_m_per_s
+        pivot.max_force = self.max_force_n
+        pivot.error_bias = (1.0 - 0.3) ** 60.0  # 30 % of the error per 1/60 s
+        gear = pymunk.GearJoint(control, tool, 0.0, 1.0)
+        gear.max_bias = self.max_spin_rad_per_s
+        gear.max_force = self.max_torque_n_m
+        gear.error_bias = (1.0 - 0.3) ** 60.0
+        space.add(tool, tool_shape, control, pivot, gear)
+        self.space, self.tool, self.tool_shape, self.control = space, tool, tool_shape, control
+        self._target = (x, y, th, 0.0, 0.0, 0.0)
+        self._wrench = (0.0, 0.0, 0.0)
+        self._t = 0.0
+        self.steps = 0
+        self._scene = sc
+        self.set_epsilon(self._eps)
+        if self._gui_wanted and self.window is None:
+            from .gui import PymunkWindow  # pygame is an optional extra
+
+            self.window = PymunkWindow(self)
+        info_tool = ToolDescription("planar", TOOL_MASS_KG, (0.0, 0.0, 0.0), (0.0, 0.0, TOOL_IZZ_KG_M2, 0.0, 0.0, 0.0))
+        facts = dict(sc.facts)
+        facts["obstacles"] = [ob.name for ob in sc.obstacles]
+        facts["coupling"] = (f"pivot+gear joints to a kinematic proxy body: max_bias {self.max_speed_m_per_s} m/s, "
+                             f"max_force {self.max_force_n} N, {self.max_torque_n_m} N m")
+        return SceneInfo(name, info_tool, env_rate_hz=self.rate_hz, facts=facts)
+
+    def set_epsilon(self, epsilon_m: float) -> None:
+        epsilon_m = float(epsilon_m)
+        if not (math.isfinite(epsilon_m) and epsilon_m >= 0):
+            raise ValueError(f"epsilon_m: must be a finite number >= 0, got {epsilon_m!r}")
+        self._eps = epsilon_m
+        if self.space is not None:
+            q = pymunk.Poly(self.tool, self._tool_local, radius=epsilon_m)
+            q.filter = pymunk.ShapeFilter(group=_TOOL_GROUP)
+            self._query = q
+
+    def drive_tool(self, proxy_pose: np.ndarray, proxy_twist: np.ndarray, wrench: np.ndarray) -> None:
+        self._target = (float(proxy_pose[0]), float(proxy_pose[1]), planar_angle(proxy_pose),
+                        float(proxy_twist[0]), float(proxy_twist[1]), float(proxy_twist[5]))
+        self._wrench = (float(wrench[0]), float(wrench[1]), float(wrench[5]))
+
+    def tool_pose(self, out: np.ndarray) -> np.ndarray:
+        p = self.tool.position
+        return planar_pose(p.x, p.y, self.tool.angle, out)
+
+    @property
+    def time_s(self) -> float:
+        return self._t
+
+    def step(self, dt_s: float) -> None:
+        dt_s = float(dt_s)
+        if not (math.isfinite(dt_s) and dt_s > 0):
+            raise ValueError(f"dt_s: must be a finite number > 0, got {dt_s!r}")
+        x, y, th, vx, vy, w = self._target
+        speed = math.hypot(vx, vy)
+        if speed > self.max_speed_m_per_s:
+            vx, vy = vx * self.max_speed_m_per_s / speed, vy * self.max_speed_m_per_s / speed
+        w = max(-self.max_spin_rad_per_s, min(self.max_spin_rad_per_s, w))
+        c = self.control
+        # Keep the control angle continuous with the tool's (the gear joint sees raw angles).
+        th = self.tool.angle + _wrap(th - self.tool.angle)
+        c.position = (x, y)
+        c.angle = th
+        c.velocity = (vx, vy)
+        c.angular_velocity = w
+        tool = self.tool
+        h = dt_s / self.substeps
+        for _ in range(self.substeps):
+            if self.use_wrench:
+                tool.force = (self._wrench[0], self._wrench[1])
+                tool.torque = self._wrench[2]
+            self.space.step(h)
+        self._t += dt_s
+        self.steps += 1
+        if self.window is not None:
+            self.window.draw()
+
+    def contacts(self, buf: ContactBuffer, max_contacts: int) -> int:
+        raw = self._raw
+        n = 0
+        eps = self._eps
+        tool = self.tool
+        tvx = tvy = tnx = tny = None
+        for info in self.space.shape_query(self._query):
+            env = self._env.get(info.shape)
+            if env is None:
+                continue
+            cps = info.contact_point_set
+            nab = cps.normal  # tool (a) -> environment (b)
+            ux, uy = nab.x, nab.y
+            norm = math.hypot(ux, uy)
+            if norm == 0.0:
+                continue
+            ux, uy = ux / norm, uy / norm
+            if tvx is None:
+                tvx, tvy, tnx, tny = _world_geometry_of(tool, self._tool_local)
+            if env.static:
+                evx, evy, enx, eny = env.vx, env.vy, env.nx, env.ny
+            else:
+                evx, evy, enx, eny = _world_geometry(env.shape)
+            seen = None
+            for p in cps.points:
+                pa, pb = p.point_a, p.point_b
+                bx, by = pb.x, pb.y
+                # the real tool's point: the rounded surface point minus the swept radius
+                ax, ay = pa.x - eps * ux, pa.y - eps * uy
+                t_vertex, t_idx = _feature(ax, ay, ux, uy, tvx, tvy, tnx, tny)
+                e_vertex, e_idx = _feature(bx, by, -ux, -uy, evx, evy, enx, eny)
+                if t_vertex:
+                    feat = feature_id(VERTEX_VERTEX if e_vertex else VERTEX_FACE, t_idx, e_idx)
+                else:
+                    feat = feature_id(FACE_VERTEX if e_vertex else FACE_FACE, t_idx, e_idx)
+                if feat == seen or n >= raw.capacity:
+                    continue  # Chipmunk repeats a single point when the overlap is a corner
+                seen = feat
+                raw.keys[n, 0] = 0
+                raw.keys[n, 1] = env.body_id
+                raw.keys[n, 2] = feat
+                raw.position_m[n] = (bx, by, 0.0)
+                raw.normal[n] = (-ux, -uy, 0.0)
+                raw.separation_m[n] = p.distance + eps
+                if env.static:
+                    raw.v_constr_m_per_s[n] = 0.0
+                else:
+                    v = env.shape.body.velocity_at_world_point((bx, by))
+                    raw.v_constr_m_per_s[n] = -(ux * v.x + uy * v.y)
+                n += 1
+        raw.n = n
+        self.contacts_found = n
+        out = reduce_contacts(raw, buf, max_contacts)
+        if self.window is not None:
+            self.window.last_contacts = (buf.position_m[:out].copy(), buf.normal[:out].copy(),
+                                         buf.separation_m[:out].copy())
+        return out
+
+    def close(self) -> None:
+        if self.window is not None:
+            self.window.close()
+            self.window = None
+
+
+def _wrap(a: float) -> float:
+    return math.atan2(math.sin(a), math.cos(a))
+
+
+def _world_geometry_of(body: pymunk.Body, local: list) -> tuple:
+    """World vertices and outward normals of the tool (its local polygon is counter-clockwise)."""
+    p = body.position
+    c, s = math.cos(body.angle), math.sin(body.angle)
+    x0, y0 = p.x, p.y
+    vx = [x0 + c * lx - s * ly for lx, ly in local]
+    vy = [y0 + s * lx + c * ly for lx, ly in local]
+    m = len(local)
+    nx, ny = [], []
+    for j in range(m):
+        ex, ey = vx[(j + 1) % m] - vx[j], vy[(j + 1) % m] - vy[j]
+        length = math.hypot(ex, ey)
+        nx.append(ey / length)
+        ny.append(-ex / length)
+    return vx, vy, nx, ny
+
+
+def _slab(hp: HalfPlane) -> list[tuple[float, float]]:
+    """A thick rectangle standing in for a half-plane: its free face on the plane."""
+    (px, py), (nx, ny) = hp.point, hp.normal
+    tx, ty = -ny, nx
+    L, T = _SLAB_HALF_LENGTH_M, _SLAB_THICKNESS_M
+    return [(px + tx * L, py + ty * L), (px - tx * L, py - ty * L),
+            (px - tx * L - nx * T, py - ty * L - ny * T), (px + tx * L - nx * T, py + ty * L - ny * T)]

@@ -1,0 +1,383 @@
+"""The engine-neutral environment client loop: one :class:`ClientRunner` drives any :class:`Engine`.
+
+What it does, in one thread (its own, or a background thread of another program)::
+
+    runner = ClientRunner(PymunkEngine(), "udp://127.0.0.1:9870", scene="testbed", epsilon_m=0.005)
+    stats = runner.run(stop_event, duration_s=None)      # blocks; runner.stats() from any thread
+
+- **Handshake**: opens the transport (``udp://``, ``zenoh://``, ``mem://``), sends ``Hello`` (the
+  scene's tool, the requested epsilon and contact capacity, the engine's nominal rate) and resends
+  it every 0.25 s. On ``Welcome`` the engine is inflated by the *granted* epsilon and contacts are
+  capped at the *granted* ``max_contacts`` (the engine clusters down to it).
+- **Step loop** at the engine's own rate: ``Engine.next_step_s()`` (variable-rate engines) or
+  ``1 / SceneInfo.env_rate_hz``. With ``realtime=True`` (default) steps are paced by the wall
+  clock (a step late by more than 0.25 s resynchronises instead of bursting); ``realtime=False``
+  steps back-to-back (benchmarks, tests) while simulation time still advances by the engine's
+  steps. After **every** step one ``ContactUpdate`` is sent (``env_time_s`` = the engine clock,
+  never decreasing, also across reconnections). The world stands still while there is no
+  session: no proxy means nothing to follow, and no step goes unreported.
+- **ProxyState**: every waiting datagram is read before a step; the session layer drops stale and
+  duplicate ones by ``seq`` and only the newest of a batch is given to ``Engine.drive_tool``
+  (the others are counted as ``proxy_superseded``). Until the first one arrives the tool holds its
+  scene start pose.
+- **Heartbeats and silence**: the session layer sends a ``Heartbeat`` after
+  ``heartbeat_interval_s`` without traffic and ends the session (Bye 61) after
+  ``silence_timeout_s`` without a valid packet from the server.
+- **Reconnecting**: when a session ends (the server's ``Bye``, e.g. it is restarting, or its
+  silence), the runner waits ``reconnect_delay_s`` (default 1 s: a server that said Bye hears
+  nothing more from this endpoint for that long) and starts again with a fresh transport,
+  endpoint and nonce; a handshake unanswered for ``handshake_timeout_s`` also reopens the
+  transport (a restarted Zenoh peer or mem bus needs a new link). ``reconnect=False`` makes
+  :meth:`ClientRunner.run` return instead.
+- **Giving up**: :class:`ClientError` (one line, for the CLI) when the server refuses the
+  ``Hello`` (``Reject``: version, tool kind, units, full), or when no session could be opened
+  within ``connect_timeout_s`` of the start (``None``: keep trying). After a first session the
+  runner keeps trying for as long as it runs; ``stats()["state"]`` tells a caller what it is
+  doing.
+
+The runner never owns the engine: closing it (``Engine.close``) is the caller's job.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from hapticproxy.protocol.codec import Hello, Limits
+from hapticproxy.protocol.messages import ErrorCode, ToolKind
+from hapticproxy.protocol.session import ClientConfig, ClientEndpoint, ClientState
+from hapticproxy.protocol.transport import TransportError, open_transport, parse_transport_url
+
+from .engine import ContactBuffer, Engine
+
+__all__ = ["ClientError", "ClientRunner", "TOOL_KINDS"]
+
+_NS = 1_000_000_000
+TOOL_KINDS = {"1dof": ToolKind.ONE_DOF, "planar": ToolKind.PLANAR, "spatial": ToolKind.SPATIAL}
+_RTT_RING = 4096
+#: a realtime loop this far behind its schedule restarts the schedule instead of catching up
+_RESYNC_NS = 250_000_000
+
+
+class ClientError(Exception):
+    """A condition the client cannot recover from; ``str()`` is one line for the user."""
+
+
+class ClientRunner:
+    """Runs ``engine`` in ``scene`` against the server at ``url`` (see the module docstring).
+
+    Args:
+        engine: an :class:`Engine`; its scene is loaded here (``ValueError`` for an unknown one).
+        url: transport URL of the server (``udp://HOST:PORT``, ``zenoh://HOST:PORT/SESSION``,
+            ``mem://NAME``); ``ValueError`` if malformed.
+        scene: scene name.
+        epsilon_m: epsilon to request [m], >= 0 (the server may grant less).
+        max_contacts: contact capacity to request, 1..64 (the server may grant less).
+        hmac_key: shared secret for HMAC mode (None: plain).
+        realtime: pace steps by the wall clock (False: back-to-back).
+        reconnect, reconnect_delay_s, handshake_timeout_s, connect_timeout_s: see the module
+            docstring.
+        transport_options: extra backend options for ``open_transport`` (e.g.
+            ``{"connect_timeout_s": 1.0}`` for Zenoh).
+        on_step: called as ``on_step(runner)`` after every step (GUI, recording); runs in the
+            runner's thread.
+        log: called with one-line messages (session opened / ended); ``None``: silent.
+    """
+
+    def __init__(self, engine: Engine, url: str, *, scene: str, epsilon_m: float = 0.005, max_contacts: int = 16,
+                 hmac_key: bytes | None = None, realtime: bool = True, reconnect: bool = True,
+                 reconnect_delay_s: float = 1.0, handshake_timeout_s: float = 5.0,
+                 connect_timeout_s: float | None = None, hello_retry_s: float = 0.25,
+                 transport_options: dict | None = None, on_step: Callable[["ClientRunner"], None] | None = None,
+                 log: Callable[[str], None] | None = None) -> None:
+        if not (isinstance(epsilon_m, (int, float)) and not isinstance(epsilon_m, bool) and math.isfinite(epsilon_m)
+                and epsilon_m >= 0):
+            raise ValueError(f"epsilon_m: must be a finite number >= 0 m, got {epsilon_m!r}")
+        limit = Limits().max_contacts
+        if not (isinstance(max_contacts, int) and not isinstance(max_contacts, bool) and 1 <= max_contacts <= limit):
+            raise ValueError(f"max_contacts: must be an integer in 1..{limit}, got {max_contacts!r}")
+        for nm, v in (("reconnect_delay_s", reconnect_delay_s), ("handshake_timeout_s", handshake_timeout_s),
+                      ("hello_retry_s", hello_retry_s)):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{nm}: must be a finite number > 0 s, got {v!r}")
+        if connect_timeout_s is not None and not (math.isfinite(connect_timeout_s) and connect_timeout_s > 0):
+            raise ValueError(f"connect_timeout_s: must be a finite number > 0 s or None, got {connect_timeout_s!r}")
+        parse_transport_url(url)  # ValueError now, not in the loop
+        self.engine = engine
+        self.url = url
+        self.scene_info = engine.load_scene(scene)  # ValueError naming the choices
+        tool = self.scene_info.tool
+        if tool.kind not in TOOL_KINDS:
+            raise ValueError(f"tool kind {tool.kind!r} not supported by the runner (choose one of {', '.join(TOOL_KINDS)})")
+        self.requested_epsilon_m = float(epsilon_m)
+        self.requested_max_contacts = max_contacts
+        engine.set_epsilon(self.requested_epsilon_m)
+        self._hello_fields = dict(
+            engine=engine.name[:200], tool_kind=TOOL_KINDS[tool.kind], mass_kg=float(tool.mass_kg),
+            com_m=tuple(float(v) for v in tool.com_m), inertia_kg_m2=tuple(float(v) for v in tool.inertia_kg_m2),
+            axis=tuple(float(v) for v in (tool.axis if tool.kind == "1dof" else (1.0, 0.0, 0.0))),
+            epsilon_m=self.requested_epsilon_m, max_contacts=max_contacts, env_rate_hz=float(self.scene_info.env_rate_hz))
+        Hello(client_nonce=1, **self._hello_fields)  # fail early on a field the codec would refuse
+        self.hmac_key = hmac_key
+        self.realtime = bool(realtime)
+        self.reconnect = bool(reconnect)
+        self.reconnect_delay_s = float(reconnect_delay_s)
+        self.handshake_timeout_s = float(handshake_timeout_s)
+        self.connect_timeout_s = connect_timeout_s
+        self.hello_retry_s = float(hello_retry_s)
+        self.transport_options = dict(transport_options or {})
+        self.on_step = on_step
+        self._log = log
+        self.transport = None
+        self.endpoint: ClientEndpoint | None = None
+        self.contacts = ContactBuffer(max_contacts)
+        self.tool_pose = np.zeros(7)
+        self.granted_epsilon_m: float | None = None
+        self.granted_max_contacts: int | None = None
+        self.last_proxy = None
+        self._sent_ns = np.zeros(_RTT_RING, dtype=np.int64)
+        self._lock = threading.Lock()
+        self._state = "idle"
+        self._error: str | None = None
+        self._end_reason = ""
+        self._counts = dict.fromkeys((
+            "steps", "updates_sent", "proxy_states", "proxy_applied", "proxy_superseded", "sessions",
+            "sessions_ended", "connect_attempts", "transport_errors", "steps_clustered", "contacts_max",
+            "stale", "duplicate", "hellos_sent", "heartbeats_sent", "send_failures"), 0)
+        self._contacts_last = 0
+        self._rtt_last_s = math.nan
+        self._rtt_sum_s = 0.0
+        self._rtt_n = 0
+        self._ever_connected = False
+
+    # ------------------------------------------------------------------------ status
+    def stats(self) -> dict:
+        """A snapshot (safe to call from another thread): counts, state, grants, last error."""
+        with self._lock:
+            out = dict(self._counts)
+            ep = self.endpoint
+            if ep is not None:  # add the live endpoint's counters to those of finished ones
+                out["stale"] += ep.counters.stale
+                out["duplicate"] += ep.counters.duplicate
+                out["hellos_sent"] += ep.counters.hellos_sent
+                out["heartbeats_sent"] += ep.counters.heartbeats_sent
+            out.update(
+                state=self._state, error=self._error, end_reason=self._end_reason, url=self.url,
+                engine=self.engine.name, scene=self.scene_info.name, env_time_s=self.engine.time_s,
+                contacts_last=self._contacts_last, granted_epsilon_m=self.granted_epsilon_m,
+                granted_max_contacts=self.granted_max_contacts,
+                rtt_last_ms=self._rtt_last_s * 1e3,
+                rtt_mean_ms=(self._rtt_sum_s / self._rtt_n * 1e3) if self._rtt_n else math.nan)
+        return out
+
+    @property
+    def state(self) -> str:
+        """"idle", "connecting", "handshaking", "established", "waiting" (to reconnect), "stopped",
+        "failed"."""
+        return self._state
+
+    # ------------------------------------------------------------------------ the loop
+    def run(self, stop: threading.Event | None = None, duration_s: float | None = None,
+            max_steps: int | None = None) -> dict:
+        """Run until ``stop`` is set, ``duration_s`` of wall time or ``max_steps`` engine steps have
+        passed, or (``reconnect=False``) the session ends. Returns :meth:`stats`. Raises
+        :class:`ClientError` when the server refuses us or cannot be reached in time."""
+        stop = stop or threading.Event()
+        t0 = time.monotonic_ns()
+        t_end = None if duration_s is None else t0 + int(duration_s * _NS)
+        connect_deadline = None if self.connect_timeout_s is None else t0 + int(self.connect_timeout_s * _NS)
+        next_attempt = t0
+        next_step = t0
+        last_open_error = ""
+        self._state = "connecting"
+        self.engine.warm_up()  # e.g. JIT compilation: not while the server waits for our updates
+        try:
+            while not stop.is_set():
+                now = time.monotonic_ns()
+                if t_end is not None and now >= t_end:
+                    self._end_reason = "duration reached"
+                    break
+                if max_steps is not None and self._counts["steps"] >= max_steps:
+                    self._end_reason = "max_steps reached"
+                    break
+                ep = self.endpoint
+                if ep is None:
+                    if not self._ever_connected and connect_deadline is not None and now >= connect_deadline:
+                        why = f" ({last_open_error})" if last_open_error else " (is the server running?)"
+                        raise ClientError(f"no session with {self.url} within {self.connect_timeout_s:g} s{why}")
+                    if now < next_attempt:
+                        time.sleep(min(0.005, (next_attempt - now) / _NS))
+                        continue
+                    try:
+                        self._open(now)
+                        last_open_error = ""
+                    except (TransportError, OSError) as exc:
+                        last_open_error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                        self._counts["transport_errors"] += 1
+                        next_attempt = now + int(self.reconnect_delay_s * _NS)
+                        self._state = "waiting"
+                    continue
+                was_established = ep.established
+                self._receive(ep, now)
+                if ep.state == ClientState.ESTABLISHED and not was_established:
+                    self._on_welcome(ep)
+                    next_step = time.monotonic_ns()
+                if ep.state == ClientState.REJECTED:
+                    r = ep.reject
+                    code = ErrorCode(r.code).name if r.code in ErrorCode._value2member_map_ else str(r.code)
+                    raise ClientError(f"server {self.url} refused the session: {code}: {r.reason} "
+                                      f"(server speaks {r.version_min[0]}.{r.version_min[1]}-"
+                                      f"{r.version_max[0]}.{r.version_max[1]})")
+                stepped = False
+                if ep.state == ClientState.ESTABLISHED and (not self.realtime or now >= next_step):
+                    dt = self._tick()
+                    stepped = True
+                    if self.realtime:
+                        next_step += int(dt * _NS)
+                        if time.monotonic_ns() - next_step > _RESYNC_NS:
+                            next_step = time.monotonic_ns()
+                ep.poll(time.monotonic_ns())
+                if ep.state == ClientState.CLOSED:
+                    handshake_failed = ep.welcome is None
+                    self._session_over(ep, handshake_failed)
+                    if not handshake_failed and not self.reconnect:
+                        break
+                    next_attempt = time.monotonic_ns() + (0 if handshake_failed else int(self.reconnect_delay_s * _NS))
+                    continue
+                if not stepped:
+                    wait = (next_step - time.monotonic_ns()) / _NS if ep.established else 0.002
+                    if wait > 0:
+                        time.sleep(min(wait, 0.002))
+                elif not self.realtime:
+                    time.sleep(0)  # let other threads of the process (a server, a GUI) run
+        except ClientError as exc:
+            self._error = str(exc)
+            self._state = "failed"
+            self._close_session("client giving up")
+            raise
+        finally:
+            if self._state != "failed":
+                self._close_session("client stopping")
+                self._state = "stopped"
+        return self.stats()
+
+    # ------------------------------------------------------------------------ pieces
+    def _open(self, now: int) -> None:
+        self._state = "connecting"
+        self._counts["connect_attempts"] += 1
+        transport = open_transport(self.url, role="client", **self.transport_options)
+        attempts = max(1, math.ceil(self.handshake_timeout_s / self.hello_retry_s))
+        cfg = ClientConfig(hello_retry_s=self.hello_retry_s, hello_attempts=attempts)
+        ep = ClientEndpoint(transport.send, Hello(client_nonce=1, **self._hello_fields), cfg, hmac_key=self.hmac_key)
+        with self._lock:
+            self.transport, self.endpoint = transport, ep
+        ep.start(time.monotonic_ns())
+        self._state = "handshaking"
+
+    def _receive(self, ep: ClientEndpoint, now: int) -> None:
+        transport = self.transport
+        newest = None
+        fresh = 0
+        while (got := transport.recv()) is not None:
+            state = ep.receive(got[0], got[1], now)
+            if state is not None:  # the session layer returns only ProxyStates newer than any before
+                newest = state
+                fresh += 1
+        if newest is None:
+            return
+        c = self._counts
+        c["proxy_states"] += fresh
+        c["proxy_superseded"] += fresh - 1
+        c["proxy_applied"] += 1
+        self.last_proxy = newest
+        self.engine.drive_tool(newest.proxy_pose, newest.proxy_twist, newest.wrench)
+        ack = newest.ack_seq
+        if ack and ep.contact_seq - ack < _RTT_RING:
+            rtt = (time.monotonic_ns() - int(self._sent_ns[ack % _RTT_RING])) / _NS
+            self._rtt_last_s = rtt
+            self._rtt_sum_s += rtt
+            self._rtt_n += 1
+
+    def _on_welcome(self, ep: ClientEndpoint) -> None:
+        w = ep.welcome
+        self.granted_epsilon_m = w.epsilon_m
+        self.granted_max_contacts = w.max_contacts
+        self.engine.set_epsilon(w.epsilon_m)
+        if self.contacts.capacity != w.max_contacts:
+            self.contacts = ContactBuffer(w.max_contacts)
+        self._counts["sessions"] += 1
+        self._ever_connected = True
+        self._state = "established"
+        if self._log:
+            self._log(f"session {ep.session_id:#010x} with {w.server_name!r} at {self.url}: epsilon "
+                      f"{w.epsilon_m * 1e3:g} mm, max {w.max_contacts} contacts, haptic {w.haptic_rate_hz:g} Hz")
+
+    def _tick(self) -> float:
+        """One engine step, its contacts, one ContactUpdate. Returns the step [s]."""
+        engine = self.engine
+        dt = engine.next_step_s() or 1.0 / self.scene_info.env_rate_hz
+        engine.step(dt)
+        buf = self.contacts
+        cap = self.granted_max_contacts or buf.capacity
+        n = engine.contacts(buf, cap)
+        if not 0 <= n <= cap:
+            raise RuntimeError(f"{engine.name}: contacts() returned {n}, outside 0..{cap}")
+        engine.tool_pose(self.tool_pose)
+        ep = self.endpoint
+        now = time.monotonic_ns()
+        seq = ep.send_contacts(now, engine.time_s, self.tool_pose, buf.keys[:n], buf.position_m[:n],
+                               buf.normal[:n], buf.separation_m[:n], buf.v_constr_m_per_s[:n])
+        c = self._counts
+        c["steps"] += 1
+        if seq:
+            c["updates_sent"] += 1
+            self._sent_ns[seq % _RTT_RING] = now
+        self._contacts_last = n
+        if n > c["contacts_max"]:
+            c["contacts_max"] = n
+        if getattr(engine, "contacts_found", n) > n:  # the engine clustered to fit the grant
+            c["steps_clustered"] += 1
+        if self.on_step is not None:
+            self.on_step(self)
+        return dt
+
+    def _session_over(self, ep: ClientEndpoint, handshake_failed: bool) -> None:
+        if handshake_failed:
+            self._end_reason = f"no answer to Hello within {self.handshake_timeout_s:g} s"
+        elif ep.bye is not None:
+            code = ErrorCode(ep.bye.code).name if ep.bye.code in ErrorCode._value2member_map_ else str(ep.bye.code)
+            self._end_reason = f"server ended the session (Bye {code}: {ep.bye.reason})"
+        else:
+            self._end_reason = f"server silent for {ep.welcome.silence_timeout_s:g} s"
+        if not handshake_failed:
+            self._counts["sessions_ended"] += 1
+            if self._log:
+                self._log(self._end_reason + ("; reconnecting" if self.reconnect else ""))
+        self._drop_endpoint()
+        self._state = "waiting" if (self.reconnect or handshake_failed) else "stopped"
+
+    def _drop_endpoint(self) -> None:
+        ep, transport = self.endpoint, self.transport
+        with self._lock:
+            if ep is not None:
+                c = self._counts
+                c["stale"] += ep.counters.stale
+                c["duplicate"] += ep.counters.duplicate
+                c["hellos_sent"] += ep.counters.hellos_sent
+                c["heartbeats_sent"] += ep.counters.heartbeats_sent
+            self.endpoint = self.transport = None
+        if transport is not None:
+            self._counts["send_failures"] += transport.counters.send_errors
+            transport.close()
+
+    def _close_session(self, reason: str) -> None:
+        ep = self.endpoint
+        if ep is not None and ep.established:
+            try:
+                ep.close(ErrorCode.BYE_NORMAL, reason)
+            except Exception:  # noqa: BLE001 - a failing Bye must not hide why we stopped
+                pass
+        self._drop_endpoint()
