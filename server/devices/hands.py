@@ -1,0 +1,415 @@
+"""The simulated user's hand on a simulated device: the ``[device.hand]`` table.
+
+Each step the hand kernel (:func:`hand_eval`, numba, no allocation) says what the hand wants at
+the device time of the step's start: an explicit wrench (scripted hands), or a target pose and
+twist with the grip's spring, damper and mass (impedance hands). The device kernel integrates
+it with the device (implicitly, so any grip stiffness is stable) and reports what an ideal force
+sensor between hand and handle reads over the step.
+
+Wrenches, displacements and poses are written in the device's reduced coordinates (1dof: ``[f]``
+along the axis; planar: ``[fx, fy, tz]`` / ``[x, y, theta]``; spatial: six) or as full world
+6-vectors ``[fx, fy, fz, tx, ty, tz]`` / ``[x, y, z, rx, ry, rz]`` (rotation vector, rad) at the
+handle; a spatial pose may also be ``[x, y, z, qw, qx, qy, qz]``.
+
+Hand types and their keys (defaults in brackets):
+
+``type = "none"``
+    No hand: the handle is free. [the default hand]
+``type = "constant"``
+    ``wrench`` [zeros]: a constant wrench [N, N m].
+``type = "sinusoid"``
+    ``wrench = offset + amplitude * sin(2 pi frequency_hz t + phase_rad)``, per component:
+    ``amplitude`` [1 N on the first coordinate], ``frequency_hz`` [1.0] (a number, or one per
+    coordinate), ``phase_rad`` [0] (a number, or one per coordinate), ``offset`` [zeros].
+``type = "steps"``
+    ``steps`` [``[[0.0, zeros]]``]: a list of ``[t_s, wrench]`` (or flat ``[t_s, w...]``), strictly
+    increasing times; each wrench holds from its time to the next; zero before the first.
+    ``repeat_period_s`` [0: hold the last]: the profile restarts every this many seconds.
+``type = "impedance"``
+    A hand that grips the handle and follows a target trajectory: the hand's mass moves with the
+    handle and the arm pulls it towards the target through a spring-damper,
+    ``F = K (x_t - x) + B (v_t - v) - m_h a`` (rotation alike, the error being the rotation vector
+    of ``q_t q^-1``). Keys: ``stiffness_n_per_m`` [300], ``damping_n_s_per_m`` [5],
+    ``mass_kg`` [0.1], ``rot_stiffness_n_m_per_rad`` [0.5], ``rot_damping_n_m_s_per_rad`` [0.01],
+    ``inertia_kg_m2`` [1e-4, isotropic], and ``target`` (a table):
+
+    - ``{type = "constant", pose = [...]}`` [pose: the device's initial pose];
+    - ``{type = "sinusoid", amplitude = [...], frequency_hz = 1.0, phase_rad = 0, offset = [pose]}``
+      (amplitude [0.02 m on the first coordinate], offset [the initial pose]);
+    - ``{type = "waypoints", points = [[t_s, pose...], ...], repeat_period_s = 0}``: piecewise
+      linear in the 6-vector (rotation vectors interpolated linearly: fine for rotations about a
+      fixed axis and for small ones); the first pose before the first time, the last after.
+``type = "replay"``
+    A recorded trajectory from ``file`` (required). ``mode = "pose"`` [default]: the recorded
+    poses become the target of a stiff grip (the impedance keys above, defaults
+    ``stiffness_n_per_m`` 2000, ``damping_n_s_per_m`` 20, ``rot_stiffness_n_m_per_rad`` 5,
+    ``rot_damping_n_m_s_per_rad`` 0.05), i.e. the hand drags the handle along the recording and
+    the device's commanded wrench pushes back against the grip. ``mode = "wrench"``: the recorded
+    wrench is applied as is (linearly interpolated). ``repeat_period_s`` [0: hold the last].
+
+    File formats: CSV (comma separated; ``#`` comments and one header line allowed) or ``.npz``.
+    CSV columns: ``t_s`` then, for ``pose``, ``x y z qw qx qy qz`` (the pose columns of a device
+    state row, so a recorded device can be replayed) or the reduced pose or a 6-vector; for
+    ``wrench``, the reduced wrench or a 6-vector. ``.npz``: arrays ``t_s`` and ``pose`` (n x 7,
+    n x reduced or n x 6) or ``wrench``. Times strictly increasing; relative paths are relative
+    to the working directory.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+from . import _check as ck
+from .layout import HO_B, HO_BR, HO_I, HO_K, HO_KR, HO_M, HO_VT, HO_W, HO_XT, NHO, ST_TIME
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+
+HAND_TYPES = ("none", "constant", "sinusoid", "steps", "impedance", "replay")
+
+# -- hand parameters (float64[NHP]) -------------------------------------------------------------
+HP_MODE = 0       # MODE_*
+HP_PROF = 1       # PROF_*
+HP_NROWS = 2      # rows of the table in use
+HP_PERIOD = 3     # repeat period [s] (0: hold the last value)
+HP_K = 4
+HP_B = 5
+HP_KR = 6
+HP_BR = 7
+HP_M = 8
+HP_I = 9
+HP_AMP = 10       # 10..15
+HP_FREQ = 16      # 16..21 [Hz]
+HP_PHASE = 22     # 22..27 [rad]
+HP_OFF = 28       # 28..33 constant value / sinusoid offset / value before the first step
+NHP = 34
+
+MODE_NONE = 0
+MODE_WRENCH = 1
+MODE_IMPEDANCE = 2
+
+PROF_CONSTANT = 0
+PROF_SINUSOID = 1
+PROF_HOLD = 2      # zero-order hold over the table (steps)
+PROF_LINEAR = 3    # piecewise linear over the table (waypoints, replay)
+
+#: table columns: t_s, then the 6-vector
+NTAB = 7
+
+
+@njit(**_JIT)
+def _row_at(tab, n, t):
+    """Largest row index i < n with tab[i, 0] <= t, or -1."""
+    if n == 0 or t < tab[0, 0]:
+        return -1
+    lo = 0
+    hi = n - 1
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if tab[mid, 0] <= t:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+@njit(**_JIT)
+def hand_eval(hp, tab, st, hout):
+    """What the hand wants at the device time ``st[ST_TIME]``: fills ``hout`` (layout ``HO_*``)."""
+    t = st[ST_TIME]
+    mode = int(hp[HP_MODE])
+    prof = int(hp[HP_PROF])
+    period = hp[HP_PERIOD]
+    if period > 0.0 and t >= 0.0:
+        t = t - period * math.floor(t / period)
+    for i in range(NHO):
+        hout[i] = 0.0
+    if mode == MODE_NONE:
+        return
+    # value -> hout[base], rate -> hout[rbase] (rate only meaningful for impedance targets)
+    base = HO_W if mode == MODE_WRENCH else HO_XT
+    rbase = HO_VT
+    if prof == PROF_CONSTANT:
+        for i in range(6):
+            hout[base + i] = hp[HP_OFF + i]
+    elif prof == PROF_SINUSOID:
+        for i in range(6):
+            w = 2.0 * math.pi * hp[HP_FREQ + i]
+            arg = w * t + hp[HP_PHASE + i]
+            a = hp[HP_AMP + i]
+            hout[base + i] = hp[HP_OFF + i] + a * math.sin(arg)
+            if mode == MODE_IMPEDANCE:
+                hout[rbase + i] = a * w * math.cos(arg)
+    else:
+        n = int(hp[HP_NROWS])
+        j = _row_at(tab, n, t)
+        if prof == PROF_HOLD:
+            for i in range(6):
+                hout[base + i] = hp[HP_OFF + i] if j < 0 else tab[j, 1 + i]
+        else:
+            if j < 0:
+                j0 = 0; j1 = 0
+            elif j >= n - 1:
+                j0 = n - 1; j1 = n - 1
+            else:
+                j0 = j; j1 = j + 1
+            if j0 == j1:
+                for i in range(6):
+                    hout[base + i] = tab[j0, 1 + i]
+            else:
+                span = tab[j1, 0] - tab[j0, 0]
+                u = (t - tab[j0, 0]) / span
+                for i in range(6):
+                    v0 = tab[j0, 1 + i]
+                    v1 = tab[j1, 1 + i]
+                    hout[base + i] = v0 + u * (v1 - v0)
+                    if mode == MODE_IMPEDANCE:
+                        hout[rbase + i] = (v1 - v0) / span
+    if mode == MODE_IMPEDANCE:
+        hout[HO_K] = hp[HP_K]
+        hout[HO_B] = hp[HP_B]
+        hout[HO_KR] = hp[HP_KR]
+        hout[HO_BR] = hp[HP_BR]
+        hout[HO_M] = hp[HP_M]
+        hout[HO_I] = hp[HP_I]
+
+
+# ------------------------------------------------------------------------------------ config
+@dataclass
+class Hand:
+    """A parsed hand: the parameter vector and table the kernel reads, and what it was built from."""
+
+    type: str
+    hp: np.ndarray
+    tab: np.ndarray
+    config: dict = field(default_factory=dict)
+
+    @property
+    def mass_kg(self) -> float:
+        return float(self.hp[HP_M])
+
+    @property
+    def inertia_kg_m2(self) -> float:
+        return float(self.hp[HP_I])
+
+
+_GRIP_KEYS = ("stiffness_n_per_m", "damping_n_s_per_m", "mass_kg", "rot_stiffness_n_m_per_rad",
+              "rot_damping_n_m_s_per_rad", "inertia_kg_m2")
+_GRIP_DEFAULTS = {
+    "impedance": (300.0, 5.0, 0.1, 0.5, 0.01, 1e-4),
+    "replay": (2000.0, 20.0, 0.1, 5.0, 0.05, 1e-4),
+}
+_KEYS = {
+    "none": ("type",),
+    "constant": ("type", "wrench"),
+    "sinusoid": ("type", "amplitude", "frequency_hz", "phase_rad", "offset"),
+    "steps": ("type", "steps", "repeat_period_s"),
+    "impedance": ("type", "target") + _GRIP_KEYS,
+    "replay": ("type", "file", "mode", "repeat_period_s") + _GRIP_KEYS,
+}
+_TARGET_KEYS = {
+    "constant": ("type", "pose"),
+    "sinusoid": ("type", "amplitude", "frequency_hz", "phase_rad", "offset"),
+    "waypoints": ("type", "points", "repeat_period_s"),
+}
+
+
+def _first_unit(kind: str, axis: np.ndarray, value: float) -> np.ndarray:
+    """``value`` on the kind's first coordinate, as a world 6-vector."""
+    out = np.zeros(6)
+    if kind == "1dof":
+        out[:3] = value * axis
+    else:
+        out[0] = value
+    return out
+
+
+def _table(key: str, rows, *, kind, axis, origin, pose: bool) -> np.ndarray:
+    """``[[t, v...], ...]`` or ``[[t, [v...]], ...]`` -> (n, 7) with strictly increasing t."""
+    if not isinstance(rows, (list, tuple)) or not rows:
+        raise ck.fail(key, f"expected a non-empty list of [t_s, values], got {rows!r}")
+    out = np.zeros((len(rows), NTAB))
+    for i, row in enumerate(rows):
+        rk = f"{key}[{i}]"
+        if not isinstance(row, (list, tuple)) or len(row) < 2:
+            raise ck.fail(rk, f"expected [t_s, values], got {row!r}")
+        t = ck.num(f"{rk}[0]", row[0], lo=0.0)
+        vals = row[1] if len(row) == 2 and isinstance(row[1], (list, tuple)) else list(row[1:])
+        out[i, 0] = t
+        out[i, 1:] = (ck.pose6(rk, vals, kind, axis, origin) if pose else ck.vector6(rk, vals, kind, axis))
+        if i and not t > out[i - 1, 0]:
+            raise ck.fail(rk, f"times must increase strictly ({out[i - 1, 0]:g} then {t:g})")
+    return out
+
+
+def _repeat(key: str, cfg: dict, tab: np.ndarray) -> float:
+    period = ck.num(key, cfg.get("repeat_period_s", 0.0), lo=0.0)
+    if period > 0.0 and period < tab[-1, 0]:
+        raise ck.fail(key, f"must be 0 or at least the last time ({tab[-1, 0]:g} s), got {period:g}")
+    return period
+
+
+def _grip(prefix: str, cfg: dict, htype: str, hp: np.ndarray) -> None:
+    defaults = _GRIP_DEFAULTS[htype]
+    for k, d, slot in zip(_GRIP_KEYS, defaults, (HP_K, HP_B, HP_M, HP_KR, HP_BR, HP_I)):
+        hp[slot] = ck.num(f"{prefix}.{k}", cfg.get(k, d), lo=0.0, hi=1e7)
+
+
+def _sinusoid(prefix: str, cfg: dict, hp: np.ndarray, *, kind, axis, origin, pose: bool,
+              default_amp: float, default_offset: np.ndarray) -> None:
+    if "amplitude" in cfg:
+        hp[HP_AMP:HP_AMP + 6] = ck.vector6(f"{prefix}.amplitude", cfg["amplitude"], kind, axis)
+    else:
+        hp[HP_AMP:HP_AMP + 6] = _first_unit(kind, axis, default_amp)
+    freq = ck.placed6(f"{prefix}.frequency_hz", cfg.get("frequency_hz", 1.0), kind)
+    if np.any(freq < 0) or np.any(freq > 1e4):
+        raise ck.fail(f"{prefix}.frequency_hz", f"must be in [0, 10000] Hz, got {freq.tolist()}")
+    hp[HP_FREQ:HP_FREQ + 6] = freq
+    hp[HP_PHASE:HP_PHASE + 6] = ck.placed6(f"{prefix}.phase_rad", cfg.get("phase_rad", 0.0), kind)
+    if "offset" in cfg:
+        hp[HP_OFF:HP_OFF + 6] = (ck.pose6(f"{prefix}.offset", cfg["offset"], kind, axis, origin) if pose
+                                 else ck.vector6(f"{prefix}.offset", cfg["offset"], kind, axis))
+    else:
+        hp[HP_OFF:HP_OFF + 6] = default_offset
+
+
+def _load_recording(key: str, path: str, mode: str, *, kind, axis, origin) -> np.ndarray:
+    """A recording file -> (n, 7) table (t_s, world 6-vector)."""
+    p = Path(path)
+    if not p.is_file():
+        raise ck.fail(key, f"no such file: {path}")
+    try:
+        if p.suffix == ".npz":
+            with np.load(p) as z:
+                if "t_s" not in z or mode not in z:
+                    raise ck.fail(key, f"{path}: expected arrays 't_s' and '{mode}', found {sorted(z.files)}")
+                t = np.asarray(z["t_s"], dtype=np.float64).reshape(-1)
+                vals = np.asarray(z[mode], dtype=np.float64)
+                if vals.ndim == 1:
+                    vals = vals.reshape(-1, 1)
+        else:
+            lines = [ln for ln in p.read_text().splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+            if lines and any(c.isalpha() and c not in "eE" for c in lines[0].replace("nan", "").replace("inf", "")):
+                lines = lines[1:]
+            if not lines:
+                raise ck.fail(key, f"{path}: no data rows")
+            data = np.array([[float(x) for x in ln.split(",")] for ln in lines], dtype=np.float64)
+            t, vals = data[:, 0], data[:, 1:]
+    except ValueError as exc:
+        if str(exc).startswith(key):
+            raise
+        raise ck.fail(key, f"{path}: not a readable recording ({exc})") from None
+    except OSError as exc:
+        raise ck.fail(key, f"{path}: {exc}") from None
+    if len(t) == 0 or len(t) != len(vals):
+        raise ck.fail(key, f"{path}: {len(t)} times for {len(vals)} rows")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(vals))):
+        raise ck.fail(key, f"{path}: non-finite values")
+    if np.any(np.diff(t) <= 0):
+        raise ck.fail(key, f"{path}: times must increase strictly")
+    r = ck.REDUCED_DIMS[kind]
+    ncol = vals.shape[1]
+    out = np.zeros((len(t), NTAB))
+    out[:, 0] = t
+    if mode == "pose" and ncol == 7:
+        out[:, 1:4] = vals[:, :3]
+        q = vals[:, 3:7]
+        nq = np.linalg.norm(q, axis=1)
+        if np.any(np.abs(nq - 1.0) > 1e-3):
+            raise ck.fail(key, f"{path}: quaternions (qw qx qy qz) must be unit")
+        q = q / nq[:, None]
+        if kind == "planar":
+            out[:, 6] = np.unwrap(2.0 * np.arctan2(q[:, 3], q[:, 0]))
+        elif kind == "spatial":
+            # keep the sign continuous, then the rotation vector of each row
+            for i in range(1, len(q)):
+                if np.dot(q[i], q[i - 1]) < 0:
+                    q[i] = -q[i]
+            for i in range(len(q)):
+                qi = q[i] if q[i, 0] >= 0 else -q[i]
+                out[i, 4:7] = ck.rotvec_from_quat(key, qi)
+        return out
+    allowed = sorted({r, 6})
+    if ncol not in allowed:
+        want = " or ".join(str(1 + n) for n in sorted(set(allowed) | ({7} if mode == "pose" else set())))
+        raise ck.fail(key, f"{path}: expected {want} columns (t_s first), got {1 + ncol}")
+    for i in range(len(t)):
+        out[i, 1:] = (ck.pose6(key, vals[i], kind, axis, origin) if mode == "pose"
+                      else ck.vector6(key, vals[i], kind, axis))
+    return out
+
+
+def parse_hand(cfg, *, kind: str, axis, origin, rest_pose6, prefix: str = "device.hand") -> Hand:
+    """Validate a ``[device.hand]`` table and build the kernel's arrays.
+
+    ``rest_pose6``: the device's initial pose as a world 6-vector (default impedance target).
+    """
+    axis = np.asarray(axis, dtype=np.float64)
+    origin = np.asarray(origin, dtype=np.float64)
+    rest = np.asarray(rest_pose6, dtype=np.float64)
+    if cfg is None:
+        cfg = {}
+    if not isinstance(cfg, dict):
+        raise ck.fail(prefix, f"expected a table, got {cfg!r}")
+    htype = ck.string(f"{prefix}.type", cfg.get("type", "none"), HAND_TYPES)
+    ck.check_keys(prefix, cfg, _KEYS[htype])
+    hp = np.zeros(NHP)
+    tab = np.zeros((1, NTAB))
+    geo = dict(kind=kind, axis=axis, origin=origin)
+    if htype == "none":
+        hp[HP_MODE] = MODE_NONE
+    elif htype == "constant":
+        hp[HP_MODE] = MODE_WRENCH
+        hp[HP_PROF] = PROF_CONSTANT
+        hp[HP_OFF:HP_OFF + 6] = ck.vector6(f"{prefix}.wrench", cfg.get("wrench", [0.0] * 6), kind, axis)
+    elif htype == "sinusoid":
+        hp[HP_MODE] = MODE_WRENCH
+        hp[HP_PROF] = PROF_SINUSOID
+        _sinusoid(prefix, cfg, hp, pose=False, default_amp=1.0, default_offset=np.zeros(6), **geo)
+    elif htype == "steps":
+        hp[HP_MODE] = MODE_WRENCH
+        hp[HP_PROF] = PROF_HOLD
+        tab = _table(f"{prefix}.steps", cfg.get("steps", [[0.0, [0.0] * 6]]), pose=False, **geo)
+        hp[HP_PERIOD] = _repeat(f"{prefix}.repeat_period_s", cfg, tab)
+    elif htype == "impedance":
+        hp[HP_MODE] = MODE_IMPEDANCE
+        _grip(prefix, cfg, htype, hp)
+        tp = f"{prefix}.target"
+        tcfg = cfg.get("target", {})
+        if not isinstance(tcfg, dict):
+            raise ck.fail(tp, f"expected a table, got {tcfg!r}")
+        ttype = ck.string(f"{tp}.type", tcfg.get("type", "constant"), tuple(_TARGET_KEYS))
+        ck.check_keys(tp, tcfg, _TARGET_KEYS[ttype])
+        if ttype == "constant":
+            hp[HP_PROF] = PROF_CONSTANT
+            hp[HP_OFF:HP_OFF + 6] = ck.pose6(f"{tp}.pose", tcfg["pose"], **geo) if "pose" in tcfg else rest
+        elif ttype == "sinusoid":
+            hp[HP_PROF] = PROF_SINUSOID
+            _sinusoid(tp, tcfg, hp, pose=True, default_amp=0.02, default_offset=rest, **geo)
+        else:
+            hp[HP_PROF] = PROF_LINEAR
+            if "points" not in tcfg:
+                raise ck.fail(f"{tp}.points", "required for waypoints: [[t_s, pose...], ...]")
+            tab = _table(f"{tp}.points", tcfg["points"], pose=True, **geo)
+            hp[HP_PERIOD] = _repeat(f"{tp}.repeat_period_s", tcfg, tab)
+    else:  # replay
+        mode = ck.string(f"{prefix}.mode", cfg.get("mode", "pose"), ("pose", "wrench"))
+        if "file" not in cfg:
+            raise ck.fail(f"{prefix}.file", "required: a CSV or .npz recording")
+        path = ck.string(f"{prefix}.file", cfg["file"])
+        if mode == "pose":
+            hp[HP_MODE] = MODE_IMPEDANCE
+            _grip(prefix, cfg, htype, hp)
+        else:
+            hp[HP_MODE] = MODE_WRENCH
+            for k in _GRIP_KEYS:
+                if k in cfg:
+                    raise ck.fail(f"{prefix}.{k}", "only used with mode = \"pose\"")
+        tab = _load_recording(f"{prefix}.file", path, mode, **geo)
+        hp[HP_PROF] = PROF_LINEAR
+        hp[HP_PERIOD] = _repeat(f"{prefix}.repeat_period_s", cfg, tab)
+    hp[HP_NROWS] = len(tab)
+    return Hand(htype, hp, np.ascontiguousarray(tab), dict(cfg))
