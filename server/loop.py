@@ -198,6 +198,7 @@ class HapticLoop:
         self._dummy = LocalModel(ToolSpec.one_dof(1.0), period_s=self.dt_s, capacity=1, warm=False).kernel_args()
         st = self.shared.status
         st[ST["period_ns"]] = self.period_ns
+        st[ST["rate_hz"]] = settings.rate_hz
         st[ST["force_cap_n"]] = self.ctrl.force_cap_n
         st[ST["rate_limit_n_per_step"]] = self.ctrl.force_rate_n_per_step
         st[ST["loop_state"]] = LS["starting"]

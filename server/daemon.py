@@ -1,0 +1,332 @@
+"""``hapticproxy serve``: the supervisor process and the haptic-loop process it starts.
+
+The haptic loop runs alone in its own process (a CPU-bound Python thread in the same process
+makes the loop wake milliseconds late: the GIL). The supervisor owns everything slow: the config,
+logging, the status server (``hapticproxy status``), the telemetry file, signals. The two share
+one block of memory (``server/shm.py``); the supervisor never blocks the loop.
+
+In the loop process: SIGINT is ignored (Ctrl-C reaches the supervisor, which asks for a clean
+stop), SIGTERM asks for the same clean stop; after warm-up the garbage collector is frozen and
+disabled, the timer slack set to 1 ns, SCHED_FIFO requested (the status says whether it was
+granted), optionally pinned to a CPU, and the spin phase of the hybrid wait calibrated.
+
+Clean stop (SIGINT/SIGTERM/``status --stop``/``--duration``): forces ramp to zero over
+``safety.fade_s``, ``Bye`` goes to every client, telemetry is flushed, exit code 0.
+"""
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import logging
+import multiprocessing as mp
+import os
+import select
+import signal
+import socket
+import sys
+import time
+
+from . import config as cfgmod
+from .shm import CT, LOOP_STATES, SharedState
+
+log = logging.getLogger("hapticproxy.serve")
+
+FAULT_TEXT = {1: "non-finite value before the device (zero wrench, device disabled)",
+              2: "device fault (device disabled)", 3: "device speed over its limit (forces faded)"}
+
+
+# ------------------------------------------------------------------------------ loop process
+def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes | None) -> None:
+    """Entry point of the loop process (spawned)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    shared = SharedState.attach(shm_name, ring_rows)
+    st = shared.status
+    from .shm import ST
+
+    st[ST["pid"]] = os.getpid()
+    code = 0
+    loop = None
+    try:
+        from .clock import MonotonicClock, pin_to_cpu, set_timer_slack_ns, try_realtime
+        from .loop import HapticLoop
+
+        settings = cfgmod.Settings(data, "<supervisor>")
+        lcfg = settings["loop"]
+        clock = MonotonicClock()
+        loop = HapticLoop(settings, clock=clock, shared=shared, hmac_key=hmac_key)
+
+        def on_term(signum, frame):  # noqa: ARG001 - checked in housekeeping, never in a kernel
+            loop._stop_flag = True
+
+        signal.signal(signal.SIGTERM, on_term)
+        loop.warm_up()
+        st[ST["timer_slack"]] = 1.0 if set_timer_slack_ns(1) else 0.0
+        if lcfg["cpu"] >= 0:
+            pin_to_cpu(lcfg["cpu"])
+        if lcfg["spin_us"] == "auto":
+            clock.calibrate()
+        else:
+            clock.spin_ns = int(lcfg["spin_us"] * 1000)
+        st[ST["spin_ns"]] = clock.spin_ns
+        rt = False
+        if lcfg["realtime"]:
+            rt, why = try_realtime()
+            if not rt:
+                print(f"hapticproxy loop: real-time scheduling not granted: {why}", file=sys.stderr)
+        st[ST["rt_scheduling"]] = 1.0 if rt else 0.0
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        loop.start()
+        loop.run()
+    except Exception as exc:  # noqa: BLE001 - reported to the supervisor, then exit non-zero
+        print(f"hapticproxy loop: {type(exc).__name__}: {exc}", file=sys.stderr)
+        code = 1
+    finally:
+        if loop is not None:
+            try:
+                loop.close()
+            except Exception:  # noqa: BLE001
+                pass
+        st[ST["exit_code"]] = code
+        st[ST["loop_state"]] = LOOP_STATES.index("stopped")
+        shared.close()
+    sys.exit(code)
+
+
+# ------------------------------------------------------------------------------ supervisor
+class Supervisor:
+    """Starts the loop process and serves status; ``run()`` until the loop stops."""
+
+    def __init__(self, settings: cfgmod.Settings, *, record: str = "", duration_s: float | None = None,
+                 ready_timeout_s: float = 120.0) -> None:
+        self.settings = settings
+        self.duration_s = duration_s
+        self.ready_timeout_s = ready_timeout_s
+        rows = max(1024, int(settings["telemetry"]["ring_s"] * settings.rate_hz))
+        self.ring_rows = rows
+        self.shared = SharedState.create(rows)
+        self.record = record or settings["telemetry"]["record"]
+        self.writer = None
+        self.proc = None
+        self.sock = None
+        self._stop_requested = False
+        self._last_state = None
+        self._last_fault = 0.0
+        self.exit_code = 0
+
+    def _hmac_key(self):
+        path = self.settings["transport"]["hmac_key_file"]
+        if not path:
+            return None
+        from hapticproxy.protocol.session import load_hmac_key
+
+        return load_hmac_key(path)
+
+    def start(self) -> None:
+        host, _, port = self.settings["status"]["address"].rpartition(":")
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            self.sock.bind((host, int(port)))
+        except OSError as exc:
+            raise RuntimeError(f"status.address {host}:{port}: cannot bind ({exc.strerror})") from None
+        self.sock.setblocking(False)
+        ctx = mp.get_context("spawn")
+        self.proc = ctx.Process(target=loop_process_main, name="hapticproxy-loop",
+                                args=(self.settings.as_dict(), self.shared.name, self.ring_rows, self._hmac_key()),
+                                daemon=False)
+        self.proc.start()
+        t_end = time.monotonic() + self.ready_timeout_s
+        while self.shared.status[self._st("ready")] != 1.0:
+            if not self.proc.is_alive():
+                raise RuntimeError(f"the loop process exited during start-up (exit code {self.proc.exitcode})")
+            if time.monotonic() > t_end:
+                raise RuntimeError("the loop process did not become ready in time")
+            self._serve_status(0.02)
+        if self.record:
+            from .telemetry import TelemetryWriter
+
+            self.writer = TelemetryWriter(self.record, rate_hz=self.settings.rate_hz, config=self.settings.as_dict(),
+                                          flush_rows=self.settings["telemetry"]["flush_rows"])
+            self.writer.start_at(int(self.shared.head[0]))
+        log.info("serving: %s at %.0f Hz, status on %s (rt scheduling: %s)", self.settings["transport"]["url"],
+                 self.settings.rate_hz, self.settings["status"]["address"],
+                 "yes" if self.shared.status[self._st("rt_scheduling")] else "no")
+
+    @staticmethod
+    def _st(name: str) -> int:
+        from .shm import ST
+
+        return ST[name]
+
+    def request_stop(self) -> None:
+        if not self._stop_requested:
+            self._stop_requested = True
+            self.shared.request("stop")
+
+    def run(self) -> int:
+        t_end = None if self.duration_s is None else time.monotonic() + self.duration_s
+        while self.proc.is_alive():
+            self._serve_status(0.05)
+            if self.writer is not None:
+                self.writer.drain(self.shared)
+            self._log_changes()
+            if t_end is not None and time.monotonic() >= t_end:
+                self.request_stop()
+                t_end = None
+        self.proc.join(5)
+        code = int(self.shared.status[self._st("exit_code")])
+        if self.proc.exitcode not in (0, None) and code == 0:
+            code = 1
+            log.error("the loop process died (exit code %s)", self.proc.exitcode)
+        self.exit_code = code
+        return code
+
+    def _log_changes(self) -> None:
+        st = self.shared.status
+        state = int(st[self._st("loop_state")])
+        if state != self._last_state:
+            self._last_state = state
+            log.info("loop state: %s", LOOP_STATES[state] if 0 <= state < len(LOOP_STATES) else state)
+        fault = st[self._st("fault")]
+        if fault != self._last_fault:
+            self._last_fault = fault
+            if fault:
+                log.error("fault: %s; re-arm with `hapticproxy status --rearm`", FAULT_TEXT.get(int(fault), fault))
+
+    def _serve_status(self, timeout_s: float) -> None:
+        r, _, _ = select.select([self.sock], [], [], timeout_s)
+        if not r:
+            return
+        for _ in range(64):
+            try:
+                data, addr = self.sock.recvfrom(2048)
+            except BlockingIOError:
+                return
+            try:
+                req = json.loads(data.decode() or "{}")
+                if not isinstance(req, dict):
+                    raise ValueError
+            except ValueError:
+                self._reply({"error": "request must be a JSON object"}, addr)
+                continue
+            self._reply(self.handle(req), addr)
+
+    def _reply(self, obj: dict, addr) -> None:
+        try:
+            self.sock.sendto(json.dumps(obj).encode()[:65000], addr)
+        except OSError:
+            pass
+
+    def handle(self, req: dict) -> dict:
+        cmd = req.get("cmd", "status")
+        if cmd == "status":
+            snap = self.shared.snapshot()
+            snap["telemetry_file"] = str(self.record) if self.record else ""
+            snap["telemetry_rows_written"] = self.writer.rows_written if self.writer else 0
+            snap["config_source"] = self.settings.source
+            snap["url"] = self.settings["transport"]["url"]
+            span = (snap["t_last_ns"] - snap["t_start_ns"]) * 1e-9
+            snap["achieved_rate_hz"] = (snap["steps"] - 1) / span if span > 0 and snap["steps"] > 1 else 0.0
+            return snap
+        if cmd == "rearm":
+            return {"ok": True, "rearm": self.shared.request("rearm")}
+        if cmd == "stop":
+            self.request_stop()
+            return {"ok": True}
+        if cmd == "reset_stats":
+            return {"ok": True, "reset": self.shared.request("reset_stats")}
+        if cmd == "dump":
+            from .telemetry import dump_ring
+
+            path = req.get("path")
+            if not isinstance(path, str) or not path:
+                return {"error": "dump needs a path"}
+            try:
+                n = dump_ring(self.shared, path, rate_hz=self.settings.rate_hz, config=self.settings.as_dict())
+            except OSError as exc:
+                return {"error": f"cannot write {path}: {exc.strerror}"}
+            return {"ok": True, "rows": n, "path": path}
+        return {"error": f"unknown cmd {cmd!r}"}
+
+    def close(self) -> None:
+        if self.proc is not None and self.proc.is_alive():
+            self.request_stop()
+            self.proc.join(self.settings["safety"]["fade_s"] + 5)
+            if self.proc.is_alive():
+                self.proc.terminate()
+                self.proc.join(2)
+        if self.writer is not None:
+            self.writer.drain(self.shared)
+            self.writer.close()
+        if self.sock is not None:
+            self.sock.close()
+        self.shared.close(unlink=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="hapticproxy serve", description="Run the haptics server daemon.")
+    p.add_argument("--config", help="TOML scene/config file (defaults: loopback UDP, simulated planar device)")
+    p.add_argument("--preset", choices=list(cfgmod.PRESETS), help="speed/accuracy preset (overrides the file's)")
+    p.add_argument("--url", help="transport URL clients connect to (overrides transport.url)")
+    p.add_argument("--status", help="status address HOST:PORT (overrides status.address)")
+    p.add_argument("--rate", type=float, help="haptic rate in Hz (overrides loop.rate_hz)")
+    p.add_argument("--record", default="", help="record telemetry to this file")
+    p.add_argument("--duration", type=float, help="stop cleanly after this many seconds")
+    p.add_argument("--print-config", action="store_true", help="print the effective config as TOML and exit")
+    p.add_argument("-q", "--quiet", action="store_true")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
+                        format="hapticproxy serve: %(message)s", stream=sys.stderr)
+    over: dict = {}
+    if args.preset:
+        over["preset"] = args.preset
+    if args.url:
+        over.setdefault("transport", {})["url"] = args.url
+    if args.status:
+        over.setdefault("status", {})["address"] = args.status
+    if args.rate is not None:
+        over.setdefault("loop", {})["rate_hz"] = args.rate
+    try:
+        settings = cfgmod.load(args.config, over)
+        _check_device(settings)
+    except cfgmod.ConfigError as exc:
+        print(f"hapticproxy serve: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:
+        print(f"hapticproxy serve: {exc}", file=sys.stderr)
+        return 2
+    if args.print_config:
+        print(cfgmod.to_toml(settings.as_dict()), end="")
+        return 0
+    sup = Supervisor(settings, record=args.record, duration_s=args.duration)
+
+    def on_signal(signum, frame):  # noqa: ARG001
+        sup.request_stop()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    try:
+        sup.start()
+        code = sup.run()
+    except RuntimeError as exc:
+        print(f"hapticproxy serve: {exc}", file=sys.stderr)
+        code = 1
+    finally:
+        sup.close()
+    if code == 0:
+        log.info("stopped cleanly")
+    return code
+
+
+def _check_device(settings: cfgmod.Settings) -> None:
+    """Build the device once in the supervisor so a bad [device] table fails before any process starts."""
+    from .devices.base import load_device
+
+    dev = load_device(settings["device"]["driver"], dict(settings["device"]), period_s=settings.period_ns * 1e-9)
+    try:
+        if dev.kind != settings.tool_kind:
+            raise cfgmod.ConfigError("device.kind", f"driver built a {dev.kind} device, config says {settings.tool_kind}")
+    finally:
+        dev.close()
