@@ -18,6 +18,8 @@ BENCH_TARGETS = {
     "model": "hapticproxy.benchmarks.bench_model",
     "codec": "hapticproxy.benchmarks.bench_codec",
     "transport": "hapticproxy.benchmarks.bench_transport",
+    "loop": "hapticproxy.benchmarks.bench_loop",
+    "clients": "hapticproxy.benchmarks.bench_clients",
 }
 
 COMMANDS = {

@@ -68,6 +68,19 @@ class MonotonicClock(Clock):
         return self.spin_ns
 
 
+class SleepClock(Clock):
+    """The naive baseline: ``time.sleep`` until the deadline, nothing else (for comparison)."""
+
+    def __init__(self) -> None:
+        self.now_ns = time.monotonic_ns
+
+    def wait_until(self, deadline_ns: int) -> int:
+        d = deadline_ns - time.monotonic_ns()
+        if d > 0:
+            time.sleep(d * 1e-9)
+        return time.monotonic_ns()
+
+
 class SimClock(Clock):
     """Simulated time: ``wait_until`` jumps to the deadline (or stays if already past).
 

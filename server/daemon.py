@@ -37,8 +37,9 @@ FAULT_TEXT = {1: "non-finite value before the device (zero wrench, device disabl
 
 
 # ------------------------------------------------------------------------------ loop process
-def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes | None) -> None:
-    """Entry point of the loop process (spawned)."""
+def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes | None, naive: bool = False) -> None:
+    """Entry point of the loop process (spawned). ``naive``: the comparison baseline of
+    ``bench loop``: the same work paced by ``time.sleep`` alone, with none of the tuning."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     shared = SharedState.attach(shm_name, ring_rows)
     st = shared.status
@@ -48,12 +49,12 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
     code = 0
     loop = None
     try:
-        from .clock import MonotonicClock, pin_to_cpu, set_timer_slack_ns, try_realtime
+        from .clock import MonotonicClock, SleepClock, pin_to_cpu, set_timer_slack_ns, try_realtime
         from .loop import HapticLoop
 
         settings = cfgmod.Settings(data, "<supervisor>")
         lcfg = settings["loop"]
-        clock = MonotonicClock()
+        clock = SleepClock() if naive else MonotonicClock()
         loop = HapticLoop(settings, clock=clock, shared=shared, hmac_key=hmac_key)
 
         def on_term(signum, frame):  # noqa: ARG001 - checked in housekeeping, never in a kernel
@@ -61,6 +62,10 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
 
         signal.signal(signal.SIGTERM, on_term)
         loop.warm_up()
+        if naive:
+            loop.start()
+            loop.run()
+            return
         st[ST["timer_slack"]] = 1.0 if set_timer_slack_ns(1) else 0.0
         if lcfg["cpu"] >= 0:
             pin_to_cpu(lcfg["cpu"])
@@ -100,8 +105,9 @@ class Supervisor:
     """Starts the loop process and serves status; ``run()`` until the loop stops."""
 
     def __init__(self, settings: cfgmod.Settings, *, record: str = "", duration_s: float | None = None,
-                 ready_timeout_s: float = 120.0) -> None:
+                 ready_timeout_s: float = 120.0, naive: bool = False) -> None:
         self.settings = settings
+        self.naive = naive
         self.duration_s = duration_s
         self.ready_timeout_s = ready_timeout_s
         rows = max(1024, int(settings["telemetry"]["ring_s"] * settings.rate_hz))
@@ -134,7 +140,7 @@ class Supervisor:
         self.sock.setblocking(False)
         ctx = mp.get_context("spawn")
         self.proc = ctx.Process(target=loop_process_main, name="hapticproxy-loop",
-                                args=(self.settings.as_dict(), self.shared.name, self.ring_rows, self._hmac_key()),
+                                args=(self.settings.as_dict(), self.shared.name, self.ring_rows, self._hmac_key(), self.naive),
                                 daemon=False)
         self.proc.start()
         t_end = time.monotonic() + self.ready_timeout_s

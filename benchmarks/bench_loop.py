@@ -1,0 +1,174 @@
+"""``hapticproxy bench loop``: how well the real server loop keeps its deadlines.
+
+Runs the real server (supervisor + loop process, simulated planar device pushed by a constant
+0.5 N hand, the default controller and model) with an environment client sending a ContactUpdate
+at 60 Hz over UDP loopback, for ``--seconds``; then, for comparison, the same loop doing the same
+work but paced by ``time.sleep`` alone, with none of the tuning (no spin phase, no timer slack,
+no real-time scheduling, garbage collector left on). Prints one JSON object:
+
+``rate_hz``, ``seconds``, ``steps``, ``lateness_us`` (``p50``, ``p99``, ``p999``, ``max``: wake-up time
+minus the absolute deadline, 1 us bins, upper edges), ``step_us`` (``p50``, ``p99``: poll to device
+write), ``missed_fraction`` (steps that finished after the next deadline / steps),
+``missed_deadlines`` (whole periods skipped), ``rt_scheduling``, ``spin_us``, ``updates``,
+``faults``, ``naive_lateness_us`` (``p50``, ``p99``, ``p999``, ``max``), ``naive_missed_fraction``,
+``p99_ratio_naive_over_loop``, ``machine``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import socket
+import sys
+import threading
+import time
+
+import numpy as np
+
+from hapticproxy.protocol.codec import Hello
+from hapticproxy.protocol.messages import ToolKind
+from hapticproxy.protocol.session import ClientEndpoint
+from hapticproxy.protocol.transport import open_transport
+from hapticproxy.server import config as cfgmod
+from hapticproxy.server.daemon import Supervisor
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _client(url: str, stop: threading.Event, rate_hz: float, counts: dict) -> None:
+    """A 60 Hz environment: a floor under a planar box tool that follows the proxy."""
+    tr = open_transport(url, "client")
+    hello = Hello(client_nonce=1, engine="bench-loop floor", tool_kind=ToolKind.PLANAR, mass_kg=0.2,
+                  inertia_kg_m2=(2e-4, 2e-4, 2e-4, 0, 0, 0), max_contacts=8, epsilon_m=0.005, env_rate_hz=rate_hz)
+    ep = ClientEndpoint(tr.send, hello)
+    ep.start()
+    pose = np.array([0.0, 0.05, 0.0, 1.0, 0.0, 0.0, 0.0])
+    keys = np.array([[0, 1, 0], [0, 1, 1]], dtype=np.int64)
+    nrm = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+    period = 1.0 / rate_hz
+    nxt = time.monotonic()
+    try:
+        while not stop.is_set():
+            while True:
+                item = tr.recv()
+                if item is None:
+                    break
+                ps = ep.receive(item[0], item[1])
+                if ps is not None:
+                    pose = np.array(ps.proxy_pose, dtype=float)
+                    counts["proxy_states"] += 1
+            ep.poll()
+            if ep.established:
+                th = 2 * math.atan2(pose[6], pose[3])
+                c, s = math.cos(th), math.sin(th)
+                pts, seps = [], []
+                for bx in (-0.02, 0.02):
+                    x = pose[0] + c * bx + s * 0.01
+                    y = pose[1] + s * bx - c * 0.01
+                    pts.append((x, 0.0, 0.0))
+                    seps.append(max(y, -0.02))
+                cp = np.array(pts)
+                d = np.array(seps)
+                k = d <= 0.005
+                ep.send_contacts(None, time.monotonic(), pose, keys[k], cp[k], nrm[k], d[k], np.zeros(int(k.sum())))
+                counts["updates_sent"] += 1
+            nxt += period
+            time.sleep(max(0.0, nxt - time.monotonic()))
+        ep.close()
+    finally:
+        tr.close()
+
+
+def _run(settings: cfgmod.Settings, seconds: float, naive: bool) -> dict:
+    sup = Supervisor(settings, duration_s=None, naive=naive)
+    stop = threading.Event()
+    counts = {"updates_sent": 0, "proxy_states": 0}
+    th = None
+    try:
+        sup.start()
+        th = threading.Thread(target=_client, args=(settings["transport"]["url"], stop, 60.0, counts), daemon=True)
+        th.start()
+        # let the client engage, then measure a clean window
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 1.0:
+            sup._serve_status(0.05)
+        sup.shared.request("reset_stats")
+        while time.monotonic() - t0 < 1.2:
+            sup._serve_status(0.05)
+        t1 = time.monotonic()
+        while time.monotonic() - t1 < seconds:
+            sup._serve_status(0.05)
+        snap = sup.shared.snapshot()
+    finally:
+        stop.set()
+        if th is not None:
+            th.join(5)
+        sup.close()
+    steps = snap["lateness_us"]["count"]
+    return {"snap": snap, "steps": steps, "counts": counts}
+
+
+def run(rate_hz: float, seconds: float, naive_seconds: float) -> dict:
+    def settings():
+        return cfgmod.load({
+            "loop": {"rate_hz": rate_hz},
+            "transport": {"url": f"udp://127.0.0.1:{_free_port()}"},
+            "status": {"address": f"127.0.0.1:{_free_port()}"},
+            "device": {"driver": "sim", "kind": "planar", "hand": {"type": "constant", "wrench": [0.0, -0.5, 0.0]}},
+            "telemetry": {"ring_s": 2.0},
+        })
+
+    real = _run(settings(), seconds, naive=False)
+    naive = _run(settings(), naive_seconds, naive=True) if naive_seconds > 0 else None
+    s = real["snap"]
+    steps = max(1, real["steps"])
+    lat, comp = s["lateness_us"], s["compute_us"]
+    out = {
+        "rate_hz": rate_hz,
+        "seconds": seconds,
+        "steps": real["steps"],
+        "lateness_us": {k: lat[k] for k in ("p50", "p99", "p999", "max")},
+        "step_us": {k: comp[k] for k in ("p50", "p99", "max")},
+        "missed_fraction": s["overruns"] / steps,
+        "missed_deadlines": int(s["missed_deadlines"]),
+        "rt_scheduling": bool(s["rt_scheduling"]),
+        "spin_us": s["spin_ns"] / 1000.0,
+        "updates": int(s["updates"]),
+        "faults": int(s["faults_total"]),
+    }
+    if naive is not None:
+        n = naive["snap"]
+        out["naive_seconds"] = naive_seconds
+        out["naive_lateness_us"] = {k: n["lateness_us"][k] for k in ("p50", "p99", "p999", "max")}
+        out["naive_missed_fraction"] = n["overruns"] / max(1, naive["steps"])
+        lp99 = out["lateness_us"]["p99"] or 1.0
+        out["p99_ratio_naive_over_loop"] = (n["lateness_us"]["p99"] or 0.0) / lp99
+    out["machine"] = f"{platform.machine()} {os.cpu_count()} cpus, {platform.system()} {platform.release()}"
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="hapticproxy bench loop", description=__doc__.splitlines()[0])
+    ap.add_argument("--json", action="store_true", help="print JSON (the default output is JSON too)")
+    ap.add_argument("--rate", type=float, default=1000.0, help="haptic rate [Hz] (default 1000)")
+    ap.add_argument("--seconds", type=float, default=60.0, help="measured seconds of the real loop (default 60)")
+    ap.add_argument("--naive-seconds", type=float, default=None,
+                    help="seconds of the naive comparison loop (default: same as --seconds, at most 20)")
+    args = ap.parse_args(argv)
+    if not (100 <= args.rate <= 20000) or not args.seconds > 0:
+        print("hapticproxy bench loop: --rate must be in [100, 20000] Hz and --seconds > 0", file=sys.stderr)
+        return 2
+    naive_s = min(args.seconds, 20.0) if args.naive_seconds is None else args.naive_seconds
+    try:
+        res = run(args.rate, args.seconds, naive_s)
+    except RuntimeError as exc:
+        print(f"hapticproxy bench loop: {exc}", file=sys.stderr)
+        return 1
+    print(json.dumps(res, indent=1))
+    return 0
