@@ -296,6 +296,9 @@ def main(argv: list[str] | None = None) -> int:
         over.setdefault("loop", {})["rate_hz"] = args.rate
     try:
         settings = cfgmod.load(args.config, over)
+        if args.print_config:
+            print(cfgmod.to_toml(settings.as_dict()), end="")
+            return 0
         _check_device(settings)
     except cfgmod.ConfigError as exc:
         print(f"hapticproxy serve: {exc}", file=sys.stderr)
@@ -303,9 +306,6 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"hapticproxy serve: {exc}", file=sys.stderr)
         return 2
-    if args.print_config:
-        print(cfgmod.to_toml(settings.as_dict()), end="")
-        return 0
     sup = Supervisor(settings, record=args.record, duration_s=args.duration)
 
     def on_signal(signum, frame):  # noqa: ARG001
