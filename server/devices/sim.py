@@ -391,6 +391,10 @@ class SimDevice(DeviceDriver):
         return _dyn.sim_write(self._par, self._st, self._cnt, self._ctl, self._hout, cmd, self._clock())
 
     # -- extras --------------------------------------------------------------------------------
+    def warm_up(self) -> None:
+        """Compile / load the kernels (done at construction already; cheap to repeat)."""
+        warm_up()
+
     def _copy_command(self, wrench) -> None:
         a = np.asarray(wrench, dtype=np.float64)
         if a.shape != (6,):

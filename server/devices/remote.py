@@ -1,0 +1,825 @@
+"""Remote devices over UDP (entry point ``remote``) and the device-side program.
+
+A device running in another process or on another machine (a real device with its own small
+program, or ``hapticproxy device``, which runs a simulated one) streams its state to the server
+every tick and receives wrenches back. Two fixed-layout little-endian datagrams:
+
+STATE (device -> server, 216 bytes) ::
+
+    offset  type     field
+    0       4s       magic  b"HPDV"
+    4       u8       version (1)
+    5       u8       type (1 = STATE)
+    6       u16      flags: bit 0 = output armed
+    8       u64      device_session: the device program's boot epoch (ns since 1970 at start)
+    16      u64      server_session  } the command key the device is in (echo; 0 before any)
+    24      u32      epoch           }
+    28      u32      period_us: the device tick [us]
+    32      u64      seq: state sequence number, +1 per datagram from 1
+    40      u64      cmd_seq: sequence number of the last command accepted
+    48      u8       kind: 0 1dof, 1 planar, 2 spatial
+    49      u8       fault: the device's latched fault (DEV_FAULT_* of base.py), 0 if none
+    50      6x       padding (zero)
+    56      20 f64   the state row of base.py (pose 7, twist 6, hand wrench 6, time)
+
+COMMAND (server -> device, 96 bytes) ::
+
+    0       4s       magic  b"HPDV"
+    4       u8       version (1)
+    5       u8       type (2 = COMMAND)
+    6       u16      flags: bit 0 = enable (render the wrench); clear = zero output now
+    8       u64      device_session: the device this command is for (from its STATE)
+    16      u64      server_session: the server driver's boot epoch (ns since 1970 at start)
+    24      u32      epoch: +1 at every enable() of the server driver
+    28      u32      reserved (zero)
+    32      u64      seq: command sequence number, +1 per datagram from 1
+    40      u64      state_seq: the newest state seq the server holds
+    48      6 f64    wrench fx fy fz tx ty tz [N, N m], world, at the handle
+
+Rules (what makes it safe over a lossy, reordering network and across restarts):
+
+- Each side keeps only the newest datagram by ``seq``; stale, duplicate, malformed (size, magic,
+  version, type, non-finite pose/twist/time) and foreign (other address or session) datagrams are
+  dropped and counted.
+- The device obeys a command only if it is addressed to its own ``device_session`` (a restarted
+  device ignores everything sent to its previous incarnation) and its key ``(server_session,
+  epoch)`` is not older than the newest key it has seen (a delayed command from before a server
+  restart or from before the last ``enable()`` is ignored). A *newer* key with the enable flag
+  arms the output; within one key, commands only update the wrench.
+- The device's own watchdog: armed and no accepted command for ``watchdog_s`` -> zero output and
+  the fault ``DEV_FAULT_WATCHDOG`` latched *for that key*: more commands with the same key do
+  not re-arm it; only a newer key (the server's next ``enable()``) does. The state stream reports
+  the fault with the key, and the server driver latches it.
+- The server driver reports ``DEV_FAULT_LINK`` when no state arrives within ``link_timeout_s``
+  (and before the first state), latched until ``enable()`` finds the link up again; a device
+  restart (a newer ``device_session``, or any other one once the current device has been silent
+  for the link timeout) is latched the same way. While faulted or disabled it sends zero
+  wrenches with the enable flag clear.
+- Sessions are wall-clock boot epochs, so restarts order themselves; a device accepts only
+  server sessions not older than the newest it has seen (if a server host's clock went back
+  across a restart, restart the device program too).
+
+Server-side config (``[device]`` with ``driver = "remote"``; every key optional):
+
+==============================  ====================  ==============================================
+key                             default               meaning
+==============================  ====================  ==============================================
+``kind``                        ``"planar"``          the device's kind (checked against its STATE)
+``listen``                      ``"127.0.0.1:9872"``  where the server driver receives state
+``device_address``              ``""``                ``HOST:PORT`` of the device: accept state only
+                                                      from there; empty: the first device heard
+``link_timeout_s``              0.1                   no state this long -> ``DEV_FAULT_LINK``
+``connect_timeout_s``           0                     wait this long at start for the first state
+``max_force_n`` ...             as the ``sim`` kind   the device's limits (``max_force_n``,
+                                                      ``max_torque_n_m``, ``max_speed_m_per_s``,
+                                                      ``max_angular_speed_rad_per_s``,
+                                                      ``workspace_min_m``, ``workspace_max_m``,
+                                                      ``watchdog_s``), reported to the loop; the
+                                                      device program enforces its own
+==============================  ====================  ==============================================
+
+Device side: :class:`DeviceProgram` bridges any local :class:`DeviceDriver` (a simulated device
+by default) to a server; ``hapticproxy device --kind planar --server HOST:PORT`` runs one (see
+:func:`main`).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import socket
+import struct
+import sys
+import threading
+import time
+
+import numpy as np
+
+from . import _check as ck
+from .base import (
+    DEV_FAULT_DISABLED, DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_NAMES,
+    DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_NSTATE, DEV_OK, DEVICE_KINDS, DS_TIME,
+    DeviceDriver, DeviceLimits,
+)
+from .layout import KIND_IDS
+
+MAGIC = b"HPDV"
+VERSION = 1
+T_STATE = 1
+T_COMMAND = 2
+F_ARMED = 1
+F_ENABLE = 1
+
+STATE_HDR = struct.Struct("<4sBBHQQIIQQBB6x")
+COMMAND_HDR = struct.Struct("<4sBBHQQIIQQ")
+STATE_SIZE = STATE_HDR.size + 8 * DEV_NSTATE      # 216
+COMMAND_SIZE = COMMAND_HDR.size + 8 * 6          # 96
+assert STATE_HDR.size == 56 and COMMAND_HDR.size == 48
+
+DEFAULT_LISTEN = "127.0.0.1:9872"
+DEFAULT_LINK_TIMEOUT_S = 0.1
+DEFAULT_DEVICE_WATCHDOG_S = 0.05
+#: at most this many datagrams are drained per read (bounds the time a flood can take)
+MAX_DRAIN = 512
+_RECV_BYTES = 2048
+_KIND_NAMES = {v: k for k, v in KIND_IDS.items()}
+
+_session_lock = threading.Lock()
+_last_session = 0
+
+
+def new_session() -> int:
+    """A boot epoch: ns since 1970, strictly increasing within the process (orders restarts)."""
+    global _last_session
+    with _session_lock:
+        _last_session = max(time.time_ns(), _last_session + 1)
+        return _last_session
+
+
+def parse_hostport(key: str, value) -> tuple[str, int]:
+    if not isinstance(value, str):
+        raise ck.fail(key, f"expected HOST:PORT, got {value!r}")
+    host, sep, port = value.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ck.fail(key, f"expected HOST:PORT, got {value!r}")
+    return host, int(port)
+
+
+def _udp_socket(host: str) -> socket.socket:
+    fam = socket.AF_INET6 if ":" in host else socket.AF_INET
+    s = socket.socket(fam, socket.SOCK_DGRAM)
+    s.setblocking(False)
+    return s
+
+
+def pack_state(buf, *, device_session, server_session, epoch, period_us, seq, cmd_seq, kind, fault,
+               armed, state) -> None:
+    """Write a STATE datagram into ``buf`` (a bytearray of STATE_SIZE)."""
+    STATE_HDR.pack_into(buf, 0, MAGIC, VERSION, T_STATE, F_ARMED if armed else 0, device_session,
+                        server_session, epoch, period_us, seq, cmd_seq, kind, fault)
+    struct.pack_into(f"<{DEV_NSTATE}d", buf, STATE_HDR.size, *state)
+
+
+def pack_command(buf, *, device_session, server_session, epoch, seq, state_seq, enable, wrench) -> None:
+    """Write a COMMAND datagram into ``buf`` (a bytearray of COMMAND_SIZE)."""
+    COMMAND_HDR.pack_into(buf, 0, MAGIC, VERSION, T_COMMAND, F_ENABLE if enable else 0, device_session,
+                          server_session, epoch, 0, seq, state_seq)
+    struct.pack_into("<6d", buf, COMMAND_HDR.size, *wrench)
+
+
+# =============================================================================== server side
+REMOTE_KEYS = ("driver", "kind", "listen", "device_address", "link_timeout_s", "connect_timeout_s",
+               "max_force_n", "max_torque_n_m", "max_speed_m_per_s", "max_angular_speed_rad_per_s",
+               "workspace_min_m", "workspace_max_m", "watchdog_s")
+
+REMOTE_COUNTERS = ("states", "stale", "duplicate", "malformed", "foreign", "old_session",
+                   "kind_mismatch", "device_restarts", "link_losses", "device_faults",
+                   "commands_sent", "send_errors", "unsent", "nonfinite_refused", "recv_errors")
+
+
+class RemoteDevice(DeviceDriver):
+    """The server side of a remote device: ``read`` drains the socket (non-blocking) and keeps the
+    newest state; ``write`` sends one COMMAND datagram.
+
+    Starts disabled with ``DEV_FAULT_LINK`` latched (no state yet): call ``enable()`` once
+    :attr:`link_up` is true.
+    """
+
+    name = "remote"
+
+    def __init__(self, *, kind: str, limits: DeviceLimits, listen=("127.0.0.1", 0), device_address=None,
+                 link_timeout_s: float = DEFAULT_LINK_TIMEOUT_S, clock_ns=None, session: int | None = None) -> None:
+        if kind not in DEVICE_KINDS:
+            raise ck.fail("device.kind", f"expected one of {', '.join(DEVICE_KINDS)}; got {kind!r}")
+        self.kind = kind
+        self._kind_id = KIND_IDS[kind]
+        self._limits = limits
+        self._clock = clock_ns if clock_ns is not None else time.monotonic_ns
+        self._link_ns = int(round(link_timeout_s * 1e9))
+        self._pinned = None
+        if device_address is not None:
+            self._pinned = socket.getaddrinfo(device_address[0], device_address[1], type=socket.SOCK_DGRAM)[0][4][:2]
+        self._sock = _udp_socket(listen[0])
+        try:
+            self._sock.bind(listen)
+        except OSError as exc:
+            self._sock.close()
+            raise ck.fail("device.listen", f"cannot bind {listen[0]}:{listen[1]}: {exc.strerror or exc}") from None
+        self.session = session if session is not None else new_session()
+        self._rx = bytearray(_RECV_BYTES)
+        self._rx_state = np.frombuffer(self._rx, dtype="<f8", count=DEV_NSTATE, offset=STATE_HDR.size)
+        self._tx = bytearray(COMMAND_SIZE)
+        self._tx_wrench = np.frombuffer(self._tx, dtype="<f8", count=6, offset=COMMAND_HDR.size)
+        self._finite = np.zeros(13, dtype=bool)
+        self._state = np.zeros(DEV_NSTATE)
+        self._state[3] = 1.0
+        self._state[13:19] = np.nan
+        self._cnt = dict.fromkeys(REMOTE_COUNTERS, 0)
+        self._enabled = False
+        self._fault = DEV_FAULT_LINK
+        self._epoch = 0
+        self._seq = 0
+        self._dev_session = 0
+        self._dev_addr = self._pinned
+        self._state_seq = 0
+        self._have_state = False
+        self._last_rx_ns = 0
+        self._dev_fault = DEV_OK
+        self._dev_armed = False
+        self._dev_key = (0, 0)
+
+    # -- DeviceDriver ------------------------------------------------------------------------
+    @property
+    def limits(self) -> DeviceLimits:
+        return self._limits
+
+    @property
+    def enabled(self) -> bool:
+        return self._enabled
+
+    @property
+    def fault(self) -> int:
+        return self._fault
+
+    def enable(self) -> None:
+        """Arm: a new epoch (the device re-arms on its first command). A latched link or
+        hardware fault stays while its cause does (no fresh state, or a kind mismatch)."""
+        now = self._clock()
+        self._drain(now)
+        if self._fault == DEV_FAULT_LINK and not self._link_fresh(now):
+            return
+        if self._fault == DEV_FAULT_HARDWARE and self._cnt_kind_bad:
+            return
+        self._fault = DEV_OK
+        self._epoch = (self._epoch + 1) & 0xFFFFFFFF
+        self._enabled = True
+
+    def disable(self) -> None:
+        """Zero now: a COMMAND with the enable flag clear goes out at once."""
+        self._enabled = False
+        self._send(None)
+
+    def read(self, state_out: np.ndarray) -> int:
+        now = self._clock()
+        self._drain(now)
+        self._check_link(now)
+        state_out[:DEV_NSTATE] = self._state
+        return self._status()
+
+    def write(self, wrench: np.ndarray) -> int:
+        now = self._clock()
+        self._check_link(now)
+        w = wrench
+        if not (type(w) is np.ndarray and w.shape == (6,)):
+            w = np.asarray(wrench, dtype=np.float64)
+            if w.shape != (6,):
+                raise ValueError(f"wrench: expected 6 numbers (fx fy fz tx ty tz), got shape {w.shape}")
+        if not (math.isfinite(w[0]) and math.isfinite(w[1]) and math.isfinite(w[2])
+                and math.isfinite(w[3]) and math.isfinite(w[4]) and math.isfinite(w[5])):
+            self._cnt["nonfinite_refused"] += 1
+            if self._fault == DEV_OK:
+                self._fault = DEV_FAULT_NONFINITE_COMMAND
+        live = self._enabled and self._fault == DEV_OK
+        self._send(w if live else None)
+        return self._status()
+
+    def close(self) -> None:
+        try:
+            self.disable()
+        finally:
+            self._sock.close()
+
+    # -- extras --------------------------------------------------------------------------------
+    @property
+    def local_address(self) -> tuple[str, int]:
+        return self._sock.getsockname()[:2]
+
+    @property
+    def device_address(self):
+        return self._dev_addr
+
+    @property
+    def device_session(self) -> int:
+        return self._dev_session
+
+    @property
+    def epoch(self) -> int:
+        return self._epoch
+
+    @property
+    def link_up(self) -> bool:
+        """State arrived within the link timeout (from the current device session)."""
+        return self._link_fresh(self._clock())
+
+    @property
+    def device_armed(self) -> bool:
+        """The device reports its output armed under this driver's current key."""
+        return self._dev_armed and self._dev_key == (self.session, self._epoch)
+
+    def counters(self) -> dict[str, int]:
+        return dict(self._cnt)
+
+    def status_text(self) -> str:
+        return DEV_FAULT_NAMES.get(self._status(), f"fault {self._status()}")
+
+    def wait_for_link(self, timeout_s: float) -> bool:
+        """Poll (sleeping 1 ms) until a state arrives or ``timeout_s`` passes (real time)."""
+        end = time.monotonic() + timeout_s
+        while True:
+            self._drain(self._clock())
+            if self._have_state:
+                return True
+            if time.monotonic() >= end:
+                return False
+            time.sleep(0.001)
+
+    # -- internals -----------------------------------------------------------------------------
+    _cnt_kind_bad = False
+
+    def _status(self) -> int:
+        if self._fault != DEV_OK:
+            return self._fault
+        return DEV_OK if self._enabled else DEV_FAULT_DISABLED
+
+    def _link_fresh(self, now: int) -> bool:
+        return self._have_state and now - self._last_rx_ns <= self._link_ns
+
+    def _check_link(self, now: int) -> None:
+        if self._have_state and now - self._last_rx_ns > self._link_ns and self._fault != DEV_FAULT_LINK:
+            self._cnt["link_losses"] += 1
+            self._fault = DEV_FAULT_LINK
+            self._send(None)
+
+    def _send(self, wrench) -> None:
+        if self._dev_addr is None or self._dev_session == 0:
+            self._cnt["unsent"] += 1
+            return
+        self._seq += 1
+        COMMAND_HDR.pack_into(self._tx, 0, MAGIC, VERSION, T_COMMAND, 0 if wrench is None else F_ENABLE,
+                              self._dev_session, self.session, self._epoch, 0, self._seq, self._state_seq)
+        if wrench is None:
+            self._tx_wrench[:] = 0.0
+        else:
+            self._tx_wrench[:] = wrench
+        try:
+            self._sock.sendto(self._tx, self._dev_addr)
+            self._cnt["commands_sent"] += 1
+        except OSError:
+            self._cnt["send_errors"] += 1
+
+    def _drain(self, now: int) -> None:
+        sock = self._sock
+        rx = self._rx
+        for _ in range(MAX_DRAIN):
+            try:
+                n, addr = sock.recvfrom_into(rx)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                self._cnt["recv_errors"] += 1
+                continue
+            self._accept(n, addr[:2], now)
+
+    def _accept(self, n: int, addr, now: int) -> None:
+        cnt = self._cnt
+        if n != STATE_SIZE:
+            cnt["malformed"] += 1
+            return
+        (magic, version, ptype, flags, dev_session, srv_session, epoch, _period_us, seq, _cmd_seq,
+         kind, fault) = STATE_HDR.unpack_from(self._rx, 0)
+        if magic != MAGIC or version != VERSION or ptype != T_STATE:
+            cnt["malformed"] += 1
+            return
+        np.isfinite(self._rx_state[:13], out=self._finite)
+        if not (self._finite.all() and math.isfinite(self._rx_state[DS_TIME])):
+            cnt["malformed"] += 1
+            return
+        if self._pinned is not None and addr != self._pinned:
+            cnt["foreign"] += 1
+            return
+        if dev_session != self._dev_session:
+            if dev_session < self._dev_session and self._link_fresh(now):
+                # an older boot of the device while the current one is alive: a delayed datagram
+                cnt["old_session"] += 1
+                return
+            if self._dev_session != 0:
+                # a newer boot epoch (or any other one once the current device fell silent): the
+                # device restarted; its output starts disarmed, and ours stays off until enable()
+                cnt["device_restarts"] += 1
+                self._fault = DEV_FAULT_LINK if self._fault == DEV_OK else self._fault
+            self._dev_session = dev_session
+            self._dev_addr = addr if self._pinned is None else self._pinned
+            self._state_seq = 0
+        elif addr != self._dev_addr:
+            cnt["foreign"] += 1
+            return
+        if seq <= self._state_seq:
+            cnt["duplicate" if seq == self._state_seq else "stale"] += 1
+            return
+        self._state_seq = seq
+        self._last_rx_ns = now
+        self._have_state = True
+        if kind != self._kind_id:
+            cnt["kind_mismatch"] += 1
+            self._cnt_kind_bad = True
+            if self._fault != DEV_FAULT_HARDWARE:
+                self._fault = DEV_FAULT_HARDWARE
+            return
+        self._cnt_kind_bad = False
+        cnt["states"] += 1
+        self._state[:] = self._rx_state
+        self._dev_armed = bool(flags & F_ARMED)
+        self._dev_key = (srv_session, epoch)
+        self._dev_fault = fault
+        if fault != DEV_OK and self._enabled and srv_session == self.session and epoch == self._epoch \
+                and self._fault == DEV_OK:
+            cnt["device_faults"] += 1
+            self._fault = fault if fault in DEV_FAULT_NAMES and fault != DEV_FAULT_DISABLED else DEV_FAULT_HARDWARE
+
+
+def parse_remote_config(config: dict, *, period_s: float) -> dict:
+    """Validate a ``[device]`` table for the ``remote`` driver; returns the effective values."""
+    from .sim import COMMON_DEFAULTS, KIND_DEFAULTS
+
+    ck.num("period_s", period_s, lo=0.0, lo_open=True, hi=0.1)
+    if config is None:
+        config = {}
+    ck.check_keys("device", config, REMOTE_KEYS)
+    kind = ck.string("device.kind", config.get("kind", "planar"), DEVICE_KINDS)
+    kd = {**COMMON_DEFAULTS, **KIND_DEFAULTS[kind]}
+    out = {"driver": config.get("driver", "remote"), "kind": kind}
+    out["listen"] = parse_hostport("device.listen", config.get("listen", DEFAULT_LISTEN))
+    dev_addr = config.get("device_address", "")
+    out["device_address"] = parse_hostport("device.device_address", dev_addr) if dev_addr != "" else None
+    out["link_timeout_s"] = ck.num("device.link_timeout_s", config.get("link_timeout_s", DEFAULT_LINK_TIMEOUT_S),
+                                   lo=0.0, lo_open=True, hi=60.0)
+    if out["link_timeout_s"] < period_s:
+        raise ck.fail("device.link_timeout_s", f"{out['link_timeout_s']:g} s is shorter than one period ({period_s:g} s)")
+    out["connect_timeout_s"] = ck.num("device.connect_timeout_s", config.get("connect_timeout_s", 0.0), lo=0.0, hi=600.0)
+    for k in ("max_torque_n_m", "max_angular_speed_rad_per_s"):
+        if kd[k] is None and k in config:
+            raise ck.fail(f"device.{k}", f"does not apply to a {kind} device")
+    fmax = ck.num("device.max_force_n", config.get("max_force_n", kd["max_force_n"]), lo=0.0, lo_open=True, hi=1e4)
+    tmax = 0.0 if kind == "1dof" else ck.num("device.max_torque_n_m", config.get("max_torque_n_m", kd["max_torque_n_m"]),
+                                             lo=0.0, lo_open=True, hi=1e3)
+    vmax = ck.num("device.max_speed_m_per_s", config.get("max_speed_m_per_s", kd["max_speed_m_per_s"]),
+                  lo=0.0, lo_open=True, hi=1e3)
+    wmax = 0.0 if kind == "1dof" else ck.num(
+        "device.max_angular_speed_rad_per_s", config.get("max_angular_speed_rad_per_s", kd["max_angular_speed_rad_per_s"]),
+        lo=0.0, lo_open=True, hi=1e4)
+    lens = (2, 3) if kind == "planar" else (3,)
+    lo = ck.numbers("device.workspace_min_m", config.get("workspace_min_m", kd["workspace_min_m"]), lens)
+    hi = ck.numbers("device.workspace_max_m", config.get("workspace_max_m", kd["workspace_max_m"]), lens)
+    if len(lo) != len(hi) or np.any(hi <= lo):
+        raise ck.fail("device.workspace_max_m", "must exceed workspace_min_m on every axis")
+    if kind == "planar":
+        lo, hi = np.append(lo[:2], 0.0), np.append(hi[:2], 0.0)
+    wd = ck.num("device.watchdog_s", config.get("watchdog_s", DEFAULT_DEVICE_WATCHDOG_S), lo=0.0, hi=10.0)
+    out["limits"] = DeviceLimits(max_force_n=fmax, max_torque_n_m=tmax, max_speed_m_per_s=vmax,
+                                 max_angular_speed_rad_per_s=wmax, workspace_min_m=tuple(lo.tolist()),
+                                 workspace_max_m=tuple(hi.tolist()), watchdog_s=wd)
+    return out
+
+
+def make_remote_device(config: dict, *, period_s: float, clock_ns=None) -> RemoteDevice:
+    """Entry point ``remote``: bind ``listen`` and wait up to ``connect_timeout_s`` for a device."""
+    v = parse_remote_config(config, period_s=period_s)
+    dev = RemoteDevice(kind=v["kind"], limits=v["limits"], listen=v["listen"], device_address=v["device_address"],
+                       link_timeout_s=v["link_timeout_s"], clock_ns=clock_ns)
+    if v["connect_timeout_s"] > 0:
+        dev.wait_for_link(v["connect_timeout_s"])
+    return dev
+
+
+# =============================================================================== device side
+PROGRAM_COUNTERS = ("ticks", "states_sent", "send_errors", "commands", "stale", "duplicate", "malformed",
+                    "foreign_session", "old_key", "ignored_latched", "arms", "disarms", "watchdog_trips",
+                    "nonfinite_refused", "driver_faults", "overruns", "recv_errors")
+
+
+class DeviceProgram:
+    """The device side: runs a local :class:`DeviceDriver` (``driver``) and bridges it to the
+    server at ``server`` (host, port). One :meth:`tick` per device period: drain commands, the
+    watchdog, ``driver.write``, ``driver.read``, one STATE datagram. :meth:`run` paces ticks.
+
+    The driver is enabled when a command arms the output and disabled when it is disarmed or a
+    fault latches; the program's own faults (watchdog, non-finite command) and the driver's are
+    reported in the state stream.
+    """
+
+    def __init__(self, driver: DeviceDriver, server: tuple[str, int], *, watchdog_s: float = DEFAULT_DEVICE_WATCHDOG_S,
+                 bind: tuple[str, int] | None = None, clock_ns=None, period_s: float = 1e-3,
+                 session: int | None = None) -> None:
+        self.driver = driver
+        self.server = server
+        self._clock = clock_ns if clock_ns is not None else time.monotonic_ns
+        self._wd_ns = int(round(watchdog_s * 1e9))
+        self._period_us = int(round(period_s * 1e6))
+        self.session = session if session is not None else new_session()
+        self._sock = _udp_socket(server[0])
+        if bind is not None:
+            self._sock.bind(bind)
+        self._sock.connect(server)
+        self._kind_id = KIND_IDS[driver.kind]
+        self._rx = bytearray(_RECV_BYTES)
+        self._rx_wrench = np.frombuffer(self._rx, dtype="<f8", count=6, offset=COMMAND_HDR.size)
+        self._tx = bytearray(STATE_SIZE)
+        self._tx_state = np.frombuffer(self._tx, dtype="<f8", count=DEV_NSTATE, offset=STATE_HDR.size)
+        self._state = np.zeros(DEV_NSTATE)
+        self._cmd = np.zeros(6)
+        self._zero = np.zeros(6)
+        self._key = (0, 0)
+        self._cmd_seq = 0
+        self._seq = 0
+        self._armed = False
+        self._fault = DEV_OK
+        self._last_cmd_ns = 0
+        self._cnt = dict.fromkeys(PROGRAM_COUNTERS, 0)
+        self.driver.disable()
+
+    # -- state ---------------------------------------------------------------------------------
+    @property
+    def armed(self) -> bool:
+        return self._armed
+
+    @property
+    def fault(self) -> int:
+        return self._fault
+
+    @property
+    def key(self) -> tuple[int, int]:
+        return self._key
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        return self._sock.getsockname()[:2]
+
+    @property
+    def command(self) -> np.ndarray:
+        """The wrench being rendered (zero when disarmed)."""
+        return (self._cmd if self._armed else self._zero).copy()
+
+    def counters(self) -> dict[str, int]:
+        return dict(self._cnt)
+
+    def close(self) -> None:
+        self._disarm()
+        self._sock.close()
+        self.driver.close()
+
+    # -- one period ------------------------------------------------------------------------------
+    def tick(self) -> int:
+        """One device period; returns the driver's status."""
+        now = self._clock()
+        self._drain(now)
+        if self._armed and self._wd_ns > 0 and now - self._last_cmd_ns > self._wd_ns:
+            self._cnt["watchdog_trips"] += 1
+            self._latch(DEV_FAULT_WATCHDOG)
+        self.driver.write(self._cmd if self._armed else self._zero)
+        status = self.driver.read(self._state)
+        if status not in (DEV_OK, DEV_FAULT_DISABLED) and self._armed:
+            self._cnt["driver_faults"] += 1
+            self._latch(status)
+        self._send()
+        self._cnt["ticks"] += 1
+        return status
+
+    def run(self, rate_hz: float, duration_s: float | None = None, stop: threading.Event | None = None) -> dict:
+        """Tick at ``rate_hz`` on absolute deadlines (real time) until ``duration_s`` or ``stop``."""
+        period_ns = int(round(1e9 / rate_hz))
+        start = time.monotonic_ns()
+        end = None if duration_s is None else start + int(duration_s * 1e9)
+        deadline = start
+        while not (stop is not None and stop.is_set()):
+            self.tick()
+            deadline += period_ns
+            now = time.monotonic_ns()
+            if end is not None and now >= end:
+                break
+            if now > deadline + 5 * period_ns:
+                # fell behind (the process was stopped): skip ahead rather than burst
+                self._cnt["overruns"] += 1
+                deadline = now
+            elif deadline > now:
+                time.sleep((deadline - now) * 1e-9)
+        return self.counters()
+
+    # -- internals -----------------------------------------------------------------------------
+    def _latch(self, fault: int) -> None:
+        if self._fault == DEV_OK:
+            self._fault = fault
+        self._disarm()
+
+    def _disarm(self) -> None:
+        if self._armed:
+            self._cnt["disarms"] += 1
+        self._armed = False
+        self._cmd[:] = 0.0
+        self.driver.disable()
+
+    def _send(self) -> None:
+        self._seq += 1
+        drv_fault = self.driver.fault
+        fault = self._fault or (drv_fault if drv_fault not in (DEV_OK, DEV_FAULT_DISABLED) else DEV_OK)
+        STATE_HDR.pack_into(self._tx, 0, MAGIC, VERSION, T_STATE, F_ARMED if self._armed else 0, self.session,
+                            self._key[0], self._key[1], self._period_us, self._seq, self._cmd_seq,
+                            self._kind_id, fault)
+        self._tx_state[:] = self._state
+        try:
+            self._sock.send(self._tx)
+            self._cnt["states_sent"] += 1
+        except OSError:
+            self._cnt["send_errors"] += 1
+
+    def _drain(self, now: int) -> None:
+        for _ in range(MAX_DRAIN):
+            try:
+                n = self._sock.recv_into(self._rx)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:  # e.g. ICMP port unreachable while no server listens
+                self._cnt["recv_errors"] += 1
+                continue
+            self._accept(n, now)
+
+    def _accept(self, n: int, now: int) -> None:
+        cnt = self._cnt
+        if n != COMMAND_SIZE:
+            cnt["malformed"] += 1
+            return
+        magic, version, ptype, flags, dev_session, srv_session, epoch, _res, seq, _sseq = \
+            COMMAND_HDR.unpack_from(self._rx, 0)
+        if magic != MAGIC or version != VERSION or ptype != T_COMMAND:
+            cnt["malformed"] += 1
+            return
+        if dev_session != self.session:
+            cnt["foreign_session"] += 1
+            return
+        key = (srv_session, epoch)
+        if key < self._key:
+            cnt["old_key"] += 1
+            return
+        enable = bool(flags & F_ENABLE)
+        w = self._rx_wrench
+        finite = (math.isfinite(w[0]) and math.isfinite(w[1]) and math.isfinite(w[2])
+                  and math.isfinite(w[3]) and math.isfinite(w[4]) and math.isfinite(w[5]))
+        if key == self._key:
+            if seq <= self._cmd_seq:
+                cnt["duplicate" if seq == self._cmd_seq else "stale"] += 1
+                return
+            self._cmd_seq = seq
+            cnt["commands"] += 1
+            if not enable:
+                self._disarm()
+            elif not self._armed:
+                cnt["ignored_latched"] += 1
+            elif not finite:
+                cnt["nonfinite_refused"] += 1
+                self._latch(DEV_FAULT_NONFINITE_COMMAND)
+            else:
+                self._cmd[:] = w
+                self._last_cmd_ns = now
+            return
+        # a newer key: a new server session or the server's next enable()
+        self._key = key
+        self._cmd_seq = seq
+        cnt["commands"] += 1
+        if not enable:
+            self._disarm()
+            return
+        if not finite:
+            cnt["nonfinite_refused"] += 1
+            self._fault = DEV_OK
+            self._latch(DEV_FAULT_NONFINITE_COMMAND)
+            return
+        self._fault = DEV_OK
+        self.driver.enable()
+        self._armed = True
+        self._cnt["arms"] += 1
+        self._cmd[:] = w
+        self._last_cmd_ns = now
+
+
+# ================================================================================== the CLI
+class _UsageError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, no usage block
+        raise _UsageError(message)
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="hapticproxy device",
+                description="Run a simulated haptic device as a remote device: stream its state to a "
+                            "server over UDP and render the wrenches it sends back.")
+    p.add_argument("--kind", choices=DEVICE_KINDS, default=None, help="device kind (default: planar, or the config's)")
+    p.add_argument("--server", required=True, metavar="HOST:PORT", help="the server driver's listen address")
+    p.add_argument("--rate", type=float, default=1000.0, metavar="HZ", help="device rate [Hz] (default 1000)")
+    p.add_argument("--hand", default=None, metavar="SPEC",
+                   help='the simulated hand: a type name (none, constant, sinusoid, steps, impedance) or a '
+                        'JSON table, e.g. \'{"type": "sinusoid", "amplitude": [0, 0.5, 0], "frequency_hz": 2.5}\'')
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="a TOML file whose [device] table configures the simulated device (sim keys)")
+    p.add_argument("--watchdog-s", type=float, default=DEFAULT_DEVICE_WATCHDOG_S, metavar="S",
+                   help="no command this long -> zero output, latched until the server re-enables (default 0.05)")
+    p.add_argument("--bind", default=None, metavar="HOST:PORT", help="local address of the device socket")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after this many seconds")
+    p.add_argument("--quiet", action="store_true", help="no start and summary lines")
+    return p
+
+
+def _device_from_args(args) -> tuple[DeviceProgram, float]:
+    import json
+    import tomllib
+
+    from .sim import SimDevice, parse_sim_config
+
+    if not (math.isfinite(args.rate) and 10.0 <= args.rate <= 20000.0):
+        raise ValueError(f"--rate: expected 10..20000 Hz, got {args.rate:g}")
+    if not (math.isfinite(args.watchdog_s) and 0.0 <= args.watchdog_s <= 10.0):
+        raise ValueError(f"--watchdog-s: expected 0..10 s, got {args.watchdog_s:g}")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise ValueError(f"--duration: expected a positive number of seconds, got {args.duration:g}")
+    server = parse_hostport("--server", args.server)
+    if server[1] == 0:
+        raise ValueError("--server: port 0 is not a server address")
+    bind = parse_hostport("--bind", args.bind) if args.bind else None
+    cfg: dict = {}
+    if args.config:
+        try:
+            with open(args.config, "rb") as f:
+                doc = tomllib.load(f)
+        except OSError as exc:
+            raise ValueError(f"--config: cannot read {args.config}: {exc.strerror or exc}") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"--config: {args.config} is not valid TOML: {exc}") from None
+        if not isinstance(doc.get("device", {}), dict):
+            raise ValueError(f"--config: [device] in {args.config} is not a table")
+        cfg = dict(doc.get("device", {}))
+        if cfg.get("driver", "sim") != "sim":
+            cfg.pop("driver")
+        for k in ("listen", "device_address", "link_timeout_s", "connect_timeout_s"):
+            cfg.pop(k, None)  # the server side's keys, when the same file configures both
+    if args.kind:
+        cfg["kind"] = args.kind
+    if args.hand is not None:
+        spec = args.hand.strip()
+        if spec.startswith("{"):
+            try:
+                hand = json.loads(spec)
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"--hand: not valid JSON ({exc.msg} at column {exc.colno})") from None
+        else:
+            hand = {"type": spec}
+        cfg["hand"] = hand
+    period_s = 1.0 / args.rate
+    sim = SimDevice(parse_sim_config(cfg, period_s=period_s))
+    prog = DeviceProgram(sim, server, watchdog_s=args.watchdog_s, bind=bind, period_s=period_s)
+    return prog, period_s
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``hapticproxy device --kind KIND --server HOST:PORT [--rate HZ] [--hand SPEC] ...``"""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = _build_parser()
+    try:
+        args = parser.parse_args(argv)
+        prog, _ = _device_from_args(args)
+    except _UsageError as exc:
+        print(f"hapticproxy device: error: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:
+        print(f"hapticproxy device: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"hapticproxy device: error: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    drv = prog.driver
+    if not args.quiet:
+        host, port = prog.server
+        print(f"hapticproxy device: {drv.kind} sim device -> {host}:{port} at {args.rate:g} Hz "
+              f"(session {prog.session}, watchdog {args.watchdog_s:g} s)", file=sys.stderr, flush=True)
+    stop = threading.Event()
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        import signal
+
+        previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        prog.run(args.rate, args.duration, stop)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        c = prog.counters()
+        prog.close()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    if not args.quiet:
+        print("hapticproxy device: " + ", ".join(f"{k} {v}" for k, v in c.items() if v), file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
