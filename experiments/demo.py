@@ -1,9 +1,10 @@
-"""``hapticproxy demo``: the main job.
+"""``hapticproxy demo``: the main job, headless, on loopback with embedded defaults.
 
-Until the server daemon and the environment clients exist (issues 4 and 5), the demo runs the
-paper's 1-DOF peg-in-hole (Figs. 5-6) headless on the real local model: the same peg, delay,
-stiffness and hand force under the ``rigid`` policy (no proxy deformation) and under proxy
-deformation. It writes a PNG plot and prints a one-line summary.
+Starts the haptics server (its loop in its own process, the simulated planar device) and the
+pymunk environment client (the paper's Fig. 12 testbed) over UDP on loopback, runs the paper's
+static-contact experiment (the hand pushes the tool onto the bottom wall with 0.5 N) for a few
+seconds, prints a summary (haptic rate achieved, environment rate, contacts, where the wall was
+felt vs where it is, final force) and writes a plot and the telemetry recording.
 """
 from __future__ import annotations
 
@@ -14,31 +15,38 @@ import time
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="hapticproxy demo", description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default=os.path.join("out", "demo"), help="output folder (default: out/demo)")
-    parser.add_argument("--seconds", type=float, default=5.0, help="simulated time per run (default 5)")
-    args = parser.parse_args(argv)
-    if not args.seconds > 1.0:
-        print("hapticproxy demo: --seconds must be > 1", file=sys.stderr)
+    p = argparse.ArgumentParser(prog="hapticproxy demo", description=__doc__.splitlines()[0])
+    p.add_argument("--out", default=os.path.join("out", "demo"), help="output folder (default: out/demo)")
+    p.add_argument("--seconds", type=float, default=5.0, help="wall-clock seconds of the experiment (default 5)")
+    p.add_argument("--rate", type=float, default=512.0, help="haptic rate [Hz] (default: the paper's 512)")
+    p.add_argument("--engine", choices=("pymunk", "stub"), default="pymunk")
+    args = p.parse_args(argv)
+    if not args.seconds >= 2.0:
+        print("hapticproxy demo: --seconds must be >= 2", file=sys.stderr)
         return 2
+    from .static_contact import PUSH_N, plot_static_contact, run_static_contact
 
-    from .peg1d import (FIG6_DAMPING_N_S_PER_M, FIG6_DELAY_S, FIG6_FORCE_AMPLITUDE_N, FIG6_FORCE_HZ,
-                        FIG6_MASS_KG, FIG6_STIFFNESS_N_PER_M, plot_runs, simulate_peg1d)
-
-    t0 = time.perf_counter()
-    runs = [simulate_peg1d(policy, duration_s=args.seconds) for policy in ("rigid", "deformation")]
     os.makedirs(args.out, exist_ok=True)
-    path = os.path.join(args.out, "fig6_peg_in_hole.png")
-    setup = (f"{FIG6_MASS_KG:g} kg peg, K={FIG6_STIFFNESS_N_PER_M:g} N/m, B={FIG6_DAMPING_N_S_PER_M:g} N s/m, "
-             f"{FIG6_DELAY_S * 1e3:g} ms delay, {FIG6_FORCE_AMPLITUDE_N:g} N at {FIG6_FORCE_HZ:g} Hz, 1 kHz")
-    plot_runs(runs, path, f"1-DOF peg-in-hole (paper Fig. 6): {setup}")
-    rigid, deform = runs
-    print(f"fig6 peg-in-hole ({setup}): rigid {'UNSTABLE' if rigid.unstable else 'bounded'} "
-          f"(peak {abs(rigid.x_hand_m).max() * 1e3:.1f} mm, growth x{rigid.growth:.1f}), "
-          f"deformation {'UNSTABLE' if deform.unstable else 'bounded'} "
-          f"(peak {abs(deform.x_hand_m).max() * 1e3:.2f} mm, growth x{deform.growth:.2f}); "
-          f"plot {path}; {time.perf_counter() - t0:.1f} s")
-    return 0
+    rec = os.path.join(args.out, "static_contact.hpt")
+    t0 = time.perf_counter()
+    try:
+        res = run_static_contact(seconds=args.seconds, rate_hz=args.rate, engine=args.engine, record=rec,
+                                 log=lambda m: print(f"demo: {m}", file=sys.stderr))
+    except (RuntimeError, ValueError) as exc:
+        print(f"hapticproxy demo: {exc}", file=sys.stderr)
+        return 1
+    png = plot_static_contact(res, os.path.join(args.out, "static_contact.png"),
+                              f"static contact, {args.engine} testbed, {res.rate_hz:g} Hz, LM with epsilon 5 mm, "
+                              f"four-channel")
+    err_mm = (res.felt_y_com_m - res.wall_y_com_m) * 1e3
+    print(f"static contact ({args.engine} testbed, {args.seconds:g} s): haptic {res.achieved_rate_hz:.1f} Hz "
+          f"(target {res.rate_hz:g}, lateness p99 {res.lateness_p99_us} us), environment {res.env_rate_hz:.1f} Hz "
+          f"({res.updates} updates), contacts {res.contacts_final} (max {res.contacts_max}); "
+          f"wall felt at y_COM {res.felt_y_com_m * 1e3:.1f} mm, it is at {res.wall_y_com_m * 1e3:.1f} mm "
+          f"({err_mm:+.1f} mm); final force {res.final_force_n:+.3f} N against a {PUSH_N:g} N push; "
+          f"{'settled' if res.settled else 'NOT settled'}, faults {res.faults}; plot {png}, telemetry {rec} "
+          f"({time.perf_counter() - t0:.1f} s)")
+    return 0 if res.faults == 0 else 1
 
 
 if __name__ == "__main__":

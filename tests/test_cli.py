@@ -27,14 +27,29 @@ def test_unknown_command_and_bench_target_fail_cleanly():
     assert out.returncode == 2 and "Traceback" not in out.stderr
 
 
-def test_demo_writes_a_plot_and_one_summary_line(tmp_path):
-    out = run("demo", "--out", str(tmp_path / "demo"), "--seconds", "3")
+def test_demo_runs_server_and_pymunk_client_and_feels_the_wall(tmp_path):
+    import re
+
+    out = run("demo", "--out", str(tmp_path / "demo"), "--seconds", "4")
     assert out.returncode == 0, out.stderr
     lines = [ln for ln in out.stdout.splitlines() if ln.strip()]
-    assert len(lines) == 1
-    assert "rigid UNSTABLE" in lines[0] and "deformation bounded" in lines[0]
-    png = tmp_path / "demo" / "fig6_peg_in_hole.png"
+    assert len(lines) == 1, out.stdout
+    line = lines[0]
+    felt, real = map(float, re.search(r"wall felt at y_COM ([-\d.]+) mm, it is at ([-\d.]+) mm", line).groups())
+    assert real == 124.0
+    assert abs(felt - real) < 3.0  # epsilon-active geometry: the wall is felt where it is
+    force = float(re.search(r"final force ([-+\d.]+) N", line).group(1))
+    assert abs(force + 0.5) < 0.05  # balances the 0.5 N push
+    assert "settled" in line and "NOT settled" not in line and "faults 0" in line
+    haptic = float(re.search(r"haptic ([\d.]+) Hz", line).group(1))
+    assert haptic > 0.95 * 512
+    assert int(re.search(r"\((\d+) updates\)", line).group(1)) > 30
+    png = tmp_path / "demo" / "static_contact.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    from hapticproxy.server.telemetry import read
+
+    meta, rows = read(tmp_path / "demo" / "static_contact.hpt")
+    assert len(rows) > 512
 
 
 def test_bench_model_prints_rows_with_the_documented_keys():
