@@ -358,6 +358,8 @@ def sim_write(par, st, cnt, ctl, hout, wrench, now_ns):
 @njit(**_JIT)
 def sim_read(st, ctl, cnt, out, now_ns):
     """Copy the state row into ``out`` (float64[>= DEV_NSTATE]); check the watchdog; status."""
+    if out.shape[0] < DEV_NSTATE:  # numba does not bounds-check the writes below
+        raise ValueError("state_out: expected float64[20] (DEV_NSTATE)")
     _watchdog(ctl, cnt, now_ns)
     for i in range(DEV_NSTATE):
         out[i] = st[i]

@@ -3,6 +3,10 @@
 
 Every array is float64 unless said otherwise and is owned by a thin Python class
 (:class:`~hapticproxy.server.devices.sim.SimDevice`); the kernels never allocate.
+
+numba freezes these numbers into the cached machine code of the kernels that use them, and its
+cache only notices changes to the kernel's own source file: after changing a number here, delete
+``server/devices/__pycache__`` (or touch ``dynamics.py`` and ``hands.py``).
 """
 from __future__ import annotations
 

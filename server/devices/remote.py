@@ -61,22 +61,22 @@ Rules (what makes it safe over a lossy, reordering network and across restarts):
 
 Server-side config (``[device]`` with ``driver = "remote"``; every key optional):
 
-==============================  ====================  ==============================================
-key                             default               meaning
-==============================  ====================  ==============================================
-``kind``                        ``"planar"``          the device's kind (checked against its STATE)
-``listen``                      ``"127.0.0.1:9872"``  where the server driver receives state
-``device_address``              ``""``                ``HOST:PORT`` of the device: accept state only
-                                                      from there; empty: the first device heard
-``link_timeout_s``              0.1                   no state this long -> ``DEV_FAULT_LINK``
-``connect_timeout_s``           0                     wait this long at start for the first state
-``max_force_n`` ...             as the ``sim`` kind   the device's limits (``max_force_n``,
-                                                      ``max_torque_n_m``, ``max_speed_m_per_s``,
-                                                      ``max_angular_speed_rad_per_s``,
-                                                      ``workspace_min_m``, ``workspace_max_m``,
-                                                      ``watchdog_s``), reported to the loop; the
-                                                      device program enforces its own
-==============================  ====================  ==============================================
+``kind`` = ``"planar"``
+    The device's kind; a STATE of another kind latches ``DEV_FAULT_HARDWARE``.
+``listen`` = ``"127.0.0.1:9872"``
+    ``HOST:PORT`` where the server driver receives state (port 0: any free port).
+``device_address`` = ``""``
+    ``HOST:PORT`` of the device: state is accepted only from there and commands go there;
+    empty: the first device heard (its source address).
+``link_timeout_s`` = 0.1
+    No state for longer than this -> ``DEV_FAULT_LINK``.
+``connect_timeout_s`` = 0
+    At start, wait up to this long for the first state (0: do not wait).
+``max_force_n``, ``max_torque_n_m``, ``max_speed_m_per_s``, ``max_angular_speed_rad_per_s``,
+``workspace_min_m``, ``workspace_max_m``, ``watchdog_s`` = as for the ``sim`` device of that kind
+    The device's limits as reported to the loop (``watchdog_s``: the device program's own
+    watchdog, 0.05 s for ``hapticproxy device``). The device program enforces its own limits;
+    these should match them.
 
 Device side: :class:`DeviceProgram` bridges any local :class:`DeviceDriver` (a simulated device
 by default) to a server; ``hapticproxy device --kind planar --server HOST:PORT`` runs one (see
@@ -464,7 +464,7 @@ def parse_remote_config(config: dict, *, period_s: float) -> dict:
                                              lo=0.0, lo_open=True, hi=1e3)
     vmax = ck.num("device.max_speed_m_per_s", config.get("max_speed_m_per_s", kd["max_speed_m_per_s"]),
                   lo=0.0, lo_open=True, hi=1e3)
-    wmax = 0.0 if kind == "1dof" else ck.num(
+    wmax = math.inf if kind == "1dof" else ck.num(
         "device.max_angular_speed_rad_per_s", config.get("max_angular_speed_rad_per_s", kd["max_angular_speed_rad_per_s"]),
         lo=0.0, lo_open=True, hi=1e4)
     lens = (2, 3) if kind == "planar" else (3,)

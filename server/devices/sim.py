@@ -12,51 +12,58 @@ direct-drive twin pantograph, as seen at the handle: **mass 0.4 kg, I_zz 1.0e-3 
 0.4 kg body with a 5 cm radius of gyration), viscous damping 2 N s/m and 2e-3 N m s/rad,
 workspace +-6 cm in x and y, rotation +-1 rad, 10 N and 0.5 N m peak.
 
-Config keys (``[device]``; every key optional, defaults per kind as ``1dof / planar / spatial``):
+Config keys (``[device]``; every key optional; defaults per kind written ``1dof / planar /
+spatial``, ``-`` where the key does not apply to the kind and is an error if given):
 
-=================================  =============================  =================================
-key                                default                        meaning
-=================================  =============================  =================================
-``driver``                         ``"sim"``                      entry point name (not checked here)
-``kind``                           ``"planar"``                   ``1dof``, ``planar`` or ``spatial``
-``mass_kg``                        0.2 / 0.4 / 0.3                moving mass at the handle [kg]
-``inertia_kg_m2``                  - / 1.0e-3 / [6e-4, 6e-4,      planar: I_zz; spatial: 3 principal
-                                   4e-4]                          moments or a 3x3 matrix (body frame,
-                                                                  about the handle), positive definite
-``damping_n_s_per_m``              1.0 / 2.0 / 1.0                viscous damping, translation
-``rot_damping_n_m_s_per_rad``      - / 2e-3 / 1e-3                viscous damping, rotation
-``axis``                           [1, 0, 0] (1dof only)          unit direction of travel, world
-``origin_m``                       [0, 0, 0] (1dof only)          handle position at s = 0, world
-``workspace_min_m``                -0.1 x3 / [-0.06, -0.06] /     workspace box, world [m]; planar:
-                                   -0.1 x3                        x and y (a z entry is ignored)
-``workspace_max_m``                0.1 x3 / [0.06, 0.06] /        (1dof: the travel is where the axis
-                                   0.1 x3                         line through the origin is inside)
-``rotation_limit_rad``             - / 1.0 / 1.0                  planar: abs(theta); spatial: the
-                                                                  angle of the rotation from identity;
-                                                                  0 = no limit
-``endstop_stiffness_n_per_m``      min(20000, mass / period^2)    end-stop spring; at most
-                                                                  2 mass / period^2 (stability)
-``endstop_damping_n_s_per_m``      50                             end-stop damper (implicit)
-``endstop_rot_stiffness_n_m_per_   min(20, I_min / period^2)      rotational end-stop spring; at most
-rad``                                                             2 I_min / period^2
-``endstop_rot_damping_n_m_s_per_   0.05                           rotational end-stop damper
-rad``
-``max_force_n``                    10 / 10 / 8                    force cap per axis [N] (saturated,
-                                                                  counted)
-``max_torque_n_m``                 - / 0.5 / 0.5                  torque cap per axis [N m]
-``max_speed_m_per_s``              2.0                            rated speed (reported in limits;
-                                                                  over-speed steps are counted)
-``max_angular_speed_rad_per_s``    - / 20 / 20                    rated angular speed
-``watchdog_s``                     0.05                           no ``write`` for this long -> zero
-                                                                  output, latched until ``enable()``;
-                                                                  0 = no watchdog
-``initial_pose``                   the workspace centre, identity reduced pose: 1dof ``[s]``, planar
-                                                                  ``[x, y, theta]``, spatial
-                                                                  ``[x, y, z, rx, ry, rz]`` or
-                                                                  ``[x, y, z, qw, qx, qy, qz]``
-``initial_velocity``               zeros                          reduced twist
-``hand``                           ``{type = "none"}``            the simulated hand (see ``hands``)
-=================================  =============================  =================================
+``driver`` = ``"sim"``
+    The entry point name (the loader's; not checked here).
+``kind`` = ``"planar"``
+    ``1dof``, ``planar`` or ``spatial``.
+``mass_kg`` = 0.2 / 0.4 / 0.3
+    Moving mass at the handle [kg].
+``inertia_kg_m2`` = - / 1.0e-3 / [6e-4, 6e-4, 4e-4]
+    Planar: I_zz about the handle. Spatial: 3 principal moments or a symmetric positive definite
+    3x3 matrix, body frame, about the handle [kg m^2].
+``damping_n_s_per_m`` = 1.0 / 2.0 / 1.0
+    Viscous damping of the translation [N s/m].
+``rot_damping_n_m_s_per_rad`` = - / 2e-3 / 1e-3
+    Viscous damping of the rotation [N m s/rad].
+``axis`` = [1, 0, 0] / - / -
+    1dof: the unit direction of travel, world.
+``origin_m`` = [0, 0, 0] / - / -
+    1dof: the handle position at s = 0, world [m].
+``workspace_min_m``, ``workspace_max_m`` = +-0.1 on x y z / +-0.06 on x y / +-0.1 on x y z
+    The workspace box, world [m] (planar: ``[x, y]``, a z entry is ignored). A 1dof device
+    travels where the line through ``origin_m`` along ``axis`` is inside the box.
+``rotation_limit_rad`` = - / 1.0 / 1.0
+    Planar: abs(theta) at most this; spatial: the angle of the rotation from identity (a cone
+    about the initial frame); 0 = no limit.
+``endstop_stiffness_n_per_m`` = min(20000, mass_kg / period^2)
+    End-stop spring; at most ``2 mass_kg / period^2`` (stability of the explicit spring).
+``endstop_damping_n_s_per_m`` = 50
+    End-stop damper (implicit: any value is stable).
+``endstop_rot_stiffness_n_m_per_rad`` = - / min(20, I_min / period^2)
+    Rotational end-stop spring; at most ``2 I_min / period^2`` (I_min: the smallest moment).
+``endstop_rot_damping_n_m_s_per_rad`` = - / 0.05
+    Rotational end-stop damper.
+``max_force_n`` = 10 / 10 / 8
+    Force cap per axis [N]; larger commands are saturated and counted.
+``max_torque_n_m`` = - / 0.5 / 0.5
+    Torque cap per axis [N m] (a 1dof device reports 0: it renders no torque).
+``max_speed_m_per_s`` = 2.0
+    Rated speed, reported in ``limits``; faster steps are counted.
+``max_angular_speed_rad_per_s`` = - / 20 / 20
+    Rated angular speed (a 1dof device reports ``inf``: it cannot turn).
+``watchdog_s`` = 0.05
+    No ``write`` for longer than this -> zero output and ``DEV_FAULT_WATCHDOG`` latched until
+    ``enable()``; 0 = no watchdog.
+``initial_pose`` = the workspace centre, identity
+    Reduced pose: 1dof ``[s]``; planar ``[x, y, theta]``; spatial ``[x, y, z, rx, ry, rz]``
+    (rotation vector) or ``[x, y, z, qw, qx, qy, qz]``. Must be inside the limits.
+``initial_velocity`` = zeros
+    Reduced twist: 1dof ``[v]``; planar ``[vx, vy, wz]``; spatial ``[vx, vy, vz, wx, wy, wz]``.
+``hand`` = ``{type = "none"}``
+    The simulated hand (a table; types and keys in :mod:`.hands`).
 
 A key that does not apply to the kind (e.g. ``inertia_kg_m2`` on a 1dof device) is an error, as
 is any unknown key; errors are ``ValueError("device.<key>: <reason>")``.
@@ -279,7 +286,7 @@ def parse_sim_config(config: dict, *, period_s: float) -> SimSpec:
     if kind != "1dof":
         tmax = ck.num("device.max_torque_n_m", get("max_torque_n_m"), lo=0.0, lo_open=True, hi=1e3)
     vmax = ck.num("device.max_speed_m_per_s", get("max_speed_m_per_s"), lo=0.0, lo_open=True, hi=1e3)
-    wmax = 0.0
+    wmax = math.inf  # a 1dof device cannot turn: no angular-speed limit applies
     if kind != "1dof":
         wmax = ck.num("device.max_angular_speed_rad_per_s", get("max_angular_speed_rad_per_s"),
                       lo=0.0, lo_open=True, hi=1e4)
@@ -287,7 +294,7 @@ def parse_sim_config(config: dict, *, period_s: float) -> SimSpec:
     if 0.0 < wd < dt:
         raise ck.fail("device.watchdog_s", f"{wd:g} s is shorter than one period ({dt:g} s); 0 disables it")
     par[P_FMAX], par[P_TMAX], par[P_VMAX] = fmax, tmax, vmax
-    par[P_WMAX] = wmax if wmax > 0 else math.inf
+    par[P_WMAX] = wmax
     values.update(max_force_n=fmax, max_speed_m_per_s=vmax, watchdog_s=wd)
     if kind != "1dof":
         values.update(max_torque_n_m=tmax, max_angular_speed_rad_per_s=wmax)

@@ -289,6 +289,8 @@ def test_write_rejects_a_wrong_shape_without_stepping():
         dev.write(np.zeros((1,)))
     assert dev.time_s == 0.0
     assert dev.write([0, 0, 0, 0, 0, 0]) == DEV_OK and dev.time_s == pytest.approx(DT)   # lists are fine
+    with pytest.raises(ValueError, match="state_out"):
+        dev.read(np.zeros(5))
 
 
 def test_no_allocation_per_step():
@@ -314,6 +316,54 @@ def test_no_allocation_per_step():
         assert grown < 512, (kind, grown)
 
 
+_NRT_PROBE = """
+import numpy as np
+from numba import njit
+from numba.core.runtime import rtsys
+from hapticproxy.server.devices import dynamics as dyn, hands
+from hapticproxy.server.devices.sim import make_sim_device
+
+
+@njit
+def loop(hp, tab, par, st, cnt, ctl, hout, w, out, n):
+    for _ in range(n):
+        hands.hand_eval(hp, tab, st, hout)
+        dyn.sim_write(par, st, cnt, ctl, hout, w, 0)
+        dyn.sim_read(st, ctl, cnt, out, 0)
+
+
+res = []
+for kind, hand in (("1dof", {"type": "steps", "steps": [[0, [1]], [0.3, [-1]]]}),
+                   ("planar", {"type": "sinusoid"}),
+                   ("spatial", {"type": "impedance", "target": {"type": "waypoints",
+                                "points": [[0, [0, 0, 0, 0, 0, 0]], [1, [0.01, 0, 0, 0, 0, 0.1]]]}})):
+    d = make_sim_device({"kind": kind, "hand": hand}, period_s=1e-3)
+    d.enable()
+    par, st, cnt, ctl, hp, tab = d.arrays()
+    args = (hp, tab, par, st, cnt, ctl, d._hout, np.full(6, 0.1), np.zeros(20))
+    loop(*args, 1)
+    for n in (1, 3000):
+        a = rtsys.get_allocation_stats().alloc
+        loop(*args, n)
+        res.append(rtsys.get_allocation_stats().alloc - a)
+print(res)
+"""
+
+
+def test_kernels_allocate_nothing_per_step_nrt_count():
+    """numba's own allocation counter (NRT stats, on in a child process): running 3000 steps
+    inside compiled code allocates exactly what running one does (the call boundary only)."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, NUMBA_NRT_STATS="1")
+    out = subprocess.run([sys.executable, "-c", _NRT_PROBE], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr
+    res = [int(x) for x in out.stdout.strip().strip("[]").split(",")]
+    assert len(res) == 6 and res[0::2] == res[1::2], res
+
+
 # ------------------------------------------------------------------------------- config
 def test_defaults_work_for_every_kind_and_the_planar_device_is_the_documented_one():
     for kind in ("1dof", "planar", "spatial"):
@@ -326,6 +376,8 @@ def test_defaults_work_for_every_kind_and_the_planar_device_is_the_documented_on
     assert dev.limits.workspace_min_m == (-0.06, -0.06, 0.0) and dev.limits.max_torque_n_m == 0.5
     s = row(dev)
     assert s[3] == 1.0 and np.all(s[13:19] == 0.0)      # ideal sensor: zero, not NaN
+    one = make_sim_device({"kind": "1dof"}, period_s=DT).limits
+    assert one.max_torque_n_m == 0.0 and one.max_angular_speed_rad_per_s == math.inf   # renders no torque, cannot turn
 
 
 @pytest.mark.parametrize("cfg, key", [
