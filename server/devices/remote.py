@@ -198,7 +198,11 @@ class RemoteDevice(DeviceDriver):
         self._link_ns = int(round(link_timeout_s * 1e9))
         self._pinned = None
         if device_address is not None:
-            self._pinned = socket.getaddrinfo(device_address[0], device_address[1], type=socket.SOCK_DGRAM)[0][4][:2]
+            try:
+                info = socket.getaddrinfo(device_address[0], device_address[1], type=socket.SOCK_DGRAM)
+            except OSError as exc:
+                raise ck.fail("device.device_address", f"cannot resolve {device_address[0]}: {exc.strerror or exc}") from None
+            self._pinned = info[0][4][:2]
         self._sock = _udp_socket(listen[0])
         try:
             self._sock.bind(listen)

@@ -170,6 +170,39 @@ def test_server_keeps_the_newest_state_and_counts_what_it_drops():
         srv.close()
 
 
+def test_a_pinned_device_address_is_the_only_one_heard():
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    tx.bind(("127.0.0.1", 0))
+    pinned = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    pinned.bind(("127.0.0.1", 0))
+    host, port = pinned.getsockname()
+    srv = load_device("remote", {"kind": "1dof", "listen": "127.0.0.1:0", "device_address": f"{host}:{port}"},
+                      period_s=DT, clock_ns=FakeClock())
+    try:
+        buf = bytearray(STATE_SIZE)
+        for seq, sock in ((1, tx), (2, pinned)):
+            r = base.empty_state()
+            r[0] = seq
+            pack_state(buf, device_session=7, server_session=0, epoch=0, period_us=1000, seq=seq, cmd_seq=0,
+                       kind=0, fault=0, armed=False, state=r)
+            sock.sendto(bytes(buf), srv.local_address)
+        row = np.zeros(base.DEV_NSTATE)
+        assert eventually(lambda: (srv.read(row), srv.counters()["states"])[1] == 1)
+        assert srv.counters()["foreign"] == 1 and row[0] == 2.0 and srv.device_address == (host, port)
+        srv.enable()
+        srv.write(F1)                          # the command goes to the pinned address
+        pinned.settimeout(5.0)
+        data = pinned.recv(4096)
+        hdr = remote.COMMAND_HDR.unpack_from(data, 0)
+        assert len(data) == COMMAND_SIZE and hdr[3] & 1 and hdr[4] == 7 and hdr[6] == srv.epoch
+    finally:
+        srv.close()
+        tx.close()
+        pinned.close()
+    with pytest.raises(ValueError, match="device.device_address: cannot resolve"):
+        load_device("remote", {"listen": "127.0.0.1:0", "device_address": "no-such-host.invalid:5"}, period_s=DT)
+
+
 def test_device_watchdog_zeroes_latches_and_only_a_new_enable_rearms(link):
     lk = link()
     lk.step(2)
