@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import struct
+import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -467,6 +468,10 @@ def _check_float_array(name: str, a: np.ndarray) -> None:
 
 _unpackb = msgpack.unpackb
 _ndarray = np.ndarray
+_frombuffer = np.frombuffer
+_KEY_DT = np.dtype((_I8, (KEY_INTS,)))
+_ONES3 = np.ones(3)
+_ONES3.flags.writeable = False
 _new = object.__new__
 _minimum = np.minimum.reduce
 _maximum = np.maximum.reduce
@@ -610,6 +615,15 @@ def _encoder(f: FieldSpec):
 
 
 # ------------------------------------------------------------------------------- the codec
+class _DecodeScratch(threading.local):
+    """One thread's ContactUpdate decode plans (``plans[n]``, see ``Codec._cu_plan``) and the
+    (2, max_contacts) unit-normal scratch they view."""
+
+    def __init__(self, max_contacts: int) -> None:
+        self.plans: list[tuple | None] = [None] * (max_contacts + 1)
+        self.unit = np.ones((2, max_contacts))
+
+
 _EMPTY = np.zeros(0)
 _EMPTY.flags.writeable = False
 
@@ -663,7 +677,12 @@ class Codec:
         self._max_contacts = lim.max_contacts
         self._max_links = lim.max_links
         self._proxy_cls = ProxyState
-        self._key_structs = [struct.Struct(f"{8 * KEY_INTS}s" * k) for k in range(lim.max_contacts + 1)]
+        # Per-thread ContactUpdate decode plans, one per contact count n, built on first use
+        # (see _cu_plan; a Struct per n is O(n) to compile, so an eager table would cost
+        # O(max_contacts^2) at construction). Per thread because a plan holds a scratch row
+        # the validation writes: two threads sharing one codec (say the module-level one)
+        # must never validate against each other's numbers.
+        self._cu_local = _DecodeScratch(lim.max_contacts)
         # The hand-written ContactUpdate decoder matches the v1 declaration only.
         self._cu_fast = self._specs.get(int(MessageType.CONTACT_UPDATE)) is CONTACT_UPDATE
 
@@ -840,12 +859,15 @@ class Codec:
             if n == 0 or nd < 64 * n or nd % (8 * n):
                 raise _bad(ErrorCode.BAD_SHAPE, "contact_data",
                            f"expected {64 * n} bytes ({CONTACT_FLOATS} float64 per contact) for {n} contacts, got {nd}")
-            extra += nd // (8 * n) - CONTACT_FLOATS
-            self.counters.unknown_trailing_fields += nd // (8 * n) - CONTACT_FLOATS
+            more = nd // (8 * n) - CONTACT_FLOATS
+            if not extra:
+                self.counters.packets_with_unknown_fields += 1
+            extra += more
+            self.counters.unknown_trailing_fields += more
         msg = _new(ContactUpdate)
         msg.seq = seq
         msg.env_time_s = t
-        msg.tool_pose = _ndarray((7,), _F8, pose_b)
+        msg.tool_pose = _frombuffer(pose_b)
         msg.unknown_fields = extra
         if n == 0:
             msg.keys = self._empty_k
@@ -854,35 +876,73 @@ class Codec:
             msg.separation_m = self._empty_1
             msg.v_constr_m_per_s = self._empty_1
             return msg
-        f = _ndarray((8 * n,), _F8, db)
+        plan = self._cu_local.plans[n] or self._cu_plan(n)
+        key_struct, col_dt, pn_dt, scratch, sq, unit_margin = plan
+        # Read-only views of the packet's bytes, shaped by the dtype (a per-n subarray dtype:
+        # frombuffer yields (blocks, n) or (2, n, 3) directly, with no reshape call). Rows of
+        # cols: 0-5 the position and normal blocks (each n x 3, row-major), 6 separation,
+        # 7 v_constr, then any column blocks a later minor appended.
+        cols = _frombuffer(db, col_dt)
+        f = cols if nd == 64 * n else cols[:CONTACT_FLOATS]
         # Finite and bounded, all floats in one BLAS call: sum of squares <= MAX_ABS^2 implies
-        # every |x| <= MAX_ABS (NaN fails the comparison; vdot raises no FP warning). Only when
-        # this sufficient test fails does the exact per-element check run (and raise).
+        # every |x| <= MAX_ABS (NaN fails the comparison; vdot, unlike ndarray.dot, raises no
+        # FP warning on overflow). Only when this sufficient test fails does the exact
+        # per-element check run (and raise).
         if not _vdot(f, f) <= _MAX_ABS_SQ:
-            _check_float_array("contact_data", f)
-        # Position and normal blocks are adjacent, as are separation and v_constr: one view
-        # each, split by indexing (cheaper than one constructor per column).
-        pn = _ndarray((2, n, 3), _F8, db)
+            _check_float_array("contact_data", f.reshape(-1))
+        pn = _frombuffer(db, pn_dt, 2)
         normal = pn[1]
-        # Unit normals: sum_i (|n_i|^2 - 1)^2 <= tol^2 implies every | |n_i|^2 - 1 | <= tol;
-        # again sufficient only, the exact per-contact test decides when it fails.
-        dev = _vecdot(normal, normal) - 1.0
-        if not _vdot(dev, dev) <= _UNIT_SQ_DEV2:
-            sq = dev + 1.0
-            if not (_minimum(sq) >= _UNIT_SQ_LO and _maximum(sq) <= _UNIT_SQ_HI):
-                i = int(np.argmax(np.abs(dev)))
-                raise _bad(ErrorCode.NOT_UNIT, "contact_data.normal",
-                           f"contact {i}: |n| = {math.sqrt(float(sq[i]))!r} is not 1 within {UNIT_TOLERANCE:g}")
-        # Unique keys, exactly: n 24-byte strings into a set (one cached Struct per n).
-        if n > 1 and len(set(self._key_structs[n].unpack(kb))) != n:
+        # Unit normals: the rule is | |n_i| - 1 | <= UNIT_TOLERANCE for every i, i.e. s_i = |n_i|^2
+        # in [_UNIT_SQ_LO, _UNIT_SQ_HI]. s_i goes into scratch row 0 ((n*n) @ [1,1,1]: a square
+        # and a gemv, cheaper than vecdot/einsum; no overflow since every |x| <= MAX_ABS now).
+        # Sufficient test: sum_i (s_i - 1)^2 <= d^2, d the distance from 1 to the nearer end of
+        # that window. For n <= 64 one more gemv of the (2, n) scratch (row 1 all ones) gives
+        # a = sum s_i^2 and b = sum s_i; q = a - 2b + n is that sum up to rounding, which is at
+        # most (n + 3) u (a + 2b + n) (u = 2^-53: two dot products of n terms in any order, then
+        # two scalar operations), so q plus twice that bound <= d^2 is the test. For larger n
+        # the bound would eat the budget, so the deviations are formed and summed directly.
+        # Either way, when the sufficient test fails, the exact per-contact test on the same
+        # s_i decides.
+        (normal * normal).dot(_ONES3, sq)
+        if unit_margin:
+            a, b = scratch.dot(sq).tolist()
+            unit_ok = (a - 2.0 * b) + n + unit_margin * (a + 2.0 * b + n) <= _UNIT_SQ_DEV2
+        else:
+            dev = sq - 1.0
+            unit_ok = dev.dot(dev) <= _UNIT_SQ_DEV2
+        if not unit_ok and not (_minimum(sq) >= _UNIT_SQ_LO and _maximum(sq) <= _UNIT_SQ_HI):
+            i = int(np.argmax(np.abs(sq - 1.0)))
+            raise _bad(ErrorCode.NOT_UNIT, "contact_data.normal",
+                       f"contact {i}: |n| = {math.sqrt(float(sq[i]))!r} is not 1 within {UNIT_TOLERANCE:g}")
+        # Unique keys, exactly: n 24-byte strings into a set.
+        if n > 1 and len(set(key_struct.unpack(kb))) != n:
             raise _bad(ErrorCode.DUPLICATE_KEY, "contact_keys", "the same (tool_link, env_body, feature) key appears twice")
-        sv = _ndarray((2, n), _F8, db, 48 * n)
-        msg.keys = _ndarray((n, 3), _I8, kb)
+        msg.keys = _frombuffer(kb, _KEY_DT)
         msg.position_m = pn[0]
         msg.normal = normal
-        msg.separation_m = sv[0]
-        msg.v_constr_m_per_s = sv[1]
+        msg.separation_m = cols[6]
+        msg.v_constr_m_per_s = cols[7]
         return msg
+
+    def _cu_plan(self, n: int) -> tuple:
+        """What decoding n contacts needs, built once per n and thread (1 <= n <= max_contacts)."""
+        local = self._cu_local
+        # Row 0 receives |n_i|^2, row 1 stays all ones: one gemv of this (2, n) block with
+        # row 0 yields (sum |n_i|^4, sum |n_i|^2).
+        scratch = local.unit[:, :n]
+        margin = 2.0 * (n + 3) * 2.0 ** -53
+        plan = (
+            struct.Struct(f"{8 * KEY_INTS}s" * n),  # n keys as n bytes objects
+            np.dtype((_F8, (n,))),  # contact_data as (column blocks, n)
+            np.dtype((_F8, (n, 3))),  # its first two blocks as (2, n, 3)
+            scratch,
+            scratch[0],
+            # The identity test's rounding-bound factor, or 0.0 (direct test) where the bound at
+            # s_i = 1 would leave less than 1e-13 of the tol^2 budget (n > 64).
+            margin if _UNIT_SQ_DEV2 - margin * 4.0 * n >= 1e-13 else 0.0,
+        )
+        local.plans[n] = plan
+        return plan
 
     def _decode_proxy_state(self, obj: list) -> Message:
         # Hand-specialised like ContactUpdate (field order of messages.PROXY_STATE): the six

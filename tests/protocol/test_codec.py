@@ -446,6 +446,7 @@ def test_newer_minor_extra_contact_column_is_ignored_and_counted():
     obj[10] = obj[10] + f64bin([9.0, 9.0, 9.0, 9.0])  # one more column block of n float64
     out = codec.decode(pack(obj))
     assert out.unknown_fields == 1
+    assert codec.counters.unknown_trailing_fields == 1 and codec.counters.packets_with_unknown_fields == 1
     np.testing.assert_array_equal(out.v_constr_m_per_s, ref.v_constr_m_per_s)
     np.testing.assert_array_equal(out.position_m, ref.position_m)
 
@@ -487,3 +488,110 @@ def test_proxy_state_encoder_refuses_bad_values():
         with pytest.raises(ValueError, match=match):
             codec.encode_proxy_state(**{**good, **change})
     assert codec.counters.encoded == 1
+
+
+# ------------------------------------------------------------------ decode fast paths (exactness)
+def _exact_unit_verdict(normal: np.ndarray) -> bool:
+    # The rule on the same |n_i|^2 the decoder computes (n*n @ [1,1,1]), per contact.
+    sq = (normal * normal).dot(np.ones(3))
+    lo, hi = (1.0 - M.UNIT_TOLERANCE) ** 2, (1.0 + M.UNIT_TOLERANCE) ** 2
+    return bool(np.all((sq >= lo) & (sq <= hi)))
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 32, 45, 64, 65, 100])
+def test_unit_normal_fast_tests_agree_with_the_exact_rule(n):
+    # Normals scaled to within a few 1e-7 of the tolerance either side, many of them at once
+    # (the sufficient tests fail, the exact one decides) or one at a time (they decide alone).
+    codec = Codec(Limits(max_contacts=128, max_packet_bytes=16384))
+    rng = np.random.default_rng(n)
+    pkt = cu_packet(codec, n=n)
+    base = np.frombuffer(raw(pkt)[10], "<f8").copy()
+    verdicts = set()
+    for case in range(60):
+        data = base.copy()
+        nor = data[3 * n: 6 * n].reshape(n, 3)
+        rows = rng.random(n) < (0.05 if case % 3 else 1.0)
+        width = [0.2e-6, 0.9e-6, 1.05e-6, 1.3e-6][case % 4]
+        nor[rows] *= 1.0 + rng.uniform(-width, width, size=(int(rows.sum()), 1))
+        expect_ok = _exact_unit_verdict(nor)
+        out = codec.try_decode(mutate(pkt, 10, data.tobytes()))
+        if expect_ok:
+            assert not isinstance(out, ProtocolError), (case, out)
+            np.testing.assert_array_equal(out.normal, nor)
+        else:
+            assert isinstance(out, ProtocolError) and out.code == ErrorCode.NOT_UNIT, (case, out)
+        verdicts.add(expect_ok)
+    assert verdicts == {True, False}  # both sides of the boundary were exercised
+
+
+def test_one_codec_shared_by_threads_gives_every_packet_its_own_verdict():
+    # The unit-normal test writes scratch; it is per thread, so concurrent decodes on one codec
+    # (e.g. the module-level one) never judge a packet by another packet's numbers.
+    import threading
+
+    codec = Codec()
+    good = cu_packet(codec, n=32)
+    data = np.frombuffer(raw(good)[10], "<f8").copy()
+    data[3 * 32: 3 * 32 + 3] *= 1.5
+    bad = mutate(good, 10, data.tobytes())
+    wrong = []
+
+    def work(pkt, ok):
+        for _ in range(3000):
+            out = codec.try_decode(pkt)
+            if isinstance(out, ProtocolError) == ok:
+                wrong.append(out)
+
+    threads = [threading.Thread(target=work, args=(good, True)), threading.Thread(target=work, args=(bad, False))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert wrong == []
+
+
+def test_large_contact_limit_builds_per_count_tables_lazily():
+    codec = Codec(Limits(max_contacts=65535, max_packet_bytes=65507))
+    for n in (1, 3, 700):
+        out = codec.decode(cu_packet(Codec(Limits(max_contacts=700, max_packet_bytes=65507)), n=n))
+        assert out.n_contacts == n
+
+
+def test_duplicate_key_anywhere_is_found():
+    codec = Codec()
+    keys, pos, nor, d, v = contacts(64)
+    for i, j in [(0, 63), (31, 32), (5, 6), (62, 63)]:
+        k = keys.copy()
+        k[j] = k[i]
+        pkt = Codec().encode_contact_update(1, 1, 1, 0.0, IDENTITY, k, pos, nor, d, v)
+        expect(codec, pkt, ErrorCode.DUPLICATE_KEY, "contact_keys")
+    # Keys differing in one int64 only (any column, any byte) are distinct.
+    for col in range(3):
+        k = np.zeros((2, 3), np.int64)
+        k[1, col] = 1 << 56
+        pkt = Codec().encode_contact_update(1, 1, 1, 0.0, IDENTITY, k, pos[:2], nor[:2], d[:2], v[:2])
+        assert not isinstance(codec.try_decode(pkt), ProtocolError)
+
+
+@pytest.mark.parametrize("n", [2, 16, 32, 64, 65])
+def test_normal_one_ulp_outside_the_window_is_rejected_and_inside_accepted(n):
+    # One contact's |n|^2 on either side of the window's edge, the rest unit: the sum of squared
+    # deviations then sits at the sufficient test's threshold, where rounding must not let an
+    # outside value through.
+    codec = Codec(Limits(max_contacts=128, max_packet_bytes=16384))
+    pkt = cu_packet(codec, n=n)
+    base = np.frombuffer(raw(pkt)[10], "<f8").copy()
+    lo, hi = (1.0 - M.UNIT_TOLERANCE) ** 2, (1.0 + M.UNIT_TOLERANCE) ** 2
+    for edge, up in ((hi, True), (lo, False)):
+        x = math.sqrt(edge)
+        while (x * x <= edge) if up else (x * x >= edge):  # first x outside the window
+            x = math.nextafter(x, math.inf if up else 0.0)
+        inside = math.nextafter(x, 0.0 if up else math.inf)
+        while not lo <= inside * inside <= hi:
+            inside = math.nextafter(inside, 0.0 if up else math.inf)
+        for value, ok in ((x, False), (inside, True)):
+            for row in (0, n - 1):
+                data = base.copy()
+                data[3 * n + 3 * row: 3 * n + 3 * row + 3] = (value, 0.0, 0.0)
+                out = codec.try_decode(mutate(pkt, 10, data.tobytes()))
+                assert isinstance(out, ProtocolError) != ok, (edge, value, row, out)
