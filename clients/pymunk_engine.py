@@ -36,7 +36,8 @@ import math
 import numpy as np
 import pymunk
 
-from .contacts import FACE_FACE, FACE_VERTEX, VERTEX_FACE, VERTEX_VERTEX, feature_id, planar_angle, planar_pose, reduce_contacts
+from .contacts import (FACE_FACE, FACE_VERTEX, VERTEX_FACE, VERTEX_VERTEX, feature_id, fill_planar, planar_angle,
+                       planar_pose, reduce_contacts)
 from .engine import ContactBuffer, Engine, SceneInfo, ToolDescription
 from .scenes import TOOL_IZZ_KG_M2, TOOL_LENGTH_M, TOOL_MASS_KG, TOOL_WIDTH_M, Box, HalfPlane, scene
 
@@ -253,8 +254,7 @@ class PymunkEngine(Engine):
             self.window.draw()
 
     def contacts(self, buf: ContactBuffer, max_contacts: int) -> int:
-        raw = self._raw
-        n = 0
+        rows = []
         eps = self._eps
         tool = self.tool
         tvx = tvy = tnx = tny = None
@@ -287,24 +287,21 @@ class PymunkEngine(Engine):
                     feat = feature_id(VERTEX_VERTEX if e_vertex else VERTEX_FACE, t_idx, e_idx)
                 else:
                     feat = feature_id(FACE_VERTEX if e_vertex else FACE_FACE, t_idx, e_idx)
-                if feat == seen or n >= raw.capacity:
+                if feat == seen:
                     continue  # Chipmunk repeats a single point when the overlap is a corner
                 seen = feat
-                raw.keys[n, 0] = 0
-                raw.keys[n, 1] = env.body_id
-                raw.keys[n, 2] = feat
-                raw.position_m[n] = (bx, by, 0.0)
-                raw.normal[n] = (-ux, -uy, 0.0)
-                raw.separation_m[n] = p.distance + eps
                 if env.static:
-                    raw.v_constr_m_per_s[n] = 0.0
+                    vc = 0.0
                 else:
                     v = env.shape.body.velocity_at_world_point((bx, by))
-                    raw.v_constr_m_per_s[n] = -(ux * v.x + uy * v.y)
-                n += 1
-        raw.n = n
-        self.contacts_found = n
-        out = reduce_contacts(raw, buf, max_contacts)
+                    vc = -(ux * v.x + uy * v.y)  # n . v(c_p), n = -u
+                rows.append((env.body_id, feat, bx, by, -ux, -uy, p.distance + eps, vc))
+        self.contacts_found = len(rows)
+        if len(rows) <= min(max_contacts, buf.capacity):
+            out = fill_planar(buf, rows)
+        else:
+            fill_planar(self._raw, rows)
+            out = reduce_contacts(self._raw, buf, max_contacts)
         if self.window is not None:
             self.window.last_contacts = (buf.position_m[:out].copy(), buf.normal[:out].copy(),
                                          buf.separation_m[:out].copy())

@@ -203,11 +203,11 @@ class ClientRunner:
                 if max_steps is not None and self._counts["steps"] >= max_steps:
                     self._end_reason = "max_steps reached"
                     break
+                if not self._ever_connected and connect_deadline is not None and now >= connect_deadline:
+                    why = f" ({last_open_error})" if last_open_error else " (is the server running?)"
+                    raise ClientError(f"no session with {self.url} within {self.connect_timeout_s:g} s{why}")
                 ep = self.endpoint
                 if ep is None:
-                    if not self._ever_connected and connect_deadline is not None and now >= connect_deadline:
-                        why = f" ({last_open_error})" if last_open_error else " (is the server running?)"
-                        raise ClientError(f"no session with {self.url} within {self.connect_timeout_s:g} s{why}")
                     if now < next_attempt:
                         time.sleep(min(0.005, (next_attempt - now) / _NS))
                         continue

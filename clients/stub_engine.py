@@ -16,8 +16,9 @@ What it models, deliberately like a commercial penalty-based engine of the paper
   moving wall of ``piston`` reports its normal velocity as ``v_constr``.
 - **Tool and driving**: the tool is a dynamic rigid body (the scene's mass and inertia) pulled
   towards the newest proxy pose and twist by a critically damped spring-damper (8 Hz; the
-  coupling), pushed out of the environment by one-sided penalty springs (20 kN/m, damped) at its
-  penetrating contacts. Both are integrated with *linearly implicit* Euler
+  coupling, its spring saturating at 20 N and 0.5 N m), pushed out of the environment by
+  one-sided penalty springs (20 kN/m, damped) at its penetrating contacts, so a proxy deep inside
+  a wall presses the tool in by at most 20 N / 20 kN/m = 1 mm (0.5 mm on two corners). Both are integrated with *linearly implicit* Euler
   ``(M + h B + h^2 K) dv = h (f - h K v)``, which is stable for any stiffness and step and
   dissipative (it cannot inject energy into a spring-damper system). It does not tunnel: a step
   whose motion would exceed 4 mm is split into substeps (at most 8, then the velocity is
@@ -38,7 +39,8 @@ import random
 
 import numpy as np
 
-from .contacts import FACE_VERTEX, VERTEX_FACE, VERTEX_VERTEX, feature_id, planar_angle, planar_pose, reduce_contacts, wrap_angle
+from .contacts import (FACE_VERTEX, VERTEX_FACE, VERTEX_VERTEX, feature_id, fill_planar, planar_angle, planar_pose,
+                       reduce_contacts, wrap_angle)
 from .engine import ContactBuffer, Engine, SceneInfo, ToolDescription
 from .scenes import TOOL_IZZ_KG_M2, TOOL_LENGTH_M, TOOL_MASS_KG, TOOL_WIDTH_M, Box, HalfPlane, scene
 
@@ -125,6 +127,9 @@ class StubEngine(Engine):
 
     #: coupling natural frequency [Hz] (critically damped spring-damper to the proxy)
     COUPLING_HZ = 8.0
+    #: the coupling spring's force [N] and torque [N m] saturate here (a constant pull beyond)
+    MAX_COUPLING_FORCE_N = 20.0
+    MAX_COUPLING_TORQUE_N_M = 0.5
     #: penalty stiffness [N/m] and damping ratio of the environment's contacts
     PENALTY_N_PER_M = 20000.0
     PENALTY_DAMPING_RATIO = 0.7
@@ -248,8 +253,8 @@ class StubEngine(Engine):
         found = self._contacts_here(self._eps)
         self.contacts_found = len(found)
         if len(found) <= min(max_contacts, buf.capacity):
-            return _fill(buf, found)
-        _fill(self._raw, found)
+            return fill_planar(buf, found)
+        fill_planar(self._raw, found)
         return reduce_contacts(self._raw, buf, max_contacts)
 
     # ------------------------------------------------------------------------ internals
@@ -259,9 +264,18 @@ class StubEngine(Engine):
         vx, vy, w = self._v
         px, py, pth, pvx, pvy, pw = self._target
         kc, bc, kr, br, ke, be = self._kc, self._bc, self._kr, self._br, self._ke, self._be
-        fx = kc * (px - x) + bc * (pvx - vx)
-        fy = kc * (py - y) + bc * (pvy - vy)
-        ft = kr * wrap_angle(pth - th) + br * (pw - w)
+        # The coupling spring saturates (like a joint's max force): beyond the cap it pulls with a
+        # constant force and contributes no stiffness, so a proxy far inside a wall presses the
+        # tool into the penalty springs by at most cap / stiffness.
+        sx, sy, st = kc * (px - x), kc * (py - y), kr * wrap_angle(pth - th)
+        f = math.hypot(sx, sy)
+        if f > self.MAX_COUPLING_FORCE_N:
+            sx, sy, kc = sx * self.MAX_COUPLING_FORCE_N / f, sy * self.MAX_COUPLING_FORCE_N / f, 0.0
+        if abs(st) > self.MAX_COUPLING_TORQUE_N_M:
+            st, kr = math.copysign(self.MAX_COUPLING_TORQUE_N_M, st), 0.0
+        fx = sx + bc * (pvx - vx)
+        fy = sy + bc * (pvy - vy)
+        ft = st + br * (pw - w)
         if self.use_wrench:
             fx += self._wrench[0]
             fy += self._wrench[1]
@@ -375,8 +389,12 @@ class StubEngine(Engine):
             if ob.xmin > txmax or ob.xmax < txmin or ob.ymin > tymax or ob.ymax < tymin:
                 continue
             # (a) tool corners against the polygon: vertex-face or vertex-vertex
+            bxmin, bxmax, bymin, bymax = ob.xmin - reach, ob.xmax + reach, ob.ymin - reach, ob.ymax + reach
             for i in range(nt):
-                hit = _point_vs_poly(tvx[i], tvy[i], ob.vx, ob.vy, ob.ex, ob.ey, ob.len2, ob.nx, ob.ny, reach)
+                qx, qy = tvx[i], tvy[i]
+                if qx < bxmin or qx > bxmax or qy < bymin or qy > bymax:
+                    continue
+                hit = _point_vs_poly(qx, qy, ob.vx, ob.vy, ob.ex, ob.ey, ob.len2, ob.nx, ob.ny, reach)
                 if hit is not None:
                     is_face, k, cx, cy, nx, ny, d = hit
                     kind = VERTEX_FACE if is_face else VERTEX_VERTEX
@@ -391,17 +409,3 @@ class StubEngine(Engine):
                     i, d = hit[1], hit[6]
                     # the normal points from the environment (the corner) towards the tool
                     out.append((ob.body, feature_id(FACE_VERTEX, i, k), qx, qy, -tnx[i], -tny[i], d, 0.0))
-
-
-def _fill(out: ContactBuffer, found: list) -> int:
-    """Write contact tuples into a buffer (as many as fit); set and return ``out.n``."""
-    n = min(len(found), out.capacity)
-    if n:
-        rows = found[:n]
-        out.keys[:n] = [(0, c[0], c[1]) for c in rows]
-        out.position_m[:n] = [(c[2], c[3], 0.0) for c in rows]
-        out.normal[:n] = [(c[4], c[5], 0.0) for c in rows]
-        out.separation_m[:n] = [c[6] for c in rows]
-        out.v_constr_m_per_s[:n] = [c[7] for c in rows]
-    out.n = n
-    return n

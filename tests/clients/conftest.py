@@ -1,0 +1,236 @@
+"""Shared helpers of the client tests: a reference server in a thread that records what it
+accepted, a recording fake engine, and a runner in a thread. Everything binds 127.0.0.1 on free
+ports and is stopped at the end of its test."""
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from hapticproxy.clients.engine import ContactBuffer, Engine, SceneInfo, ToolDescription
+from hapticproxy.protocol.codec import Bye, Codec, ContactUpdate
+from hapticproxy.protocol.conformance import run_reference_server
+from hapticproxy.protocol.transport import open_transport
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(predicate, timeout_s: float = 10.0, what: str = "condition") -> None:
+    end = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > end:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.005)
+
+
+class RecordingTransport:
+    """Wraps a server transport for ``run_reference_server``: records every ContactUpdate the
+    server is handed (decoded on the side, in arrival order)."""
+
+    def __init__(self, inner) -> None:
+        self.inner = inner
+        self.codec = Codec()
+        self.updates: list[ContactUpdate] = []
+        self.byes = 0
+        self.lock = threading.Lock()
+
+    @property
+    def url(self) -> str:
+        return self.inner.url
+
+    def send(self, data, peer=None):
+        return self.inner.send(data, peer)
+
+    def drain(self, *a, **kw):
+        got = self.inner.drain(*a, **kw)
+        for data, _ in got:
+            msg = self.codec.try_decode(data)
+            if isinstance(msg, ContactUpdate):
+                with self.lock:
+                    self.updates.append(msg)
+            elif isinstance(msg, Bye):
+                self.byes += 1
+        return got
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+class ServerThread:
+    """``run_reference_server`` on ``url`` in a thread; ``.updates`` lists the ContactUpdates it
+    received. ``stop()`` ends it with Bye (the reference server's close_all)."""
+
+    def __init__(self, url: str, **kw) -> None:
+        self.transport = RecordingTransport(open_transport(url, role="server"))
+        self.url = self.transport.url
+        self.stop_event = threading.Event()
+        self.endpoint = None
+
+        def run():
+            self.endpoint = run_reference_server(self.transport, self.stop_event, **kw)
+
+        self.thread = threading.Thread(target=run, daemon=True)
+        self.thread.start()
+
+    @property
+    def updates(self) -> list:
+        with self.transport.lock:
+            return list(self.transport.updates)
+
+    def wait_for_bye(self, timeout_s: float = 10.0) -> None:
+        """Wait until the client's Bye arrived: everything it sent before is in ``updates``."""
+        wait_for(lambda: self.transport.byes > 0, timeout_s, "the client's Bye")
+
+    def stop(self) -> None:
+        if self.thread.is_alive() or not self.transport.inner.closed:
+            self.stop_event.set()
+            self.thread.join(10)
+            assert not self.thread.is_alive()
+            self.transport.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+class RunnerThread:
+    """``runner.run(stop, **kw)`` in a thread; the exception it raised (if any) in ``.error``."""
+
+    def __init__(self, runner, **kw) -> None:
+        self.runner = runner
+        self.stop_event = threading.Event()
+        self.result = None
+        self.error = None
+
+        def run():
+            try:
+                self.result = runner.run(self.stop_event, **kw)
+            except BaseException as exc:  # noqa: BLE001 - reported to the test
+                self.error = exc
+
+        self.thread = threading.Thread(target=run, daemon=True)
+        self.thread.start()
+
+    def join(self, timeout_s: float = 10.0) -> None:
+        self.thread.join(timeout_s)
+        assert not self.thread.is_alive(), "runner did not stop"
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        self.join()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+class RecordingEngine(Engine):
+    """A fake planar engine: fixed rate, ``n_contacts`` synthetic contacts against a floor (their
+    separation follows the tool's y), records every ``drive_tool`` call."""
+
+    name = "recording-engine"
+
+    def __init__(self, rate_hz: float = 200.0, n_contacts: int = 3) -> None:
+        self.rate_hz = rate_hz
+        self.n_contacts = n_contacts
+        self.driven: list[np.ndarray] = []
+        self.steps = 0
+        self.eps_history: list[float] = []
+        self._t = 0.0
+        self._y = 0.0
+        self.lock = threading.Lock()
+
+    @classmethod
+    def scenes(cls):
+        return ("floor",)
+
+    def load_scene(self, name):
+        if name not in self.scenes():
+            raise ValueError(f"unknown scene {name!r}; choose one of: floor")
+        return SceneInfo(name, ToolDescription("planar", 1.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.01, 0.0, 0.0, 0.0)),
+                         env_rate_hz=self.rate_hz)
+
+    def set_epsilon(self, epsilon_m):
+        self.eps_history.append(epsilon_m)
+
+    def step(self, dt_s):
+        self._t += dt_s
+        self.steps += 1
+
+    def drive_tool(self, proxy_pose, proxy_twist, wrench):
+        with self.lock:
+            self.driven.append(np.array(proxy_pose, dtype=float))
+        self._y = float(proxy_pose[1])
+
+    def tool_pose(self, out):
+        out[:] = (0.0, self._y, 0.0, 1.0, 0.0, 0.0, 0.0)
+        return out
+
+    def contacts(self, buf: ContactBuffer, max_contacts: int) -> int:
+        n = min(self.n_contacts, max_contacts)
+        for i in range(n):
+            buf.keys[i] = (0, 1, i)
+            buf.position_m[i] = (0.01 * i, -0.05, 0.0)
+            buf.normal[i] = (0.0, 1.0, 0.0)
+            buf.separation_m[i] = self._y + 0.05 - 0.01
+            buf.v_constr_m_per_s[i] = 0.0
+        buf.n = n
+        self.contacts_found = self.n_contacts
+        return n
+
+    @property
+    def time_s(self):
+        return self._t
+
+
+@pytest.fixture
+def server_thread():
+    started = []
+
+    def make(url: str, **kw) -> ServerThread:
+        s = ServerThread(url, **kw)
+        started.append(s)
+        return s
+
+    yield make
+    for s in started:
+        s.stop()
+
+
+@pytest.fixture
+def runner_thread():
+    started = []
+
+    def make(runner, **kw) -> RunnerThread:
+        r = RunnerThread(runner, **kw)
+        started.append(r)
+        return r
+
+    yield make
+    for r in started:
+        r.stop_event.set()
+        r.thread.join(10)
+
+
+@pytest.fixture
+def helpers():
+    class H:
+        pass
+
+    h = H()
+    h.free_udp_port = free_udp_port
+    h.wait_for = wait_for
+    h.RecordingEngine = RecordingEngine
+    h.ServerThread = ServerThread
+    return h

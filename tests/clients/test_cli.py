@@ -1,0 +1,164 @@
+"""``hapticproxy client``: bad input gives one line and a non-zero status, a good run works, and the
+protocol's conformance kit passes for every engine."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from hapticproxy.clients import cli
+from hapticproxy.protocol import conformance as K
+from hapticproxy.protocol.codec import Codec, Hello, Reject
+from hapticproxy.protocol.messages import ErrorCode
+from hapticproxy.protocol.transport import open_transport
+
+EXE = str(Path(sys.executable).parent / "hapticproxy")
+
+
+def run_main(capsys, *argv):
+    code = cli.main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def one_line(err: str) -> str:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    assert lines[0].startswith("hapticproxy client: ")
+    return lines[0]
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["frobnicate"], "unknown engine 'frobnicate'; choose one of: pymunk, pybullet, stub"),
+    (["stub", "--scene", "moon"], "unknown scene 'moon' for engine stub; choose one of: testbed"),
+    (["pymunk", "--scene", "scenes/lab.json"], "takes a scene name, not a file"),
+    (["stub", "--epsilon=-0.001"], "--epsilon: must be a finite number of metres >= 0"),
+    (["stub", "--epsilon", "nan"], "--epsilon"),
+    (["stub", "--epsilon", "5"], "--epsilon is in metres"),
+    (["stub", "--max-contacts", "0"], "--max-contacts"),
+    (["stub", "--duration", "-1"], "--duration"),
+    (["stub", "--connect", "tcp://127.0.0.1:1"], "scheme must be one of"),
+    (["stub", "--connect", "127.0.0.1"], "needs HOST:PORT"),
+    (["stub", "--rate", "30"], "--rate is not an option of engine 'stub'"),
+    (["stub", "--gui"], "--gui is not an option of engine 'stub'"),
+    (["stub", "--bogus"], "unrecognized arguments: --bogus"),
+    (["stub", "--epsilon", "abc"], "invalid float value"),
+    ([], "the following arguments are required: engine"),
+])
+def test_bad_arguments_give_one_line_and_status_2(capsys, argv, needle):
+    code, out, err = run_main(capsys, *argv)
+    assert code == 2
+    assert needle in one_line(err)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("pygame") is not None, reason="pygame is installed")
+def test_gui_without_pygame_gives_one_line(capsys):
+    code, _, err = run_main(capsys, "pymunk", "--gui")
+    assert code == 2 and "--gui needs pygame" in one_line(err)
+
+
+def test_missing_engine_module_gives_one_line(capsys, monkeypatch):
+    monkeypatch.setitem(cli.ENGINES, "ghost", "hapticproxy.clients.no_such_engine:GhostEngine")
+    code, _, err = run_main(capsys, "ghost")
+    assert code == 2 and "engine 'ghost' is not available" in one_line(err)
+
+
+def test_unreachable_server_gives_one_line_and_status_1(capsys):
+    t = open_transport("udp://127.0.0.1:0", role="server")
+    url = t.url
+    t.close()  # a port nobody listens on
+    code, _, err = run_main(capsys, "stub", "--connect", url, "--connect-timeout", "0.4")
+    assert code == 1
+    assert f"no session with {url} within 0.4 s" in one_line(err)
+
+
+def test_version_refused_gives_one_line_and_status_1(capsys):
+    t = open_transport("udp://127.0.0.1:0", role="server")
+    stop = threading.Event()
+    codec = Codec()
+
+    def refuse():
+        while not stop.is_set():
+            for data, peer in t.drain():
+                msg = codec.try_decode(data)
+                if isinstance(msg, Hello):
+                    t.send(codec.encode(Reject(client_nonce=msg.client_nonce, code=ErrorCode.UNSUPPORTED_VERSION,
+                                               reason="server speaks 2.x", version_min=(2, 0), version_max=(2, 3))), peer)
+            time.sleep(0.001)
+
+    th = threading.Thread(target=refuse, daemon=True)
+    th.start()
+    try:
+        code, _, err = run_main(capsys, "pymunk", "--scene", "wall", "--connect", t.url, "--connect-timeout", "5")
+    finally:
+        stop.set()
+        th.join(5)
+        t.close()
+    assert code == 1
+    line = one_line(err)
+    assert "refused the session: UNSUPPORTED_VERSION" in line and "2.0-2.3" in line
+
+
+def test_list_scenes(capsys):
+    code, out, _ = run_main(capsys, "pymunk", "--list-scenes")
+    assert code == 0 and out.split() == ["testbed", "hole", "wall", "push"]
+
+
+def test_a_good_run_prints_statistics_as_json(capsys, server_thread):
+    srv = server_thread("udp://127.0.0.1:0")
+    code, out, err = run_main(capsys, "stub", "--scene", "wall", "--seed", "3", "--connect", srv.url,
+                              "--duration", "0.5", "--json")
+    assert code == 0, err
+    st = json.loads(out)
+    assert st["sessions"] == 1 and st["steps"] > 0 and st["steps"] == st["updates_sent"]
+    assert st["engine"].startswith("hapticproxy-stub") and st["scene"] == "wall"
+    assert "session" in err and "stopped (duration reached)" in err  # informative lines, stderr
+    srv.wait_for_bye()
+
+
+def test_no_reconnect_ends_with_the_session(capsys, server_thread):
+    srv = server_thread("udp://127.0.0.1:0")
+    threading.Timer(0.4, srv.stop).start()  # the server says Bye
+    code, out, err = run_main(capsys, "stub", "--scene", "wall", "--connect", srv.url, "--no-reconnect",
+                              "--duration", "10", "--json", "--quiet")
+    assert code == 0 and err == ""
+    st = json.loads(out)
+    assert st["sessions"] == 1 and st["end_reason"].startswith("server ended the session (Bye BYE_SHUTDOWN")
+
+
+def test_the_hapticproxy_entry_point_dispatches_to_the_client_cli():
+    out = subprocess.run([EXE, "client", "stub", "--scene", "nope"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "unknown scene 'nope'" in out.stderr
+
+
+def _engine_scene(name):
+    try:
+        cls = cli.load_engine_class(name)
+    except ValueError as exc:
+        pytest.skip(str(exc))
+    return cls.scenes()[0]
+
+
+@pytest.mark.parametrize("engine", list(cli.ENGINES))
+def test_check_client_passes_for_every_engine(engine):
+    """``hapticproxy protocol check-client`` playing the server, the real CLI as the client."""
+    scene = _engine_scene(engine)
+    listen = open_transport("udp://127.0.0.1:0", role="server")
+    proc = subprocess.Popen([EXE, "client", engine, "--scene", scene, "--connect", listen.url, "--duration", "20",
+                             "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        rep = K.check_client(listen, duration_s=1.0, timeout_s=30.0)
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=30)
+        listen.close()
+    assert rep.passed, "\n".join(rep.lines()) + "\n" + err
+    assert "Traceback" not in err
