@@ -19,11 +19,11 @@ import pymunk.pygame_util
 from .scenes import TOOL_LENGTH_M, TOOL_WIDTH_M
 
 _PX_PER_M = 1800.0
-_ORIGIN_PX = (450.0, 300.0)
+_ORIGIN_PX = (450.0, 290.0)
 
 
 class PymunkWindow:
-    def __init__(self, engine, size_px: tuple[int, int] = (900, 620), fps: float = 60.0) -> None:
+    def __init__(self, engine, size_px: tuple[int, int] = (900, 680), fps: float = 60.0) -> None:
         pygame.init()
         self.engine = engine
         self.screen = pygame.display.set_mode(size_px)
@@ -31,6 +31,10 @@ class PymunkWindow:
         self.options = pymunk.pygame_util.DrawOptions(self.screen)
         self.options.transform = pymunk.Transform(a=_PX_PER_M, b=0.0, c=0.0, d=_PX_PER_M,
                                                   tx=_ORIGIN_PX[0], ty=_ORIGIN_PX[1])
+        # pymunk's own collision points are drawn in pixels; scaled to metres they would span the
+        # window, and the reported (epsilon) contacts are drawn below instead.
+        self.options.flags = (pymunk.pygame_util.DrawOptions.DRAW_SHAPES
+                              | pymunk.pygame_util.DrawOptions.DRAW_CONSTRAINTS)
         self.period_s = 1.0 / fps
         self._next_frame = 0.0
         self.last_contacts = None

@@ -153,12 +153,14 @@ def test_heartbeats_keep_a_slow_engine_session_alive(server_thread, helpers):
     assert srv.endpoint.counters.timeouts == 0
 
 
-@pytest.mark.parametrize("scheme", ["udp", "mem"])
+@pytest.mark.parametrize("scheme", ["udp", "mem", "zenoh"])
 def test_reconnects_after_the_server_restarts(scheme, server_thread, runner_thread, helpers):
-    url = f"udp://127.0.0.1:{helpers.free_udp_port()}" if scheme == "udp" else "mem://restart"
+    url = {"udp": f"udp://127.0.0.1:{helpers.free_udp_port()}", "mem": "mem://restart",
+           "zenoh": f"zenoh://127.0.0.1:{helpers.free_udp_port()}/restart"}[scheme]
     first = server_thread(url)
     engine = helpers.RecordingEngine(rate_hz=100.0)
-    rt = runner_thread(ClientRunner(engine, url, scene="floor", reconnect_delay_s=0.1))
+    rt = runner_thread(ClientRunner(engine, url, scene="floor", reconnect_delay_s=0.1, handshake_timeout_s=1.0,
+                                    transport_options={"connect_timeout_s": 1.0} if scheme == "zenoh" else None))
     helpers.wait_for(lambda: len(first.updates) >= 5, what="updates to the first server")
     first.stop()  # Bye: the server is going away
     second = server_thread(url)
