@@ -100,13 +100,10 @@ def test_newest_proxy_state_is_applied_and_stale_ones_dropped(runner_thread, hel
     try:
         helpers.wait_for(lambda: (pump(), session.get("seq", 0) >= 2)[1], what="two updates")
         peer = session["peer"]
-        sent_order = [(10, 0.10), (9, 0.09), (10, 0.101)]  # newer, stale, duplicate
-        for burst in range(5):
-            sent_order += [(11 + 3 * burst + k, 0.2 + 0.01 * (3 * burst + k)) for k in range(3)]
         srv_t.send(proxy(10, 0.10), peer)
         helpers.wait_for(lambda: len(engine.driven) >= 1, what="first proxy state")
-        srv_t.send(proxy(9, 0.09), peer)
-        srv_t.send(proxy(10, 0.101), peer)
+        srv_t.send(proxy(9, 0.09), peer)  # stale
+        srv_t.send(proxy(10, 0.101), peer)  # duplicate
         for burst in range(5):  # three at once: only the newest of what arrived together is applied
             for k in range(3):
                 srv_t.send(proxy(11 + 3 * burst + k, 0.2 + 0.01 * (3 * burst + k)), peer)
