@@ -60,7 +60,7 @@ class _Half:
 
 
 class _Poly:
-    __slots__ = ("body", "vx", "vy", "nx", "ny", "ex", "ey", "len2", "xmin", "xmax", "ymin", "ymax")
+    __slots__ = ("body", "vx", "vy", "nx", "ny", "ex", "ey", "len2", "cx", "cy", "xmin", "xmax", "ymin", "ymax")
 
     def __init__(self, body: int, verts: list[tuple[float, float]]) -> None:
         self.body = body
@@ -77,14 +77,25 @@ class _Poly:
             self.len2.append(ex * ex + ey * ey)
             self.nx.append(ey / length)  # counter-clockwise winding: outward = edge rotated by -90 deg
             self.ny.append(-ex / length)
+        self.cx, self.cy = sum(self.vx) / m, sum(self.vy) / m  # inside: the polygon is convex
         self.xmin, self.xmax = min(self.vx), max(self.vx)
         self.ymin, self.ymax = min(self.vy), max(self.vy)
 
 
-def _point_vs_poly(qx: float, qy: float, vx, vy, ex, ey, len2, nx, ny, reach: float):
+#: points within this distance of a polygon's boundary count as on it [m] (rounding, not geometry)
+_ON_BOUNDARY_M = 1e-9
+
+
+def _point_vs_poly(qx: float, qy: float, vx, vy, ex, ey, len2, nx, ny, reach: float, rx: float, ry: float):
     """Nearest feature of a convex polygon to the point q, if within ``reach`` of its boundary
     (or inside). Returns ``(is_face, index, cpx, cpy, normal_x, normal_y, signed_distance)`` with
-    the normal pointing from the polygon towards q, or ``None``."""
+    the normal pointing from the polygon towards q, or ``None``.
+
+    ``(rx, ry)`` is a point inside the *other* body (its centroid): when q sits on a corner of the
+    polygon (two faces equally near, e.g. the peg's corner at the bottom corner of a tight hole),
+    the face that looks towards the other body is the contact's face; a corner-corner normal
+    from a rounding-sized displacement would point anywhere.
+    """
     m = len(vx)
     smax = -math.inf
     jmax = 0
@@ -92,8 +103,16 @@ def _point_vs_poly(qx: float, qy: float, vx, vy, ex, ey, len2, nx, ny, reach: fl
         sj = nx[j] * (qx - vx[j]) + ny[j] * (qy - vy[j])
         if sj > smax:
             smax, jmax = sj, j
-    if smax <= 0.0:  # inside: the face of least penetration
-        return True, jmax, qx - smax * nx[jmax], qy - smax * ny[jmax], nx[jmax], ny[jmax], smax
+    if smax <= _ON_BOUNDARY_M:  # inside or on the boundary: the face of least penetration
+        best = -math.inf
+        for j in range(m):
+            sj = nx[j] * (qx - vx[j]) + ny[j] * (qy - vy[j])
+            if sj >= smax - _ON_BOUNDARY_M:
+                facing = nx[j] * (rx - qx) + ny[j] * (ry - qy)
+                if facing > best:
+                    best, jmax = facing, j
+        sj = nx[jmax] * (qx - vx[jmax]) + ny[jmax] * (qy - vy[jmax])
+        return True, jmax, qx - sj * nx[jmax], qy - sj * ny[jmax], nx[jmax], ny[jmax], sj
     if smax > reach:  # outside a convex polygon the distance is at least the largest face distance
         return None
     best = math.inf
@@ -111,7 +130,7 @@ def _point_vs_poly(qx: float, qy: float, vx, vy, ex, ey, len2, nx, ny, reach: fl
         dist2 = dx * dx + dy * dy
         if dist2 < best:
             best, hit = dist2, (is_face, k, cx, cy, dx, dy)
-    dist = math.sqrt(best)  # > 0: q is outside
+    dist = math.sqrt(best)  # >= smax > _ON_BOUNDARY_M: q is outside
     if dist > reach:
         return None
     is_face, k, cx, cy, dx, dy = hit
@@ -394,7 +413,7 @@ class StubEngine(Engine):
                 qx, qy = tvx[i], tvy[i]
                 if qx < bxmin or qx > bxmax or qy < bymin or qy > bymax:
                     continue
-                hit = _point_vs_poly(qx, qy, ob.vx, ob.vy, ob.ex, ob.ey, ob.len2, ob.nx, ob.ny, reach)
+                hit = _point_vs_poly(qx, qy, ob.vx, ob.vy, ob.ex, ob.ey, ob.len2, ob.nx, ob.ny, reach, x, y)
                 if hit is not None:
                     is_face, k, cx, cy, nx, ny, d = hit
                     kind = VERTEX_FACE if is_face else VERTEX_VERTEX
@@ -404,7 +423,7 @@ class StubEngine(Engine):
                 qx, qy = ob.vx[k], ob.vy[k]
                 if qx < txmin or qx > txmax or qy < tymin or qy > tymax:
                     continue
-                hit = _point_vs_poly(qx, qy, tvx, tvy, tex, tey, tl2, tnx, tny, reach)
+                hit = _point_vs_poly(qx, qy, tvx, tvy, tex, tey, tl2, tnx, tny, reach, ob.cx, ob.cy)
                 if hit is not None and hit[0]:
                     i, d = hit[1], hit[6]
                     # the normal points from the environment (the corner) towards the tool
