@@ -106,23 +106,28 @@ def tool_from_hello(hello) -> ToolSpec:
     return ToolSpec.spatial(float(hello.mass_kg), inertia, hand_point_m=tuple(-com))
 
 
-def q_from_tool_pose(kind: str, pose: np.ndarray, com_m, axis=None) -> np.ndarray:
-    """COM configuration q of the proxy from the engine's tool-frame pose (x y z qw qx qy qz)."""
-    p = np.asarray(pose[:3], dtype=float)
-    q = np.asarray(pose[3:7], dtype=float)
-    n = np.linalg.norm(q)
-    q = q / n if n > 0 else np.array([1.0, 0.0, 0.0, 0.0])
-    R = ctl.quat_to_matrix(q)
-    com = np.asarray(com_m, dtype=float)
+def q_from_tool_pose(kind: str, pose, com_m, axis=None) -> np.ndarray:
+    """COM configuration q of the proxy from the engine's tool-frame pose (x y z qw qx qy qz).
+
+    Plain floats on purpose: it runs once per model update inside a haptic step."""
+    px, py, pz = float(pose[0]), float(pose[1]), float(pose[2])
+    w, x, y, z = float(pose[3]), float(pose[4]), float(pose[5]), float(pose[6])
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if n > 0:
+        w, x, y, z = w / n, x / n, y / n, z / n
+    else:
+        w, x, y, z = 1.0, 0.0, 0.0, 0.0
+    cx, cy, cz = float(com_m[0]), float(com_m[1]), float(com_m[2])
     if kind == "1dof":
-        c = p + com
-        return np.array([float(c @ np.asarray(axis, dtype=float))])
+        ax = axis if axis is not None else (1.0, 0.0, 0.0)
+        return np.array([(px + cx) * ax[0] + (py + cy) * ax[1] + (pz + cz) * ax[2]])
+    # c = p + R com
+    rx = (1 - 2 * (y * y + z * z)) * cx + 2 * (x * y - w * z) * cy + 2 * (x * z + w * y) * cz
+    ry = 2 * (x * y + w * z) * cx + (1 - 2 * (x * x + z * z)) * cy + 2 * (y * z - w * x) * cz
+    rz = 2 * (x * z - w * y) * cx + 2 * (y * z + w * x) * cy + (1 - 2 * (x * x + y * y)) * cz
     if kind == "planar":
-        th = 2 * math.atan2(q[3], q[0])
-        c = p + R @ com
-        return np.array([c[0], c[1], th])
-    c = p + R @ com
-    return np.concatenate([c, q])
+        return np.array([px + rx, py + ry, 2 * math.atan2(z, w)])
+    return np.array([px + rx, py + ry, pz + rz, w, x, y, z])
 
 
 class HapticLoop:

@@ -287,3 +287,23 @@ def test_clock_is_injected_not_read_from_the_os(rig_factory):
     assert clk.wait_until(5_001_000_000) == 5_001_000_000
     assert clk.wait_until(4_000_000_000) == 5_001_000_000  # a past deadline returns at once
     assert math.isclose(clk.now_ns(), 5_001_000_000)
+
+
+def test_q_from_tool_pose_matches_the_rotation_matrix():
+    from hapticproxy.server.control import quat_to_matrix
+    from hapticproxy.server.loop import q_from_tool_pose
+
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        p = rng.normal(size=3)
+        com = rng.normal(size=3) * 0.05
+        out = q_from_tool_pose("spatial", np.concatenate([p, q]), com)
+        np.testing.assert_allclose(out[:3], p + quat_to_matrix(q) @ com, atol=1e-12)
+        np.testing.assert_allclose(out[3:], q, atol=1e-12)
+        th = rng.uniform(-3, 3)
+        qz = np.array([np.cos(th / 2), 0, 0, np.sin(th / 2)])
+        out = q_from_tool_pose("planar", np.concatenate([p, qz]), com)
+        np.testing.assert_allclose(out[:2], (p + quat_to_matrix(qz) @ com)[:2], atol=1e-12)
+        assert out[2] == pytest.approx(th, abs=1e-12)
