@@ -33,7 +33,7 @@ from hapticproxy.protocol.messages import ToolKind
 from hapticproxy.protocol.session import ServerConfig, ServerEndpoint
 
 from . import control as ctl
-from .devices.base import DEV_FAULT_NAMES, DEV_NSTATE, DS_TIME, empty_state, load_device
+from .devices.base import DEV_FAULT_LINK, DEV_FAULT_NAMES, DEV_NSTATE, DS_TIME, empty_state, load_device
 from .model.model import ContactParams, LocalModel, ToolSpec, warm_up as model_warm_up
 from .shm import CT, HBINS, LS, ST, SharedState
 
@@ -490,6 +490,15 @@ class HapticLoop:
     def _housekeeping(self, now: int) -> None:
         ep = self.endpoint
         ep.poll(now)
+        if (self.state == LS["fault"] and self.fault == FAULT_DEVICE and self.device_fault == DEV_FAULT_LINK
+                and self.engagements == 0):
+            # a remote device not connected yet at start-up: no force has ever been rendered,
+            # so arming it when its link comes up is not a force "coming back by itself"
+            self.device.enable()
+            if not self.device.fault:
+                self.fault = FAULT_NONE
+                self.device_fault = 0
+                self.state = LS["idle"]
         if self.session_id and self.session_id not in ep.sessions and self.state in (LS["engaged"], LS["fading"]):
             self.state = LS["fading"]
             self.watchdog = WD_SESSION_ENDED

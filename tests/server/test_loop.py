@@ -307,3 +307,37 @@ def test_q_from_tool_pose_matches_the_rotation_matrix():
         out = q_from_tool_pose("planar", np.concatenate([p, qz]), com)
         np.testing.assert_allclose(out[:2], (p + quat_to_matrix(qz) @ com)[:2], atol=1e-12)
         assert out[2] == pytest.approx(th, abs=1e-12)
+
+
+def test_a_device_whose_link_is_not_up_yet_is_armed_when_it_comes_up(rig_factory):
+    from hapticproxy.server.devices.base import DEV_FAULT_LINK, DEV_OK
+
+    class LateLink(PointDevice):
+        link = False
+
+        def enable(self):
+            super().enable()
+            if not self.link:
+                self._fault = DEV_FAULT_LINK
+
+        def read(self, s):
+            rc = super().read(s)
+            return rc if self.link else DEV_FAULT_LINK
+
+    dev = LateLink(hand=PUSH)
+    r = rig_factory(device=dev)
+    r.env.alive = False
+    r.run(0.1)
+    assert r.loop.state_name == "fault"
+    dev.link = True
+    r.run(0.05)
+    assert r.loop.state_name == "idle" and dev.enabled
+    r.env.alive = True
+    r.run(2.0)
+    assert r.loop.state_name == "engaged"
+    # once a session has engaged, a lost link is a fault that waits for a re-arm
+    dev.link = False
+    r.run(0.1)
+    dev.link = True
+    r.run(0.2)
+    assert r.loop.state_name == "fault"
