@@ -26,6 +26,7 @@ import numpy as np
 from .codec import Bye, Codec, ContactUpdate, Error, Heartbeat, Hello, ProtocolError, ProxyState, Reject, Welcome
 from .messages import PROTOCOL_MAJOR, PROTOCOL_MINOR, ErrorCode, MessageType, ToolKind
 from .session import MacFramer, ClientEndpoint, ServerConfig, ServerEndpoint, load_hmac_key
+from .transport.base import TransportError
 
 _NS = 1_000_000_000
 IDENTITY = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
@@ -450,7 +451,7 @@ def main(argv: list[str] | None = None) -> int:
                 t.close()
         else:
             rep = check_server(args.connect, duration_s=args.duration, hmac_key=key)
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, TransportError) as exc:
         print(f"hapticproxy protocol {args.mode}: {exc}", file=sys.stderr)
         return 2
     print("\n".join(rep.lines()))

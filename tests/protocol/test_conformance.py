@@ -1,8 +1,13 @@
 """The conformance kit against the project's reference peers (must pass) and deliberately broken
-peers (must fail the rules they break). UDP on 127.0.0.1, free ports, threads stopped at the end."""
+peers (must fail the rules they break), over every transport: UDP and Zenoh on 127.0.0.1 (free
+ports: port 0 for UDP, a free port the Zenoh backend picks), and the in-memory bus. Threads and
+transports are stopped and closed at the end of each test."""
 from __future__ import annotations
 
+import itertools
 import math
+import os
+import socket
 import threading
 import time
 
@@ -12,9 +17,20 @@ import pytest
 from hapticproxy.protocol import conformance as K
 from hapticproxy.protocol.codec import Codec, ContactUpdate, Hello, ProxyState, Welcome
 from hapticproxy.protocol.messages import ToolKind
-from hapticproxy.protocol.transport import open_transport
+from hapticproxy.protocol.transport import TransportError, open_transport
 
 KEY = bytes(range(7, 39))
+TRANSPORTS = ["udp", "mem", "zenoh"]
+_names = itertools.count(1)
+
+
+def listen_url(kind: str) -> str:
+    """A URL to open a server on: loopback, free port (picked by the backend) or a fresh bus name."""
+    if kind == "udp":
+        return "udp://127.0.0.1:0"
+    if kind == "mem":
+        return f"mem://conformance-{os.getpid()}-{next(_names)}"
+    return f"zenoh://127.0.0.1:0/conformance{next(_names)}"
 
 
 class Peer:
@@ -46,8 +62,9 @@ def failed(rep):
 
 
 @pytest.mark.parametrize("key", [None, KEY], ids=["plain", "hmac"])
-def test_reference_client_passes_check_client(key):
-    listen = open_transport("udp://127.0.0.1:0", role="server")
+@pytest.mark.parametrize("kind", TRANSPORTS)
+def test_reference_client_passes_check_client(kind, key):
+    listen = open_transport(listen_url(kind), role="server")
     try:
         with Peer(K.run_reference_client, open_transport(listen.url, role="client"), hmac_key=key):
             rep = K.check_client(listen, duration_s=0.8, hmac_key=key)
@@ -57,8 +74,9 @@ def test_reference_client_passes_check_client(key):
 
 
 @pytest.mark.parametrize("key", [None, KEY], ids=["plain", "hmac"])
-def test_reference_server_passes_check_server(key):
-    srv = open_transport("udp://127.0.0.1:0", role="server")
+@pytest.mark.parametrize("kind", TRANSPORTS)
+def test_reference_server_passes_check_server(kind, key):
+    srv = open_transport(listen_url(kind), role="server")
     with Peer(K.run_reference_server, srv, hmac_key=key):
         rep = K.check_server(srv.url, duration_s=0.5, hmac_key=key)
     assert rep.passed, "\n".join(rep.lines())
@@ -91,9 +109,11 @@ def broken_client(transport, stop, *, nan=False):
         time.sleep(0.01)
 
 
-@pytest.mark.parametrize("nan", [False, True])
-def test_broken_client_fails_check_client(nan):
-    listen = open_transport("udp://127.0.0.1:0", role="server")
+# Each case waits out check-client's 3 s Hello-retry window, so the NaN-free variant (which only
+# drops the fields-valid failure) runs on UDP alone.
+@pytest.mark.parametrize("kind,nan", [("udp", False), ("udp", True), ("mem", True), ("zenoh", True)])
+def test_broken_client_fails_check_client(kind, nan):
+    listen = open_transport(listen_url(kind), role="server")
     try:
         with Peer(broken_client, open_transport(listen.url, role="client"), nan=nan):
             rep = K.check_client(listen, duration_s=0.5)
@@ -102,7 +122,11 @@ def test_broken_client_fails_check_client(nan):
     bad = failed(rep)
     assert {"hello-retry", "seq", "bye"} <= bad, "\n".join(rep.lines())
     assert ("fields-valid" in bad) == nan
-    assert K.main(["check-client", "--listen", "udp://127.0.0.1:0", "--timeout", "0.2"]) == 1  # nobody connects
+
+
+@pytest.mark.parametrize("kind", TRANSPORTS)
+def test_check_client_cli_fails_when_nobody_connects(kind):
+    assert K.main(["check-client", "--listen", listen_url(kind), "--timeout", "0.2"]) == 1
 
 
 def naive_server(transport, stop):
@@ -128,8 +152,9 @@ def naive_server(transport, stop):
                                                    token=2)), peer)
 
 
-def test_broken_server_fails_check_server():
-    srv = open_transport("udp://127.0.0.1:0", role="server")
+@pytest.mark.parametrize("kind", TRANSPORTS)
+def test_broken_server_fails_check_server(kind):
+    srv = open_transport(listen_url(kind), role="server")
     with Peer(naive_server, srv):
         rep = K.check_server(srv.url, duration_s=0.3)
     bad = failed(rep)
@@ -140,3 +165,41 @@ def test_broken_server_fails_check_server():
 def test_cli_usage_errors():
     assert K.main(["check-server", "--connect", "not-a-url"]) == 2
     assert K.main(["bogus"]) == 2
+
+
+def free_tcp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_cli_check_server_over_zenoh_url():
+    # The command line, end to end, on an explicit zenoh://127.0.0.1:PORT/SESSION URL.
+    srv = open_transport(f"zenoh://127.0.0.1:{free_tcp_port()}/cli-server", role="server")
+    with Peer(K.run_reference_server, srv):
+        assert K.main(["check-server", "--connect", srv.url, "--duration", "0.3"]) == 0
+    with Peer(naive_server, open_transport(f"zenoh://127.0.0.1:{free_tcp_port()}/cli-naive", role="server")) as p:
+        assert K.main(["check-server", "--connect", p.transport.url, "--duration", "0.3"]) == 1
+
+
+def test_cli_check_client_over_zenoh_url(capsys):
+    # check-client listens on the URL given; the reference client connects once it is up.
+    url = f"zenoh://127.0.0.1:{free_tcp_port()}/cli-client"
+    result = {}
+    cli = threading.Thread(target=lambda: result.setdefault(
+        "rc", K.main(["check-client", "--listen", url, "--duration", "0.8", "--timeout", "20"])), daemon=True)
+    cli.start()
+    client = None
+    deadline = time.monotonic() + 20
+    while client is None:
+        try:
+            client = open_transport(url, role="client", connect_timeout_s=0.5)
+        except TransportError:  # the listener is not up yet
+            assert time.monotonic() < deadline and cli.is_alive(), "check-client never listened"
+            time.sleep(0.05)
+    with Peer(K.run_reference_client, client):
+        cli.join(30)
+    assert not cli.is_alive()
+    out = capsys.readouterr().out
+    assert result.get("rc") == 0, out
+    assert f"listening on {url}" in out and "RESULT: PASS" in out
