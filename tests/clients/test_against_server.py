@@ -1,0 +1,178 @@
+"""Each environment client against the real server (supervisor + loop process) over UDP and
+Zenoh: handshake, updates both ways, the peg settling on the wall with the force balancing the
+push, epsilon-contacts entering the model before contact, reconnection after a server restart,
+and a client that survives a server that vanishes. Counts and positions, never timings."""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from hapticproxy.clients.runner import ClientRunner
+from hapticproxy.clients.scenes import WALL_CONTACT_Y_COM_M
+from hapticproxy.server import config as cfgmod
+from hapticproxy.server.daemon import Supervisor
+from hapticproxy.server.shm import TEL
+
+PUSH_N = 0.5
+
+
+def _port(kind=socket.SOCK_DGRAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _url(transport: str) -> str:
+    if transport == "udp":
+        return f"udp://127.0.0.1:{_port()}"
+    return f"zenoh://127.0.0.1:{_port(socket.SOCK_STREAM)}/t{os.getpid()}"
+
+
+def _settings(url: str, **model) -> cfgmod.Settings:
+    return cfgmod.load({
+        "loop": {"rate_hz": 1000.0, "realtime": False},
+        "transport": {"url": url, "silence_timeout_s": 0.5},
+        "status": {"address": f"127.0.0.1:{_port()}"},
+        "model": {"epsilon_m": 0.005, **model},
+        # damping 10 N s/m: the hand reaches the wall at about 0.1 m/s, under epsilon per engine step
+        "device": {"driver": "sim", "kind": "planar", "damping_n_s_per_m": 10.0, "workspace_min_m": [-0.25, -0.25],
+                   "workspace_max_m": [0.25, 0.25], "hand": {"type": "constant", "wrench": [0.0, PUSH_N, 0.0]}},
+        "telemetry": {"ring_s": 20.0},
+    })
+
+
+def _engine(name: str):
+    if name == "pymunk":
+        from hapticproxy.clients.pymunk_engine import PymunkEngine
+
+        return PymunkEngine()
+    from hapticproxy.clients.stub_engine import StubEngine
+
+    return StubEngine(seed=3)
+
+
+class Client:
+    def __init__(self, engine, url, scene="testbed", **kw):
+        self.engine = engine
+        self.runner = ClientRunner(engine, url, scene=scene, epsilon_m=0.005, max_contacts=16, **kw)
+        self.stop = threading.Event()
+        self.error = None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self):
+        try:
+            self.runner.run(self.stop)
+        except BaseException as exc:  # noqa: BLE001 - asserted by the test
+            self.error = exc
+
+    def start(self):
+        self.thread.start()
+        return self
+
+    def close(self):
+        self.stop.set()
+        self.thread.join(15)
+        self.engine.close()
+
+
+def _serve_for(sup: Supervisor, seconds: float) -> None:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        sup._serve_status(0.05)
+
+
+def _rows(sup: Supervisor) -> np.ndarray:
+    head = int(sup.shared.head[0])
+    n = min(head, sup.ring_rows)
+    return sup.shared.ring[np.arange(head - n, head) % sup.ring_rows].copy()
+
+
+@pytest.mark.parametrize("transport", ["udp", "zenoh"])
+@pytest.mark.parametrize("engine", ["stub", "pymunk"])
+def test_client_against_the_real_server(engine, transport):
+    url = _url(transport)
+    sup = Supervisor(_settings(url))
+    client = None
+    try:
+        sup.start()
+        client = Client(_engine(engine), url, connect_timeout_s=30.0).start()
+        _serve_for(sup, 3.5)
+        snap = sup.shared.snapshot()
+        rows = _rows(sup)
+        stats = client.runner.stats()
+    finally:
+        if client is not None:
+            client.close()
+        sup.close()
+    assert client.error is None
+    # handshake and updates both ways
+    assert stats["sessions"] == 1
+    assert snap["updates"] >= 50 and stats["updates_sent"] >= snap["updates"]
+    assert snap["acks_sent"] == snap["updates"]
+    assert stats["proxy_applied"] >= 0.5 * snap["acks_sent"]
+    assert snap["faults_total"] == 0
+    eng = rows[rows[:, TEL["updates"]] > 0]
+    # the peg settles on the wall, the force balancing the push
+    last = eng[-300:]
+    assert abs(np.mean(last[:, TEL["proxy_y"]]) - WALL_CONTACT_Y_COM_M) < 0.003
+    assert abs(np.mean(last[:, TEL["cmd_fy"]]) + PUSH_N) < 0.05
+    assert np.ptp(last[:, TEL["dev_y"]]) < 1e-3
+    # epsilon-active geometry: the wall is in the model before the proxy reaches it
+    first = np.argmax(eng[:, TEL["contacts"]] > 0)
+    assert eng[first, TEL["contacts"]] > 0
+    assert eng[first, TEL["proxy_y"]] < WALL_CONTACT_Y_COM_M  # the proxy is still apart from the wall
+
+
+def test_reconnects_after_a_server_restart():
+    url = _url("udp")
+    s = _settings(url)
+    sup = Supervisor(s)
+    client = None
+    try:
+        sup.start()
+        client = Client(_engine("stub"), url, connect_timeout_s=30.0, reconnect_delay_s=0.3).start()
+        _serve_for(sup, 1.5)
+        assert client.runner.stats()["sessions"] == 1
+        sup.close()  # clean stop: forces ramp down, Bye to the client
+        sup = Supervisor(s)  # same address
+        sup.start()
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 15 and sup.shared.snapshot()["updates"] < 20:
+            sup._serve_status(0.05)
+        snap = sup.shared.snapshot()
+        stats = client.runner.stats()
+    finally:
+        if client is not None:
+            client.close()
+        sup.close()
+    assert client.error is None
+    assert stats["sessions"] == 2 and stats["sessions_ended"] >= 1
+    assert snap["updates"] >= 20 and snap["faults_total"] == 0
+
+
+def test_client_survives_a_server_that_vanishes():
+    url = _url("udp")
+    sup = Supervisor(_settings(url))
+    client = None
+    try:
+        sup.start()
+        client = Client(_engine("stub"), url, connect_timeout_s=30.0, reconnect_delay_s=0.3).start()
+        _serve_for(sup, 1.5)
+        os.kill(int(sup.shared.snapshot()["pid"]), signal.SIGKILL)  # the loop process dies, no Bye
+        sup.proc.join(10)
+        time.sleep(1.5)  # longer than the silence timeout: the client notices and keeps trying
+        stats = client.runner.stats()
+        assert client.thread.is_alive() and client.error is None
+        assert stats["sessions_ended"] >= 1
+        assert stats["state"] in ("connecting", "handshaking", "waiting")
+    finally:
+        if client is not None:
+            client.close()
+        sup.close()
+    assert client.error is None
