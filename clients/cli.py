@@ -70,7 +70,7 @@ def _parser() -> argparse.ArgumentParser:
     p = _Parser(prog=PROG, description="Run an environment client (physics engine) against a haptics server.",
                 epilog="Units are SI: --epsilon is in metres (0.005 = 5 mm).")
     p.add_argument("engine", help="engine: " + ", ".join(ENGINES))
-    p.add_argument("--scene", default="testbed", help="scene name (see --list-scenes; default testbed)")
+    p.add_argument("--scene", default=None, help="scene name (see --list-scenes; default: the engine's first)")
     p.add_argument("--connect", "--server", dest="connect", default="udp://127.0.0.1:9870",
                    help="server transport URL (udp://HOST:PORT, zenoh://HOST:PORT/SESSION, mem://NAME) or HOST:PORT "
                         "(default udp://127.0.0.1:9870)")
@@ -144,6 +144,8 @@ def main(argv: list[str] | None = None) -> int:
             for name in cls.scenes():
                 print(name)
             return 0
+        if args.scene is None:
+            args.scene = cls.scenes()[0]
         if "/" in args.scene or args.scene.endswith((".json", ".toml", ".yaml", ".py")):
             raise ValueError(f"--scene takes a scene name, not a file ({args.scene!r}); choose one of: "
                              f"{', '.join(cls.scenes())}")

@@ -31,8 +31,9 @@ VERTEX_FACE = 1
 FACE_VERTEX = 2
 VERTEX_VERTEX = 3
 FACE_FACE = 4
+EDGE_EDGE = 5  # 3-D engines (pybullet): a tool edge against an environment edge
 KIND_NAMES = {VERTEX_FACE: "vertex-face", FACE_VERTEX: "face-vertex", VERTEX_VERTEX: "vertex-vertex",
-              FACE_FACE: "face-face"}
+              FACE_FACE: "face-face", EDGE_EDGE: "edge-edge"}
 
 
 def feature_id(kind: int, tool_feature: int, env_feature: int) -> int:

@@ -108,7 +108,7 @@ import numpy as np
 import pybullet as p
 from numba import njit
 
-from .contacts import FACE_VERTEX, NORMAL_WEIGHT_M, VERTEX_FACE
+from .contacts import EDGE_EDGE, FACE_VERTEX, NORMAL_WEIGHT_M, VERTEX_FACE
 from .engine import ContactBuffer, Engine, SceneInfo, ToolDescription
 
 __all__ = ["PybulletEngine"]
@@ -125,8 +125,6 @@ _PEN_TOL = 1e-4
 #: a point this close [m] to another static box counts as on it (internal vertices and edges)
 _INTERNAL_TOL = 1e-7
 _RAW_CAPACITY = 512
-#: feature kind of an edge-edge pair (``contacts`` defines kinds 1-4 for planar engines)
-EDGE_EDGE = 5
 
 _KIND_BOX = 0
 _KIND_SPHERE = 1

@@ -624,6 +624,9 @@ class ClientEndpoint:
         self.state = ClientState.HANDSHAKING
         self.welcome = self.reject = self.bye = None
         self.session_id = self.token = 0
+        # a new session numbers its ProxyStates and Heartbeats from 1 again
+        self._proxy_seq = _SeqWindow()
+        self._heartbeat_seq = _SeqWindow()
         self._hello_sent = 0
         self._opened_ns = now
         self.last_rx_ns = now

@@ -415,3 +415,20 @@ def test_limits_shared_by_codec_and_session():
     assert loop.server.codec.limits.max_contacts == 8
     with pytest.raises(ValueError, match="max_contacts"):
         ServerConfig(limits=Limits(max_contacts=8), max_contacts=9)
+
+
+def test_client_start_resets_the_sequence_windows_for_a_new_session():
+    """A client endpoint reused after a session accepts the new server's ProxyState seq 1."""
+    from hapticproxy.protocol.session import _SeqWindow  # noqa: F401 - the window type under test
+    from hapticproxy.protocol.codec import Hello
+    from hapticproxy.protocol.messages import ToolKind
+    from hapticproxy.protocol.session import ClientEndpoint
+
+    ep = ClientEndpoint(lambda b: None, Hello(client_nonce=1, engine="t", tool_kind=ToolKind.PLANAR, mass_kg=1.0,
+                                              inertia_kg_m2=(1e-3,) * 3 + (0.0,) * 3, max_contacts=4,
+                                              epsilon_m=0.0, env_rate_hz=60.0))
+    ep.start(0)
+    ep._proxy_seq.newest = 500
+    ep._heartbeat_seq.newest = 7
+    ep.start(1)
+    assert ep._proxy_seq.newest == 0 and ep._heartbeat_seq.newest == 0
