@@ -8,7 +8,14 @@ step) and the echo side answers each update at once. By default the two polling 
 pinned to different CPUs (an unpinned busy poller that shares a core with the other side's
 sleeping thread delayed its wake-up by a whole scheduler slice, ~12 ms, in 1% of paced UDP
 exchanges); UDP pollers spin, Zenoh pollers ``sched_yield`` every 10 empty polls so Zenoh's
-own I/O threads get the core (``--idle-every``).
+own I/O threads get the core (``--idle-every``). In the ``zenoh-lowlatency`` rows each
+process's Zenoh runtime threads are also pinned, to the CPU its own poller does not use
+(``--io-threads``, see :data:`DEFAULT_IO_THREADS`). Zenoh's thread pools are those the backend
+asks for (``zenoh_backend.DEFAULT_ZENOH_RUNTIME``) unless ``--zenoh-runtime`` sets others.
+
+How much of a Zenoh round trip is Zenoh itself (and its Python binding) rather than this
+project's transport: ``python -m hapticproxy.benchmarks.zenoh_floor`` measures a bare Zenoh
+ping/pong and raw loopback sockets the same way.
 
 Two schedules per transport:
 
@@ -20,7 +27,8 @@ Rows (``--json`` prints a JSON list): ``transport``, ``paced``, ``rate_hz`` (nul
 back-to-back), ``exchanges``, ``warmup``, ``update_bytes``, ``ack_bytes``, ``lost`` (updates
 whose acknowledgement did not come within ``--timeout-ms``; they are excluded from the
 statistics), ``rtt_us`` with ``p50``, ``p99``, ``max`` and ``mean``, ``options`` (the
-transport options used) and ``poll`` (the idle policy and pinning). ``transport`` is ``udp``,
+transport options used), ``poll`` (the idle policy, the pinning and where Zenoh's threads
+went) and, for Zenoh rows, ``zenoh_runtime`` (the ``ZENOH_RUNTIME`` in force). ``transport`` is ``udp``,
 ``zenoh`` (default options) or ``zenoh-lowlatency`` (Zenoh's unicast low-latency mode).
 """
 from __future__ import annotations
@@ -50,6 +58,21 @@ def _pin_this_thread(cpu: int | None) -> None:
         os.sched_setaffinity(0, {cpu})
 
 
+def _place_io_threads(policy: str, poll_cpu: int | None) -> None:
+    """Pin this process's Zenoh runtime threads: ``other`` = every CPU but the poller's,
+    ``same`` = the poller's CPU, ``float`` = leave them to the scheduler."""
+    if policy == "float" or poll_cpu is None or not hasattr(os, "sched_setaffinity"):
+        return
+    from hapticproxy.protocol.transport.zenoh_backend import zenoh_thread_ids
+
+    cpus = {poll_cpu} if policy == "same" else set(range(os.cpu_count() or 1)) - {poll_cpu}
+    for tid in zenoh_thread_ids():
+        try:
+            os.sched_setaffinity(tid, cpus)
+        except OSError:  # ended meanwhile, or a CPU outside our cgroup
+            pass
+
+
 def _make_idle(idle_every: int, idle_sleep_us: float):
     """What a poll loop does after ``idle_every`` empty polls in a row (None: pure busy poll).
 
@@ -64,10 +87,12 @@ def _make_idle(idle_every: int, idle_sleep_us: float):
     return lambda: time.sleep(sleep_s)
 
 
-def _echo_server(url: str, options: dict, conn, idle_every: int, idle_sleep_us: float, cpu: int | None) -> None:
+def _echo_server(url: str, options: dict, conn, idle_every: int, idle_sleep_us: float, cpu: int | None,
+                 io_threads: str = "float") -> None:
     """Child process: answer every update with an ack carrying the update's sequence bytes."""
     server = open_transport(url, role="server", **options)
     _pin_this_thread(cpu)
+    _place_io_threads(io_threads, cpu)
     try:
         conn.send(server.url)
         buf = bytearray(server.max_packet_bytes)
@@ -110,6 +135,7 @@ def run_one(
     idle_every: int,
     idle_sleep_us: float,
     pin: bool,
+    io_threads: str = "float",
 ) -> dict:
     url = {"udp": "udp://127.0.0.1:0", "zenoh": "zenoh://127.0.0.1:0/bench"}[transport]
     ctx = mp.get_context("spawn")  # no fork of a process that may host Zenoh threads
@@ -118,7 +144,8 @@ def run_one(
     pin = pin and len(cpus) >= 2
     child_cpu, parent_cpu = (cpus[-1], cpus[0]) if pin else (None, None)
     child = ctx.Process(
-        target=_echo_server, args=(url, options, child_conn, idle_every, idle_sleep_us, child_cpu), daemon=True
+        target=_echo_server, args=(url, options, child_conn, idle_every, idle_sleep_us, child_cpu, io_threads),
+        daemon=True,
     )
     child.start()
     client = None
@@ -133,6 +160,7 @@ def run_one(
         if pin:
             saved_affinity = os.sched_getaffinity(0)
             _pin_this_thread(parent_cpu)
+            _place_io_threads(io_threads, parent_cpu)
         rng = random.Random(1)
         update = bytearray(rng.randbytes(UPDATE_BYTES))
         buf = bytearray(client.max_packet_bytes)
@@ -187,6 +215,14 @@ def run_one(
     finally:
         if saved_affinity is not None:
             os.sched_setaffinity(0, saved_affinity)
+            if io_threads != "float":  # Zenoh's threads outlive the client: unpin them again
+                from hapticproxy.protocol.transport.zenoh_backend import zenoh_thread_ids
+
+                for tid in zenoh_thread_ids():
+                    try:
+                        os.sched_setaffinity(tid, saved_affinity)
+                    except OSError:
+                        pass
         if client is not None:
             client.close()
         child.join(10)
@@ -213,6 +249,7 @@ def run_one(
         },
         "options": options,
         "pinned": pin,
+        "io_threads": io_threads if pin else "float",
     }
 
 
@@ -226,6 +263,12 @@ VARIANTS = {
 #: box: UDP is best pure busy (nothing else needs the core); Zenoh's own RX/TX threads need the
 #: core the poller spins on, and yielding every 10 empty polls gave the lowest p50 and p99.
 DEFAULT_IDLE_EVERY = {"udp": 0, "zenoh": 10}
+#: Where each process's Zenoh runtime threads go (with pinned pollers), per variant. Measured on
+#: the 2-vCPU VM, 6 runs of 2,000 exchanges each: low-latency mode, whose RX thread is the only
+#: Zenoh thread on the path, did best with it on the CPU its poller does not use ("other":
+#: back-to-back p50 33-43 us against 62-79 floating); default mode, which also hands every put
+#: to Zenoh's TX thread, did no better pinned (76-124 us against 80-109 floating), so it floats.
+DEFAULT_IO_THREADS = {"zenoh": "float", "zenoh-lowlatency": "other"}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -250,6 +293,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--no-pin", action="store_true", help="do not pin the two polling threads to different CPUs"
+    )
+    parser.add_argument(
+        "--io-threads",
+        choices=("other", "same", "float"),
+        default=None,
+        help="where each process's Zenoh runtime threads go when pollers are pinned: every CPU but "
+        "the poller's (other), the poller's (same) or anywhere (float); default per variant: "
+        + ", ".join(f"{k} {v}" for k, v in DEFAULT_IO_THREADS.items()),
     )
     parser.add_argument(
         "--zenoh-runtime",
@@ -287,6 +338,7 @@ def main(argv: list[str] | None = None) -> int:
                 idle_every,
                 args.idle_sleep_us,
                 not args.no_pin,
+                (args.io_threads or DEFAULT_IO_THREADS.get(variant, "float")) if backend == "zenoh" else "float",
             )
             row["transport"] = variant
             if backend == "zenoh":
@@ -299,6 +351,7 @@ def main(argv: list[str] | None = None) -> int:
                     else ("sleep %g us" % args.idle_sleep_us) if args.idle_sleep_us > 0 else "sched_yield"
                 ),
                 "pinned": row.pop("pinned"),
+                "io_threads": row.pop("io_threads"),
             }
             rows.append(row)
             if not args.json:

@@ -34,18 +34,42 @@ Latency choices (measured with ``hapticproxy bench transport``): publishers are 
 haptic thread) and ``Priority.REAL_TIME``, whose TX queue is raised from Zenoh's 2 batches to
 16 (:data:`TX_QUEUE_REAL_TIME_BATCHES`): a burst of up to 16 datagrams is queued, beyond that
 Zenoh may drop datagrams after :data:`WAIT_BEFORE_DROP_US` without telling the publisher (so no
-counter can see them; the session layer's sequence numbers do). Shared memory is off (payloads are far below its
-3 kB threshold; it would only reserve a pool). ``lowlatency=True`` additionally switches the
-unicast transport to Zenoh's low-latency mode (QoS lanes off); both ends must agree on it.
+counter can see them; the session layer's sequence numbers do). Shared memory is off
+(payloads are far below its 3 kB threshold; it would only reserve a pool). Zenoh's RX pool is
+cut to one worker (:data:`DEFAULT_ZENOH_RUNTIME`, applied unless the process sets
+``ZENOH_RUNTIME`` itself; Zenoh reads that variable once, when its runtime first starts, so it
+is process-wide).
 
-Measured on the 2-vCPU development VM, update -> ack round trip, 5,000 exchanges, with
-``hapticproxy bench transport --json --zenoh-runtime '(rx: (handover: app), acc: (handover: app),
-tx: (handover: app), net: (handover: app))'``: UDP p50 9.2 / p99 17.9 us paced at 1 kHz and
-7.9 / 9.2 us back-to-back; Zenoh 91.6 / 141.6 and 89.1 / 134.6 us; Zenoh with
-``lowlatency=true`` 64.8 / 129.6 and 38.7 / 73.0 us. Without ``--zenoh-runtime`` Zenoh runs its
-default thread pools and measured 82-112 us p50 in both modes. ``ZENOH_RUNTIME`` is a
-process-wide environment variable read when Zenoh first starts, so it is a deployment setting,
-not something this module sets.
+``lowlatency=True`` switches the unicast transport to Zenoh's low-latency mode (QoS lanes and
+batching off; both ends must agree, and the server's :attr:`url` carries it). Its ``put``
+serialises and writes to the socket in the calling thread instead of handing the message to
+Zenoh's TX thread, which is what makes it faster; the price is that a put can block while the
+peer's socket buffer is full (a peer whose Zenoh runtime is frozen, until the link lease, 10 s by
+default, expires), where the default mode drops after :data:`WAIT_BEFORE_DROP_US`. So it stays
+opt-in.
+
+Measured on the 2-vCPU development VM (KVM, shared with other work: medians of 4 runs of
+``hapticproxy bench transport --json``, 5,000 exchanges each, update -> ack round trip p50,
+back-to-back / paced at 1 kHz): UDP 9.0 / 14.6 us; Zenoh default mode 104 / 156 us; Zenoh
+``lowlatency=true`` 41 / 73 us (with its Zenoh threads pinned off the pollers' CPUs, the bench's
+default for that row). With Zenoh's default pools and floating threads (4 runs before these
+changes) the low-latency row measured 91 / 95 us; the one-worker RX pool alone brought it to
+49 / 72 (4 runs), the pinning steadied the back-to-back figure. The default mode did not change
+measurably (back-to-back p50s 73-126 us with either pool). Zenoh p99 was at most 357 us in
+every run.
+
+Why Zenoh stays above 3x UDP here: ``python -m hapticproxy.benchmarks.zenoh_floor`` runs the same
+ping/pong with the ``zenoh`` package alone. With this module's settings, low-latency mode and
+Zenoh's threads pinned off the pollers it measured a p50 of 31-40 us (6 runs) against 7.7 us for
+raw UDP and 8.0 us for raw TCP sockets: the floor is about 4x UDP before this module adds
+anything (run alternately with the bench, the bench's low-latency row was within a few us of
+it; ``recv_into`` costs 2.1 us, of which ``try_recv`` 0.45). Per direction a Zenoh put costs
+3.1 us in the caller (serialise and write) and the receiver's Zenoh RX thread must be woken by
+epoll and hand the sample to the ring: besides the 8 us of the TCP round trip itself, roughly
+9 us per direction is that wake-up and routing, twice per round trip, on a machine whose two
+cores both run busy pollers. The default mode adds a hand-over to Zenoh's TX thread per put
+(floor 58-82 us). A callback subscriber (no ring) is no faster (55-72 us: the callback must
+take the GIL).
 
 Receiving: each subscriber uses a ``zenoh.handlers.RingChannel(ring_capacity)`` which Zenoh's
 own threads fill; :meth:`recv_into` only calls ``try_recv()``, so no Python callback ever runs
@@ -77,6 +101,12 @@ DEFAULT_CONNECT_TIMEOUT_S = 5.0
 TX_QUEUE_REAL_TIME_BATCHES = 16
 #: How long a put may wait for room in a full TX queue before the datagram is dropped.
 WAIT_BEFORE_DROP_US = 100
+#: Zenoh thread pools this module asks for unless the process sets ``ZENOH_RUNTIME`` itself:
+#: one RX worker instead of Zenoh's two, so a received datagram is read, decoded and put in the
+#: ring by the thread that epoll woke, with no hand-over to a second worker. Measured with
+#: ``hapticproxy bench transport`` on the 2-vCPU VM (module docstring): low-latency mode
+#: back-to-back p50 91 -> 49 us; the default mode unchanged within the noise.
+DEFAULT_ZENOH_RUNTIME = "(rx: (worker_threads: 1))"
 #: Bound on distinct client ids a server remembers (and keeps a reply publisher for); beyond it
 #: the table is cleared and rebuilt from traffic, so a flood of fake ids cannot grow memory.
 MAX_REMEMBERED_PEERS = 1024
@@ -108,6 +138,30 @@ def _free_tcp_port(host: str) -> int:
     with socket.socket(family, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return s.getsockname()[1]
+
+
+#: Name prefixes of the threads Zenoh's runtimes start (``rx-0``, ``tx-0``, ...).
+ZENOH_THREAD_PREFIXES = ("rx-", "tx-", "app-", "acc-", "net-")
+
+
+def zenoh_thread_ids() -> list[int]:
+    """Linux thread ids of this process's Zenoh runtime threads (empty elsewhere, or before the
+    first session starts them). For placing them, e.g. ``os.sched_setaffinity(tid, cpus)`` to
+    keep them off the core a busy-polling haptic thread owns: see the module docstring."""
+    out = []
+    try:
+        tasks = os.listdir("/proc/self/task")
+    except OSError:
+        return out
+    for tid in tasks:
+        try:
+            with open(f"/proc/self/task/{tid}/comm") as f:
+                name = f.read().strip()
+        except OSError:  # the thread ended meanwhile
+            continue
+        if name.startswith(ZENOH_THREAD_PREFIXES):
+            out.append(int(tid))
+    return out
 
 
 def _endpoint(protocol: str, host: str, port: int) -> str:
@@ -177,6 +231,9 @@ class ZenohTransport(Transport):
         if config is not None and not os.path.isfile(config):
             raise ValueError(f"config file not found: {config!r}")
 
+        # Zenoh reads ZENOH_RUNTIME when its runtime first starts (the first session of the
+        # process); a deployment's own setting, even an empty "()", always wins.
+        os.environ.setdefault("ZENOH_RUNTIME", DEFAULT_ZENOH_RUNTIME)
         import zenoh  # lazy: the only zenoh import in hapticproxy.protocol
 
         self._zenoh = zenoh

@@ -31,8 +31,27 @@ def test_bench_transport_json_rows():
         rtt = r["rtt_us"]
         assert 0 < rtt["p50"] <= rtt["p99"] <= rtt["max"]
         assert (r["rate_hz"] == 1000.0) == r["paced"]
+        assert r["poll"]["io_threads"] in ("other", "same", "float")
+    assert all(r["zenoh_runtime"] for r in rows if r["transport"] == "zenoh")
 
 
 def test_bench_transport_rejects_unknown_transport():
     out = subprocess.run([EXE, "bench", "transport", "--transports", "carrier-pigeon"], capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "carrier-pigeon" in out.stderr
+
+
+def test_zenoh_floor_json_rows():
+    out = subprocess.run(
+        [sys.executable, "-m", "hapticproxy.benchmarks.zenoh_floor", "--json", "--exchanges", "30", "--warmup", "5",
+         "--variants", "raw-udp,raw-tcp,zenoh-poll,zenoh-poll-lowlatency", "--io-threads", "other"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    rows = json.loads(out.stdout)
+    assert [r["variant"] for r in rows] == ["raw-udp", "raw-tcp", "zenoh-poll", "zenoh-poll-lowlatency"]
+    for r in rows:
+        assert r["exchanges"] == 30
+        assert 0 < r["rtt_us"]["p50"] <= r["rtt_us"]["p99"] <= r["rtt_us"]["max"]
+        assert (r["zenoh_runtime"] is None) == r["variant"].startswith("raw")

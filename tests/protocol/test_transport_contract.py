@@ -10,6 +10,7 @@ from __future__ import annotations
 import itertools
 import os
 import random
+import sys
 import threading
 import time
 
@@ -583,3 +584,43 @@ def test_zenoh_client_without_server_fails_clearly():
 def test_zenoh_port_zero_only_for_peer_server():
     with pytest.raises(ValueError, match="port 0"):
         open_transport("zenoh://127.0.0.1:0/x", role="client")
+
+
+# ------------------------------------------------------------------ Zenoh runtime defaults
+_RUNTIME_PROBE = """
+import json, os, sys
+from hapticproxy.protocol.transport import open_transport
+from hapticproxy.protocol.transport.zenoh_backend import zenoh_thread_ids
+with open_transport("zenoh://127.0.0.1:0/runtime-probe", role="server") as server, \
+        open_transport(server.url, role="client"):  # a link: Zenoh starts its RX pool lazily
+    names = []
+    for tid in zenoh_thread_ids():
+        with open(f"/proc/self/task/{tid}/comm") as f:
+            names.append(f.read().strip())
+    print(json.dumps({"runtime": os.environ.get("ZENOH_RUNTIME"), "names": names}))
+"""
+
+
+def _probe_runtime(env_runtime):
+    import json
+    import subprocess
+
+    env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
+    if env_runtime is not None:
+        env["ZENOH_RUNTIME"] = env_runtime
+    out = subprocess.run([sys.executable, "-c", _RUNTIME_PROBE], capture_output=True, text=True, env=env, timeout=60)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="thread names from /proc")
+def test_zenoh_runtime_defaults_to_one_rx_worker_unless_the_deployment_sets_one():
+    from hapticproxy.protocol.transport.zenoh_backend import DEFAULT_ZENOH_RUNTIME
+
+    ours = _probe_runtime(None)
+    assert ours["runtime"] == DEFAULT_ZENOH_RUNTIME
+    assert sum(n.startswith("rx-") for n in ours["names"]) == 1
+    assert all(n.split("-")[0] in ("rx", "tx", "app", "acc", "net") for n in ours["names"])
+    theirs = _probe_runtime("(rx: (worker_threads: 3))")  # a deployment's own setting wins
+    assert theirs["runtime"] == "(rx: (worker_threads: 3))"
+    assert sum(n.startswith("rx-") for n in theirs["names"]) == 3
