@@ -41,6 +41,8 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
     """Entry point of the loop process (spawned). ``naive``: the comparison baseline of
     ``bench loop``: the same work paced by ``time.sleep`` alone, with none of the tuning."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parent = os.getppid()
+    _die_with_parent()
     shared = SharedState.attach(shm_name, ring_rows)
     st = shared.status
     from .shm import ST
@@ -56,6 +58,7 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         lcfg = settings["loop"]
         clock = SleepClock() if naive else MonotonicClock()
         loop = HapticLoop(settings, clock=clock, shared=shared, hmac_key=hmac_key)
+        loop.parent_pid = parent  # a loop whose supervisor died stops (forces fade, Bye, exit)
 
         def on_term(signum, frame):  # noqa: ARG001 - checked in housekeeping, never in a kernel
             loop._stop_flag = True
@@ -98,6 +101,19 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         st[ST["loop_state"]] = LOOP_STATES.index("stopped")
         shared.close()
     sys.exit(code)
+
+
+def _die_with_parent() -> None:
+    """Linux: SIGTERM this process when the supervisor dies (e.g. SIGKILL), so a loop is never
+    left rendering forces with nobody watching. The loop also polls its parent pid."""
+    try:
+        import ctypes
+        import ctypes.util
+
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
 
 
 # ------------------------------------------------------------------------------ supervisor

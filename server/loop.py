@@ -24,6 +24,7 @@ device disabled or faded, waits for a re-arm), ``stopping`` (ramping down before
 from __future__ import annotations
 
 import math
+import os
 import time
 
 import numpy as np
@@ -189,6 +190,8 @@ class HapticLoop:
         self.stopping = False
         self.stopped = False
         self._stop_flag = False
+        #: the supervisor's pid; when it changes (the supervisor died) the loop stops cleanly
+        self.parent_pid = 0
         self._deadline = 0
         self._t0 = 0
         self.watchdog_ns = int(settings["safety"]["watchdog_s"] * 1e9)
@@ -505,6 +508,8 @@ class HapticLoop:
             self.ctrl.set_target(False)
         sh = self.shared
         ctrl_ = sh.control
+        if self.parent_pid and os.getppid() != self.parent_pid:
+            self._stop_flag = True
         if ctrl_[CT["stop"]] != ctrl_[CT["stop_ack"]] or self._stop_flag:
             ctrl_[CT["stop_ack"]] = ctrl_[CT["stop"]]
             self.request_stop()

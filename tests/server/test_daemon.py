@@ -208,3 +208,19 @@ def test_plot_writes_pngs(tmp_path):
     w.close()
     out = plot_recording(p, tmp_path / "png")
     assert len(out) == 3 and all(q.stat().st_size > 1000 for q in out)
+
+
+def test_the_loop_stops_when_its_supervisor_dies(server):
+    proc, url, status = server()
+    loop_pid = int(query(status)["pid"])
+    proc.kill()  # SIGKILL: the supervisor cannot clean up
+    proc.wait(10)
+    t_end = time.monotonic() + 20
+    alive = True
+    while time.monotonic() < t_end and alive:
+        try:
+            os.kill(loop_pid, 0)
+            time.sleep(0.1)
+        except ProcessLookupError:
+            alive = False
+    assert not alive, "the loop process outlived its supervisor"
