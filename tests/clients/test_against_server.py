@@ -176,3 +176,43 @@ def test_client_survives_a_server_that_vanishes():
             client.close()
         sup.close()
     assert client.error is None
+
+
+@pytest.mark.parametrize("transport", ["udp", "zenoh"])
+def test_pybullet_client_against_the_real_server(transport):
+    """The 3-D client: a 40 mm cube 3 mm above the floor of the `loose` scene, pushed down with 0.5 N
+    by the hand on a simulated 6-DOF device."""
+    from hapticproxy.clients.pybullet_engine import PybulletEngine
+
+    url = _url(transport)
+    settings = cfgmod.load({
+        "loop": {"rate_hz": 1000.0, "realtime": False},
+        "transport": {"url": url, "silence_timeout_s": 0.5},
+        "status": {"address": f"127.0.0.1:{_port()}"},
+        "model": {"epsilon_m": 0.005},
+        "device": {"driver": "sim", "kind": "spatial", "damping_n_s_per_m": 10.0, "watchdog_s": 0.5,
+                   "hand": {"type": "constant", "wrench": [0.0, 0.0, -PUSH_N, 0.0, 0.0, 0.0]}},
+        "telemetry": {"ring_s": 20.0},
+    })
+    sup = Supervisor(settings)
+    client = None
+    try:
+        sup.start()
+        client = Client(PybulletEngine(), url, scene="loose", connect_timeout_s=60.0).start()
+        _serve_for(sup, 4.0)
+        snap = sup.shared.snapshot()
+        rows = _rows(sup)
+        stats = client.runner.stats()
+    finally:
+        if client is not None:
+            client.close()
+        sup.close()
+    assert client.error is None
+    assert stats["sessions"] == 1 and snap["updates"] >= 50 and snap["acks_sent"] == snap["updates"]
+    assert snap["faults_total"] == 0, (snap["fault"], snap["device_fault"], snap["speed_trips"])
+    eng = rows[rows[:, TEL["updates"]] > 0]
+    last = eng[-300:]
+    assert abs(np.mean(last[:, TEL["proxy_z"]]) - 0.020) < 0.002  # the cube rests on the floor
+    assert abs(np.mean(last[:, TEL["cmd_fz"]]) - PUSH_N) < 0.05  # the floor pushes back the 0.5 N
+    first = np.argmax(eng[:, TEL["contacts"]] > 0)
+    assert eng[first, TEL["contacts"]] > 0 and eng[first, TEL["proxy_z"]] > 0.020  # predicted: still apart
