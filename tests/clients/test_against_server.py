@@ -129,15 +129,40 @@ def test_client_against_the_real_server(engine, transport):
     assert eng[first, TEL["proxy_y"]] < WALL_CONTACT_Y_COM_M  # the proxy is still apart from the wall
 
 
-def test_reconnects_after_a_server_restart():
-    url = _url("udp")
-    s = _settings(url)
+def _any_engine(name):
+    if name == "pybullet":
+        from hapticproxy.clients.pybullet_engine import PybulletEngine
+
+        return PybulletEngine(), "loose"
+    return _engine(name), "testbed"
+
+
+def _settings_for(engine: str, url: str) -> cfgmod.Settings:
+    if engine != "pybullet":
+        return _settings(url)
+    return cfgmod.load({
+        "loop": {"rate_hz": 1000.0, "realtime": False},
+        "transport": {"url": url, "silence_timeout_s": 0.5},
+        "status": {"address": f"127.0.0.1:{_port()}"},
+        "device": {"driver": "sim", "kind": "spatial", "watchdog_s": 0.5},
+        "telemetry": {"ring_s": 5.0},
+    })
+
+
+@pytest.mark.parametrize("transport", ["udp", "zenoh"])
+@pytest.mark.parametrize("engine", ["stub", "pymunk", "pybullet"])
+def test_reconnects_after_a_server_restart(engine, transport):
+    url = _url(transport)
+    s = _settings_for(engine, url)
     sup = Supervisor(s)
     client = None
     try:
         sup.start()
-        client = Client(_engine("stub"), url, connect_timeout_s=30.0, reconnect_delay_s=0.3).start()
-        _serve_for(sup, 1.5)
+        eng, scene = _any_engine(engine)
+        client = Client(eng, url, scene=scene, connect_timeout_s=60.0, reconnect_delay_s=0.3).start()
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 30 and sup.shared.snapshot()["updates"] < 20:
+            sup._serve_status(0.05)
         assert client.runner.stats()["sessions"] == 1
         sup.close()  # clean stop: forces ramp down, Bye to the client
         sup = Supervisor(s)  # same address
@@ -156,14 +181,20 @@ def test_reconnects_after_a_server_restart():
     assert snap["updates"] >= 20 and snap["faults_total"] == 0
 
 
-def test_client_survives_a_server_that_vanishes():
-    url = _url("udp")
-    sup = Supervisor(_settings(url))
+@pytest.mark.parametrize("transport", ["udp", "zenoh"])
+@pytest.mark.parametrize("engine", ["stub", "pymunk", "pybullet"])
+def test_client_survives_a_server_that_vanishes(engine, transport):
+    url = _url(transport)
+    sup = Supervisor(_settings_for(engine, url))
     client = None
     try:
         sup.start()
-        client = Client(_engine("stub"), url, connect_timeout_s=30.0, reconnect_delay_s=0.3).start()
-        _serve_for(sup, 1.5)
+        eng, scene = _any_engine(engine)
+        client = Client(eng, url, scene=scene, connect_timeout_s=60.0, reconnect_delay_s=0.3).start()
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 30 and sup.shared.snapshot()["updates"] < 20:
+            sup._serve_status(0.05)
+        assert client.runner.stats()["sessions"] == 1
         os.kill(int(sup.shared.snapshot()["pid"]), signal.SIGKILL)  # the loop process dies, no Bye
         sup.proc.join(10)
         time.sleep(1.5)  # longer than the silence timeout: the client notices and keeps trying
