@@ -1,0 +1,25 @@
+"""`hapticproxy bench loop` prints the documented figures (a short run; no timing asserted)."""
+import json
+import subprocess
+import sys
+
+
+def test_bench_loop_prints_the_documented_keys():
+    out = subprocess.run([sys.executable, "-m", "hapticproxy.cli.main", "bench", "loop", "--json", "--rate", "1000",
+                          "--seconds", "1", "--naive-seconds", "0.5"], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    d = json.loads(out.stdout)
+    assert d["rate_hz"] == 1000.0
+    for k in ("p50", "p99", "p999", "max"):
+        assert d["lateness_us"][k] is not None and d["naive_lateness_us"][k] is not None
+    for k in ("p50", "p99"):
+        assert d["step_us"][k] is not None
+    assert 0.0 <= d["missed_fraction"] <= 1.0
+    assert isinstance(d["rt_scheduling"], bool)
+    assert d["steps"] >= 500 and d["updates"] > 0 and d["faults"] == 0
+
+
+def test_bench_loop_rejects_bad_arguments():
+    out = subprocess.run([sys.executable, "-m", "hapticproxy.cli.main", "bench", "loop", "--rate", "5"],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
