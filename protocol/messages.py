@@ -308,7 +308,8 @@ CONTACT_UPDATE = MessageSpec(
         FieldSpec("seq", "u64", check="pos", doc="1, 2, 3, ... per session; newest wins"),
         FieldSpec("env_time_s", "f64", "s", doc="simulation time of this step (engine clock)"),
         FieldSpec("tool_pose", "bin f64[7]", "m, quaternion", "world",
-                  doc="engine's (virtual) tool pose at env_time_s: x y z qw qx qy qz"),
+                  doc="engine's (virtual) tool pose at env_time_s: x y z qw qx qy qz; the pose the contacts "
+                      "were computed at (the server locates the reported features on the tool with it)"),
         FieldSpec("contact_count", "u16", doc="n, 0 <= n <= granted max_contacts"),
         FieldSpec("contact_keys", "bin i64[n*3]", "-", "-",
                   doc="n keys, row-major: (tool_link, env_body, feature) per contact; unique"),
