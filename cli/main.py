@@ -20,6 +20,7 @@ BENCH_TARGETS = {
     "transport": "hapticproxy.benchmarks.bench_transport",
     "loop": "hapticproxy.benchmarks.bench_loop",
     "clients": "hapticproxy.benchmarks.bench_clients",
+    "faults": "hapticproxy.benchmarks.bench_faults",
 }
 
 COMMANDS = {
@@ -30,6 +31,7 @@ COMMANDS = {
     "plot": ("hapticproxy.server.plot", "write PNG plots from a telemetry recording"),
     "client": ("hapticproxy.clients.cli", "run an environment client: pymunk | pybullet | stub"),
     "device": ("hapticproxy.server.devices.remote", "run a device program that streams to a server over UDP"),
+    "experiment": ("hapticproxy.experiments.cli", "reproduce the paper's figures; the speed/accuracy trade-off"),
 }
 
 
