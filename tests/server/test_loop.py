@@ -341,3 +341,32 @@ def test_a_device_whose_link_is_not_up_yet_is_armed_when_it_comes_up(rig_factory
     dev.link = True
     r.run(0.2)
     assert r.loop.state_name == "fault"
+
+
+def test_steps_leave_no_memory_behind(rig_factory):
+    """Idle and engaged steps: whatever the Python glue creates is freed by reference counting
+    (the loop process runs with the collector disabled)."""
+    import gc
+    import tracemalloc
+
+    dev = PointDevice(hand=PUSH)
+    r = rig_factory(device=dev)
+    r.run(2.0, record=False)  # engaged, resting on the wall
+    dev.commands.clear()
+    r.env.alive = False  # no traffic: the pure haptic step
+    L = r.loop
+    for _ in range(200):
+        L.step()
+    gc.disable()
+    try:
+        tracemalloc.start()
+        before = tracemalloc.take_snapshot()
+        for _ in range(5000):
+            L.step()
+        dev.commands.clear()
+        after = tracemalloc.take_snapshot()
+        tracemalloc.stop()
+    finally:
+        gc.enable()
+    grown = sum(st.size_diff for st in after.compare_to(before, "filename"))
+    assert grown < 4096, [str(st) for st in after.compare_to(before, "filename")[:5]]
