@@ -36,8 +36,9 @@ def format_status(s: dict) -> str:
         f"state        {s.get('loop_state')}  (fault: {int(s.get('fault', 0))}, device fault: {int(s.get('device_fault', 0))})",
         f"rate         {rate:.0f} Hz, {int(s.get('steps', 0))} steps, overruns {int(s.get('overruns', 0))}, "
         f"missed deadlines {int(s.get('missed_deadlines', 0))}",
-        f"lateness us  p50 {lat.get('p50')}  p99 {lat.get('p99')}  p99.9 {lat.get('p999')}  max {lat.get('max')}",
-        f"compute us   p50 {comp.get('p50')}  p99 {comp.get('p99')}  max {comp.get('max')}",
+        f"lateness us  p50 {lat.get('p50')}  p99 {lat.get('p99')}  p99.9 {lat.get('p999')}  "
+        f"max {s.get('lateness_max_us', 0):.1f}",
+        f"compute us   p50 {comp.get('p50')}  p99 {comp.get('p99')}  max {s.get('compute_max_us', 0):.1f}",
         f"rt sched     {'yes' if s.get('rt_scheduling') else 'no'}  (spin {s.get('spin_ns', 0) / 1000:.0f} us)",
         f"session      {int(s.get('session_id', 0))}  updates {int(s.get('updates', 0))}  acks {int(s.get('acks_sent', 0))}  "
         f"env rate {s.get('env_rate_hz', 0):.1f} Hz  silence {s.get('env_silence_ms', -1):.0f} ms",
