@@ -95,7 +95,10 @@ def simulate_peg1d(
     force_amplitude_n: float = FIG6_FORCE_AMPLITUDE_N,
     force_hz: float = FIG6_FORCE_HZ,
     restitution: float = 0.0,
+    runaway_m: float | None = None,
 ) -> PegRun:
+    """``runaway_m``: stop the run early once the hand is this far from the hole's centre (an
+    unstable run would otherwise grow to astronomic, meaningless numbers); the arrays end there."""
     dt = 1.0 / haptic_hz
     model = LocalModel(ToolSpec.one_dof(mass_kg),
                        ContactParams(stiffness_n_per_m, damping_n_s_per_m, restitution),
@@ -124,6 +127,10 @@ def simulate_peg1d(
         fh[i] = hand[0]
         fe[i] = f[0]
         nc[i] = model.contact_count
+        if runaway_m is not None and not abs(x[i]) <= runaway_m:
+            n = i + 1
+            t, x, fh, fe, nc = t[:n], x[:n], fh[:n], fe[:n], nc[:n]
+            break
     c = model.counters()
     return PegRun(policy, epsilon_m or 0.0, t, x, fh, fe, nc, c["updates"], c["collisions"], c["nonfinite"])
 

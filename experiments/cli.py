@@ -1,0 +1,87 @@
+"""``hapticproxy experiment NAME --out DIR``: the paper's experiments and the speed / accuracy
+trade-off.
+
+    hapticproxy experiment fig6  --out out/fig6      # 1-DOF peg, proxy deformation vs none
+    hapticproxy experiment fig9  --out out/fig9      # 1-DOF peg, epsilon 5 mm vs active geometry
+    hapticproxy experiment fig14 --out out/fig14     # static contact: where the wall is felt
+    hapticproxy experiment fig16 --out out/fig16     # the tight hole: drift and rotation
+    hapticproxy experiment fig17 --out out/fig17     # the tight hole at k = 15000 N/m: stability
+    hapticproxy experiment tradeoff --out out/trade  # the speed / accuracy sweep, Pareto plot
+    hapticproxy experiment all --out out/exp         # every one of them, a folder each
+
+``--quick``: the short version (shorter runs, fewer seeds and configurations). ``--mode``:
+``realtime`` (default for the figures: the real server process at 512 Hz, the client over UDP
+on 127.0.0.1) or ``simulated`` (the same stack in simulated time, deterministic). Figs. 6 and 9
+are simulations of the local model alone, as in the paper. Each writes PNG plots and
+``metrics.json`` (keyed by method) into ``--out`` and prints a one-line summary per method.
+Exit status 0, 2 on bad arguments, 1 when a run fails.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+NAMES = ("fig6", "fig9", "fig14", "fig16", "fig17", "tradeoff")
+
+
+def _summary(name: str, res: dict) -> list[str]:
+    keys = {
+        "fig6": ("unstable", "peak_excursion_mm", "growth"),
+        "fig9": ("unstable", "both_walls_fraction", "force_on_fraction", "peak_excursion_mm"),
+        "fig14": ("felt_wall_mm", "wall_error_mm", "limit_cycle_amplitude_mm", "limit_cycle_rotation_deg", "settled"),
+        "fig16": ("drift_mm", "x_travel_mm", "rotation_deg", "unstable"),
+        "fig17": ("drift_mm", "x_travel_mm", "rotation_deg", "energy_injected_mj", "unstable"),
+    }[name]
+    lines = []
+    for method, m in res.items():
+        vals = ", ".join(f"{k} {m.get(k)}" for k in keys)
+        lines.append(f"{name} {method:<12} {vals}")
+    return lines
+
+
+def run_one(name: str, out: str, *, mode: str, quick: bool, log) -> dict:
+    if name == "tradeoff":
+        from .tradeoff import run_tradeoff
+
+        return run_tradeoff(out, quick=quick, log=log)
+    from .figures import FIGURES
+
+    return FIGURES[name](out, mode=mode, quick=quick, log=log)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="hapticproxy experiment", description=__doc__.splitlines()[0])
+    p.add_argument("name", choices=NAMES + ("all",), help="which experiment")
+    p.add_argument("--out", required=True, help="output folder (created)")
+    p.add_argument("--quick", action="store_true", help="the short version")
+    p.add_argument("--mode", choices=("realtime", "simulated"), default="realtime",
+                   help="figures 14/16/17: the real server in real time (default) or simulated time")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    args = p.parse_args(argv)
+    names = NAMES if args.name == "all" else (args.name,)
+    log = None if args.quiet else (lambda msg: print(f"experiment: {msg}", file=sys.stderr, flush=True))
+    status = 0
+    for name in names:
+        out = os.path.join(args.out, name) if args.name == "all" else args.out
+        t0 = time.perf_counter()
+        try:
+            res = run_one(name, out, mode=args.mode, quick=args.quick, log=log)
+        except (RuntimeError, ValueError, OSError) as exc:
+            print(f"hapticproxy experiment {name}: {exc}", file=sys.stderr)
+            status = 1
+            continue
+        if name == "tradeoff":
+            print(f"tradeoff: {len(res['rows'])} configurations; table {os.path.join(out, 'tradeoff.md')}, "
+                  f"Pareto plot {os.path.join(out, 'pareto.png')}")
+        else:
+            for line in _summary(name, res):
+                print(line)
+        print(f"{name}: wrote {out}/metrics.json and plots ({time.perf_counter() - t0:.1f} s)")
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())

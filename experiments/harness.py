@@ -1,0 +1,465 @@
+"""The experiment harness: one description of a run, two ways to run it, one trace.
+
+A :class:`RunSpec` says everything a run needs: the method (controller, update policy,
+epsilon, contact frame), the contact parameters, the haptic rate and contact cap, the
+environment (engine, scene, rate, extra delay) and the scripted hand on the simulated planar
+device. It runs
+
+- **in real time** (:func:`run_realtime`): the real server (``Supervisor``: the loop alone in its
+  own process at the requested rate, the simulated planar device in that process) and the
+  environment client (``ClientRunner`` in a thread of this process) over UDP on 127.0.0.1; the
+  figures come from the telemetry ring in shared memory. This is the issue's "real server loop
+  ... the environment over the real protocol at 30-60 Hz".
+- **in simulated time** (:func:`run_simulated`): the same ``HapticLoop``, device, controller,
+  model and protocol stack in this process on a ``SimClock`` over the ``mem://`` transport,
+  with the engine stepped by :class:`SimEnvClient` on its own (variable) schedule in simulated
+  time between haptic steps. Deterministic for a given seed, and far cheaper: the trade-off
+  sweep and the tests use it. The CPU time of every haptic step is measured for real
+  (``perf_counter_ns`` around ``HapticLoop.step``, which never waits on a ``SimClock``).
+
+Both return a :class:`Trace` (device and proxy poses, commanded and environment wrenches,
+contacts, updates, per step; the time axis starts when the client engaged the server).
+
+Frames: the world frame of ``clients/scenes.py`` (+y towards the bottom wall, no gravity). The
+device is mapped onto the proxy at engagement (``mapping = "index"``), so device poses are in
+world coordinates; the hand point is the tool frame's origin = the peg's COM.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+import socket
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+#: The three ways of coupling the device to the environment the paper compares (section V).
+#: IR: Berkelman's intermediate representation = direct coupling, no proxy deformation (eq. 1
+#: at every update), no prediction. LM0: the local model (four-channel controller, proxy
+#: deformation) with active geometry. LM5: the same with epsilon-active geometry, 5 mm.
+METHODS: dict[str, dict] = {
+    "IR": {"controller": "direct", "policy": "rigid", "epsilon_m": 0.0},
+    "LM0": {"controller": "four_channel", "policy": "lm0", "epsilon_m": 0.0},
+    "LM5": {"controller": "four_channel", "policy": "deformation", "epsilon_m": 0.005},
+}
+
+_NS = 1_000_000_000
+_mem_names = itertools.count(1)
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@dataclass(frozen=True)
+class Hand:
+    """The scripted hand on the device: ``kind`` "constant" (``wrench``) or "sinusoid"
+    (``wrench`` is the amplitude per component, ``frequency_hz``), acting from ``start_s`` of
+    device time on (zero before: the session engages and the force ramps in first)."""
+
+    kind: str
+    wrench: tuple[float, float, float]
+    frequency_hz: float = 0.0
+    start_s: float = 0.5
+
+    def value(self, t_s: np.ndarray) -> np.ndarray:
+        """(n, 3) wrench at device times ``t_s``."""
+        t = np.asarray(t_s, dtype=float)
+        w = np.asarray(self.wrench, dtype=float)
+        on = (t >= self.start_s)[:, None]
+        if self.kind == "constant":
+            return np.where(on, w[None, :], 0.0)
+        s = np.sin(2 * math.pi * self.frequency_hz * (t - self.start_s))
+        return np.where(on, s[:, None] * w[None, :], 0.0)
+
+    def device_config(self, seconds: float, folder: Path) -> dict:
+        """The ``[device.hand]`` table: a ``steps`` profile for a constant wrench, a ``replay``
+        of a sampled wrench file (1 kHz, linearly interpolated) for a sinusoid."""
+        if self.kind == "constant":
+            return {"type": "steps", "steps": [[0.0, [0.0, 0.0, 0.0]], [float(self.start_s), list(self.wrench)]]}
+        if self.kind != "sinusoid":
+            raise ValueError(f"hand.kind: expected constant or sinusoid, got {self.kind!r}")
+        t = np.arange(0.0, self.start_s + seconds + 1.0, 1e-3)
+        path = Path(folder) / f"hand-{abs(hash(self)) & 0xFFFFFFFF:08x}.npz"
+        np.savez(path, t_s=t, wrench=self.value(t))
+        return {"type": "replay", "mode": "wrench", "file": str(path)}
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """Everything one run needs (defaults: the paper's static-contact set-up, LM5)."""
+
+    method: str = "LM5"
+    controller: str = "four_channel"
+    policy: str = "deformation"
+    epsilon_m: float = 0.005
+    contact_frame: str = "proxy"
+    rate_hz: float = 512.0
+    stiffness_n_per_m: float = 4000.0
+    damping_n_s_per_m: float = 30.0
+    restitution: float = 0.0
+    capacity: int = 16
+    engine: str = "stub"                      # stub | pymunk
+    scene: str = "testbed"
+    env_rate_hz: tuple[float, float] = (30.0, 60.0)   # stub: the range its rate wanders in; pymunk: [0] fixed
+    env_delay_s: float = 0.0                  # extra one-way delay of every ContactUpdate (simulated runs)
+    seed: int = 1
+    hand: Hand = Hand("constant", (0.0, 0.5, 0.0))
+    seconds: float = 5.0                      # after the hand starts
+    workspace_m: float = 0.25
+    device: tuple = ()                        # extra [device] keys as (key, value) pairs
+
+    @classmethod
+    def for_method(cls, method: str, **kw) -> "RunSpec":
+        return cls(method=method, **{**METHODS[method], **kw})
+
+    def but(self, **kw) -> "RunSpec":
+        return replace(self, **kw)
+
+    def settings_dict(self, url: str, status_port: int | None, folder: Path) -> dict:
+        dev = {"driver": "sim", "kind": "planar", "workspace_min_m": [-self.workspace_m] * 2,
+               "workspace_max_m": [self.workspace_m] * 2,
+               "hand": self.hand.device_config(self.seconds, folder)}
+        if self.scene == "hole":
+            # the paper's user turned the handle with the peg: the device starts at 90 deg, so
+            # its frame is the world's (the hand's F_x shakes the peg across the hole)
+            dev.update({"initial_pose": [0.0, 0.0, math.pi / 2], "rotation_limit_rad": math.pi / 2 + 1.0})
+        dev.update(dict(self.device))
+        return {
+            "loop": {"rate_hz": float(self.rate_hz)},
+            "transport": {"url": url},
+            "status": {"address": f"127.0.0.1:{status_port or free_port()}"},
+            "model": {"policy": self.policy, "epsilon_m": float(self.epsilon_m), "capacity": int(self.capacity),
+                      "stiffness_n_per_m": float(self.stiffness_n_per_m),
+                      "damping_n_s_per_m": float(self.damping_n_s_per_m), "restitution": float(self.restitution),
+                      "contact_frame": self.contact_frame},
+            "controller": {"type": self.controller},
+            "device": dev,
+            "telemetry": {"ring_s": float(self.hand.start_s + self.seconds + 3.0)},
+        }
+
+    def make_engine(self):
+        if self.engine == "stub":
+            from hapticproxy.clients.stub_engine import StubEngine
+
+            return StubEngine(seed=self.seed, rate_range_hz=tuple(self.env_rate_hz))
+        if self.engine == "pymunk":
+            from hapticproxy.clients.pymunk_engine import PymunkEngine
+
+            return PymunkEngine(rate_hz=float(self.env_rate_hz[0]))
+        raise ValueError(f"engine: expected stub or pymunk, got {self.engine!r}")
+
+
+@dataclass
+class Trace:
+    """What a run produced, per haptic step from the engagement on (world frame, SI units)."""
+
+    spec: RunSpec
+    mode: str                      # "realtime" | "simulated"
+    t_s: np.ndarray                # since the engagement
+    hand_start_s: float            # the hand starts here (same time axis)
+    dev: np.ndarray                # (n, 3) device x, y [m], theta [rad]
+    proxy: np.ndarray              # (n, 3) proxy hand point x, y, theta
+    dev_vel: np.ndarray            # (n, 3) device vx, vy [m/s], w [rad/s]
+    cmd: np.ndarray                # (n, 3) wrench written to the device fx, fy [N], tz [N m]
+    env: np.ndarray                # (n, 3) environment wrench at the hand point (model output)
+    contacts: np.ndarray           # (n,) local contacts in the model
+    updates: np.ndarray            # (n,) model updates applied so far
+    state: np.ndarray              # (n,) loop state (shm.LS)
+    rate_hz: float
+    achieved_rate_hz: float
+    env_rate_hz: float
+    faults: int
+    model_nonfinite: int
+    rate_limited: int
+    saturated: int
+    step_us: np.ndarray | None = None        # simulated: CPU time of every loop step [us]
+    model_numba_us: np.ndarray | None = None  # simulated: sampled model-kernel steps [us]
+    model_numpy_us: np.ndarray | None = None  # simulated: the numpy reference on the same states [us]
+    penalty: np.ndarray | None = None         # simulated: (n, 3) penalty + friction wrench at the hand
+    update_step: np.ndarray | None = None     # simulated: (n,) bool, a model update was applied this step
+    compute_us: dict = field(default_factory=dict)   # realtime: the loop's compute-time percentiles
+    lateness_us: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def dt_s(self) -> float:
+        return 1.0 / self.rate_hz
+
+
+def _theta(qw: np.ndarray, qz: np.ndarray) -> np.ndarray:
+    return 2.0 * np.arctan2(qz, qw)
+
+
+def trace_from_rows(spec: RunSpec, mode: str, rows: np.ndarray, **kw) -> Trace:
+    from hapticproxy.server.shm import TEL
+
+    if rows.size == 0:
+        raise RuntimeError("no telemetry rows: the client never engaged the server")
+    eng = np.nonzero(rows[:, TEL["updates"]] > 0)[0]
+    if len(eng) < 10:
+        raise RuntimeError("the client never engaged the server")
+    i0 = int(eng[0])
+    rows = rows[i0:]
+    t_abs = rows[:, TEL["t_s"]]
+    t = t_abs - t_abs[0]
+
+    def cols(*names):
+        return np.stack([rows[:, TEL[n]] for n in names], axis=1)
+
+    dev = cols("dev_x", "dev_y")
+    dev = np.column_stack([dev, np.unwrap(_theta(rows[:, TEL["dev_qw"]], rows[:, TEL["dev_qz"]]))])
+    prx = cols("proxy_x", "proxy_y")
+    prx = np.column_stack([prx, np.unwrap(_theta(rows[:, TEL["proxy_qw"]], rows[:, TEL["proxy_qz"]]))])
+    extra_cols = {k: v[i0:] for k, v in kw.pop("per_step", {}).items()}
+    return Trace(spec=spec, mode=mode, t_s=t, hand_start_s=float(spec.hand.start_s - t_abs[0]),
+                 dev=dev, proxy=prx, dev_vel=cols("dev_vx", "dev_vy", "dev_wz"),
+                 cmd=cols("cmd_fx", "cmd_fy", "cmd_tz"), env=cols("env_fx", "env_fy", "env_tz"),
+                 contacts=rows[:, TEL["contacts"]].copy(), updates=rows[:, TEL["updates"]].copy(),
+                 state=rows[:, TEL["loop_state"]].copy(), **extra_cols, **kw)
+
+
+# ------------------------------------------------------------------------------ simulated time
+class SimEnvClient:
+    """An engine behind the real protocol, stepped in simulated time (one thread, no sockets).
+
+    Each :meth:`service` (called before every haptic step): read every waiting datagram and
+    drive the engine's tool towards the newest ProxyState; when the engine's next step is due,
+    step it, query its epsilon-active contacts and send a ContactUpdate, ``delay_s`` later (the
+    engine's computation and the network; 0: at once). The next step is due the engine's own
+    step length later (its variable rate), as for an engine running in real time."""
+
+    def __init__(self, engine, url: str, clock, *, scene: str, epsilon_m: float, max_contacts: int,
+                 delay_s: float = 0.0) -> None:
+        from hapticproxy.clients.engine import ContactBuffer
+        from hapticproxy.clients.runner import TOOL_KINDS
+        from hapticproxy.protocol.codec import Hello
+        from hapticproxy.protocol.session import ClientEndpoint
+        from hapticproxy.protocol.transport import open_transport
+
+        self.engine = engine
+        self.clock = clock
+        self.info = engine.load_scene(scene)
+        engine.set_epsilon(epsilon_m)
+        tool = self.info.tool
+        self.tr = open_transport(url, "client")
+        self.hello = Hello(client_nonce=1, engine=engine.name[:200], tool_kind=TOOL_KINDS[tool.kind],
+                           mass_kg=float(tool.mass_kg), com_m=tuple(float(v) for v in tool.com_m),
+                           inertia_kg_m2=tuple(float(v) for v in tool.inertia_kg_m2), axis=(1.0, 0.0, 0.0),
+                           epsilon_m=float(epsilon_m), max_contacts=int(max_contacts),
+                           env_rate_hz=float(self.info.env_rate_hz))
+        self.ep = ClientEndpoint(self.tr.send, self.hello)
+        self.buf = ContactBuffer(max_contacts)
+        self.pose = np.zeros(7)
+        self.delay_ns = int(round(delay_s * _NS))
+        self.pending: list = []
+        self.next_ns = 0
+        self.started = False
+        self.welcomed = False
+        self.steps = 0
+        self.updates_sent = 0
+
+    def service(self) -> None:
+        now = self.clock.now_ns()
+        ep = self.ep
+        if not self.started:
+            ep.start(now)
+            self.started = True
+        newest = None
+        while (got := self.tr.recv()) is not None:
+            ps = ep.receive(got[0], got[1], now)
+            if ps is not None:
+                newest = ps
+        if newest is not None:
+            self.engine.drive_tool(newest.proxy_pose, newest.proxy_twist, newest.wrench)
+        ep.poll(now)
+        if ep.established and not self.welcomed:
+            self.welcomed = True
+            self.engine.set_epsilon(ep.welcome.epsilon_m)
+            from hapticproxy.clients.engine import ContactBuffer
+
+            self.buf = ContactBuffer(ep.welcome.max_contacts)
+            self.next_ns = now
+        if self.welcomed and now >= self.next_ns:
+            eng = self.engine
+            dt = eng.next_step_s() or 1.0 / self.info.env_rate_hz
+            eng.step(dt)
+            n = eng.contacts(self.buf, self.buf.capacity)
+            eng.tool_pose(self.pose)
+            b = self.buf
+            item = (now + self.delay_ns, eng.time_s, self.pose.copy(), b.keys[:n].copy(), b.position_m[:n].copy(),
+                    b.normal[:n].copy(), b.separation_m[:n].copy(), b.v_constr_m_per_s[:n].copy())
+            self.pending.append(item)
+            self.steps += 1
+            self.next_ns = now + int(round(dt * _NS))
+        while self.pending and self.pending[0][0] <= now:
+            _, t_env, pose, k, p, nrm, d, vc = self.pending.pop(0)
+            if ep.established:
+                ep.send_contacts(now, t_env, pose, k, p, nrm, d, vc)
+                self.updates_sent += 1
+
+    def close(self) -> None:
+        self.tr.close()
+
+
+def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_every: int = 0,
+                  folder: Path | None = None) -> Trace:
+    """Run ``spec`` in simulated time in this process (see the module docstring).
+
+    ``model_timing_every`` > 0: every that many steps, time the model kernel alone (numba
+    ``step_rigid``) and the plain-numpy reference step on copies of the live arrays with the
+    step's hand wrench (the numba vs numpy cost on the run's own states)."""
+    from hapticproxy.server import config as cfgmod
+    from hapticproxy.server.clock import SimClock
+    from hapticproxy.server.loop import HapticLoop
+
+    url = f"mem://experiment-{next(_mem_names)}"
+    with tempfile.TemporaryDirectory(prefix="hapticproxy-exp-") as tmp:
+        folder = Path(folder or tmp)
+        settings = cfgmod.load(spec.settings_dict(url, 1, folder))
+        clock = SimClock(start_ns=_NS)
+        loop = HapticLoop(settings, clock=clock)
+    env = None
+    try:
+        loop.warm_up()
+        loop.start()
+        env = SimEnvClient(spec.make_engine(), url, clock, scene=spec.scene, epsilon_m=spec.epsilon_m,
+                           max_contacts=spec.capacity, delay_s=spec.env_delay_s)
+        n_steps = int(round((spec.hand.start_s + spec.seconds) * settings.rate_hz))
+        step_ns = np.zeros(n_steps, dtype=np.int64)
+        hd = 3
+        pen = np.zeros((n_steps, hd)) if record_penalty else None
+        upd = np.zeros(n_steps, dtype=bool)
+        numba_us: list[float] = []
+        numpy_us: list[float] = []
+        rows = np.zeros((n_steps, loop.shared.ring.shape[1]))
+        sh = loop.shared
+        perf = time.perf_counter_ns
+        last_updates = 0
+        for i in range(n_steps):
+            env.service()
+            if model_timing_every and loop._margs is not None and i % model_timing_every == 0:
+                a, b = _time_model_step(loop)
+                numba_us.append(a)
+                numpy_us.append(b)
+            t0 = perf()
+            loop.step()
+            step_ns[i] = perf() - t0
+            rows[i] = sh.ring[(int(sh.head[0]) - 1) % sh.ring_rows]
+            if loop.updates != last_updates:
+                upd[i] = True
+                last_updates = loop.updates
+            if pen is not None and loop.model is not None:
+                pen[i] = loop.model.penalty_wrench[:hd]
+        snap = sh.snapshot()
+        counters = loop.ctrl.counters()
+        tr = trace_from_rows(
+            spec, "simulated", rows, rate_hz=settings.rate_hz, achieved_rate_hz=settings.rate_hz,
+            env_rate_hz=float(snap["env_rate_hz"]), faults=int(loop.faults_total),
+            model_nonfinite=int(loop.model.counters()["nonfinite"]) if loop.model is not None else 0,
+            rate_limited=counters["rate_limited"], saturated=counters["saturated"],
+            per_step={"step_us": step_ns / 1e3, "penalty": pen, "update_step": upd},
+            model_numba_us=np.array(numba_us) if numba_us else None,
+            model_numpy_us=np.array(numpy_us) if numpy_us else None,
+            extra={"env_steps": env.steps, "updates_sent": env.updates_sent, "loop_updates": loop.updates,
+                   "update_errors": loop.update_errors, "model": loop.model.counters() if loop.model else {}})
+        return tr
+    finally:
+        if env is not None:
+            env.close()
+            env.engine.close()
+        loop.close()
+
+
+def _time_model_step(loop) -> tuple[float, float]:
+    """One model step timed twice on copies of the live state: the numba kernel and the numpy
+    reference (same inputs; neither touches the loop's model)."""
+    from hapticproxy.server.model.kernels import step_rigid
+    from hapticproxy.server.model.reference import reference_step
+
+    kind, par, st, C, CI, cnt, wk = loop._margs
+    hand = loop.ctrl.hand.copy()
+    st1, C1, CI1, cnt1, wk1 = st.copy(), C.copy(), CI.copy(), cnt.copy(), wk.copy()
+    t0 = time.perf_counter_ns()
+    step_rigid(kind, par, st1, C1, CI1, cnt1, wk1, hand)
+    t1 = time.perf_counter_ns()
+    reference_step(kind, par, st.copy(), C.copy(), CI.copy(), cnt.copy(), hand)
+    t2 = time.perf_counter_ns()
+    return (t1 - t0) / 1e3, (t2 - t1) / 1e3
+
+
+# ------------------------------------------------------------------------------ real time
+def run_realtime(spec: RunSpec, *, log=None, connect_timeout_s: float = 30.0) -> Trace:
+    """Run ``spec`` on the real server process and a real client over UDP on 127.0.0.1."""
+    from hapticproxy.clients.runner import ClientRunner
+    from hapticproxy.server import config as cfgmod
+    from hapticproxy.server.daemon import Supervisor
+
+    url = f"udp://127.0.0.1:{free_port()}"
+    with tempfile.TemporaryDirectory(prefix="hapticproxy-exp-") as tmp:
+        settings = cfgmod.load(spec.settings_dict(url, None, Path(tmp)))
+        sup = Supervisor(settings)
+        eng = spec.make_engine()
+        stop = threading.Event()
+        runner = ClientRunner(eng, url, scene=spec.scene, epsilon_m=spec.epsilon_m, max_contacts=spec.capacity,
+                              connect_timeout_s=connect_timeout_s)
+        err: list[BaseException] = []
+
+        def client():
+            try:
+                runner.run(stop)
+            except BaseException as exc:  # noqa: BLE001 - re-raised below
+                err.append(exc)
+
+        th = threading.Thread(target=client, name="experiment-client", daemon=True)
+        try:
+            sup.start()
+            th.start()
+            total = spec.hand.start_s + spec.seconds
+            t0 = time.monotonic()
+            while not err:
+                sup._serve_status(0.05)
+                snap_t = sup.shared.status[sup._st("t_last_ns")] - sup.shared.status[sup._st("t_start_ns")]
+                if snap_t * 1e-9 >= total or time.monotonic() - t0 > total + connect_timeout_s:
+                    break
+            snap = sup.shared.snapshot()
+            head = int(sup.shared.head[0])
+            n = min(head, sup.ring_rows)
+            rows = sup.shared.ring[np.arange(head - n, head) % sup.ring_rows].copy()
+        finally:
+            stop.set()
+            th.join(10)
+            sup.close()
+            eng.close()
+    if err:
+        raise RuntimeError(f"environment client failed: {err[0]}")
+    span = (snap["t_last_ns"] - snap["t_start_ns"]) * 1e-9
+    achieved = (snap["steps"] - 1) / span if span > 0 else 0.0
+    from hapticproxy.server.shm import TEL
+
+    first = rows[rows[:, TEL["updates"]] > 0]
+    if len(first) and first[0, TEL["t_s"]] >= spec.hand.start_s:
+        raise RuntimeError(f"the client engaged {first[0, TEL['t_s']]:.2f} s after the loop started, after the "
+                           f"hand ({spec.hand.start_s:g} s): raise hand.start_s")
+    return trace_from_rows(
+        spec, "realtime", rows, rate_hz=settings.rate_hz, achieved_rate_hz=achieved,
+        env_rate_hz=float(snap["env_rate_hz"]), faults=int(snap["faults_total"]),
+        model_nonfinite=int(snap["model_nonfinite"]), rate_limited=int(snap["rate_limited"]),
+        saturated=int(snap["saturated"]), compute_us=snap["compute_us"], lateness_us=snap["lateness_us"],
+        extra={"client": {k: v for k, v in runner.stats().items() if isinstance(v, (int, float, str))},
+               "missed_deadlines": int(snap["missed_deadlines"]), "overruns": int(snap["overruns"]),
+               "rt_scheduling": bool(snap["rt_scheduling"]), "updates": int(snap["updates"])})
+
+
+def run(spec: RunSpec, mode: str, **kw) -> Trace:
+    if mode == "realtime":
+        return run_realtime(spec, **kw)
+    if mode == "simulated":
+        return run_simulated(spec, **kw)
+    raise ValueError(f"mode: expected realtime or simulated, got {mode!r}")
