@@ -26,9 +26,12 @@ Safety (order matters): a non-finite command or device state -> zero output and 
 ``NONFINITE`` code (the loop disables the device); device speed over its limit -> the gain
 target drops to 0 (a fade-out) and a trip is counted; then ``gain`` moves towards its target by
 ``dt / ramp_in_s`` (up) or ``dt / fade_s`` (down); the scaled command is capped per axis
-(counted) and scaled by the gain (so while ramping in the output is at most ``gain * cap``), then
-its change per step is capped at the rate limit (counted). Because the previous output and the
-capped target both lie within the caps, the rate-limited output does too.
+(counted) and scaled by the gain (so while ramping in the output is at most ``gain * cap``);
+while the gain goes down (a fade) each component is also kept between zero and its previous
+value times ``gain / previous gain``, so a fade never pushes harder than where it began, whatever
+the command does meanwhile; then the change per step is capped at the rate limit (counted).
+Because the previous output and the capped target both lie within the caps, the rate-limited
+output does too.
 """
 from __future__ import annotations
 
@@ -176,12 +179,15 @@ def _safety(cp, cs, cc, cmd):
         cs[CS_TARGET] = 0.0
         cc[CC_NONFINITE] += 1
         return RC_NONFINITE
-    g = cs[CS_GAIN]
+    g_old = cs[CS_GAIN]
+    g = g_old
     if cs[CS_TARGET] > g:
         g = min(cs[CS_TARGET], g + cp[CP_RAMP])
     elif cs[CS_TARGET] < g:
         g = max(cs[CS_TARGET], g - cp[CP_FADE])
     cs[CS_GAIN] = g
+    fading = g < g_old
+    shrink = g / g_old if fading else 1.0
     sat = False
     lim = False
     for j in range(6):
@@ -197,6 +203,16 @@ def _safety(cp, cs, cc, cmd):
             sat = True
         v *= g
         prev = cs[CS_PREV + j]
+        if fading:
+            # A fade only takes force away: the user pushing on while it runs stretches the
+            # coupling and raises the command, so the gain alone would not bring the force down
+            # (it could even rise to gain * cap). Each component stays between zero and its
+            # previous value scaled like the gain: at most a linear fade from where it began.
+            bound = prev * shrink
+            if bound >= 0.0:
+                v = min(max(v, 0.0), bound)
+            else:
+                v = max(min(v, 0.0), bound)
         if v > prev + rate:
             v = prev + rate
             lim = True

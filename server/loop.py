@@ -327,6 +327,10 @@ class HapticLoop:
         if sid != self.session_id or self.model is None:
             if self.model is not None and self.session_id in self.endpoint.sessions:
                 return  # another session owns the model; its updates are the only ones applied
+            if self.model is not None and self.ctrl.cs[ctl.CS_GAIN] > 0.0:
+                # the previous session's force is still fading out: engage once it is gone, so
+                # the new session ramps in from zero (its updates until then are not acked)
+                return
             if self.stopping:
                 return
             self._engage(upd, now)
