@@ -566,6 +566,15 @@ class HapticLoop:
         st[ST["engagements"]] = self.engagements
         st[ST["faults_total"]] = self.faults_total
         st[ST["telemetry_overwritten"]] = max(0, int(self.shared.head[0]) - self.shared.ring_rows)
+        st[ST["datagrams_received"]] = ec.received
+        st[ST["bad_token"]] = ec.bad_token
+        st[ST["wrong_peer"]] = ec.wrong_peer
+        st[ST["unknown_session"]] = ec.unknown_session
+        st[ST["bad_mac"]] = ec.bad_mac
+        st[ST["unexpected"]] = ec.unexpected
+        st[ST["wrong_version"]] = self.endpoint.codec.counters.unknown_major
+        st[ST["rejects_sent"]] = ec.rejects_sent
+        st[ST["dropped_empty"]] = getattr(tc, "dropped_empty", 0)
 
     # ---------------------------------------------------------------------------- running
     def run(self, *, max_steps: int | None = None, duration_s: float | None = None) -> None:

@@ -30,6 +30,9 @@ STATUS_FIELDS = (
     "loop_state", "watchdog", "gain", "fault", "device_fault", "model_nonfinite", "saturated", "rate_limited",
     "speed_trips", "spin_ns", "env_silence_ms", "env_rate_hz", "ready", "exit_code", "timer_slack",
     "force_cap_n", "rate_limit_n_per_step", "engagements", "faults_total", "telemetry_overwritten",
+    # what the session layer refused, by reason (stale_or_duplicate and decode_errors above)
+    "datagrams_received", "bad_token", "wrong_peer", "unknown_session", "bad_mac", "unexpected",
+    "wrong_version", "rejects_sent", "dropped_empty",
 )
 ST = {name: i for i, name in enumerate(STATUS_FIELDS)}
 NSTAT = len(STATUS_FIELDS)
