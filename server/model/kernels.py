@@ -719,50 +719,49 @@ def validate_contacts(kind, n_links, keys, cp, nrm, dsep, vc, n_in):
 
 
 @njit(**_JIT)
-def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, sel, newF, newI,
-                 qe, use_qe, st_e, Re, ce):
-    """Replace the local contact set by the engine's (validated first; on error nothing changes).
-    Contacts absent from the update leave the model. The proxy's q and qd are never touched.
-
-    ``use_qe`` = 0: the paper's eq. 1, the reported feature point ``c_p + d n`` is taken relative
-    to the proxy's COM (the engine's tool is assumed to be where the proxy is). ``use_qe`` = 1:
-    ``qe`` is the engine's tool configuration at which the contacts were computed; the feature
-    point is taken in the engine tool's body frame and carried onto the proxy, and the rule table
-    compares the proxy's separation against that true geometry (``s_w``) instead of ``d``. When
-    the engine's tool is where the proxy is, both are the same. ``st_e``, ``Re``, ``ce``: scratch."""
-    code = validate_contacts(kind, 1, keys, cp, nrm, dsep, vc, n_in)
-    if code != E_OK:
-        return code
-    cap = C.shape[0]
+def select_and_check(keys, dsep, n_in, cap, sel):
+    """The capacity rule and the duplicate-key check of an update: returns (E_* code, number kept);
+    ``sel[:nk]`` are the rows kept, in incoming order."""
     if n_in > sel.shape[0]:
-        return E_TOO_MANY
+        return E_TOO_MANY, 0
     nk = _select_smallest(dsep, n_in, cap, sel)
     for a in range(nk):
         ja = sel[a]
         for b2 in range(a):
             jb = sel[b2]
             if keys[ja, 0] == keys[jb, 0] and keys[ja, 1] == keys[jb, 1] and keys[ja, 2] == keys[jb, 2]:
-                return E_DUPLICATE_KEY
-    # --- validated: from here on the update is applied ---
+                return E_DUPLICATE_KEY, 0
+    return E_OK, nk
+
+
+@njit(**_JIT)
+def _pose_row(R, c, P, k):
+    """Pack a link pose (R link->world, origin c, world) into row k of a pose-row array."""
+    for a in range(3):
+        for b2 in range(3):
+            P[k, 3 * a + b2] = R[a, b2]
+        P[k, 9 + a] = c[a]
+
+
+@njit(**_JIT)
+def apply_update(planar, par, st, C, CI, cnt, X, Zn, keys, cp, nrm, dsep, vc, n_in, nk, sel,
+                 newF, newI, P, Pe, use_qe):
+    """The rule table of the notes on a validated update (``sel[:nk]`` kept). ``P[k]``: pose row
+    of tool link k (rotation link -> world row-major, then the link frame's origin, world) at the
+    proxy's configuration, ``Pe[k]`` the same at the engine's (read only when ``use_qe``). A
+    contact's local point is stored in the frame of its link (key column 0). ``X``, ``Zn``:
+    scratch (m x 3)."""
     m = cnt[K_M]
-    D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V = _views(wk, cap)
-    R = Y
-    c = V[_V_T1]
-    _rigid_pose(kind, par, st, R, c)
-    if use_qe:
-        nq = 1 if kind == TOOL_1DOF else (3 if kind == TOOL_PLANAR else 7)
-        for a in range(nq):
-            st_e[S_Q + a] = qe[a]
-        _rigid_pose(kind, par, st_e, Re, ce)
     t = st[S_T]
     policy = int(par[P_POLICY])
     # current world points and proxy separations s_p of the existing contacts
     # Zn[:, 0] (friction scratch of the step) holds s_p here
     for i in range(m):
+        k = CI[i, CI_KEY]
         for a in range(3):
-            s = c[a]
+            s = P[k, 9 + a]
             for b2 in range(3):
-                s += R[a, b2] * C[i, C_P + b2]
+                s += P[k, 3 * a + b2] * C[i, C_P + b2]
             X[i, a] = s
         s = -C[i, C_VC] * (t - C[i, C_TU])
         for a in range(3):
@@ -773,6 +772,7 @@ def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, s
     n_def = 0
     for a in range(nk):
         j = sel[a]
+        k = keys[j, 0]
         found = -1
         for i in range(m):
             if CI[i, CI_KEY] == keys[j, 0] and CI[i, CI_KEY + 1] == keys[j, 1] \
@@ -781,15 +781,15 @@ def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, s
                 break
         # the tool feature as the proxy carries it (Xp) and its separation s_w along n
         if use_qe:
-            fx = cp[j, 0] + dsep[j] * nrm[j, 0] - ce[0]
-            fy = cp[j, 1] + dsep[j] * nrm[j, 1] - ce[1]
-            fz = cp[j, 2] + dsep[j] * nrm[j, 2] - ce[2]
-            bx = Re[0, 0] * fx + Re[1, 0] * fy + Re[2, 0] * fz
-            by = Re[0, 1] * fx + Re[1, 1] * fy + Re[2, 1] * fz
-            bz = Re[0, 2] * fx + Re[1, 2] * fy + Re[2, 2] * fz
-            xp0 = c[0] + R[0, 0] * bx + R[0, 1] * by + R[0, 2] * bz
-            xp1 = c[1] + R[1, 0] * bx + R[1, 1] * by + R[1, 2] * bz
-            xp2 = c[2] + R[2, 0] * bx + R[2, 1] * by + R[2, 2] * bz
+            fx = cp[j, 0] + dsep[j] * nrm[j, 0] - Pe[k, 9]
+            fy = cp[j, 1] + dsep[j] * nrm[j, 1] - Pe[k, 10]
+            fz = cp[j, 2] + dsep[j] * nrm[j, 2] - Pe[k, 11]
+            bx = Pe[k, 0] * fx + Pe[k, 3] * fy + Pe[k, 6] * fz
+            by = Pe[k, 1] * fx + Pe[k, 4] * fy + Pe[k, 7] * fz
+            bz = Pe[k, 2] * fx + Pe[k, 5] * fy + Pe[k, 8] * fz
+            xp0 = P[k, 9] + P[k, 0] * bx + P[k, 1] * by + P[k, 2] * bz
+            xp1 = P[k, 10] + P[k, 3] * bx + P[k, 4] * by + P[k, 5] * bz
+            xp2 = P[k, 11] + P[k, 6] * bx + P[k, 7] * by + P[k, 8] * bz
             dj = (nrm[j, 0] * (xp0 - cp[j, 0]) + nrm[j, 1] * (xp1 - cp[j, 1])
                   + nrm[j, 2] * (xp2 - cp[j, 2]))
         else:
@@ -834,7 +834,7 @@ def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, s
             newI[a, CI_KEY + q_] = keys[j, q_]
             newF[a, C_CP + q_] = cp[j, q_]
             newF[a, C_N + q_] = nrm[j, q_]
-        if kind == TOOL_PLANAR:
+        if planar:
             newF[a, C_CP + 2] = 0.0
             newF[a, C_N + 2] = 0.0
         newF[a, C_D] = dsep[j]
@@ -845,17 +845,17 @@ def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, s
         newF[a, C_IMP] = 0.0
         for q_ in range(3):
             newF[a, C_FT + q_] = 0.0
-        # local contact point in the body frame: p = R^T (Xp + (off - s_w) n - c); with the
+        # local contact point in the link frame: p = R^T (Xp + (off - s_w) n - c); with the
         # engine at the proxy's pose Xp = c_p + d n, s_w = d: p = R^T (c_p + off n - c)  (eqs. 1, 4, 5, 6)
-        X[0, 0] = xp0 + (off - dj) * newF[a, C_N] - c[0]
-        X[0, 1] = xp1 + (off - dj) * newF[a, C_N + 1] - c[1]
-        X[0, 2] = xp2 + (off - dj) * newF[a, C_N + 2] - c[2]
+        X[0, 0] = xp0 + (off - dj) * newF[a, C_N] - P[k, 9]
+        X[0, 1] = xp1 + (off - dj) * newF[a, C_N + 1] - P[k, 10]
+        X[0, 2] = xp2 + (off - dj) * newF[a, C_N + 2] - P[k, 11]
         for q_ in range(3):
             s = 0.0
             for b2 in range(3):
-                s += R[b2, q_] * X[0, b2]
+                s += P[k, 3 * b2 + q_] * X[0, b2]
             newF[a, C_P + q_] = s
-        if kind == TOOL_PLANAR:
+        if planar:
             newF[a, C_P + 2] = 0.0
     for a in range(nk):
         for q_ in range(NCOLS_F):
@@ -868,4 +868,43 @@ def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, s
     cnt[K_NEW] += n_new
     cnt[K_DEFORMED] += n_def
     cnt[K_LEFT] += m - matched
+
+
+@njit(**_JIT)
+def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, sel, newF, newI,
+                 qe, use_qe, st_e, Re, ce):
+    """Replace the local contact set by the engine's (validated first; on error nothing changes).
+    Contacts absent from the update leave the model. The proxy's q and qd are never touched.
+
+    ``use_qe`` = 0: the paper's eq. 1, the reported feature point ``c_p + d n`` is taken relative
+    to the proxy's COM (the engine's tool is assumed to be where the proxy is). ``use_qe`` = 1:
+    ``qe`` is the engine's tool configuration at which the contacts were computed; the feature
+    point is taken in the engine tool's body frame and carried onto the proxy, and the rule table
+    compares the proxy's separation against that true geometry (``s_w``) instead of ``d``. When
+    the engine's tool is where the proxy is, both are the same. ``st_e``, ``Re``, ``ce``: scratch."""
+    code = validate_contacts(kind, 1, keys, cp, nrm, dsep, vc, n_in)
+    if code != E_OK:
+        return code
+    cap = C.shape[0]
+    code, nk = select_and_check(keys, dsep, n_in, cap, sel)
+    if code != E_OK:
+        return code
+    # --- validated: from here on the update is applied ---
+    D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V = _views(wk, cap)
+    R = Y
+    c = V[_V_T1]
+    # one pose row each (rotation + origin: 12 = MAX_DOF floats) in vector scratch rows the
+    # update does not otherwise use
+    P = V[_V_T2:_V_T2 + 1]
+    Pe = V[_V_TAU:_V_TAU + 1]
+    _rigid_pose(kind, par, st, R, c)
+    _pose_row(R, c, P, 0)
+    if use_qe:
+        nq = 1 if kind == TOOL_1DOF else (3 if kind == TOOL_PLANAR else 7)
+        for a in range(nq):
+            st_e[S_Q + a] = qe[a]
+        _rigid_pose(kind, par, st_e, Re, ce)
+        _pose_row(Re, ce, Pe, 0)
+    apply_update(kind == TOOL_PLANAR, par, st, C, CI, cnt, X, Zn, keys, cp, nrm, dsep, vc, n_in, nk,
+                 sel, newF, newI, P, Pe, use_qe)
     return E_OK

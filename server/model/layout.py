@@ -13,10 +13,13 @@ from __future__ import annotations
 TOOL_1DOF = 0
 TOOL_PLANAR = 1
 TOOL_SPATIAL = 2
-TOOL_KIND_NAMES = {"1dof": TOOL_1DOF, "planar": TOOL_PLANAR, "spatial": TOOL_SPATIAL}
+TOOL_LINKAGE = 3        # a kinematic tree held by one link; planar or spatial: see LM_PLANAR
+TOOL_KIND_NAMES = {"1dof": TOOL_1DOF, "planar": TOOL_PLANAR, "spatial": TOOL_SPATIAL, "linkage": TOOL_LINKAGE}
 #: (configuration-space dimension d, hand-wrench dimension h, number of position coordinates nq)
+#: of the rigid kinds; a linkage's follow from its links (``linkage_dims``).
 TOOL_DIMS = {TOOL_1DOF: (1, 1, 1), TOOL_PLANAR: (3, 3, 3), TOOL_SPATIAL: (6, 6, 7)}
-#: Largest configuration space the generic kernels size their workspace for (linkages <= 12 joints).
+#: Largest configuration space the generic kernels size their workspace for: a planar linkage
+#: has d = 3 + joints (<= 9 joints), a spatial one d = 6 + joints (<= 6 joints).
 MAX_DOF = 12
 
 # --- update policies --------------------------------------------------------------------------
@@ -47,7 +50,8 @@ C_N = 3             # 3..5 constraint normal n, unit, world, environment -> tool
 C_D = 6             # real-tool separation d reported by the engine, m (positive apart)
 C_VC = 7            # constraint normal velocity v_constr = n . v(c_p), m/s (eq. 2)
 C_TU = 8            # model time of the update that set this constraint, s
-C_P = 9             # 9..11 local contact point p~, body frame of its link, m
+C_P = 9             # 9..11 local contact point p~, body frame of its link, m (rigid: the COM
+                    # frame; linkage: the link's own frame, origin at its joint)
 C_S = 12            # separation s_t at this step (eq. 3), m
 C_SPREV = 13        # separation s_{t-1}; +inf for a contact that has just arisen
 C_VN = 14           # proxy normal velocity relative to the (moving) constraint, m/s
@@ -95,7 +99,11 @@ S_KE = 44           # proxy kinetic energy after the step, J
 S_KE_PRE = 45       # kinetic energy before this step's collision impulse, J
 S_KE_POST = 46      # kinetic energy right after it, J
 S_GIMP = 47         # 47..58 generalized impulse Jc^T p of this step, config space
-NSTATE = 59
+S_LQ = 59           # 59..71 linkage configuration: the root link frame's pose (planar: x, y,
+                    # theta; spatial: x, y, z, qw, qx, qy, qz; world) then one q per joint in link
+                    # order (rad or m). Rigid tools keep q at S_Q; qd is at S_QD for both (root:
+                    # velocity of the root frame's origin and angular velocity, world; then joints)
+NSTATE = 72
 
 # --- counters (int64) -------------------------------------------------------------------------
 K_M = 0             # live contacts
@@ -115,6 +123,52 @@ K_N_SEPARATING = 13
 K_RANK = 14         # rank of the collision constraint set at the last impulse
 K_SLIPPING = 15     # contacts slipping this step
 NCOUNT = 16
+
+# --- linkages ---------------------------------------------------------------------------------
+#: Most links a linkage model holds (a planar linkage with 9 joints; spatial ones stop at 7).
+MAX_LINKS = 10
+JT_ROOT = 0         # joint types, the protocol's JointType values
+JT_REVOLUTE = 1
+JT_PRISMATIC = 2
+# meta (int64[NLM])
+LM_NLINKS = 0       # number of links L (link 0 is the root: the floating base)
+LM_PLANAR = 1       # 1: planar (x-y plane, rotation about +z), 0: spatial
+LM_HELD = 2         # the link the hand holds (at its frame origin)
+LM_D = 3            # configuration-space dimension d = LM_R + L - 1
+LM_H = 4            # hand-space dimension h (3 planar, 6 spatial)
+LM_R = 5            # root velocity coordinates (3 planar, 6 spatial)
+LM_NQR = 6          # root position coordinates (3 planar, 7 spatial)
+LM_COR = 7          # 1: velocity-product (Coriolis, centripetal, gyroscopic) terms included;
+                    # 0: neglected, as the paper's eq. 7 writes it
+NLM = 8
+# per-link constants (float64[L, NLK]), link frame unless noted
+LK_MASS = 0         # kg
+LK_COM = 1          # 1..3 centre of mass, link frame, m
+LK_I = 4            # 4..12 inertia about the COM, link frame, row-major 3x3, kg m^2
+LK_AXIS = 13        # 13..15 unit joint axis, link frame
+LK_OP = 16          # 16..18 joint origin: this link's frame origin in the parent's frame at q = 0, m
+LK_OR = 19          # 19..27 joint origin rotation (this link's frame in the parent's), row-major
+NLK = 28
+# per-link integers (int64[L, NLI])
+LI_PARENT = 0       # parent link (-1 for the root)
+LI_TYPE = 1         # JT_*
+LI_NCHAIN = 2       # number of configuration columns that move this link (root + ancestor joints)
+LI_CHAIN = 3        # 3..3+MAX_DOF-1 those columns, ascending
+NLI = 3 + MAX_DOF
+# per-link work rows (float64[L, NLW]); the first 12 columns are also the layout of the link-pose
+# rows the update rule table reads (rigid tools pass one such row)
+LW_R = 0            # 0..8 link frame rotation, link -> world, row-major
+LW_P = 9            # 9..11 link frame origin, world, m
+LW_A = 12           # 12..14 joint axis, world
+LW_C = 15           # 15..17 centre of mass, world, m
+LW_IW = 18          # 18..26 inertia about the COM, world, row-major
+LW_JV = 27          # 27.. velocity of the COM per chain column (3 x MAX_DOF, column-major by chain slot)
+LW_JW = LW_JV + 3 * MAX_DOF     # angular velocity per chain column (3 x MAX_DOF)
+LW_W = LW_JW + 3 * MAX_DOF      # angular velocity of the link, world, rad/s
+LW_V = LW_W + 3     # velocity of the link frame origin, world, m/s
+LW_AL = LW_V + 3    # velocity-product part of the link's angular acceleration (qdd = 0), rad/s^2
+LW_AC = LW_AL + 3   # velocity-product part of the frame origin's acceleration (qdd = 0), m/s^2
+NLW = LW_AC + 3
 
 # --- step / update return codes (0 = ok); the class turns them into ValueError ----------------
 E_OK = 0

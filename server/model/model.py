@@ -20,6 +20,7 @@ from typing import Sequence
 import numpy as np
 
 from . import kernels as _k
+from . import linkage as _lk
 from .layout import (
     C_CP, C_D, C_FN, C_FT, C_IMP, C_N, C_P, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
     CI_AGE, CI_KEY, CI_SLIP, CI_STATE, CONTACT_STATE_NAMES, E_OK, ERROR_FIELDS,
@@ -28,14 +29,20 @@ from .layout import (
     K_UPDATES, NCOLS_F, NCOLS_I, NCOUNT, NPAR, NSTATE,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_EPS, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK,
     P_MUS, P_ORIGIN, P_POLICY, POLICY_NAMES, PROXY_STATE_NAMES,
-    S_FENV, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_Q, S_QD, S_T,
-    TOOL_1DOF, TOOL_DIMS, TOOL_KIND_NAMES, TOOL_PLANAR, TOOL_SPATIAL, UNIT_TOL,
+    S_FENV, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
+    TOOL_1DOF, TOOL_DIMS, TOOL_KIND_NAMES, TOOL_LINKAGE, TOOL_PLANAR, TOOL_SPATIAL, UNIT_TOL,
+    JT_PRISMATIC, JT_REVOLUTE, JT_ROOT, LI_CHAIN, LI_NCHAIN, LI_PARENT, LI_TYPE,
+    LK_AXIS, LK_COM, LK_I, LK_MASS, LK_OP, LK_OR, LM_D, LM_H, LM_HELD, LM_NLINKS, LM_NQR, LM_PLANAR,
+    LM_COR, LM_R, LW_P, LW_R, MAX_DOF, NLI, NLK, NLM, NLW,
 )
 
 _F64 = np.dtype(np.float64)
 DEFAULT_CAPACITY = 64
 #: Most contacts one update may carry before the capacity rule; larger sets are refused.
 DEFAULT_MAX_UPDATE_CONTACTS = 1024
+#: ``linkage_dynamics``: "full" includes the velocity-product (Coriolis, centripetal, gyroscopic)
+#: terms of a linkage's eq. 7; "paper" neglects them as the paper does (see ``linkage.py``).
+LINKAGE_DYNAMICS = ("full", "paper")
 
 
 def _finite_float(name: str, value) -> float:
@@ -57,13 +64,122 @@ def _vec3(name: str, value) -> np.ndarray:
     return a
 
 
+JOINT_TYPES = {"root": JT_ROOT, "revolute": JT_REVOLUTE, "prismatic": JT_PRISMATIC}
+
+
+@dataclass(frozen=True)
+class LinkSpec:
+    """One link of a linkage tool: the protocol's link record (``Hello.links``) in SI units.
+
+    Link 0 is the root (``parent = -1``, ``joint = "root"``): the floating base, whose frame is
+    the tool frame. Every other link hangs from an earlier ``parent`` by a ``"revolute"`` (q in
+    rad, right-handed about ``axis``) or ``"prismatic"`` (q in m along ``axis``) joint; ``axis``
+    is a unit vector in this link's frame; ``origin_m`` / ``origin_quat`` (w x y z) are this
+    link's frame in the parent's frame at q = 0. ``com_m`` and ``inertia_kg_m2`` (about the COM;
+    3x3, or 3 principal moments) are in this link's frame.
+    """
+
+    mass_kg: float
+    com_m: tuple = (0.0, 0.0, 0.0)
+    inertia_kg_m2: tuple = (0.0, 0.0, 0.0)
+    parent: int = -1
+    joint: str = "root"
+    axis: tuple = (0.0, 0.0, 1.0)
+    origin_m: tuple = (0.0, 0.0, 0.0)
+    origin_quat: tuple = (1.0, 0.0, 0.0, 0.0)
+
+    def inertia_matrix(self) -> np.ndarray:
+        a = np.asarray(self.inertia_kg_m2, dtype=np.float64)
+        return np.diag(a) if a.shape == (3,) else a
+
+
+def linkage_dims(n_links: int, planar: bool) -> tuple[int, int, int]:
+    """(d, h, nq) of a linkage with ``n_links`` links: the root's 3 (6) velocity coordinates plus
+    one per joint; hand space 3 (6); position coordinates 3 (7) plus one per joint."""
+    j = n_links - 1
+    return (3 + j, 3, 3 + j) if planar else (6 + j, 6, 7 + j)
+
+
+def _quat_matrix(q) -> np.ndarray:
+    w, x, y, z = (float(v) for v in q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _validate_links(links, held_link, planar: bool) -> None:
+    """ValueError naming ``tool.links[i].field`` for anything the linkage kernels cannot model."""
+    if not isinstance(links, (tuple, list)) or not links:
+        raise ValueError("tool.links: a linkage needs at least one link (the root)")
+    n = len(links)
+    limit = MAX_DOF - (3 if planar else 6) + 1
+    if n > limit:
+        raise ValueError(f"tool.links: a {'planar' if planar else 'spatial'} linkage has at most {limit} links "
+                         f"({limit - 1} joints: configuration space <= {MAX_DOF}), got {n}")
+    if not isinstance(held_link, (int, np.integer)) or not 0 <= held_link < n:
+        raise ValueError(f"tool.held_link: expected a link index in 0..{n - 1}, got {held_link!r}")
+    for i, ln in enumerate(links):
+        f = f"tool.links[{i}]"
+        if not isinstance(ln, LinkSpec):
+            raise ValueError(f"{f}: expected a LinkSpec, got {type(ln).__name__}")
+        mass = _finite_float(f"{f}.mass_kg", ln.mass_kg)
+        if not mass > 0:
+            raise ValueError(f"{f}.mass_kg: must be positive, got {mass!r}")
+        _vec3(f"{f}.com_m", ln.com_m)
+        inertia = np.asarray(ln.inertia_kg_m2, dtype=np.float64)
+        if inertia.shape == (3,):
+            inertia = np.diag(inertia)
+        if inertia.shape != (3, 3) or not np.all(np.isfinite(inertia)):
+            raise ValueError(f"{f}.inertia_kg_m2: expected 3 finite moments or a finite 3x3 matrix")
+        if not np.allclose(inertia, inertia.T, rtol=1e-9, atol=1e-15):
+            raise ValueError(f"{f}.inertia_kg_m2: must be symmetric")
+        if planar:
+            # only I_zz enters a planar linkage; it must be positive or D(q) can be singular
+            if not inertia[2, 2] > 0:
+                raise ValueError(f"{f}.inertia_kg_m2: I_zz must be positive for a planar linkage, got {inertia[2, 2]!r}")
+        elif not np.all(np.linalg.eigvalsh(inertia) > 0):
+            raise ValueError(f"{f}.inertia_kg_m2: must be positive definite (every link's inertia enters D(q))")
+        if ln.joint not in JOINT_TYPES:
+            raise ValueError(f"{f}.joint: expected one of {sorted(JOINT_TYPES)}, got {ln.joint!r}")
+        if i == 0:
+            if ln.parent != -1 or ln.joint != "root":
+                raise ValueError(f"{f}: link 0 must be the root (parent -1, joint 'root')")
+            continue
+        if not isinstance(ln.parent, (int, np.integer)) or not 0 <= ln.parent < i:
+            raise ValueError(f"{f}.parent: must be an earlier link (0 <= parent < {i}), got {ln.parent!r}")
+        if ln.joint == "root":
+            raise ValueError(f"{f}.joint: only link 0 may be the root")
+        axis = _vec3(f"{f}.axis", ln.axis)
+        if abs(np.linalg.norm(axis) - 1.0) > UNIT_TOL:
+            raise ValueError(f"{f}.axis: must be a unit vector, got {axis.tolist()}")
+        origin = _vec3(f"{f}.origin_m", ln.origin_m)
+        quat = np.asarray(ln.origin_quat, dtype=np.float64)
+        if quat.shape != (4,) or not np.all(np.isfinite(quat)) or abs(np.linalg.norm(quat) - 1.0) > UNIT_TOL:
+            raise ValueError(f"{f}.origin_quat: must be a unit quaternion (w x y z), got {np.ravel(quat).tolist()}")
+        if planar:
+            # everything must stay in the x-y plane: frames rotate about z only, no z offsets
+            if abs(quat[1]) > UNIT_TOL or abs(quat[2]) > UNIT_TOL:
+                raise ValueError(f"{f}.origin_quat: a planar linkage's frames may only rotate about +z")
+            if abs(origin[2]) > 1e-9:
+                raise ValueError(f"{f}.origin_m: a planar linkage has no z offsets, got z = {origin[2]!r}")
+            if ln.joint == "revolute" and abs(abs(axis[2]) - 1.0) > UNIT_TOL:
+                raise ValueError(f"{f}.axis: a planar revolute joint turns about +-z, got {axis.tolist()}")
+            if ln.joint == "prismatic" and abs(axis[2]) > UNIT_TOL:
+                raise ValueError(f"{f}.axis: a planar prismatic joint slides in the x-y plane, got {axis.tolist()}")
+
+
 @dataclass(frozen=True)
 class ToolSpec:
-    """The virtual tool the proxy stands for. Build with ``one_dof``, ``planar`` or ``spatial``.
+    """The virtual tool the proxy stands for. Build with ``one_dof``, ``planar``, ``spatial`` or
+    ``linkage``.
 
     ``inertia_kg_m2`` is about the centre of mass in the body frame (3x3); ``hand_point_m`` is
     where the hand holds the tool, body frame (the hand wrench acts there). A 1-DOF tool
-    translates along the unit world ``axis`` and has its COM at ``origin_m + q * axis``.
+    translates along the unit world ``axis`` and has its COM at ``origin_m + q * axis``. A
+    linkage is its ``links`` (``LinkSpec``); the hand holds link ``held_link`` at its frame
+    origin; ``planar`` selects the planar (x-y, about +z) or the spatial model.
     """
 
     kind: str
@@ -72,6 +188,9 @@ class ToolSpec:
     axis: tuple = (1.0, 0.0, 0.0)
     origin_m: tuple = (0.0, 0.0, 0.0)
     hand_point_m: tuple = (0.0, 0.0, 0.0)
+    links: tuple = ()
+    held_link: int = 0
+    planar: bool = False
 
     @classmethod
     def one_dof(cls, mass_kg: float, axis=(1.0, 0.0, 0.0), origin_m=(0.0, 0.0, 0.0)) -> "ToolSpec":
@@ -93,6 +212,14 @@ class ToolSpec:
         return cls("spatial", mass_kg, inertia_kg_m2=tuple(map(tuple, inertia.tolist())),
                    hand_point_m=tuple(hand_point_m))
 
+    @classmethod
+    def linkage(cls, links, held_link: int, planar: bool) -> "ToolSpec":
+        """A kinematic tree of ``LinkSpec`` (link 0 the floating root), held by ``held_link`` at
+        its frame origin; ``planar``: the x-y plane model (revolute joints about z)."""
+        links = tuple(links)
+        mass = sum(float(ln.mass_kg) for ln in links if isinstance(ln, LinkSpec)) or 1.0
+        return cls("linkage", mass, links=links, held_link=held_link, planar=bool(planar))
+
     @property
     def kind_id(self) -> int:
         return TOOL_KIND_NAMES[self.kind]
@@ -100,6 +227,11 @@ class ToolSpec:
     def validated(self) -> None:
         if self.kind not in TOOL_KIND_NAMES:
             raise ValueError(f"tool.kind: expected one of {sorted(TOOL_KIND_NAMES)}, got {self.kind!r}")
+        if self.kind == "linkage":
+            _validate_links(self.links, self.held_link, self.planar)
+            return
+        if self.links:
+            raise ValueError("tool.links: only a linkage tool has links")
         mass = _finite_float("tool.mass_kg", self.mass_kg)
         if not mass > 0:
             raise ValueError(f"tool.mass_kg: must be positive, got {mass!r}")
@@ -173,7 +305,12 @@ class ContactSnapshot:
 
 
 class LocalModel:
-    """The paper's local model for one rigid tool (1-DOF, planar or spatial).
+    """The paper's local model for one tool: rigid (1-DOF, planar or spatial) or a linkage.
+
+    A linkage's q is (root pose, joints) and its qd (root origin velocity, root angular velocity,
+    joint rates), see ``linkage.py``; its contacts are located on the link in key column 0, and
+    the hand wrench acts at the held link's frame origin. Rigid tools step through
+    ``kernels.step_rigid`` and never touch the linkage code.
 
     Parameters
     ----------
@@ -187,6 +324,8 @@ class LocalModel:
     capacity: most local contacts kept; an update with more keeps the smallest separations
         and counts the rest in ``counters()["dropped"]``.
     gravity_m_per_s2: world gravity acting on the proxy (default none: the device carries it).
+    linkage_dynamics: a linkage's eq. 7 with its velocity-product terms (``"full"``, default) or
+        without them as the paper writes it (``"paper"``); ignored for rigid tools.
     warm: compile / load the cached kernels now, not at the first haptic step.
     """
 
@@ -201,6 +340,7 @@ class LocalModel:
         capacity: int = DEFAULT_CAPACITY,
         gravity_m_per_s2: Sequence[float] = (0.0, 0.0, 0.0),
         max_update_contacts: int = DEFAULT_MAX_UPDATE_CONTACTS,
+        linkage_dynamics: str = "full",
         warm: bool = True,
     ) -> None:
         tool.validated()
@@ -220,11 +360,17 @@ class LocalModel:
         if not isinstance(max_update_contacts, (int, np.integer)) or max_update_contacts < capacity:
             raise ValueError(f"max_update_contacts: must be an integer >= capacity, got {max_update_contacts!r}")
         grav = _vec3("gravity_m_per_s2", gravity_m_per_s2)
+        if linkage_dynamics not in LINKAGE_DYNAMICS:
+            raise ValueError(f"linkage_dynamics: expected one of {LINKAGE_DYNAMICS}, got {linkage_dynamics!r}")
 
         self.tool = tool
         self.contact = contact
         self.kind = tool.kind_id
-        self.dof, self.hand_dim, self.nq = TOOL_DIMS[self.kind]
+        self.is_linkage = self.kind == TOOL_LINKAGE
+        if self.is_linkage:
+            self.dof, self.hand_dim, self.nq = linkage_dims(len(tool.links), tool.planar)
+        else:
+            self.dof, self.hand_dim, self.nq = TOOL_DIMS[self.kind]
         self.capacity = int(capacity)
         self.policy = policy
 
@@ -262,6 +408,16 @@ class LocalModel:
         self._Re = np.zeros((3, 3))
         self._ce = np.zeros(3)
         self._fenv = self._st[S_FENV:S_FENV + self.hand_dim]
+        self._q_at = S_Q
+        if self.is_linkage:
+            self._lmeta, self._lk, self._lki = linkage_arrays(tool, linkage_dynamics == "full")
+            self._lw = np.zeros((len(tool.links), NLW))
+            self._lw_e = np.zeros((len(tool.links), NLW))
+            self._qe = np.zeros(self.nq)
+            self._q_at = S_LQ
+            self._scratch6 = np.zeros((6, MAX_DOF))
+            # a bound method per instance: rigid models keep the class's step, untouched
+            self.step = self._step_linkage
         self.reset()
         if warm:
             warm_up()
@@ -269,16 +425,18 @@ class LocalModel:
     # -- state ---------------------------------------------------------------------------------
     def reset(self, q: Sequence[float] | None = None, qd: Sequence[float] | None = None) -> None:
         """Put the proxy at configuration q with velocity qd, empty the contact store, zero time.
-        Spatial q is (x, y, z, qw, qx, qy, qz); it is normalised."""
+        Spatial q is (x, y, z, qw, qx, qy, qz); it is normalised. A linkage's q is its root pose
+        (planar x, y, theta; spatial x, y, z, qw, qx, qy, qz) then one value per joint."""
         qv = np.zeros(self.nq)
-        if self.kind == TOOL_SPATIAL:
+        spatial_root = self.kind == TOOL_SPATIAL or (self.is_linkage and not self.tool.planar)
+        if spatial_root:
             qv[3] = 1.0
         if q is not None:
             qa = np.asarray(q, dtype=np.float64).ravel()
             if qa.shape != (self.nq,) or not np.all(np.isfinite(qa)):
                 raise ValueError(f"q: expected {self.nq} finite numbers for a {self.tool.kind} tool")
             qv = qa.copy()
-            if self.kind == TOOL_SPATIAL:
+            if spatial_root:
                 nrm = np.linalg.norm(qv[3:7])
                 if not nrm > 0:
                     raise ValueError("q: the orientation quaternion must be non-zero")
@@ -290,7 +448,7 @@ class LocalModel:
                 raise ValueError(f"qd: expected {self.dof} finite numbers for a {self.tool.kind} tool")
             qdv = qda
         self._st[:] = 0.0
-        self._st[S_Q:S_Q + self.nq] = qv
+        self._st[self._q_at:self._q_at + self.nq] = qv
         self._st[S_QD:S_QD + self.dof] = qdv
         self._C[:] = 0.0
         self._CI[:] = 0
@@ -311,7 +469,7 @@ class LocalModel:
             qe = np.asarray(tool_q, dtype=np.float64).ravel()
             if qe.shape != (self.nq,) or not np.all(np.isfinite(qe)):
                 raise ValueError(f"tool_q: expected {self.nq} finite numbers for a {self.tool.kind} tool")
-            if self.kind == TOOL_SPATIAL:
+            if self.kind == TOOL_SPATIAL or (self.is_linkage and not self.tool.planar):
                 nrm_q = np.linalg.norm(qe[3:7])
                 if not nrm_q > 0:
                     raise ValueError("tool_q: the orientation quaternion must be non-zero")
@@ -332,10 +490,7 @@ class LocalModel:
         if n_in > self._sel.shape[0]:
             raise ValueError(f"contacts: {n_in} exceeds max_update_contacts={self._sel.shape[0]}")
         keys = np.ascontiguousarray(keys, dtype=np.int64)
-        code = _k.update_rigid(self.kind, self._par, self._st, self._C, self._CI, self._cnt, self._wk,
-                               keys, cp, nrm, dsep, vc, n_in, self._sel, self._newF, self._newI,
-                               self._qe if qe is None else qe, 0 if qe is None else 1,
-                               self._st_e, self._Re, self._ce)
+        code = self.update_arrays(keys, cp, nrm, dsep, vc, n_in, qe)
         if code != E_OK:
             fld, why = ERROR_FIELDS[code]
             raise ValueError(f"{fld}: {why}")
@@ -351,6 +506,11 @@ class LocalModel:
         feels the geometry where the engine has it even when the engine's tool lags the proxy
         or is held back by what it touches. ``None``: the paper's eq. 1 (relative to the proxy)."""
         use = 0 if tool_q is None else 1
+        if self.is_linkage:
+            return _lk.update_linkage(self._par, self._lmeta, self._lk, self._lki, self._st, self._C, self._CI,
+                                      self._cnt, self._wk, self._lw, keys, position_m, normal, separation_m,
+                                      v_constr_m_per_s, n, self._sel, self._newF, self._newI,
+                                      self._qe if tool_q is None else tool_q, use, self._lw_e)
         return _k.update_rigid(self.kind, self._par, self._st, self._C, self._CI, self._cnt, self._wk,
                                keys, position_m, normal, separation_m, v_constr_m_per_s, n,
                                self._sel, self._newF, self._newI,
@@ -364,6 +524,17 @@ class LocalModel:
         hand = hand_wrench if (type(hand_wrench) is np.ndarray and hand_wrench.dtype is _F64
                                and len(hand_wrench) >= self.hand_dim) else self._copy_hand(hand_wrench)
         code = _k.step_rigid(self.kind, self._par, self._st, self._C, self._CI, self._cnt, self._wk, hand)
+        if code != E_OK:
+            fld, why = ERROR_FIELDS[code]
+            raise ValueError(f"{fld}: {why}")
+        return self._fenv
+
+    def _step_linkage(self, hand_wrench) -> np.ndarray:
+        """``step`` of a linkage (the hand wrench acts at the held link's frame origin)."""
+        hand = hand_wrench if (type(hand_wrench) is np.ndarray and hand_wrench.dtype is _F64
+                               and len(hand_wrench) >= self.hand_dim) else self._copy_hand(hand_wrench)
+        code = _lk.step_linkage(self._par, self._lmeta, self._lk, self._lki, self._st, self._C, self._CI,
+                                self._cnt, self._wk, self._lw, hand)
         if code != E_OK:
             fld, why = ERROR_FIELDS[code]
             raise ValueError(f"{fld}: {why}")
@@ -395,7 +566,7 @@ class LocalModel:
 
     @property
     def q(self) -> np.ndarray:
-        return self._st[S_Q:S_Q + self.nq]
+        return self._st[self._q_at:self._q_at + self.nq]
 
     @property
     def qd(self) -> np.ndarray:
@@ -467,20 +638,77 @@ class LocalModel:
         computed now (not the value of the last step). Not for the hot path."""
         m = int(self._cnt[K_M])
         out = np.empty(m)
-        R, c = self.pose_matrix()
+        Rs, cs = self.link_poses()
         t = self.time_s
         for i in range(m):
-            x = c + R @ self._C[i, C_P:C_P + 3]
+            k = int(self._CI[i, CI_KEY])
+            x = cs[k] + Rs[k] @ self._C[i, C_P:C_P + 3]
             n = self._C[i, C_N:C_N + 3]
             out[i] = n @ (x - self._C[i, C_CP:C_CP + 3]) - self._C[i, C_VC] * (t - self._C[i, C_TU])
         return out
 
     def pose_matrix(self) -> tuple[np.ndarray, np.ndarray]:
-        """(R body-to-world 3x3, COM position world) of the proxy."""
+        """(R body-to-world 3x3, COM position world) of the proxy; a linkage: its root link's
+        (R link-to-world, frame origin)."""
+        if self.is_linkage:
+            Rs, cs = self.link_poses()
+            return Rs[0], cs[0]
         R = np.zeros((12, 12))
         c = np.zeros(3)
         _k._rigid_pose(self.kind, self._par, self._st, R, c)
         return R[:3, :3].copy(), c
+
+    def link_poses(self, q=None) -> tuple[np.ndarray, np.ndarray]:
+        """(R (L, 3, 3) link-to-world, frame origins (L, 3) world) of every link at the proxy's
+        configuration, or at ``q``; a rigid tool is one link (its COM frame). Not for the hot path."""
+        if not self.is_linkage:
+            R, c = self.pose_matrix()
+            return R[None], c[None]
+        qv = self.q if q is None else np.ascontiguousarray(q, dtype=np.float64)
+        lw = np.zeros_like(self._lw)
+        _lk.forward_kinematics(self._lmeta, self._lk, self._lki, qv, lw)
+        return lw[:, LW_R:LW_R + 9].reshape(-1, 3, 3).copy(), lw[:, LW_P:LW_P + 3].copy()
+
+    def hand_state(self) -> np.ndarray:
+        """Pose (7, x y z qw qx qy qz) and twist (6) of the hand point, world: a linkage's held
+        link frame, a rigid tool's hand point. Not for the hot path."""
+        out = np.zeros(13)
+        if self.is_linkage:
+            _lk.hand_state_linkage(self._lmeta, self._lk, self._lki, self._st, self._lw, self._scratch6, out, 0)
+            return out
+        R, c = self.pose_matrix()
+        r = R @ np.asarray(self.tool.hand_point_m, dtype=np.float64)
+        qd = self.qd
+        out[0:3] = c + r
+        if self.kind == TOOL_PLANAR:
+            th = float(self.q[2])
+            out[3:7] = (math.cos(th / 2), 0.0, 0.0, math.sin(th / 2))
+            w = np.array([0.0, 0.0, qd[2]])
+            v = np.array([qd[0], qd[1], 0.0])
+        elif self.kind == TOOL_SPATIAL:
+            out[3:7] = self.q[3:7]
+            w = qd[3:6].copy()
+            v = qd[0:3].copy()
+        else:
+            out[3] = 1.0
+            w = np.zeros(3)
+            v = qd[0] * np.asarray(self.tool.axis, dtype=np.float64)
+        out[7:10] = v + np.cross(w, r)
+        out[10:13] = w
+        return out
+
+    def joint_state(self, hand_wrench_world) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """A linkage's ProxyState content: root frame pose (7) and twist (6), the hand wrench (6,
+        world, at the held link's origin) as the wrench on the root frame origin (6) plus joint
+        efforts (J), and the joint positions and rates (J). Not for the hot path."""
+        if not self.is_linkage:
+            raise ValueError("joint_state: only a linkage has joints")
+        nj = len(self.tool.links) - 1
+        pose, twist, wrench, effort = np.zeros(7), np.zeros(6), np.zeros(6), np.zeros(nj)
+        _lk.root_state_and_efforts(self._lmeta, self._lk, self._lki, self._st, self._lw, self._scratch6,
+                                   np.asarray(hand_wrench_world, dtype=np.float64), pose, twist, wrench, effort)
+        r = self.dof - nj
+        return pose, twist, wrench, effort, self.q[self.nq - nj:].copy(), self.qd[r:].copy()
 
     # -- raw arrays (for the reference implementation and for tests) --------------------------
     def arrays(self):
@@ -490,6 +718,62 @@ class LocalModel:
         """``(kind, par, st, C, CI, cnt, wk)``: the arguments of ``kernels.step_rigid`` before the
         hand wrench, for callers that fuse the model step into their own kernel (the server loop)."""
         return self.kind, self._par, self._st, self._C, self._CI, self._cnt, self._wk
+
+    def linkage_args(self):
+        """``(lmeta, lk, lki, lw)``: the linkage arrays ``linkage.step_linkage`` takes besides
+        ``kernel_args`` (a linkage only)."""
+        if not self.is_linkage:
+            raise ValueError("linkage_args: not a linkage")
+        return self._lmeta, self._lk, self._lki, self._lw
+
+
+def linkage_arrays(tool: ToolSpec, velocity_terms: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lmeta, lk, lki) of a validated linkage ToolSpec (see ``layout``: LM_*, LK_*, LI_*);
+    ``velocity_terms``: include the Coriolis / centripetal / gyroscopic terms (``LM_COR``)."""
+    links = tool.links
+    nl = len(links)
+    d, h, _ = linkage_dims(nl, tool.planar)
+    r = 3 if tool.planar else 6
+    lmeta = np.zeros(NLM, dtype=np.int64)
+    lmeta[LM_NLINKS] = nl
+    lmeta[LM_PLANAR] = 1 if tool.planar else 0
+    lmeta[LM_HELD] = int(tool.held_link)
+    lmeta[LM_D] = d
+    lmeta[LM_H] = h
+    lmeta[LM_R] = r
+    lmeta[LM_NQR] = 3 if tool.planar else 7
+    lmeta[LM_COR] = 1 if velocity_terms else 0
+    lk = np.zeros((nl, NLK))
+    lki = np.zeros((nl, NLI), dtype=np.int64)
+    for k, ln in enumerate(links):
+        lk[k, LK_MASS] = float(ln.mass_kg)
+        lk[k, LK_COM:LK_COM + 3] = np.asarray(ln.com_m, dtype=np.float64)
+        lk[k, LK_I:LK_I + 9] = ln.inertia_matrix().ravel()
+        axis = np.asarray(ln.axis, dtype=np.float64)
+        quat = np.asarray(ln.origin_quat, dtype=np.float64)
+        origin = np.asarray(ln.origin_m, dtype=np.float64)
+        if ln.joint == "root":
+            axis = np.array([0.0, 0.0, 1.0])  # unused: the root has no joint
+        elif tool.planar:
+            # exactly in the plane (the validation allowed rounding-sized deviations)
+            axis = np.array([0.0, 0.0, math.copysign(1.0, axis[2])]) if ln.joint == "revolute" else \
+                np.array([axis[0], axis[1], 0.0])
+            quat = np.array([quat[0], 0.0, 0.0, quat[3]])
+            origin = np.array([origin[0], origin[1], 0.0])
+        lk[k, LK_AXIS:LK_AXIS + 3] = axis / np.linalg.norm(axis)
+        lk[k, LK_OP:LK_OP + 3] = origin
+        lk[k, LK_OR:LK_OR + 9] = _quat_matrix(quat / np.linalg.norm(quat)).ravel()
+        lki[k, LI_PARENT] = int(ln.parent)
+        lki[k, LI_TYPE] = JOINT_TYPES[ln.joint]
+        chain = list(range(r))
+        j = k
+        while j > 0:
+            chain.append(r + j - 1)
+            j = int(links[j].parent)
+        chain.sort()
+        lki[k, LI_NCHAIN] = len(chain)
+        lki[k, LI_CHAIN:LI_CHAIN + len(chain)] = chain
+    return lmeta, lk, lki
 
 
 _WARM = False
@@ -528,4 +812,18 @@ def warm_up() -> None:
                             qe, use_qe, np.zeros(NSTATE), np.zeros((3, 3)), np.zeros(3))
         st[S_QD] = -0.1
         _k.step_rigid(kind, par, st, C, CI, cnt, wk, np.zeros(6))
+    # the linkage kernels (one compiled version serves planar and spatial linkages)
+    for planar in (True, False):
+        links = (LinkSpec(1.0, inertia_kg_m2=(1e-3, 1e-3, 1e-3)),
+                 LinkSpec(1.0, (0.05, 0.0, 0.0), (1e-3, 1e-3, 1e-3), 0, "revolute", (0.0, 0.0, 1.0), (0.1, 0.0, 0.0)))
+        m = LocalModel(ToolSpec.linkage(links, 1, planar), ContactParams(1000.0), period_s=1e-3, capacity=2,
+                       warm=False)
+        keys = np.array([[1, 1, 0]], dtype=np.int64)
+        for tq in (None, m.q.copy()):
+            m.update(keys, [[0.1, 0.0, 0.0]], [[1.0, 0.0, 0.0]], [0.0], tool_q=tq)
+        m.reset(qd=np.r_[-0.1, np.zeros(m.dof - 1)])
+        m.update(keys, [[0.1, 0.0, 0.0]], [[1.0, 0.0, 0.0]], [0.0])
+        m.step(np.zeros(6))
+        m.hand_state()
+        m.joint_state(np.zeros(6))
     _WARM = True

@@ -17,8 +17,8 @@ from .layout import (
     K_NONFINITE, K_PROXY, K_RANK, K_SLIPPING, K_STEPS,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
     P_ORIGIN, PS_COLLIDING, PS_FREE, PS_RESTING,
-    S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_Q, S_QD, S_T,
-    TOOL_1DOF, TOOL_DIMS, TOOL_PLANAR, TOUCH_TOL_M,
+    S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
+    TOOL_1DOF, TOOL_DIMS, TOOL_PLANAR, TOUCH_TOL_M, CI_KEY,
 )
 
 #: Relative singular-value cut of the pseudo-inverse (rank decisions as in the kernels).
@@ -114,20 +114,184 @@ def integrate(kind: int, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray
     return q
 
 
-def reference_step(kind, par, st, C, CI, cnt, hand):
-    """One haptic step in numpy. Returns new (st, C, CI, cnt); inputs are not modified."""
+def _rot_axis(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rotation by ``angle`` about the unit ``axis`` (matrix exponential of the skew matrix)."""
+    K = _skew(axis)
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
+
+
+def _quat_rot(q) -> np.ndarray:
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+class LinkageReference:
+    """A linkage's kinematics in plain numpy, from its ``LinkSpec`` list with 4 x 4 homogeneous
+    transforms (written independently of ``linkage.py``): the oracle of the linkage kernels.
+
+    Coordinates as the kernels': q = (root pose, joints), qd = (root origin velocity, root
+    angular velocity (world), joint rates); planar roots are (x, y, theta)."""
+
+    def __init__(self, links, held_link: int, planar: bool, velocity_terms: bool = True) -> None:
+        self.velocity_terms = bool(velocity_terms)
+        self.links = tuple(links)
+        self.held = int(held_link)
+        self.planar = bool(planar)
+        self.nl = len(self.links)
+        self.r = 3 if planar else 6
+        self.nqr = 3 if planar else 7
+        self.d = self.r + self.nl - 1
+        self.h = 3 if planar else 6
+        # ancestors[k]: the links whose joints move link k (k itself included, the root excluded)
+        self.ancestors = []
+        for k in range(self.nl):
+            chain, j = [], k
+            while j > 0:
+                chain.append(j)
+                j = self.links[j].parent
+            self.ancestors.append(set(chain))
+
+    @classmethod
+    def of(cls, tool, linkage_dynamics: str = "full") -> "LinkageReference":
+        return cls(tool.links, tool.held_link, tool.planar, linkage_dynamics == "full")
+
+    def bias(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """Velocity-product generalized forces h(q, qd) = sum_k J_k^T (m_k Jdot_v qd ;
+        I_k Jdot_w qd + w_k x I_k w_k), with Jdot qd by central differences of the COM Jacobians
+        along the motion (q moved by +-eps qd on the manifold): accurate to ~1e-9 relative."""
+        eps = 1e-6
+        qp, qm = self.integrate(q, qd, eps), self.integrate(q, qd, -eps)
+        T, Tp, Tm = self.frames(q), self.frames(qp), self.frames(qm)
+        h = np.zeros(self.d)
+        for k, ln in enumerate(self.links):
+            com = np.asarray(ln.com_m, dtype=np.float64)
+            c, cp, cm = (F[k][:3, 3] + F[k][:3, :3] @ com for F in (T, Tp, Tm))
+            Jv, Jw = self.jacobian(q, k, c, T)
+            Jvp, Jwp = self.jacobian(qp, k, cp, Tp)
+            Jvm, Jwm = self.jacobian(qm, k, cm, Tm)
+            acc = (Jvp - Jvm) @ qd / (2 * eps)
+            alpha = (Jwp - Jwm) @ qd / (2 * eps)
+            w = Jw @ qd
+            R = T[k][:3, :3]
+            Iw = R @ ln.inertia_matrix() @ R.T
+            h += Jv.T @ (ln.mass_kg * acc) + Jw.T @ (Iw @ alpha + np.cross(w, Iw @ w))
+        return h
+
+    def frames(self, q: np.ndarray) -> list[np.ndarray]:
+        """4 x 4 link-to-world transforms at q."""
+        T0 = np.eye(4)
+        if self.planar:
+            T0[:3, :3] = _rot_axis(np.array([0.0, 0.0, 1.0]), q[2])
+            T0[:2, 3] = q[:2]
+        else:
+            T0[:3, :3] = _quat_rot(q[3:7])
+            T0[:3, 3] = q[:3]
+        out = [T0]
+        for k in range(1, self.nl):
+            ln = self.links[k]
+            To = np.eye(4)
+            To[:3, :3] = _quat_rot(ln.origin_quat)
+            To[:3, 3] = ln.origin_m
+            if self.planar:
+                To[2, 3] = 0.0
+            Tj = np.eye(4)
+            axis = np.asarray(ln.axis, dtype=np.float64)
+            qk = q[self.nqr + k - 1]
+            if ln.joint == "revolute":
+                Tj[:3, :3] = _rot_axis(axis, qk)
+            else:
+                Tj[:3, 3] = axis * qk
+            out.append(out[ln.parent] @ To @ Tj)
+        return out
+
+    def jacobian(self, q: np.ndarray, link: int, x: np.ndarray, frames=None) -> tuple[np.ndarray, np.ndarray]:
+        """(Jv (3 x d) of the world point x on ``link``, Jw (3 x d) of the link)."""
+        T = self.frames(q) if frames is None else frames
+        Jv = np.zeros((3, self.d))
+        Jw = np.zeros((3, self.d))
+        p0 = T[0][:3, 3]
+        if self.planar:
+            Jv[:2, :2] = np.eye(2)
+            Jv[:, 2] = np.cross([0.0, 0.0, 1.0], x - p0)
+            Jw[2, 2] = 1.0
+        else:
+            Jv[:, :3] = np.eye(3)
+            Jv[:, 3:6] = -_skew(x - p0)
+            Jw[:, 3:6] = np.eye(3)
+        for j in self.ancestors[link]:
+            ln = self.links[j]
+            a = T[j][:3, :3] @ np.asarray(ln.axis, dtype=np.float64)
+            col = self.r + j - 1
+            if ln.joint == "revolute":
+                Jv[:, col] = np.cross(a, x - T[j][:3, 3])
+                Jw[:, col] = a
+            else:
+                Jv[:, col] = a
+        return Jv, Jw
+
+    def kinematics(self, q, grav, links_of_points, local_points):
+        """D (d x d), generalized gravity (d), world points X (m x 3), point Jacobians (m x 3 x d),
+        hand Jacobian (h x d)."""
+        T = self.frames(q)
+        D = np.zeros((self.d, self.d))
+        taug = np.zeros(self.d)
+        for k, ln in enumerate(self.links):
+            R = T[k][:3, :3]
+            c = T[k][:3, 3] + R @ np.asarray(ln.com_m, dtype=np.float64)
+            Jv, Jw = self.jacobian(q, k, c, T)
+            Iw = R @ ln.inertia_matrix() @ R.T
+            if self.planar:
+                Iw = np.diag([0.0, 0.0, Iw[2, 2]])
+            D += ln.mass_kg * Jv.T @ Jv + Jw.T @ Iw @ Jw
+            taug += ln.mass_kg * Jv.T @ grav
+        m = len(links_of_points)
+        X = np.zeros((m, 3))
+        J = np.zeros((m, 3, self.d))
+        for i in range(m):
+            k = int(links_of_points[i])
+            X[i] = T[k][:3, 3] + T[k][:3, :3] @ local_points[i]
+            J[i] = self.jacobian(q, k, X[i], T)[0]
+        Jv, Jw = self.jacobian(q, self.held, T[self.held][:3, 3], T)
+        Jh = np.vstack([Jv[:2], Jw[2:3]]) if self.planar else np.vstack([Jv, Jw])
+        return D, taug, X, J, Jh
+
+    def integrate(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
+        q = q.copy()
+        if self.planar:
+            q[:3] += dt * qd[:3]
+        else:
+            q[:7] = integrate(2, q[:7], qd[:6], dt)
+        q[self.nqr:] += dt * qd[self.r:]
+        return q
+
+
+def reference_step(kind, par, st, C, CI, cnt, hand, linkage: LinkageReference | None = None):
+    """One haptic step in numpy. Returns new (st, C, CI, cnt); inputs are not modified.
+    ``linkage``: the tool's ``LinkageReference`` for a linkage model (its q is at ``S_LQ``)."""
     st = st.copy(); C = C.copy(); CI = CI.copy(); cnt = cnt.copy()
-    d, h, nq = TOOL_DIMS[kind]
+    if linkage is not None:
+        d, h, nq, q_at = linkage.d, linkage.h, linkage.nqr + linkage.nl - 1, S_LQ
+    else:
+        (d, h, nq), q_at = TOOL_DIMS[kind], S_Q
     dt, k, b, e = par[P_DT], par[P_K], par[P_B], par[P_E]
     mus, muk, kt, bt = par[P_MUS], par[P_MUK], par[P_KT], par[P_BT]
     hand = np.asarray(hand, dtype=np.float64)[:h]
     st[S_FH:S_FH + h] = hand
     m = int(cnt[K_M])
     t = st[S_T]
-    q = st[S_Q:S_Q + nq].copy()
+    q = st[q_at:q_at + nq].copy()
     qd0 = st[S_QD:S_QD + d].copy()
     Cm = C[:m]
-    D, taug, X, J, Jh = rigid_kinematics(kind, par, q, Cm[:, C_P:C_P + 3])
+    if linkage is not None:
+        D, taug, X, J, Jh = linkage.kinematics(q, par[P_GRAV:P_GRAV + 3], CI[:m, CI_KEY], Cm[:, C_P:C_P + 3])
+        if linkage.velocity_terms:
+            taug = taug - linkage.bias(q, qd0)
+    else:
+        D, taug, X, J, Jh = rigid_kinematics(kind, par, q, Cm[:, C_P:C_P + 3])
     Dinv = np.linalg.inv(D)
 
     n = Cm[:, C_N:C_N + 3]
@@ -212,7 +376,7 @@ def reference_step(kind, par, st, C, CI, cnt, hand):
     if np.all(np.isfinite(qd)) and np.all(np.isfinite(fpen + fimp)):
         st[S_QD:S_QD + d] = qd
         Cm[:, C_Z:C_Z + 3] = z_new
-        st[S_Q:S_Q + nq] = integrate(kind, q, qd, dt)
+        st[q_at:q_at + nq] = linkage.integrate(q, qd, dt) if linkage is not None else integrate(kind, q, qd, dt)
         st[S_KE] = 0.5 * qd @ D @ qd
     else:
         st[S_FENV:S_FENV + 6] = 0.0

@@ -1,5 +1,12 @@
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
+
+# the linkage helpers (``from linkage_helpers import ...``): with --import-mode=importlib test
+# folders are not on sys.path by themselves
+sys.path.insert(0, str(Path(__file__).parent))
 
 from hapticproxy.server.model import ContactParams, LocalModel, ToolSpec
 
