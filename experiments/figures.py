@@ -89,7 +89,7 @@ def _log(log, msg):
 # ---------------------------------------------------------------------------------- Fig. 14
 def fig14_spec(method: str, mode: str, quick: bool, **kw) -> RunSpec:
     return RunSpec.for_method(method, scene="testbed", hand=Hand("constant", (0.0, 0.5, 0.0), start_s=HAND_START_S[mode]),
-                              seconds=3.5 if quick else 5.0, stiffness_n_per_m=4000.0, damping_n_s_per_m=30.0,
+                              seconds=4.5 if quick else 6.0, stiffness_n_per_m=4000.0, damping_n_s_per_m=30.0,
                               rate_hz=512.0, **kw)
 
 
@@ -163,7 +163,7 @@ def plot_fig14(traces: dict[str, Trace], res: dict, path: Path, title: str) -> N
 # ---------------------------------------------------------------------------- Figs. 16, 17
 def hole_spec(method: str, mode: str, quick: bool, *, stiff: bool, **kw) -> RunSpec:
     k, b, amp = (15000.0, 100.0, 3.0) if stiff else (4000.0, 30.0, 1.0)
-    secs = (4.0 if quick else 8.0) if stiff else (4.0 if quick else 6.0)
+    secs = (6.0 if quick else 10.0) if stiff else 6.0
     return RunSpec.for_method(method, scene="hole", hand=Hand("sinusoid", (amp, 0.0, 0.0), 2.5, HAND_START_S[mode]),
                               seconds=secs, stiffness_n_per_m=k, damping_n_s_per_m=b, rate_hz=512.0, **kw)
 

@@ -342,6 +342,7 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
         sh = loop.shared
         perf = time.perf_counter_ns
         last_updates = 0
+        crash = ""
         for i in range(n_steps):
             env.service()
             if model_timing_every and loop._margs is not None and i % model_timing_every == 0:
@@ -349,7 +350,12 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
                 numba_us.append(a)
                 numpy_us.append(b)
             t0 = perf()
-            loop.step()
+            try:
+                loop.step()
+            except Exception as exc:  # noqa: BLE001 - the server loop itself failed: recorded, the run ends
+                crash = f"{type(exc).__name__}: {exc}"
+                n_steps = i
+                break
             step_ns[i] = perf() - t0
             rows[i] = sh.ring[(int(sh.head[0]) - 1) % sh.ring_rows]
             if loop.updates != last_updates:
@@ -357,17 +363,19 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
                 last_updates = loop.updates
             if pen is not None and loop.model is not None:
                 pen[i] = loop.model.penalty_wrench[:hd]
+        rows, step_ns, pen, upd = rows[:n_steps], step_ns[:n_steps], (None if pen is None else pen[:n_steps]), upd[:n_steps]
         snap = sh.snapshot()
         counters = loop.ctrl.counters()
         tr = trace_from_rows(
             spec, "simulated", rows, rate_hz=settings.rate_hz, achieved_rate_hz=settings.rate_hz,
-            env_rate_hz=float(snap["env_rate_hz"]), faults=int(loop.faults_total),
+            env_rate_hz=float(snap["env_rate_hz"]), faults=int(loop.faults_total) + (1 if crash else 0),
             model_nonfinite=int(loop.model.counters()["nonfinite"]) if loop.model is not None else 0,
             rate_limited=counters["rate_limited"], saturated=counters["saturated"],
             per_step={"step_us": step_ns / 1e3, "penalty": pen, "update_step": upd},
             model_numba_us=np.array(numba_us) if numba_us else None,
             model_numpy_us=np.array(numpy_us) if numpy_us else None,
-            extra={"env_steps": env.steps, "updates_sent": env.updates_sent, "loop_updates": loop.updates,
+            extra={"loop_exception": crash, "env_steps": env.steps, "updates_sent": env.updates_sent,
+                   "loop_updates": loop.updates,
                    "update_errors": loop.update_errors, "model": loop.model.counters() if loop.model else {}})
         return tr
     finally:

@@ -31,6 +31,8 @@ SETTLED_DEG = 0.1
 #: exchanges), or the device reached its rotation end-stop.
 ACTIVE_TOLERANCE_MJ = 1.0
 ENDSTOP_DEG = 56.0
+#: ... or the device's COM went this far from the hole: the 80 mm peg is out of it (a run-away).
+LEFT_HOLE_MM = 50.0
 #: Shaking periods averaged at the start (after one period of transient) and at the end.
 GROWTH_PERIODS = 3
 
@@ -106,6 +108,7 @@ def common_metrics(tr) -> dict:
         "model_updates": int(tr.updates[-1]),
         "faults": tr.faults,
         "model_nonfinite": tr.model_nonfinite,
+        "loop_exception": tr.extra.get("loop_exception", "") or None,
         "rate_limited_steps": tr.rate_limited,
         "saturated_steps": tr.saturated,
         "force_step_max_n": round(force_step_max_n(tr), 4),
@@ -188,7 +191,10 @@ def hole_metrics(tr) -> dict:
       two seconds (see :func:`injected_energy_mj`; negative: the interaction absorbs).
     - ``unstable``: a fault or non-finite value stopped the rendering, or the interaction was
       active (``energy_injected_mj`` > 1 mJ: it feeds the motion), or the device reached its
-      rotation end-stop (more than 56 deg from where it started; the hole allows about none).
+      rotation end-stop (more than 56 deg from where it started; the hole allows about none), or
+      its COM went more than 50 mm from the hole (``drift_mm``: the 80 mm peg is out of it).
+      The drift that proxy deformation allows (the paper's "several mm and up to 20 deg") is
+      not instability.
     """
     sel = _after(tr, tr.hand_start_s)
     x = tr.dev[sel, 0] * 1e3
@@ -209,6 +215,6 @@ def hole_metrics(tr) -> dict:
         "energy_growth": round(float(growth), 3),
     }
     out.update(common_metrics(tr))
-    out["unstable"] = bool(tr.faults > 0 or tr.model_nonfinite > 0 or endstop
+    out["unstable"] = bool(tr.faults > 0 or tr.model_nonfinite > 0 or endstop or out["drift_mm"] > LEFT_HOLE_MM
                            or out["energy_injected_mj"] > ACTIVE_TOLERANCE_MJ)
     return out
