@@ -130,69 +130,50 @@ def forward_kinematics(lmeta, lk, lki, q, lw):
                 lw[k, LW_R + 3 * a + 2] = p0 * r02 + p1 * r12 + p2 * r22
 
 
-@njit(**_JIT)
-def _root_column(lmeta, lw, col, x0, x1, x2, v, w):
-    """World velocity v (3) of the world point x and angular velocity w (3) of its body for a
-    unit rate of root column ``col`` (planar: vx, vy, wz; spatial: v, w; every link moves)."""
-    for a in range(3):
-        v[a] = 0.0
-        w[a] = 0.0
-    if lmeta[LM_PLANAR]:
-        if col < 2:
-            v[col] = 1.0
-        else:
-            # rotation of the root about +z through its origin
-            v[0] = -(x1 - lw[0, LW_P + 1])
-            v[1] = x0 - lw[0, LW_P]
-            w[2] = 1.0
-    elif col < 3:
-        v[col] = 1.0
-    else:
-        e = col - 3
-        w[e] = 1.0
+@njit(inline="always", **_JIT)
+def _column(planar, r, lki, lw, col, x0, x1, x2):
+    """(v0, v1, v2, w0, w1, w2): world velocity v of the world point x and angular velocity w of
+    its body for a unit rate of configuration column ``col`` (the body being any link that column
+    moves). Root columns: planar vx, vy, wz (about the root frame's origin); spatial v, w. Joint
+    columns: revolute a x (x - p_j), a; prismatic a, 0. Returns scalars (no arrays per call: it
+    runs for every chain column of every contact)."""
+    if col < r:
+        if planar:
+            if col == 0:
+                return 1.0, 0.0, 0.0, 0.0, 0.0, 0.0
+            if col == 1:
+                return 0.0, 1.0, 0.0, 0.0, 0.0, 0.0
+            return -(x1 - lw[0, LW_P + 1]), x0 - lw[0, LW_P], 0.0, 0.0, 0.0, 1.0
+        if col == 0:
+            return 1.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        if col == 1:
+            return 0.0, 1.0, 0.0, 0.0, 0.0, 0.0
+        if col == 2:
+            return 0.0, 0.0, 1.0, 0.0, 0.0, 0.0
         # v = e x (x - p_root)
         d0 = x0 - lw[0, LW_P]; d1 = x1 - lw[0, LW_P + 1]; d2 = x2 - lw[0, LW_P + 2]
-        if e == 0:
-            v[1] = -d2; v[2] = d1
-        elif e == 1:
-            v[0] = d2; v[2] = -d0
-        else:
-            v[0] = -d1; v[1] = d0
-
-
-@njit(**_JIT)
-def _joint_column(lki, lw, j, x0, x1, x2, v, w):
-    """v, w of the world point x on a link moved by joint j at unit rate."""
+        if col == 3:
+            return 0.0, -d2, d1, 1.0, 0.0, 0.0
+        if col == 4:
+            return d2, 0.0, -d0, 0.0, 1.0, 0.0
+        return -d1, d0, 0.0, 0.0, 0.0, 1.0
+    j = col - r + 1  # the link whose joint this column drives
     a0 = lw[j, LW_A]; a1 = lw[j, LW_A + 1]; a2 = lw[j, LW_A + 2]
     if lki[j, LI_TYPE] == JT_PRISMATIC:
-        v[0] = a0; v[1] = a1; v[2] = a2
-        w[0] = 0.0; w[1] = 0.0; w[2] = 0.0
-    else:
-        d0 = x0 - lw[j, LW_P]; d1 = x1 - lw[j, LW_P + 1]; d2 = x2 - lw[j, LW_P + 2]
-        v[0] = a1 * d2 - a2 * d1
-        v[1] = a2 * d0 - a0 * d2
-        v[2] = a0 * d1 - a1 * d0
-        w[0] = a0; w[1] = a1; w[2] = a2
+        return a0, a1, a2, 0.0, 0.0, 0.0
+    d0 = x0 - lw[j, LW_P]; d1 = x1 - lw[j, LW_P + 1]; d2 = x2 - lw[j, LW_P + 2]
+    return a1 * d2 - a2 * d1, a2 * d0 - a0 * d2, a0 * d1 - a1 * d0, a0, a1, a2
 
 
 @njit(**_JIT)
-def _point_column(lmeta, lki, lw, col, x0, x1, x2, v, w):
-    """v (3) of world point x and w (3) of its body for configuration column ``col``."""
-    r = lmeta[LM_R]
-    if col < r:
-        _root_column(lmeta, lw, col, x0, x1, x2, v, w)
-    else:
-        _joint_column(lki, lw, col - r + 1, x0, x1, x2, v, w)
-
-
-@njit(**_JIT)
-def _kin_linkage(lmeta, lk, lki, par, st, C, CI, m, lw, D, taug, Jpt, X, Jh, vw):
-    """Fill D(q) (d x d), generalized gravity taug = -G(q), the contact points X_i (world) on
-    their links with their Jacobians J_i(q) (3 x d), and J_h(q) (h x d) of the held link's frame
-    origin. ``vw``: scratch of 6 floats."""
+def _kin_linkage(lmeta, lk, lki, par, st, C, CI, m, lw, D, taug, Jpt, X, Jh):
+    """Fill D(q) (d x d), generalized gravity and velocity-product forces taug = -G(q) - h(q, qd),
+    the contact points X_i (world) on their links with their Jacobians J_i(q) (3 x d), and J_h(q)
+    (h x d) of the held link's frame origin."""
     nl = lmeta[LM_NLINKS]
     d = lmeta[LM_D]
-    planar = lmeta[LM_PLANAR]
+    r = lmeta[LM_R]
+    planar = lmeta[LM_PLANAR] == 1
     q = st[S_LQ:]
     forward_kinematics(lmeta, lk, lki, q, lw)
     for a in range(d):
@@ -200,8 +181,6 @@ def _kin_linkage(lmeta, lk, lki, par, st, C, CI, m, lw, D, taug, Jpt, X, Jh, vw)
         for b in range(d):
             D[a, b] = 0.0
     g0 = par[P_GRAV]; g1 = par[P_GRAV + 1]; g2 = par[P_GRAV + 2]
-    v = vw[0:3]
-    w = vw[3:6]
     for k in range(nl):
         mass = lk[k, LK_MASS]
         # COM and inertia in the world
@@ -220,10 +199,10 @@ def _kin_linkage(lmeta, lk, lki, par, st, C, CI, m, lw, D, taug, Jpt, X, Jh, vw)
         c0 = lw[k, LW_C]; c1 = lw[k, LW_C + 1]; c2 = lw[k, LW_C + 2]
         nc = lki[k, LI_NCHAIN]
         for t in range(nc):
-            _point_column(lmeta, lki, lw, lki[k, LI_CHAIN + t], c0, c1, c2, v, w)
-            for a in range(3):
-                lw[k, LW_JV + 3 * t + a] = v[a]
-                lw[k, LW_JW + 3 * t + a] = w[a]
+            v0, v1, v2, w0, w1, w2 = _column(planar, r, lki, lw, lki[k, LI_CHAIN + t], c0, c1, c2)
+            o = 3 * t
+            lw[k, LW_JV + o] = v0; lw[k, LW_JV + o + 1] = v1; lw[k, LW_JV + o + 2] = v2
+            lw[k, LW_JW + o] = w0; lw[k, LW_JW + o + 1] = w1; lw[k, LW_JW + o + 2] = w2
         # D += J_k^T M_k J_k over the chain columns (lower triangle), taug += J_v^T m g
         for t1 in range(nc):
             ca = lki[k, LI_CHAIN + t1]
@@ -256,12 +235,13 @@ def _kin_linkage(lmeta, lk, lki, par, st, C, CI, m, lw, D, taug, Jpt, X, Jh, vw)
                        + lw[k, LW_R + 3 * a + 2] * pz)
             for b in range(d):
                 Jpt[i, a, b] = 0.0
+        x0 = X[i, 0]; x1 = X[i, 1]; x2 = X[i, 2]
         for t in range(lki[k, LI_NCHAIN]):
             col = lki[k, LI_CHAIN + t]
-            _point_column(lmeta, lki, lw, col, X[i, 0], X[i, 1], X[i, 2], v, w)
-            Jpt[i, 0, col] = v[0]
-            Jpt[i, 1, col] = v[1]
-            Jpt[i, 2, col] = v[2]
+            v0, v1, v2, w0, w1, w2 = _column(planar, r, lki, lw, col, x0, x1, x2)
+            Jpt[i, 0, col] = v0
+            Jpt[i, 1, col] = v1
+            Jpt[i, 2, col] = v2
     # hand: the held link's frame origin; planar rows (vx, vy, wz), spatial (v, w)
     hk = lmeta[LM_HELD]
     h = lmeta[LM_H]
@@ -271,23 +251,22 @@ def _kin_linkage(lmeta, lk, lki, par, st, C, CI, m, lw, D, taug, Jpt, X, Jh, vw)
     x0 = lw[hk, LW_P]; x1 = lw[hk, LW_P + 1]; x2 = lw[hk, LW_P + 2]
     for t in range(lki[hk, LI_NCHAIN]):
         col = lki[hk, LI_CHAIN + t]
-        _point_column(lmeta, lki, lw, col, x0, x1, x2, v, w)
+        v0, v1, v2, w0, w1, w2 = _column(planar, r, lki, lw, col, x0, x1, x2)
         if planar:
-            Jh[0, col] = v[0]
-            Jh[1, col] = v[1]
-            Jh[2, col] = w[2]
+            Jh[0, col] = v0
+            Jh[1, col] = v1
+            Jh[2, col] = w2
         else:
-            for a in range(3):
-                Jh[a, col] = v[a]
-                Jh[3 + a, col] = w[a]
+            Jh[0, col] = v0; Jh[1, col] = v1; Jh[2, col] = v2
+            Jh[3, col] = w0; Jh[4, col] = w1; Jh[5, col] = w2
 
 
-@njit(**_JIT)
-def _cross_add(a0, a1, a2, b0, b1, b2, out, o, scale):
-    """out[o:o+3] += scale * (a x b)."""
-    out[o] += scale * (a1 * b2 - a2 * b1)
-    out[o + 1] += scale * (a2 * b0 - a0 * b2)
-    out[o + 2] += scale * (a0 * b1 - a1 * b0)
+@njit(inline="always", **_JIT)
+def _cross_add(a0, a1, a2, b0, b1, b2, lw, k, o, scale):
+    """lw[k, o:o+3] += scale * (a x b)."""
+    lw[k, o] += scale * (a1 * b2 - a2 * b1)
+    lw[k, o + 1] += scale * (a2 * b0 - a0 * b2)
+    lw[k, o + 2] += scale * (a0 * b1 - a1 * b0)
 
 
 @njit(**_JIT)
@@ -321,19 +300,19 @@ def _bias_forces(lmeta, lk, lki, st, lw, taug):
             lw[k, LW_AL + c] = lw[p, LW_AL + c]
             lw[k, LW_AC + c] = lw[p, LW_AC + c]
         # v = v_p + w_p x r; acc = acc_p + alpha_p x r + w_p x (w_p x r)
-        _cross_add(w0, w1, w2, x0, x1, x2, lw[k], LW_V, 1.0)
-        _cross_add(lw[p, LW_AL], lw[p, LW_AL + 1], lw[p, LW_AL + 2], x0, x1, x2, lw[k], LW_AC, 1.0)
+        _cross_add(w0, w1, w2, x0, x1, x2, lw, k, LW_V, 1.0)
+        _cross_add(lw[p, LW_AL], lw[p, LW_AL + 1], lw[p, LW_AL + 2], x0, x1, x2, lw, k, LW_AC, 1.0)
         wx0 = w1 * x2 - w2 * x1; wx1 = w2 * x0 - w0 * x2; wx2 = w0 * x1 - w1 * x0
-        _cross_add(w0, w1, w2, wx0, wx1, wx2, lw[k], LW_AC, 1.0)
+        _cross_add(w0, w1, w2, wx0, wx1, wx2, lw, k, LW_AC, 1.0)
         if lki[k, LI_TYPE] == JT_PRISMATIC:
             # the axis turns with the parent: Coriolis 2 w_p x a u
             for c in range(3):
                 lw[k, LW_V + c] += u * lw[k, LW_A + c]
-            _cross_add(w0, w1, w2, a0, a1, a2, lw[k], LW_AC, 2.0 * u)
+            _cross_add(w0, w1, w2, a0, a1, a2, lw, k, LW_AC, 2.0 * u)
         else:
             for c in range(3):
                 lw[k, LW_W + c] += u * lw[k, LW_A + c]
-            _cross_add(w0, w1, w2, a0, a1, a2, lw[k], LW_AL, u)
+            _cross_add(w0, w1, w2, a0, a1, a2, lw, k, LW_AL, u)
     for k in range(nl):
         mass = lk[k, LK_MASS]
         w0 = lw[k, LW_W]; w1 = lw[k, LW_W + 1]; w2 = lw[k, LW_W + 2]
@@ -410,7 +389,7 @@ def step_linkage(par, lmeta, lk, lki, st, C, CI, cnt, wk, lw, hand):
     cap = C.shape[0]
     m = cnt[K_M]
     D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V = _views(wk, cap)
-    _kin_linkage(lmeta, lk, lki, par, st, C, CI, m, lw, D, V[_V_TAUG], Jpt, X, Jh, V[_V_T1])
+    _kin_linkage(lmeta, lk, lki, par, st, C, CI, m, lw, D, V[_V_TAUG], Jpt, X, Jh)
     ok = _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V, m)
     if ok:
         qd = V[_V_QD]
@@ -461,26 +440,23 @@ def update_linkage(par, lmeta, lk, lki, st, C, CI, cnt, wk, lw, keys, cp, nrm, d
 
 
 @njit(**_JIT)
-def hand_state_linkage(lmeta, lk, lki, st, lw, Jh, out, o):
+def hand_state_linkage(lmeta, lk, lki, st, lw, out, o):
     """Pose (7: x y z qw qx qy qz) of the held link's frame at out[o:o+7] and its twist (6: origin
-    velocity, angular velocity) at out[o+7:o+13], world, at the current q and qd. ``Jh`` (>= 6 x
-    d): scratch."""
+    velocity, angular velocity) at out[o+7:o+13], world, at the current q and qd."""
     forward_kinematics(lmeta, lk, lki, st[S_LQ:], lw)
     hk = lmeta[LM_HELD]
-    d = lmeta[LM_D]
     _link_pose(lw, hk, out, o)
     x0 = lw[hk, LW_P]; x1 = lw[hk, LW_P + 1]; x2 = lw[hk, LW_P + 2]
     for a in range(6):
         out[o + 7 + a] = 0.0
-    v = Jh[0, 0:3]
-    w = Jh[1, 0:3]
+    planar = lmeta[LM_PLANAR] == 1
+    r = lmeta[LM_R]
     for t in range(lki[hk, LI_NCHAIN]):
         col = lki[hk, LI_CHAIN + t]
-        _point_column(lmeta, lki, lw, col, x0, x1, x2, v, w)
+        v0, v1, v2, w0, w1, w2 = _column(planar, r, lki, lw, col, x0, x1, x2)
         qdc = st[S_QD + col]
-        for a in range(3):
-            out[o + 7 + a] += v[a] * qdc
-            out[o + 10 + a] += w[a] * qdc
+        out[o + 7] += v0 * qdc; out[o + 8] += v1 * qdc; out[o + 9] += v2 * qdc
+        out[o + 10] += w0 * qdc; out[o + 11] += w1 * qdc; out[o + 12] += w2 * qdc
 
 
 @njit(**_JIT)
@@ -515,15 +491,15 @@ def _link_pose(lw, k, out, o):
 
 
 @njit(**_JIT)
-def root_state_and_efforts(lmeta, lk, lki, st, lw, Jh, wrench_hand, out_pose, out_twist,
-                           out_wrench, out_effort):
+def root_state_and_efforts(lmeta, lk, lki, st, lw, wrench_hand, out_pose, out_twist, out_wrench,
+                           out_effort):
     """What a ProxyState says about a linkage: the root frame's pose (7) and twist (6), world; and
     the hand wrench (6, world, at the held link's origin; planar uses fx, fy, tau_z) as the
     generalized force J_h^T F_h split into the wrench on the root frame origin (6, world) and
-    one effort per joint (N m or N, positive along +q). ``Jh`` (6 x d): scratch."""
+    one effort per joint (N m or N, positive along +q)."""
     d = lmeta[LM_D]
     r = lmeta[LM_R]
-    planar = lmeta[LM_PLANAR]
+    planar = lmeta[LM_PLANAR] == 1
     forward_kinematics(lmeta, lk, lki, st[S_LQ:], lw)
     _link_pose(lw, 0, out_pose, 0)
     for a in range(6):
@@ -538,8 +514,6 @@ def root_state_and_efforts(lmeta, lk, lki, st, lw, Jh, wrench_hand, out_pose, ou
             out_twist[a] = st[S_QD + a]
     hk = lmeta[LM_HELD]
     x0 = lw[hk, LW_P]; x1 = lw[hk, LW_P + 1]; x2 = lw[hk, LW_P + 2]
-    v = Jh[0, 0:3]
-    w = Jh[1, 0:3]
     for col in range(d):
         # generalized force of column col: v . f + w . tau (planar: tau about +z only)
         g = 0.0
@@ -548,12 +522,12 @@ def root_state_and_efforts(lmeta, lk, lki, st, lw, Jh, wrench_hand, out_pose, ou
             if lki[hk, LI_CHAIN + t] == col:
                 isin = True
         if isin:
-            _point_column(lmeta, lki, lw, col, x0, x1, x2, v, w)
+            v0, v1, v2, w0, w1, w2 = _column(planar, r, lki, lw, col, x0, x1, x2)
             if planar:
-                g = v[0] * wrench_hand[0] + v[1] * wrench_hand[1] + w[2] * wrench_hand[5]
+                g = v0 * wrench_hand[0] + v1 * wrench_hand[1] + w2 * wrench_hand[5]
             else:
-                g = (v[0] * wrench_hand[0] + v[1] * wrench_hand[1] + v[2] * wrench_hand[2]
-                     + w[0] * wrench_hand[3] + w[1] * wrench_hand[4] + w[2] * wrench_hand[5])
+                g = (v0 * wrench_hand[0] + v1 * wrench_hand[1] + v2 * wrench_hand[2]
+                     + w0 * wrench_hand[3] + w1 * wrench_hand[4] + w2 * wrench_hand[5])
         if col < r:
             if planar:
                 out_wrench[0 if col == 0 else (1 if col == 1 else 5)] = g

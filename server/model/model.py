@@ -415,7 +415,6 @@ class LocalModel:
             self._lw_e = np.zeros((len(tool.links), NLW))
             self._qe = np.zeros(self.nq)
             self._q_at = S_LQ
-            self._scratch6 = np.zeros((6, MAX_DOF))
             # a bound method per instance: rigid models keep the class's step, untouched
             self.step = self._step_linkage
         self.reset()
@@ -674,7 +673,7 @@ class LocalModel:
         link frame, a rigid tool's hand point. Not for the hot path."""
         out = np.zeros(13)
         if self.is_linkage:
-            _lk.hand_state_linkage(self._lmeta, self._lk, self._lki, self._st, self._lw, self._scratch6, out, 0)
+            _lk.hand_state_linkage(self._lmeta, self._lk, self._lki, self._st, self._lw, out, 0)
             return out
         R, c = self.pose_matrix()
         r = R @ np.asarray(self.tool.hand_point_m, dtype=np.float64)
@@ -705,7 +704,7 @@ class LocalModel:
             raise ValueError("joint_state: only a linkage has joints")
         nj = len(self.tool.links) - 1
         pose, twist, wrench, effort = np.zeros(7), np.zeros(6), np.zeros(6), np.zeros(nj)
-        _lk.root_state_and_efforts(self._lmeta, self._lk, self._lki, self._st, self._lw, self._scratch6,
+        _lk.root_state_and_efforts(self._lmeta, self._lk, self._lki, self._st, self._lw,
                                    np.asarray(hand_wrench_world, dtype=np.float64), pose, twist, wrench, effort)
         r = self.dof - nj
         return pose, twist, wrench, effort, self.q[self.nq - nj:].copy(), self.qd[r:].copy()

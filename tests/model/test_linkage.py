@@ -40,7 +40,7 @@ def _kernel_kin(model, q, links, points, gravity=(0.0, 0.0, 0.0)):
     lw = lw.copy()
     D = np.zeros((MAX_DOF, MAX_DOF)); taug = np.zeros(MAX_DOF)
     J = np.zeros((m, 3, MAX_DOF)); X = np.zeros((m, 3)); Jh = np.zeros((6, MAX_DOF))
-    LK._kin_linkage(lmeta, lk, lki, par, st, C, CI, m, lw, D, taug, J, X, Jh, np.zeros(6))
+    LK._kin_linkage(lmeta, lk, lki, par, st, C, CI, m, lw, D, taug, J, X, Jh)
     d, h = model.dof, model.hand_dim
     return D[:d, :d], taug[:d], X, J[:, :, :d], Jh[:h, :d]
 
