@@ -282,6 +282,41 @@ class ContactParams:
                 raise ValueError(f"contact.{name}: must be >= 0, got {v!r}")
 
 
+#: The haptic step (semi-implicit Euler) is unstable beyond these for a contact acting through
+#: the tool's COM: the spring when omega dt > 2 (k dt^2 / m > 4), the damper when it overshoots
+#: (b dt / m > 2). Necessary, not sufficient: a contact far from the COM of a tool with a small
+#: inertia has a smaller effective mass (EXPERIMENTS.md, "stable region").
+STEP_K_DT2_PER_M_MAX = 4.0
+STEP_B_DT_PER_M_MAX = 2.0
+
+
+def check_step_stability(mass_kg: float, contact: "ContactParams", period_s: float) -> None:
+    """Refuse contact parameters the haptic step cannot integrate stably for a rigid tool of
+    ``mass_kg`` (``ValueError`` naming the field, the ratio, the limit and what would do)."""
+    m = float(mass_kg)
+    dt = float(period_s)
+    rate = 1.0 / dt
+    pairs = [("stiffness_n_per_m", contact.stiffness_n_per_m, "damping_n_s_per_m", contact.damping_n_s_per_m)]
+    if contact.tangential_stiffness_n_per_m is not None or contact.tangential_damping_n_s_per_m is not None:
+        pairs.append(("tangential_stiffness_n_per_m", contact.tangential_stiffness_n_per_m or 0.0,
+                      "tangential_damping_n_s_per_m", contact.tangential_damping_n_s_per_m or 0.0))
+    for kname, k, bname, b in pairs:
+        rk = k * dt * dt / m
+        if rk > STEP_K_DT2_PER_M_MAX:
+            raise ValueError(
+                f"contact.{kname}: {k:g} N/m on a {m:g} kg tool at {rate:g} Hz is beyond what the haptic step "
+                f"integrates stably (k dt^2 / m = {rk:.3g} > {STEP_K_DT2_PER_M_MAX:g}): at most "
+                f"{STEP_K_DT2_PER_M_MAX * m / (dt * dt):.4g} N/m at this rate, or a rate of at least "
+                f"{math.sqrt(k / (STEP_K_DT2_PER_M_MAX * m)):.4g} Hz")
+        rb = b * dt / m
+        if rb > STEP_B_DT_PER_M_MAX:
+            raise ValueError(
+                f"contact.{bname}: {b:g} N s/m on a {m:g} kg tool at {rate:g} Hz is beyond what the haptic step "
+                f"integrates stably (b dt / m = {rb:.3g} > {STEP_B_DT_PER_M_MAX:g}): at most "
+                f"{STEP_B_DT_PER_M_MAX * m / dt:.4g} N s/m at this rate, or a rate of at least "
+                f"{b / (STEP_B_DT_PER_M_MAX * m):.4g} Hz")
+
+
 @dataclass
 class ContactSnapshot:
     """A copy of the live local contacts (for tests, telemetry and plots; not for the hot path)."""
@@ -359,6 +394,8 @@ class LocalModel:
             raise ValueError(f"capacity: must be a positive integer, got {capacity!r}")
         if not isinstance(max_update_contacts, (int, np.integer)) or max_update_contacts < capacity:
             raise ValueError(f"max_update_contacts: must be an integer >= capacity, got {max_update_contacts!r}")
+        if tool.kind in ("1dof", "planar", "spatial"):
+            check_step_stability(tool.mass_kg, contact, dt)
         grav = _vec3("gravity_m_per_s2", gravity_m_per_s2)
         if linkage_dynamics not in LINKAGE_DYNAMICS:
             raise ValueError(f"linkage_dynamics: expected one of {LINKAGE_DYNAMICS}, got {linkage_dynamics!r}")
