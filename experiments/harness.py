@@ -49,6 +49,15 @@ METHODS: dict[str, dict] = {
 
 _NS = 1_000_000_000
 _mem_names = itertools.count(1)
+TEL_UPDATES = 6  # shm.TEL["updates"]
+
+
+class RunFailed(RuntimeError):
+    """A run that produced no trace; ``loop_exception`` is what the server loop raised."""
+
+    def __init__(self, message: str, loop_exception: str = "") -> None:
+        super().__init__(message)
+        self.loop_exception = loop_exception
 
 
 def free_port() -> int:
@@ -364,6 +373,8 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
             if pen is not None and loop.model is not None:
                 pen[i] = loop.model.penalty_wrench[:hd]
         rows, step_ns, pen, upd = rows[:n_steps], step_ns[:n_steps], (None if pen is None else pen[:n_steps]), upd[:n_steps]
+        if crash and not np.any(rows[:, TEL_UPDATES] > 0):
+            raise RunFailed(f"the server loop failed before the client engaged it: {crash}", crash)
         snap = sh.snapshot()
         counters = loop.ctrl.counters()
         tr = trace_from_rows(

@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from . import metrics as M
-from .harness import Hand, RunSpec, run_realtime, run_simulated
+from .harness import Hand, RunFailed, RunSpec, run_realtime, run_simulated
 
 #: The paper's contact damping per stiffness (30 N s/m at 4000 N/m; 100 at 15000).
 DAMPING_PER_STIFFNESS_S = 0.0075
@@ -149,9 +149,14 @@ def evaluate(cfg: Config, *, seeds=SEEDS, quick: bool = False, scenarios=("wall"
     step_us, model_us, numpy_us = [], [], []
     walls, holes = [], []
     t0 = time.perf_counter()
+    failed: list[str] = []
     for sc in scenarios:
         for seed in seeds:
-            tr = run_simulated(cfg.spec(sc, seed, quick), model_timing_every=MODEL_TIMING_EVERY)
+            try:
+                tr = run_simulated(cfg.spec(sc, seed, quick), model_timing_every=MODEL_TIMING_EVERY)
+            except RunFailed as exc:  # e.g. the model refused the contact parameters at engagement
+                failed.append(exc.loop_exception or str(exc))
+                continue
             step_us.append(tr.step_us)
             if tr.model_numba_us is not None:
                 model_us.append(tr.model_numba_us)
@@ -159,6 +164,11 @@ def evaluate(cfg: Config, *, seeds=SEEDS, quick: bool = False, scenarios=("wall"
             (walls if sc == "wall" else holes).append(
                 M.static_contact_metrics(tr) if sc == "wall" else M.hole_metrics(tr))
     allm = walls + holes
+    if not allm:
+        row.update(unstable=True, refused=any(e.startswith("ValueError: contact.") for e in failed),
+                   loop_exceptions=sorted(set(failed)), faults=len(failed), energy_injected_mj=None,
+                   step_us_p50=None, step_us_p99=None, cpu_load_pct=None, feasible=False, seeds=list(seeds))
+        return row
     if walls:
         errs = [abs(w["wall_error_mm"]) for w in walls]
         row["wall_error_mm"] = round(float(np.mean(errs)), 3)
@@ -172,8 +182,10 @@ def evaluate(cfg: Config, *, seeds=SEEDS, quick: bool = False, scenarios=("wall"
     row["force_step_max_n"] = round(float(max(m["force_step_max_n"] for m in allm)), 4)
     row["penalty_jump_max_n"] = round(float(max(m.get("penalty_jump_max_n") or 0.0 for m in allm)), 4)
     row["energy_injected_mj"] = round(float(max(m["energy_injected_mj"] for m in allm)), 3)
-    row["faults"] = int(sum(m["faults"] + m["model_nonfinite"] for m in allm))
-    row["loop_exceptions"] = sorted({m["loop_exception"] for m in allm if m.get("loop_exception")})
+    row["faults"] = int(sum(m["faults"] + m["model_nonfinite"] for m in allm)) + len(failed)
+    row["loop_exceptions"] = sorted({m["loop_exception"] for m in allm if m.get("loop_exception")} | set(failed))
+    # the model refused the contact parameters for this tool at this rate (at engagement)
+    row["refused"] = any(e.startswith("ValueError: contact.") for e in row["loop_exceptions"])
     row["unstable"] = bool(row["faults"] > 0 or any(h["unstable"] for h in holes))
     st = np.concatenate(step_us)
     row["step_us_p50"] = _p(st, 50)
@@ -316,7 +328,7 @@ def stable_region(*, quick: bool, seeds, log=None) -> list[dict]:
             for k in ks:
                 cfg = replace(BASE, rate_hz=r, stiffness_n_per_m=k, **kw)
                 row = evaluate(cfg, seeds=seeds, quick=quick, scenarios=("wall", "hole_long"))
-                tried.append({"stiffness_n_per_m": k, "unstable": row["unstable"],
+                tried.append({"stiffness_n_per_m": k, "unstable": row["unstable"], "refused": row["refused"],
                               "energy_injected_mj": row["energy_injected_mj"], "drift_mm": row.get("drift_mm"),
                               "rotation_deg": row.get("rotation_deg"), "wall_error_mm": row.get("wall_error_mm"),
                               "limit_cycle_mm": row.get("limit_cycle_mm"), "loop_exceptions": row["loop_exceptions"]})
@@ -330,10 +342,13 @@ def stable_region(*, quick: bool, seeds, log=None) -> list[dict]:
                         lo = hi = k
                     elif hi is not None and all(not t["unstable"] for t in tried if t["stiffness_n_per_m"] >= lo):
                         hi = k
+            refused = next((t["stiffness_n_per_m"] for t in tried if t["refused"]), None)
             if log:
-                log(f"tradeoff: stable region {name} {r:g} Hz: stable from {lo} to {hi} N/m")
+                log(f"tradeoff: stable region {name} {r:g} Hz: stable from {lo} to {hi} N/m"
+                    f"{f'; refused from {refused:g} N/m' if refused else ''}")
             out.append({"controller": name, "rate_hz": r, "smallest_stable_stiffness_n_per_m": lo,
-                        "largest_stable_stiffness_n_per_m": hi, "tried": tried})
+                        "largest_stable_stiffness_n_per_m": hi, "smallest_refused_stiffness_n_per_m": refused,
+                        "tried": tried})
     return out
 
 
@@ -446,7 +461,9 @@ def region_md(region: list[dict]) -> str:
         for r in rates:
             e = next(x for x in region if x["controller"] == c and x["rate_hz"] == r)
             lo, hi = e["smallest_stable_stiffness_n_per_m"], e["largest_stable_stiffness_n_per_m"]
-            cells.append("none" if hi is None else f"{lo:g} - **{hi:g}**")
+            ref = e.get("smallest_refused_stiffness_n_per_m")
+            cell = "none" if hi is None else f"{lo:g} - **{hi:g}**"
+            cells.append(cell + (f" (refused from {ref:g})" if ref else ""))
         lines.append(f"| {c} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -463,7 +480,7 @@ def plot_pareto(rows: list[dict], path: Path) -> None:
     for ax, err, name in ((axes[0], "wall_error_mm", "|felt wall - wall| [mm] (Fig. 14 push)"),
                           (axes[1], "drift_mm", "drift in the tight hole [mm] (Fig. 16 shaking)")):
         for i, d in enumerate(dims):
-            rs = [r for r in rows if r["dimension"] == d and r.get(err) is not None]
+            rs = [r for r in rows if r["dimension"] == d and r.get(err) is not None and r.get("cpu_load_pct") is not None]
             ok = [r for r in rs if not r["unstable"]]
             bad = [r for r in rs if r["unstable"]]
             ax.scatter([r["cpu_load_pct"] for r in ok], [r[err] for r in ok], s=22, color=cmap(i % 10), label=d)
