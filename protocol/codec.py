@@ -222,7 +222,8 @@ class Message:
 def _attr_names(spec: MessageSpec) -> tuple[str, ...]:
     if spec is CONTACT_UPDATE:
         # The packed bins are exposed as their columns.
-        return ("seq", "env_time_s", "tool_pose", "keys") + tuple(c.name for c in CONTACT_COLUMNS)
+        return ("seq", "env_time_s", "tool_pose", "keys") + tuple(c.name for c in CONTACT_COLUMNS) + (
+            "tool_joint_position",)
     return tuple(f.name for f in spec.fields)
 
 
@@ -244,6 +245,7 @@ _PY_DEFAULTS: dict[str, dict[str, Any]] = {
     },
     "Welcome": {"server_name": "hapticproxy"},
     "Reject": {"version_min": (PROTOCOL_MAJOR, 0), "version_max": (PROTOCOL_MAJOR, PROTOCOL_MINOR)},
+    "ContactUpdate": {"tool_joint_position": np.zeros(0)},
     "ProxyState": {
         "joint_position": np.zeros(0),
         "joint_velocity": np.zeros(0),
@@ -819,12 +821,25 @@ class Codec:
         # Hand-specialised for speed (the server decodes one per environment step); field
         # order is the declaration's (messages.CONTACT_UPDATE), checked at Codec construction.
         nf = len(obj) - HEADER_LEN
+        joints = self._empty_1
         if nf != 6:
             if nf < 6:
                 raise _bad(ErrorCode.MISSING_FIELD, CONTACT_UPDATE.fields[nf].name, f"ContactUpdate needs 6 fields, got {nf}")
-            extra = nf - 6
-            self.counters.unknown_trailing_fields += extra
-            self.counters.packets_with_unknown_fields += 1
+            # 1.1: tool_joint_position (a linkage engine's joint positions), then any later fields
+            jb = obj[11]
+            if type(jb) is not bytes:
+                raise _bad(ErrorCode.WRONG_TYPE, "tool_joint_position", f"expected bin, got {type(jb).__name__}")
+            if len(jb) % 8 or len(jb) > 8 * self._max_links:
+                raise _bad(ErrorCode.BAD_SHAPE, "tool_joint_position",
+                           f"expected a multiple of 8 bytes, at most max_links float64, got {len(jb)} bytes")
+            if jb:
+                joints = _frombuffer(jb)
+                if not _vdot(joints, joints) <= _MAX_ABS_SQ:
+                    _check_float_array("tool_joint_position", joints)
+            extra = nf - 7
+            if extra:
+                self.counters.unknown_trailing_fields += extra
+                self.counters.packets_with_unknown_fields += 1
         else:
             extra = 0
         seq, t, pose_b, n, kb, db = obj[5:11]
@@ -871,6 +886,7 @@ class Codec:
         msg.seq = seq
         msg.env_time_s = t
         msg.tool_pose = _frombuffer(pose_b)
+        msg.tool_joint_position = joints
         msg.unknown_fields = extra
         if n == 0:
             msg.keys = self._empty_k
@@ -1009,7 +1025,8 @@ class Codec:
         if tid == MessageType.CONTACT_UPDATE:
             return self.encode_contact_update(
                 msg.session_id, msg.token, msg.seq, msg.env_time_s, msg.tool_pose, msg.keys,
-                msg.position_m, msg.normal, msg.separation_m, msg.v_constr_m_per_s, check=True)
+                msg.position_m, msg.normal, msg.separation_m, msg.v_constr_m_per_s, check=True,
+                tool_joint_position=msg.tool_joint_position)
         if tid == MessageType.PROXY_STATE:
             return self.encode_proxy_state(
                 msg.session_id, msg.token, msg.seq, msg.ack_seq, msg.server_time_s, msg.proxy_pose, msg.proxy_twist,
@@ -1061,14 +1078,17 @@ class Codec:
 
     def encode_contact_update(self, session_id: int, token: int, seq: int, env_time_s: float, tool_pose,
                               keys: np.ndarray, position_m: np.ndarray, normal: np.ndarray,
-                              separation_m: np.ndarray, v_constr_m_per_s: np.ndarray, *, check: bool = False) -> bytes:
+                              separation_m: np.ndarray, v_constr_m_per_s: np.ndarray, *, check: bool = False,
+                              tool_joint_position=None) -> bytes:
         """Encode a ContactUpdate straight from arrays (the environment client's hot path).
 
         ``keys`` int64 (n, 3); ``position_m``, ``normal`` float64 (n, 3); ``separation_m``,
-        ``v_constr_m_per_s`` float64 (n,); ``tool_pose`` 7 floats (x y z qw qx qy qz). Shapes and
-        dtypes are always checked (``ValueError`` naming the array). ``check=True`` also applies
-        every value rule of the decoder (finite, unit normals, unique keys), at about the
-        decoder's cost; without it a bad value is caught by the receiver instead.
+        ``v_constr_m_per_s`` float64 (n,); ``tool_pose`` 7 floats (x y z qw qx qy qz);
+        ``tool_joint_position`` (1.1, linkages): the engine's joint positions, J floats, appended
+        only when J > 0 (so a rigid tool's packet is the 1.0 layout). Shapes and dtypes are always
+        checked (``ValueError`` naming the array). ``check=True`` also applies every value rule of
+        the decoder (finite, unit normals, unique keys), at about the decoder's cost; without it a
+        bad value is caught by the receiver instead.
         """
         n = keys.shape[0] if isinstance(keys, np.ndarray) else -1
         if n < 0 or keys.shape != (n, 3) or keys.dtype != _I8:
@@ -1088,8 +1108,14 @@ class Codec:
                 raise ValueError(f"tool_pose must have 7 values, got {len(tool_pose)}")
             pose_b = _POSE.pack(*tool_pose)
         data = b"".join((position_m.tobytes(), normal.tobytes(), separation_m.tobytes(), v_constr_m_per_s.tobytes()))
-        packet = self._pack([PROTOCOL_MAJOR, self.minor, 4, session_id, token, seq, float(env_time_s), pose_b, n,
-                             keys.tobytes(), data])
+        fields = [PROTOCOL_MAJOR, self.minor, 4, session_id, token, seq, float(env_time_s), pose_b, n, keys.tobytes(), data]
+        if tool_joint_position is not None and len(tool_joint_position):
+            jq = np.asarray(tool_joint_position, dtype=_F8)
+            if jq.ndim != 1 or jq.shape[0] > self.limits.max_links:
+                raise ValueError(f"tool_joint_position must be at most {self.limits.max_links} float64 values, "
+                                 f"got shape {jq.shape}")
+            fields.append(jq.tobytes())
+        packet = self._pack(fields)
         if check:
             saved = self.counters
             self.counters = CodecCounters()  # a self-check must not count as traffic

@@ -30,8 +30,9 @@ from typing import Any
 
 #: Major version this code speaks. A different major fails closed in the handshake.
 PROTOCOL_MAJOR = 1
-#: Highest minor version of :data:`PROTOCOL_MAJOR` this code speaks.
-PROTOCOL_MINOR = 0
+#: Highest minor version of :data:`PROTOCOL_MAJOR` this code speaks. 1.1 appended
+#: ``ContactUpdate.tool_joint_position`` (a linkage engine's joint positions).
+PROTOCOL_MINOR = 1
 
 
 class _Required:
@@ -315,6 +316,10 @@ CONTACT_UPDATE = MessageSpec(
                   doc="n keys, row-major: (tool_link, env_body, feature) per contact; unique"),
         FieldSpec("contact_data", "bin f64[n*8]", "see Contact columns", "world",
                   doc="structure of arrays: position n*3, normal n*3, separation n, v_constr n"),
+        FieldSpec("tool_joint_position", "bin f64[J]", "rad or m", "-", default=b"", since_minor=1,
+                  doc="linkage: the engine's joint positions at env_time_s (links 1..L-1 in link order; with "
+                      "tool_pose, the root's: the configuration the contacts were computed at); others: empty "
+                      "or absent"),
     ),
 )
 

@@ -258,6 +258,9 @@ class ServerConfig:
     supported_tools: frozenset = frozenset(ToolKind)
     server_name: str = "hapticproxy"
     limits: Limits = field(default_factory=Limits)
+    #: The server's own check of a decoded Hello's content (e.g. a linkage its model cannot
+    #: hold): returns "" to accept, or the reason to refuse it with Reject INVALID_HELLO.
+    hello_check: Callable[[Hello], str] | None = None
 
     def __post_init__(self) -> None:
         for name in ("haptic_rate_hz", "heartbeat_interval_s", "silence_timeout_s", "error_rate_per_s"):
@@ -514,6 +517,11 @@ class ServerEndpoint:
             self._reject(peer, hello.client_nonce, ErrorCode.UNSUPPORTED_TOOL,
                          f"tool kind {hello.tool_kind.name} not supported by this server")
             return
+        if cfg.hello_check is not None:
+            why = cfg.hello_check(hello)
+            if why:
+                self._reject(peer, hello.client_nonce, ErrorCode.INVALID_HELLO, why)
+                return
         if len(self.sessions) >= cfg.max_sessions:
             self._reject(peer, hello.client_nonce, ErrorCode.SERVER_FULL, f"all {cfg.max_sessions} session slots in use")
             return
@@ -640,10 +648,11 @@ class ClientEndpoint:
 
     def send_contacts(self, now_ns: int | None, env_time_s: float, tool_pose, keys: np.ndarray,
                       position_m: np.ndarray, normal: np.ndarray, separation_m: np.ndarray,
-                      v_constr_m_per_s: np.ndarray, *, check: bool = False) -> int:
-        """Send one ContactUpdate (arrays as in :meth:`Codec.encode_contact_update`). Returns its
-        seq, or 0 if the session is not established (nothing sent). ``ValueError`` on shapes,
-        dtypes or more contacts than the granted capacity."""
+                      v_constr_m_per_s: np.ndarray, *, check: bool = False, tool_joint_position=None) -> int:
+        """Send one ContactUpdate (arrays as in :meth:`Codec.encode_contact_update`; a linkage
+        engine adds its joint positions). Returns its seq, or 0 if the session is not established
+        (nothing sent). ``ValueError`` on shapes, dtypes or more contacts than the granted
+        capacity."""
         if self.state != ClientState.ESTABLISHED:
             return 0
         if keys.shape[0] > self.welcome.max_contacts:
@@ -651,7 +660,7 @@ class ClientEndpoint:
         self._contact_tx_seq += 1
         packet = self.codec.encode_contact_update(
             self.session_id, self.token, self._contact_tx_seq, env_time_s, tool_pose, keys, position_m, normal,
-            separation_m, v_constr_m_per_s, check=check)
+            separation_m, v_constr_m_per_s, check=check, tool_joint_position=tool_joint_position)
         self._emit(packet, _now(now_ns))
         return self._contact_tx_seq
 

@@ -10,7 +10,7 @@ Layout (all keys optional; ``hapticproxy serve --print-config`` prints the effec
     [loop]      rate_hz, spin_us ("auto" or us), realtime, cpu
     [transport] url, hmac_key_file, max_sessions, heartbeat_interval_s, silence_timeout_s
     [model]     tool, policy, contact_frame, epsilon_m, capacity, stiffness_n_per_m, damping_n_s_per_m,
-                restitution, mu_static, mu_kinetic, gravity_m_per_s2
+                restitution, mu_static, mu_kinetic, gravity_m_per_s2, linkage_dynamics
     [controller] type, stiffness_n_per_m, damping_n_s_per_m, rot_stiffness_n_m_per_rad,
                 rot_damping_n_m_s_per_rad, hand_gain, env_gain, mapping
     [safety]    max_force_n, max_torque_n_m, force_rate_n_per_s, torque_rate_n_m_per_s,
@@ -38,6 +38,10 @@ from hapticproxy.protocol.transport import parse_transport_url as parse_url
 POLICIES = ("rigid", "lm0", "lm", "deformation")
 CONTROLLERS = ("four_channel", "coupler", "direct")
 TOOL_KINDS = ("1dof", "planar", "spatial")
+#: ``model.tool`` may also be "linkage": a kinematic tree from the client's Hello, planar on a
+#: planar device, spatial on a spatial one (the hand holds its held link).
+MODEL_TOOLS = TOOL_KINDS + ("linkage",)
+LINKAGE_DYNAMICS = ("full", "paper")
 MAPPINGS = ("index", "absolute")
 #: The promise for re-engaging: the first command after engaging or re-arming is at most this.
 FIRST_COMMAND_MAX_N = 0.2
@@ -139,8 +143,9 @@ SCHEMA: dict[str, dict[str, tuple[Any, Callable, str]]] = {
         "silence_timeout_s": (1.0, _num(0.01, 60, lo_open=True), "end a session silent this long (Bye 61)"),
     },
     "model": {
-        "tool": ("", lambda k, v: v if v == "" else _choice(TOOL_KINDS)(k, v),
-                 "tool kind accepted from clients; empty: the device's kind"),
+        "tool": ("", lambda k, v: v if v == "" else _choice(MODEL_TOOLS)(k, v),
+                 "tool kind accepted from clients; empty: the device's kind; linkage: a kinematic tree "
+                 "(planar on a planar device, spatial on a spatial one)"),
         "policy": ("deformation", _choice(POLICIES), "update policy (rigid = the IR baseline)"),
         "contact_frame": ("engine", _choice(("engine", "proxy")),
                           "engine: reported features taken in the engine tool's frame (ContactUpdate.tool_pose); "
@@ -153,6 +158,9 @@ SCHEMA: dict[str, dict[str, tuple[Any, Callable, str]]] = {
         "mu_static": (0.0, _num(0, 10), "static friction coefficient"),
         "mu_kinetic": (0.0, _num(0, 10), "kinetic friction coefficient"),
         "gravity_m_per_s2": ((0.0, 0.0, 0.0), _vec3, "gravity on the proxy, world"),
+        "linkage_dynamics": ("full", _choice(LINKAGE_DYNAMICS),
+                             "linkage proxy: full = with the Coriolis/centripetal terms (energy-consistent); "
+                             "paper = neglected, the paper's eq. 7 as written"),
     },
     "controller": {
         "type": ("four_channel", _choice(CONTROLLERS), "four_channel | coupler | direct (IR baseline)"),
@@ -305,7 +313,13 @@ def load(source: str | Path | dict | None = None, overrides: dict | None = None)
     if data["transport"]["silence_timeout_s"] <= data["transport"]["heartbeat_interval_s"]:
         raise ConfigError("transport.silence_timeout_s", "must exceed transport.heartbeat_interval_s")
     tool = data["model"]["tool"] or dev["kind"]
-    if tool != dev["kind"]:
+    if tool == "linkage":
+        if dev["kind"] not in ("planar", "spatial"):
+            raise ConfigError("model.tool", f"a linkage needs a planar or spatial device, device.kind is {dev['kind']!r}")
+        if data["controller"]["type"] == "direct":
+            raise ConfigError("controller.type", "direct coupling makes the device the tool, which a linkage "
+                              "cannot be (the hand holds one link of a dynamic chain): use four_channel or coupler")
+    elif tool != dev["kind"]:
         raise ConfigError("model.tool", f"tool kind {tool!r} does not match device.kind {dev['kind']!r}")
     return Settings(data, name)
 

@@ -29,7 +29,9 @@ target drops to 0 (a fade-out) and a trip is counted; then ``gain`` moves toward
 (counted) and scaled by the gain (so while ramping in the output is at most ``gain * cap``);
 while the gain goes down (a fade) each component is also kept between zero and its previous
 value times ``gain / previous gain``, so a fade never pushes harder than where it began, whatever
-the command does meanwhile; then the change per step is capped at the rate limit (counted).
+the command does meanwhile; while it goes up (a ramp) no component grows by more than ``cap *
+dt / ramp_in_s`` per step, so force comes back gradually also after an interrupted fade; then
+the change per step is capped at the rate limit (counted).
 Because the previous output and the capped target both lie within the caps, the rate-limited
 output does too.
 """
@@ -41,7 +43,8 @@ import numpy as np
 from numba import njit
 
 from .model.kernels import _rigid_pose, step_rigid
-from .model.layout import P_AXIS, P_HAND, P_ORIGIN, S_FENV, S_Q, S_QD, TOOL_1DOF, TOOL_PLANAR
+from .model.layout import LM_PLANAR, P_AXIS, P_HAND, P_ORIGIN, S_FENV, S_Q, S_QD, TOOL_1DOF, TOOL_PLANAR
+from .model.linkage import hand_state_linkage, step_linkage
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -187,6 +190,7 @@ def _safety(cp, cs, cc, cmd):
         g = max(cs[CS_TARGET], g - cp[CP_FADE])
     cs[CS_GAIN] = g
     fading = g < g_old
+    ramping = g > g_old
     shrink = g / g_old if fading else 1.0
     sat = False
     lim = False
@@ -213,6 +217,15 @@ def _safety(cp, cs, cc, cmd):
                 v = min(max(v, 0.0), bound)
             else:
                 v = max(min(v, 0.0), bound)
+        elif ramping:
+            # A ramp adds force at the ramp's own slope (cap * dt / ramp_in_s per step) at most,
+            # also when it resumes an interrupted fade (whose output the fade held below the
+            # gained command): force comes back gradually, never as a step.
+            grow = abs(prev) + cap * cp[CP_RAMP]
+            if v > grow:
+                v = grow
+            elif v < -grow:
+                v = -grow
         if v > prev + rate:
             v = prev + rate
             lim = True
@@ -405,6 +418,137 @@ def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, han
             for j in range(6):
                 cs[CS_CMDW + j] = cs[CS_ENV + j]
         proxy_hand_state(kind, par, st, R, c, cs, CS_PPOSE)
+    # world -> device frame
+    _rot_t(cp, CP_ROFF, cs[CS_CMDW], cs[CS_CMDW + 1], cs[CS_CMDW + 2], cmd, 0)
+    _rot_t(cp, CP_ROFF, cs[CS_CMDW + 3], cs[CS_CMDW + 4], cs[CS_CMDW + 5], cmd, 3)
+    src = _safety(cp, cs, cc, cmd)
+    if src != RC_OK:
+        return src
+    return rc
+
+
+@njit(**_JIT)
+def haptic_step_linkage(cp, cs, cc, dev, cmd, par, lmeta, lk, lki, st, C, CI, cnt, wk, lw, hand):
+    """``haptic_step`` for an engaged linkage tool (a kernel of its own, so rigid tools' steps
+    never branch on linkages): the device maps onto the held link's frame (its origin is the
+    hand point), the controller is the same four-channel or coupler (``direct`` is refused for
+    linkages by the config: the device cannot be a whole chain), the model step is
+    ``linkage.step_linkage``. Returns RC_*."""
+    cc[CC_STEPS] += 1
+    rc = RC_OK
+    for j in range(13):
+        if not math.isfinite(dev[j]):
+            for k in range(6):
+                cmd[k] = 0.0
+                cs[CS_PREV + k] = 0.0
+            cs[CS_GAIN] = 0.0
+            cs[CS_TARGET] = 0.0
+            cc[CC_NONFINITE] += 1
+            return RC_NONFINITE
+    planar = lmeta[LM_PLANAR] == 1
+    # device handle -> world
+    _rot(cp, CP_ROFF, dev[0], dev[1], dev[2], cs, CS_DPOSE)
+    for j in range(3):
+        cs[CS_DPOSE + j] += cp[CP_POFF + j]
+    _qmul(cp[CP_QOFF], cp[CP_QOFF + 1], cp[CP_QOFF + 2], cp[CP_QOFF + 3],
+          dev[3], dev[4], dev[5], dev[6], cs, CS_DPOSE + 3)
+    _rot(cp, CP_ROFF, dev[7], dev[8], dev[9], cs, CS_DTWIST)
+    _rot(cp, CP_ROFF, dev[10], dev[11], dev[12], cs, CS_DTWIST + 3)
+    speed = math.sqrt(dev[7] ** 2 + dev[8] ** 2 + dev[9] ** 2)
+    wspeed = math.sqrt(dev[10] ** 2 + dev[11] ** 2 + dev[12] ** 2)
+    if speed > cp[CP_VMAX] or wspeed > cp[CP_WMAX]:
+        cs[CS_TARGET] = 0.0
+        cc[CC_SPEED_TRIPS] += 1
+        rc = RC_SPEED
+    ctype = int(cp[CP_TYPE])
+    for j in range(6):
+        cs[CS_ENV + j] = 0.0
+        cs[CS_HAND + j] = 0.0
+        cs[CS_FC + j] = 0.0
+        cs[CS_CMDW + j] = 0.0
+    hand_state_linkage(lmeta, lk, lki, st, lw, cs, CS_PPOSE)
+    # position channels: device minus the held link's frame, world
+    ex = cs[CS_DPOSE] - cs[CS_PPOSE]
+    ey = cs[CS_DPOSE + 1] - cs[CS_PPOSE + 1]
+    ez = cs[CS_DPOSE + 2] - cs[CS_PPOSE + 2]
+    evx = cs[CS_DTWIST] - cs[CS_PTWIST]
+    evy = cs[CS_DTWIST + 1] - cs[CS_PTWIST + 1]
+    evz = cs[CS_DTWIST + 2] - cs[CS_PTWIST + 2]
+    erx = 0.0; ery = 0.0; erz = 0.0
+    ewx = cs[CS_DTWIST + 3] - cs[CS_PTWIST + 3]
+    ewy = cs[CS_DTWIST + 4] - cs[CS_PTWIST + 4]
+    ewz = cs[CS_DTWIST + 5] - cs[CS_PTWIST + 5]
+    if planar:
+        thd = 2.0 * math.atan2(cs[CS_DPOSE + 6], cs[CS_DPOSE + 3])
+        thp = 2.0 * math.atan2(cs[CS_PPOSE + 6], cs[CS_PPOSE + 3])
+        erz = _wrap(thd - thp)
+        ez = 0.0; evz = 0.0; ewx = 0.0; ewy = 0.0
+    else:
+        # rotation vector of q_dev * conj(q_proxy)
+        pw = cs[CS_PPOSE + 3]; px = cs[CS_PPOSE + 4]; py = cs[CS_PPOSE + 5]; pz = cs[CS_PPOSE + 6]
+        _qmul(cs[CS_DPOSE + 3], cs[CS_DPOSE + 4], cs[CS_DPOSE + 5], cs[CS_DPOSE + 6],
+              pw, -px, -py, -pz, hand, 0)
+        qw = hand[0]; qx = hand[1]; qy = hand[2]; qz = hand[3]
+        if qw < 0.0:
+            qw = -qw; qx = -qx; qy = -qy; qz = -qz
+        vn = math.sqrt(qx * qx + qy * qy + qz * qz)
+        if vn > 1e-12:
+            ang = 2.0 * math.atan2(vn, qw)
+            erx = ang * qx / vn; ery = ang * qy / vn; erz = ang * qz / vn
+    kt = cp[CP_KT]; bt = cp[CP_BT]; kr = cp[CP_KR]; br = cp[CP_BR]
+    cs[CS_FC] = kt * ex + bt * evx
+    cs[CS_FC + 1] = kt * ey + bt * evy
+    cs[CS_FC + 2] = kt * ez + bt * evz
+    cs[CS_FC + 3] = kr * erx + br * ewx
+    cs[CS_FC + 4] = kr * ery + br * ewy
+    cs[CS_FC + 5] = kr * erz + br * ewz
+    hg = 0.0
+    if ctype == CTRL_FOUR_CHANNEL:
+        hg = cp[CP_HG]
+        have = True
+        for j in range(6):
+            if not math.isfinite(dev[13 + j]):
+                have = False
+        if not have:
+            hg = 0.0
+            cc[CC_HAND_MISSING] += 1
+    if hg != 0.0:
+        _rot(cp, CP_ROFF, dev[13], dev[14], dev[15], cs, CS_HAND)
+        _rot(cp, CP_ROFF, dev[16], dev[17], dev[18], cs, CS_HAND + 3)
+        for j in range(6):
+            cs[CS_HAND + j] *= hg
+    for j in range(6):
+        cs[CS_HAND + j] += cs[CS_FC + j]
+    # the hand wrench in the tool's hand space, at the held link's frame origin
+    if planar:
+        hand[0] = cs[CS_HAND]
+        hand[1] = cs[CS_HAND + 1]
+        hand[2] = cs[CS_HAND + 5]
+    else:
+        for j in range(6):
+            hand[j] = cs[CS_HAND + j]
+    if step_linkage(par, lmeta, lk, lki, st, C, CI, cnt, wk, lw, hand) != 0:
+        for k in range(6):
+            cmd[k] = 0.0
+            cs[CS_PREV + k] = 0.0
+        cs[CS_GAIN] = 0.0
+        cs[CS_TARGET] = 0.0
+        cc[CC_NONFINITE] += 1
+        return RC_NONFINITE
+    if planar:
+        cs[CS_ENV] = st[S_FENV]
+        cs[CS_ENV + 1] = st[S_FENV + 1]
+        cs[CS_ENV + 5] = st[S_FENV + 2]
+    else:
+        for j in range(6):
+            cs[CS_ENV + j] = st[S_FENV + j]
+    if ctype == CTRL_FOUR_CHANNEL:
+        for j in range(6):
+            cs[CS_CMDW + j] = cp[CP_EG] * cs[CS_ENV + j] - cs[CS_FC + j]
+    else:
+        for j in range(6):
+            cs[CS_CMDW + j] = -cs[CS_FC + j]
+    hand_state_linkage(lmeta, lk, lki, st, lw, cs, CS_PPOSE)
     # world -> device frame
     _rot_t(cp, CP_ROFF, cs[CS_CMDW], cs[CS_CMDW + 1], cs[CS_CMDW + 2], cmd, 0)
     _rot_t(cp, CP_ROFF, cs[CS_CMDW + 3], cs[CS_CMDW + 4], cs[CS_CMDW + 5], cmd, 3)

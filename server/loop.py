@@ -43,11 +43,13 @@ from hapticproxy.protocol.session import ServerConfig, ServerEndpoint
 
 from . import control as ctl
 from .devices.base import DEV_FAULT_LINK, DEV_FAULT_NAMES, DEV_NSTATE, DS_TIME, empty_state, load_device
-from .model.model import ContactParams, LocalModel, ToolSpec, warm_up as model_warm_up
+from .model.model import ContactParams, LinkSpec, LocalModel, ToolSpec, warm_up as model_warm_up
 from .shm import CT, HBINS, LS, ST, SharedState
 
-_KIND_TO_TOOLKIND = {"1dof": ToolKind.ONE_DOF, "planar": ToolKind.PLANAR, "spatial": ToolKind.SPATIAL}
+_KIND_TO_TOOLKIND = {"1dof": ToolKind.ONE_DOF, "planar": ToolKind.PLANAR, "spatial": ToolKind.SPATIAL,
+                     "linkage": ToolKind.LINKAGE}
 _TOOLKIND_TO_KIND = {v: k for k, v in _KIND_TO_TOOLKIND.items()}
+_JOINT_NAMES = {0: "root", 1: "revolute", 2: "prismatic"}
 
 WD_OK = 0
 WD_SILENT = 1
@@ -99,11 +101,29 @@ def _account(ring, head, hist_late, hist_step, status, period_ns, late_ns, comp_
     head[0] += 1
 
 
-def tool_from_hello(hello) -> ToolSpec:
-    """The proxy's ToolSpec from a client's Hello; the hand holds the tool at its tool-frame origin."""
+def tool_from_hello(hello, planar: bool | None = None) -> ToolSpec:
+    """The proxy's ToolSpec from a client's Hello; the hand holds a rigid tool at its tool-frame
+    origin, a linkage at its held link's frame origin. ``planar``: a linkage's model (planar on a
+    planar device, spatial on a spatial one); ``ValueError`` naming the field for a linkage the
+    model cannot hold."""
     kind = _TOOLKIND_TO_KIND.get(hello.tool_kind)
     if kind is None:
-        raise ValueError(f"tool_kind {hello.tool_kind!r} is not a rigid tool this server models")
+        raise ValueError(f"tool_kind {hello.tool_kind!r} is not a tool this server models")
+    if kind == "linkage":
+        if planar is None:
+            raise ValueError("tool_kind: a linkage needs a planar or spatial device")
+        links = []
+        for ln in hello.links:
+            ixx, iyy, izz, ixy, ixz, iyz = (float(v) for v in ln["inertia_kg_m2"])
+            origin = tuple(float(v) for v in ln["joint_origin"])
+            links.append(LinkSpec(
+                float(ln["mass_kg"]), tuple(float(v) for v in ln["com_m"]),
+                ((ixx, ixy, ixz), (ixy, iyy, iyz), (ixz, iyz, izz)), int(ln["parent"]),
+                _JOINT_NAMES.get(int(ln["joint_type"]), "?"), tuple(float(v) for v in ln["joint_axis"]),
+                origin[:3], origin[3:7] if int(ln["parent"]) >= 0 else (1.0, 0.0, 0.0, 0.0)))
+        tool = ToolSpec.linkage(links, int(hello.held_link), planar)
+        tool.validated()
+        return tool
     com = np.asarray(hello.com_m, dtype=float)
     ixx, iyy, izz, ixy, ixz, iyz = (float(v) for v in hello.inertia_kg_m2)
     inertia = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
@@ -115,8 +135,10 @@ def tool_from_hello(hello) -> ToolSpec:
     return ToolSpec.spatial(float(hello.mass_kg), inertia, hand_point_m=tuple(-com))
 
 
-def q_from_tool_pose(kind: str, pose, com_m, axis=None) -> np.ndarray:
+def q_from_tool_pose(kind: str, pose, com_m, axis=None, joints=None) -> np.ndarray:
     """COM configuration q of the proxy from the engine's tool-frame pose (x y z qw qx qy qz).
+    ``kind`` "linkage-planar" / "linkage-spatial": the root frame's pose coordinates (no COM
+    shift) followed by ``joints``.
 
     Plain floats on purpose: it runs once per model update inside a haptic step."""
     px, py, pz = float(pose[0]), float(pose[1]), float(pose[2])
@@ -126,6 +148,10 @@ def q_from_tool_pose(kind: str, pose, com_m, axis=None) -> np.ndarray:
         w, x, y, z = w / n, x / n, y / n, z / n
     else:
         w, x, y, z = 1.0, 0.0, 0.0, 0.0
+    if kind == "linkage-planar":
+        return np.r_[px, py, 2 * math.atan2(z, w), joints]
+    if kind == "linkage-spatial":
+        return np.r_[px, py, pz, w, x, y, z, joints]
     cx, cy, cz = float(com_m[0]), float(com_m[1]), float(com_m[2])
     if kind == "1dof":
         ax = axis if axis is not None else (1.0, 0.0, 0.0)
@@ -167,12 +193,16 @@ class HapticLoop:
             silence_timeout_s=tcfg["silence_timeout_s"],
             max_sessions=tcfg["max_sessions"],
             supported_tools=frozenset({_KIND_TO_TOOLKIND[self.kind]}),
+            hello_check=self._check_hello if self.kind == "linkage" else None,
         )
         self.endpoint = ServerEndpoint(self.transport.send, self.server_config, hmac_key=hmac_key)
         self._owns_device = device is None
         self.device = device if device is not None else load_device(
             settings["device"]["driver"], dict(settings["device"]), period_s=self.dt_s, clock_ns=self.clock.now_ns)
         self.ctrl = ctl.Controller(settings, self.device.kind, self.device.limits)
+        #: a linkage tool is engaged: the step runs ``control.haptic_step_linkage``
+        self._linkage = False
+        self._largs = None
         self.contact = ContactParams(
             stiffness_n_per_m=mcfg["stiffness_n_per_m"], damping_n_s_per_m=mcfg["damping_n_s_per_m"],
             restitution=mcfg["restitution"], mu_static=mcfg["mu_static"], mu_kinetic=mcfg["mu_kinetic"])
@@ -225,12 +255,20 @@ class HapticLoop:
         model_warm_up()
         s = self.settings
         c = ctl.Controller(s, self.device.kind, self.device.limits)
-        tmp = LocalModel(ToolSpec.planar(1.0, 1e-3) if self.kind == "planar" else
-                         ToolSpec.one_dof(1.0) if self.kind == "1dof" else ToolSpec.spatial(1.0, (1e-3,) * 3),
+        dev_kind = self.device.kind
+        tmp = LocalModel(ToolSpec.planar(1.0, 1e-3) if dev_kind == "planar" else
+                         ToolSpec.one_dof(1.0) if dev_kind == "1dof" else ToolSpec.spatial(1.0, (1e-3,) * 3),
                          period_s=self.dt_s, capacity=4, warm=False)
         dev = empty_state()
         for active in (0, 1):
             ctl.haptic_step(c.cp, c.cs, c.cc, dev, c.cmd, active, *tmp.kernel_args(), c.hand, c.R, c.c)
+        if self.kind == "linkage":
+            links = (LinkSpec(0.1, inertia_kg_m2=(1e-4, 1e-4, 1e-4)),
+                     LinkSpec(0.1, (0.03, 0.0, 0.0), (1e-4, 1e-4, 1e-4), 0, "revolute", (0.0, 0.0, 1.0), (0.06, 0.0, 0.0)))
+            lm = LocalModel(ToolSpec.linkage(links, 1, dev_kind == "planar"), period_s=self.dt_s, capacity=4, warm=False)
+            kind_, par_, st_, C_, CI_, cnt_, wk_ = lm.kernel_args()
+            ctl.haptic_step_linkage(c.cp, c.cs, c.cc, dev, c.cmd, par_, *lm.linkage_args()[:3], st_, C_, CI_, cnt_,
+                                    wk_, lm.linkage_args()[3], c.hand)
         ctl.fade_only(c.cp, c.cs, c.cc, c.cmd)
         ring = np.zeros((4, self.shared.ring.shape[1]))
         head = np.zeros(1, dtype=np.int64)
@@ -296,7 +334,13 @@ class HapticLoop:
             margs = self._dummy
             active = 0
         kind, par, st_, C, CI, cnt, wk = margs
-        rc = ctl.haptic_step(c.cp, c.cs, c.cc, dev, c.cmd, active, kind, par, st_, C, CI, cnt, wk, c.hand, c.R, c.c)
+        if self._linkage:
+            lmeta, lk, lki, lw = self._largs
+            rc = ctl.haptic_step_linkage(c.cp, c.cs, c.cc, dev, c.cmd, par, lmeta, lk, lki, st_, C, CI, cnt, wk, lw,
+                                         c.hand)
+        else:
+            rc = ctl.haptic_step(c.cp, c.cs, c.cc, dev, c.cmd, active, kind, par, st_, C, CI, cnt, wk, c.hand, c.R,
+                                 c.c)
         # 5: device command
         rc_w = self.device.write(c.cmd)
         if rc or rc_dev or rc_w:
@@ -334,6 +378,8 @@ class HapticLoop:
             if self.stopping:
                 return
             self._engage(upd, now)
+            if self.model is None:
+                return  # not engaged (a Hello the model cannot hold)
         else:
             n = upd.keys.shape[0]
             m = self.model
@@ -358,10 +404,25 @@ class HapticLoop:
         self._ack(now)
 
     def _engine_q(self, upd):
-        """The engine's tool configuration for the update (None: the paper's eq. 1)."""
-        if self._use_engine_frame:
-            return q_from_tool_pose(self._tool_kind, upd.tool_pose, self._hello_com, self._hello_axis)
-        return None
+        """The engine's tool configuration for the update (None: the paper's eq. 1). A linkage's
+        needs the engine's joint positions too (``ContactUpdate.tool_joint_position``); an update
+        without them (a v1.0 client) is located with the paper's eq. 1."""
+        if not self._use_engine_frame:
+            return None
+        if self._linkage:
+            joints = getattr(upd, "tool_joint_position", None)
+            if joints is None or len(joints) != self._n_joints:
+                return None
+            return q_from_tool_pose(self._tool_kind, upd.tool_pose, None, None, joints)
+        return q_from_tool_pose(self._tool_kind, upd.tool_pose, self._hello_com, self._hello_axis)
+
+    def _check_hello(self, hello) -> str:
+        """A linkage Hello the model can hold: "" or why not (Reject INVALID_HELLO)."""
+        try:
+            tool_from_hello(hello, planar=self.device.kind == "planar")
+        except ValueError as exc:
+            return str(exc)
+        return ""
 
     def _track_env(self, upd, now: int) -> None:
         if self.last_update_ns:
@@ -375,6 +436,14 @@ class HapticLoop:
     def _ack(self, now: int) -> None:
         cs = self.ctrl.cs
         m = self.model
+        if self._linkage:
+            # the root frame's pose and twist; the hand wrench as the wrench on the root frame's
+            # origin plus one effort per joint (J_h^T F_h split by coordinates)
+            pose, twist, wrench, effort, jq, jqd = m.joint_state(cs[ctl.CS_HAND:ctl.CS_HAND + 6])
+            if self.endpoint.send_proxy_state(self.session_id, now, pose, twist, wrench, server_time_s=m.time_s,
+                                              joint_position=jq, joint_velocity=jqd, joint_effort=effort):
+                self.acks += 1
+            return
         kind, par, st_ = self._margs[0], self._margs[1], self._margs[2]
         ctl.proxy_hand_state(kind, par, st_, self._R, self._c, self._scratch_pose, 0)
         if self.endpoint.send_proxy_state(self.session_id, now, self._scratch_pose[:7], self._scratch_pose[7:13],
@@ -388,12 +457,29 @@ class HapticLoop:
         s = self.settings
         mcfg = s["model"]
         hello = sess.hello
-        tool = tool_from_hello(hello)
+        linkage = self.kind == "linkage"
+        try:
+            tool = tool_from_hello(hello, planar=(self.device.kind == "planar") if linkage else None)
+        except ValueError:
+            self.update_errors += 1  # the handshake's check refuses such a Hello; never engage it
+            return
         eps = 0.0 if mcfg["policy"] == "lm0" else float(sess.epsilon_m)
         model = LocalModel(tool, self.contact, period_s=self.dt_s, policy=mcfg["policy"], epsilon_m=eps,
                            capacity=mcfg["capacity"], gravity_m_per_s2=mcfg["gravity_m_per_s2"],
-                           max_update_contacts=max(mcfg["capacity"], sess.max_contacts), warm=False)
-        model.reset(q_from_tool_pose(tool.kind, upd.tool_pose, hello.com_m, hello.axis))
+                           max_update_contacts=max(mcfg["capacity"], sess.max_contacts),
+                           linkage_dynamics=mcfg["linkage_dynamics"], warm=False)
+        if linkage:
+            self._n_joints = len(tool.links) - 1
+            qkind = "linkage-planar" if tool.planar else "linkage-spatial"
+            joints = getattr(upd, "tool_joint_position", None)
+            if joints is None or len(joints) != self._n_joints:
+                joints = np.zeros(self._n_joints)  # a v1.0 client: the chain starts at q = 0
+            model.reset(q_from_tool_pose(qkind, upd.tool_pose, None, None, np.asarray(joints, dtype=float)))
+        else:
+            qkind = tool.kind
+            model.reset(q_from_tool_pose(tool.kind, upd.tool_pose, hello.com_m, hello.axis))
+        self._linkage = linkage
+        self._largs = model.linkage_args() if linkage else None
         cap = max(mcfg["capacity"], sess.max_contacts)
         self._kbuf = np.zeros((cap, 3), dtype=np.int64)
         self._pbuf = np.zeros((cap, 3))
@@ -408,7 +494,7 @@ class HapticLoop:
         self._vbuf[:n] = upd.v_constr_m_per_s
         self._hello_com = np.asarray(hello.com_m, dtype=float)
         self._hello_axis = np.asarray(hello.axis, dtype=float)
-        self._tool_kind = tool.kind
+        self._tool_kind = qkind
         if model.update_arrays(self._kbuf, self._pbuf, self._nbuf, self._sbuf, self._vbuf, n,
                                self._engine_q(upd)) != 0:
             self.update_errors += 1
@@ -433,11 +519,14 @@ class HapticLoop:
         if self.settings["controller"]["mapping"] != "index" or self._margs is None:
             return
         kind, par, st_ = self._margs[0], self._margs[1], self._margs[2]
-        ctl.proxy_hand_state(kind, par, st_, self._R, self._c, self._scratch_pose, 0)
+        if self._linkage:
+            self._scratch_pose[:] = self.model.hand_state()  # the held link's frame
+        else:
+            ctl.proxy_hand_state(kind, par, st_, self._R, self._c, self._scratch_pose, 0)
         self.device.read(self.dev)
         dev_axis = self.settings["device"].get("axis", (1.0, 0.0, 0.0))
-        R_off, p_off, q_off = ctl.index_offset(self._tool_kind, self.dev[:7], self._scratch_pose[:7],
-                                               tool_axis=self._tool_axis, device_axis=dev_axis)
+        R_off, p_off, q_off = ctl.index_offset(self.device.kind if self._linkage else self._tool_kind, self.dev[:7],
+                                               self._scratch_pose[:7], tool_axis=self._tool_axis, device_axis=dev_axis)
         self.ctrl.set_offset(R_off, p_off, q_off)
 
     def _after_fade(self) -> None:
@@ -451,6 +540,8 @@ class HapticLoop:
         if self.watchdog == WD_SESSION_ENDED:
             self.model = None
             self._margs = None
+            self._linkage = False
+            self._largs = None
             self.session_id = 0
             self.state = LS["idle"]
             self.watchdog = WD_OK

@@ -353,3 +353,33 @@ def test_engine_frame_locates_features_on_the_engine_links():
         link = int(key[0])
         body = Rs_e[link].T @ (cp[i] + d[i] * n[i] - ps_e[link])
         np.testing.assert_allclose(snap.local_point_body_m[i], body, atol=1e-12)
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_joint_state_splits_the_hand_wrench_by_coordinates(planar):
+    """ProxyState content: the root frame's pose and twist; J_h^T F_h split into the wrench on
+    the root frame's origin and one effort per joint."""
+    rng = np.random.default_rng(5 + planar)
+    for _ in range(10):
+        tool = random_linkage(rng, 4, planar)
+        m = _model(tool, warm=False)
+        m.reset(random_q(rng, tool), rng.normal(size=m.dof))
+        F = rng.normal(size=6)
+        if planar:
+            F[2:5] = 0.0
+        pose, twist, wrench, effort, jq, jqd = m.joint_state(F)
+        ref = LinkageReference.of(tool)
+        _, _, _, _, Jh = ref.kinematics(m.q, np.zeros(3), np.zeros(0, int), np.zeros((0, 3)))
+        gen = Jh.T @ (F[[0, 1, 5]] if planar else F)
+        r = 3 if planar else 6
+        np.testing.assert_allclose(effort, gen[r:], atol=1e-12)
+        np.testing.assert_allclose(wrench[[0, 1, 5]] if planar else wrench, gen[:r], atol=1e-12)
+        Rs, ps = m.link_poses()
+        np.testing.assert_allclose(pose[:3], ps[0], atol=1e-15)
+        w, x, y, z = pose[3:]
+        np.testing.assert_allclose(Rs[0], [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                                           [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                                           [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]], atol=1e-12)
+        np.testing.assert_allclose(twist[[0, 1, 5]] if planar else twist, m.qd[:r], atol=1e-15)
+        np.testing.assert_array_equal(jq, m.q[(3 if planar else 7):])
+        np.testing.assert_array_equal(jqd, m.qd[r:])

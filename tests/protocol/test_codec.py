@@ -127,7 +127,7 @@ def test_contact_update_round_trip_and_layout(n):
         np.testing.assert_array_equal(arr, ref, err_msg=name)
     # Packed layout: header + 6 fields, two bins of exactly 24 n and 64 n bytes.
     obj = raw(pkt)
-    assert obj[:5] == [1, 0, 4, 3, 4] and len(obj) == 11
+    assert obj[:5] == [1, M.PROTOCOL_MINOR, 4, 3, 4] and len(obj) == 11  # no joints: the 1.0 layout
     assert obj[8] == n and len(obj[9]) == 24 * n and len(obj[10]) == 64 * n
     np.testing.assert_array_equal(np.frombuffer(obj[10], "<f8")[: 3 * n], pos.ravel())
 
@@ -432,8 +432,8 @@ def test_newer_minor_trailing_fields_are_ignored_and_counted():
     out = codec.decode(pack(hb + [42, "future", [1.0, 2.0]]))
     assert isinstance(out, Heartbeat) and out.seq == 2 and out.minor == 3 and out.unknown_fields == 3
     obj = raw(cu_packet(codec, n=4))
-    obj[1] = 1
-    cu = codec.decode(pack(obj + [7]))
+    obj[1] = 2  # after 1.1's tool_joint_position (here empty), one field this codec does not know
+    cu = codec.decode(pack(obj + [b"", 7]))
     assert cu.unknown_fields == 1 and cu.n_contacts == 4
     assert codec.counters.unknown_trailing_fields == 4
     assert codec.counters.packets_with_unknown_fields == 2
@@ -453,18 +453,37 @@ def test_newer_minor_extra_contact_column_is_ignored_and_counted():
 
 def test_older_minor_missing_defaulted_fields_get_defaults():
     # A v1.1 declaration appends a defaulted field; the v1.1 codec reads v1.0 packets and vice versa.
-    extra = M.FieldSpec("battery", "f64", "-", since_minor=1, default=1.0, doc="test-only field")
+    extra = M.FieldSpec("battery", "f64", "-", since_minor=2, default=1.0, doc="test-only field")
     hb11 = dataclasses.replace(M.HEARTBEAT, fields=M.HEARTBEAT.fields + (extra,))
     specs11 = tuple(hb11 if s is M.HEARTBEAT else s for s in M.MESSAGES)
     M.check_declarations(specs11)
-    new, old = Codec(specs=specs11, minor=1), Codec()
+    new, old = Codec(specs=specs11, minor=2), Codec(minor=1)
     from_old = new.decode(old.encode(Heartbeat(seq=1, time_s=0.0, session_id=1, token=1)))
-    assert from_old.battery == 1.0 and from_old.minor == 0
+    assert from_old.battery == 1.0 and from_old.minor == 1
     cls11 = type(from_old)
     pkt11 = new.encode(cls11(seq=2, time_s=0.5, battery=0.3, session_id=1, token=1))
     from_new = old.decode(pkt11)
-    assert from_new.seq == 2 and from_new.minor == 1 and from_new.unknown_fields == 1
+    assert from_new.seq == 2 and from_new.minor == 2 and from_new.unknown_fields == 1
     assert old.counters.unknown_trailing_fields == 1
+
+
+def test_contact_update_1_1_carries_a_linkage_engine_s_joint_positions():
+    """1.1 appends tool_joint_position: a 1.1 decoder reads it (empty when absent, as from a 1.0
+    sender); a 1.0 decoder would count it as one unknown trailing field."""
+    codec = Codec()
+    keys, pos, nor, d, v = contacts(3, seed=3)
+    pose = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    joints = np.array([0.3, -1.2, 0.01])
+    pkt = codec.encode_contact_update(1, 2, 5, 0.5, pose, keys, pos, nor, d, v, tool_joint_position=joints)
+    m = codec.decode(pkt)
+    np.testing.assert_array_equal(m.tool_joint_position, joints)
+    assert m.unknown_fields == 0 and len(raw(pkt)) == 12
+    assert codec.decode(codec.encode_contact_update(1, 2, 6, 0.5, pose, keys, pos, nor, d, v)).tool_joint_position.shape == (0,)
+    assert codec.decode(codec.encode(m)).tool_joint_position.tolist() == joints.tolist()
+    obj = raw(pkt)
+    for bad, code in ((7, ErrorCode.WRONG_TYPE), (b"1234567", ErrorCode.BAD_SHAPE), (b"\x00" * 8 * 33, ErrorCode.BAD_SHAPE),
+                      (np.array([np.nan]).tobytes(), ErrorCode.NON_FINITE)):
+        expect(codec, pack(obj[:11] + [bad]), code)
 
 
 def test_counters_cover_every_code_below_20():

@@ -89,7 +89,7 @@ def test_handshake_grants_and_ack_round_trip():
     loop = Loop(ServerConfig(max_epsilon_m=0.002, max_contacts=16, haptic_rate_hz=512.0))
     s = loop.connect()
     w = loop.client.welcome
-    assert (w.version, w.haptic_rate_hz, w.epsilon_m, w.max_contacts) == ((1, 0), 512.0, 0.002, 16)
+    assert (w.version, w.haptic_rate_hz, w.epsilon_m, w.max_contacts) == ((1, M.PROTOCOL_MINOR), 512.0, 0.002, 16)
     assert s.peer == "env" and s.token == loop.client.token != 0 and s.hello.engine == "test-engine"
     assert loop.server.counters.sessions_opened == 1 and loop.server.counters.welcomes_sent == 1
     seq = loop.send(3)
