@@ -83,3 +83,29 @@ def test_a_new_session_engaging_during_a_fade_ramps_in_from_zero(rig_factory):
     cap = r.loop.ctrl.force_cap_n
     assert np.all(np.abs(cmds[eng:, :2]).max(axis=1) <= g[eng:] * cap + 1e-9)
     assert g[eng] <= r.settings.period_ns * 1e-9 / r.settings["safety"]["ramp_in_s"] + 1e-12
+
+
+def test_force_comes_back_at_the_ramp_slope_after_an_interrupted_fade(rig_factory):
+    # the environment falls silent long enough for the watchdog to start a fade, then comes back
+    # half-way through it: the gain climbs again from where it was, and the force must climb back
+    # gradually (no component growing faster than cap * dt / ramp_in_s per step), not snap back
+    dev = PointDevice(hand=PUSH)
+    r = rig_factory(device=dev)
+    r.run(2.0)
+    r.env.alive = False
+    n0 = len(dev.commands)
+    rows = r.run(0.2)  # watchdog at 0.1 s, then half of the 0.2 s fade
+    g = rows[:, TEL["gain"]]
+    assert 0.0 < g[-1] < 1.0
+    r.env.alive = True
+    rows = np.vstack([rows, r.run(1.0)])
+    cmds = np.array(dev.commands[n0 - 1:])
+    g = np.concatenate([[1.0], rows[:, TEL["gain"]]])
+    up = g[1:] > g[:-1]
+    assert up.any()
+    growth = np.abs(cmds[1:]).max(axis=1) - np.abs(cmds[:-1]).max(axis=1)
+    s = r.settings["safety"]
+    slope = r.loop.ctrl.force_cap_n * r.settings.period_ns * 1e-9 / s["ramp_in_s"]
+    assert growth[up].max() <= slope + 1e-12
+    assert _grew_while_fading(np.vstack([rows[:1], rows]), cmds) == 0
+    assert abs(cmds[-1][1] - 0.5) < 0.05  # and it does come back
