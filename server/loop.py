@@ -193,7 +193,7 @@ class HapticLoop:
             silence_timeout_s=tcfg["silence_timeout_s"],
             max_sessions=tcfg["max_sessions"],
             supported_tools=frozenset({_KIND_TO_TOOLKIND[self.kind]}),
-            hello_check=self._check_hello if self.kind == "linkage" else None,
+            hello_check=self._check_hello,
         )
         self.endpoint = ServerEndpoint(self.transport.send, self.server_config, hmac_key=hmac_key)
         self._owns_device = device is None
@@ -417,12 +417,26 @@ class HapticLoop:
         return q_from_tool_pose(self._tool_kind, upd.tool_pose, self._hello_com, self._hello_axis)
 
     def _check_hello(self, hello) -> str:
-        """A linkage Hello the model can hold: "" or why not (Reject INVALID_HELLO)."""
+        """A Hello whose tool the model can hold with this server's contact parameters and rate:
+        "" or why not (Reject INVALID_HELLO), so a session never engages a tool that would fail."""
         try:
-            tool_from_hello(hello, planar=self.device.kind == "planar")
+            self._new_model(hello, min(float(hello.epsilon_m), self.server_config.max_epsilon_m),
+                            int(hello.max_contacts))
         except ValueError as exc:
             return str(exc)
         return ""
+
+    def _new_model(self, hello, epsilon_m: float, max_contacts: int):
+        """(tool, LocalModel) for a client's Hello; ValueError when the tool cannot be modelled."""
+        mcfg = self.settings["model"]
+        linkage = self.kind == "linkage"
+        tool = tool_from_hello(hello, planar=(self.device.kind == "planar") if linkage else None)
+        eps = 0.0 if mcfg["policy"] == "lm0" else float(epsilon_m)
+        model = LocalModel(tool, self.contact, period_s=self.dt_s, policy=mcfg["policy"], epsilon_m=eps,
+                           capacity=mcfg["capacity"], gravity_m_per_s2=mcfg["gravity_m_per_s2"],
+                           max_update_contacts=max(mcfg["capacity"], max_contacts),
+                           linkage_dynamics=mcfg["linkage_dynamics"], warm=False)
+        return tool, model
 
     def _track_env(self, upd, now: int) -> None:
         if self.last_update_ns:
@@ -459,15 +473,10 @@ class HapticLoop:
         hello = sess.hello
         linkage = self.kind == "linkage"
         try:
-            tool = tool_from_hello(hello, planar=(self.device.kind == "planar") if linkage else None)
+            tool, model = self._new_model(hello, float(sess.epsilon_m), sess.max_contacts)
         except ValueError:
             self.update_errors += 1  # the handshake's check refuses such a Hello; never engage it
             return
-        eps = 0.0 if mcfg["policy"] == "lm0" else float(sess.epsilon_m)
-        model = LocalModel(tool, self.contact, period_s=self.dt_s, policy=mcfg["policy"], epsilon_m=eps,
-                           capacity=mcfg["capacity"], gravity_m_per_s2=mcfg["gravity_m_per_s2"],
-                           max_update_contacts=max(mcfg["capacity"], sess.max_contacts),
-                           linkage_dynamics=mcfg["linkage_dynamics"], warm=False)
         if linkage:
             self._n_joints = len(tool.links) - 1
             qkind = "linkage-planar" if tool.planar else "linkage-spatial"

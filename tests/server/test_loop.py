@@ -370,3 +370,12 @@ def test_steps_leave_no_memory_behind(rig_factory):
         gc.enable()
     grown = sum(st.size_diff for st in after.compare_to(before, "filename"))
     assert grown < 4096, [str(st) for st in after.compare_to(before, "filename")[:5]]
+
+
+def test_a_tool_the_model_cannot_integrate_is_refused_in_the_handshake(rig_factory):
+    # 0.1 g tool on 4000 N/m contacts at 1 kHz: k dt^2 / m = 40, far past what the step integrates
+    r = rig_factory(device=PointDevice(hand=PUSH), env_kwargs={"mass_kg": 1e-4})
+    r.run(0.3)
+    assert r.env.ep.state == "rejected"
+    assert "stiffness" in r.env.ep.reject.reason
+    assert r.loop.model is None and r.loop.engagements == 0
