@@ -630,6 +630,18 @@ class Controller:
     def set_target(self, engaged: bool) -> None:
         self.cs[CS_TARGET] = 1.0 if engaged else 0.0
 
+    def skip(self, steps: int) -> None:
+        """The loop woke ``steps`` whole periods late and skipped them: the gain moves on as if
+        they had run, so a fade reaches zero and a ramp-in completes in their wall-clock times
+        (``fade_s``, ``ramp_in_s``), not in a number of steps. The output itself still changes
+        only through the kernel's rate limit and fade/ramp bounds."""
+        cs = self.cs
+        g = cs[CS_GAIN]
+        if cs[CS_TARGET] < g:
+            cs[CS_GAIN] = max(cs[CS_TARGET], g - steps * self.cp[CP_FADE])
+        elif cs[CS_TARGET] > g:
+            cs[CS_GAIN] = min(cs[CS_TARGET], g + steps * self.cp[CP_RAMP])
+
     @property
     def gain(self) -> float:
         return float(self.cs[CS_GAIN])

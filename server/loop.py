@@ -303,6 +303,7 @@ class HapticLoop:
             missed = late // self.period_ns
             self.shared.status[10] += missed  # missed_deadlines
             self._deadline = deadline + (missed + 1) * self.period_ns
+            self.ctrl.skip(missed)  # fades and ramp-ins keep their times, not their step counts
         else:
             self._deadline = deadline + self.period_ns
         # 1-2: poll without blocking; newest ContactUpdate wins

@@ -109,3 +109,23 @@ def test_force_comes_back_at_the_ramp_slope_after_an_interrupted_fade(rig_factor
     assert growth[up].max() <= slope + 1e-12
     assert _grew_while_fading(np.vstack([rows[:1], rows]), cmds) == 0
     assert abs(cmds[-1][1] - 0.5) < 0.05  # and it does come back
+
+
+def test_a_fade_keeps_its_time_when_the_loop_skips_periods(rig_factory):
+    # the loop wakes 50 ms late in the middle of a watchdog fade (a loaded machine, a stopped
+    # process): the skipped periods count towards the fade, which still ends fade_s after it began
+    dev = PointDevice(hand=PUSH)
+    r = rig_factory(device=dev)
+    r.run(2.0)
+    r.env.alive = False
+    rows = r.run(0.15)  # the watchdog (0.1 s) started the fade ~50 ms ago
+    assert rows[-1, TEL["gain"]] < 1.0
+    t_fade = rows[np.argmax(rows[:, TEL["gain"]] < 1.0), TEL["t_s"]]
+    r.clock.stall(50_000_000)  # the next wake-up is 50 ms late
+    rows = r.run(0.2)
+    t = rows[:, TEL["t_s"]]
+    fy = rows[:, TEL["cmd_fy"]]
+    zero = t[np.argmax((fy == 0.0) & (rows[:, TEL["gain"]] == 0.0))]
+    s = r.settings["safety"]
+    assert zero - t_fade <= s["fade_s"] + 0.002
+    assert r.loop.shared.status[10] >= 50  # counted as missed deadlines
