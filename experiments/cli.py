@@ -75,11 +75,12 @@ def main(argv: list[str] | None = None) -> int:
             continue
         if name == "tradeoff":
             print(f"tradeoff: {len(res['rows'])} configurations; table {os.path.join(out, 'tradeoff.md')}, "
-                  f"Pareto plot {os.path.join(out, 'pareto.png')}")
+                  f"stable region {os.path.join(out, 'stable_region.md')}, Pareto plot {os.path.join(out, 'pareto.png')}")
         else:
             for line in _summary(name, res):
                 print(line)
-        print(f"{name}: wrote {out}/metrics.json and plots ({time.perf_counter() - t0:.1f} s)")
+        what = "tradeoff.json, tables" if name == "tradeoff" else "metrics.json"
+        print(f"{name}: wrote {out}/{what} and plots ({time.perf_counter() - t0:.1f} s)")
     return status
 
 

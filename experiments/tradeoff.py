@@ -35,7 +35,8 @@ deadlines and the loop's own compute-time percentiles.
 Sweeps (one dimension at a time around the base: 1 kHz, stiffness 4000 N/m with the paper's
 damping ratio b = 7.5 ms x k, epsilon 5 mm, 16 contacts, the stub at 30-60 Hz, four-channel,
 deformation, the server's default ``engine`` contact frame) and a grid for the stable region
-(the largest stable stiffness at each haptic rate for each controller). Writes
+(the largest stable stiffness at each haptic rate for each controller, with the paper's
+damping ratio, and for the four-channel controller also with a fixed b = 30 N s/m). Writes
 ``tradeoff.json`` (every row), ``tradeoff.md`` (the table), ``stable_region.md``,
 ``pareto.png`` and ``stable_region.png``.
 """
@@ -72,9 +73,13 @@ class Config:
     policy: str = "deformation"
     contact_frame: str = "engine"
     kernel: str = "numba"
+    #: None: the paper's ratio (DAMPING_PER_STIFFNESS_S x k); a number: this damping whatever k
+    damping_fixed_n_s_per_m: float | None = None
 
     @property
     def damping_n_s_per_m(self) -> float:
+        if self.damping_fixed_n_s_per_m is not None:
+            return float(self.damping_fixed_n_s_per_m)
         return DAMPING_PER_STIFFNESS_S * self.stiffness_n_per_m
 
     def spec(self, scenario: str, seed: int, quick: bool) -> RunSpec:
@@ -95,7 +100,8 @@ class Config:
     def label(self) -> str:
         lo, hi = self.env_rate_hz
         env = f"{lo:g}" if lo == hi else f"{lo:g}-{hi:g}"
-        return (f"{self.controller}/{self.policy} {self.rate_hz:g} Hz k={self.stiffness_n_per_m:g} "
+        b = "" if self.damping_fixed_n_s_per_m is None else f" b={self.damping_fixed_n_s_per_m:g}"
+        return (f"{self.controller}/{self.policy} {self.rate_hz:g} Hz k={self.stiffness_n_per_m:g}{b} "
                 f"eps={self.epsilon_m * 1e3:g}mm cap={self.capacity} env={env} Hz {self.kernel}")
 
 
@@ -122,6 +128,8 @@ CANDIDATES = ((512.0, 16, 0.005), (1000.0, 16, 0.005), (1000.0, 32, 0.005), (200
 #: The stable-region grid: controllers (with the model settings), rates, stiffnesses.
 REGION_CONTROLLERS = (
     ("four_channel", dict(controller="four_channel", policy="deformation", epsilon_m=0.005)),
+    ("four_channel, b = 30 N s/m", dict(controller="four_channel", policy="deformation", epsilon_m=0.005,
+                                        damping_fixed_n_s_per_m=30.0)),
     ("coupler", dict(controller="coupler", policy="deformation", epsilon_m=0.005)),
     ("direct", dict(controller="direct", policy="deformation", epsilon_m=0.005)),
     ("IR (direct, rigid, eps 0, eq. 1)", dict(controller="direct", policy="rigid", epsilon_m=0.0, contact_frame="proxy")),
@@ -131,7 +139,8 @@ REGION_STIFFNESS = (1000.0, 2000.0, 4000.0, 10000.0, 20000.0, 50000.0, 100000.0,
 QUICK_REGION_RATES = (512.0, 2000.0)
 QUICK_REGION_STIFFNESS = (4000.0, 20000.0)
 REALTIME_RATES = (256.0, 512.0, 1000.0, 2000.0, 4000.0, 8000.0)
-SEEDS = (1, 2, 3)
+SEEDS = (1, 2, 3, 4, 5, 6)
+REGION_SEEDS = (1, 2, 3)
 QUICK_SEEDS = (1,)
 #: Every this many haptic steps the model step is timed alone (numba and numpy).
 MODEL_TIMING_EVERY = 25
@@ -396,7 +405,7 @@ def run_tradeoff(out, *, quick: bool = False, log=None, realtime: bool = True) -
     if not quick:
         for rate, cap, eps in CANDIDATES:
             rows.append(ev(replace(BASE, rate_hz=rate, capacity=cap, epsilon_m=eps), "preset candidate"))
-    region = stable_region(quick=quick, seeds=seeds, log=log)
+    region = stable_region(quick=quick, seeds=QUICK_SEEDS if quick else REGION_SEEDS, log=log)
     rt = realtime_rates(rates=(512.0, 4000.0) if quick else REALTIME_RATES, log=log) if realtime else []
     check = numpy_matches_numba(2.0 if quick else 4.0)
     res = {"mode": "simulated time (accuracy, step cost); real time (achieved rate)", "base": asdict(BASE),
@@ -516,7 +525,7 @@ def plot_region(region: list[dict], path: Path) -> None:
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("haptic rate [Hz]")
-    ax.set_ylabel("largest stable contact stiffness [N/m] (b = 7.5 ms x k)")
+    ax.set_ylabel("largest stable contact stiffness [N/m] (b = 7.5 ms x k unless given)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     ax.set_title("Stable region (simulated time, stub 30-60 Hz, wall push + 6 s of 1 N hole shaking)", fontsize=9)
