@@ -32,9 +32,10 @@ ENGINES: dict[str, str] = {
     "pymunk": "hapticproxy.clients.pymunk_engine:PymunkEngine",
     "pybullet": "hapticproxy.clients.pybullet_engine:PybulletEngine",
     "stub": "hapticproxy.clients.stub_engine:StubEngine",
+    "pybullet-linkage": "hapticproxy.clients.pybullet_linkage:PybulletLinkageEngine",
 }
 #: library each engine module needs (for a clear message when it is missing)
-_ENGINE_LIBRARIES = {"pymunk": "pymunk", "pybullet": "pybullet"}
+_ENGINE_LIBRARIES = {"pymunk": "pymunk", "pybullet": "pybullet", "pybullet-linkage": "pybullet"}
 PROG = "hapticproxy client"
 
 

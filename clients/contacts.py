@@ -137,14 +137,14 @@ def cluster_rows(src: ContactBuffer, max_contacts: int, normal_weight_m: float =
 
 
 def fill_planar(out: ContactBuffer, rows: list) -> int:
-    """Write planar contact tuples ``(env_body, feature, cx, cy, nx, ny, d, v_constr)`` (tool link
-    0, z = 0) into ``out`` (as many as fit, in order); set and return ``out.n``. One conversion and
-    a few column copies, cheaper than writing element by element."""
+    """Write planar contact tuples ``(env_body, feature, cx, cy, nx, ny, d, v_constr[, tool_link])``
+    (tool link 0 unless given, z = 0) into ``out`` (as many as fit, in order); set and return
+    ``out.n``. One conversion and a few column copies, cheaper than writing element by element."""
     n = min(len(rows), out.capacity)
     if n:
         a = np.array(rows[:n] if n < len(rows) else rows, dtype=np.float64)
         # float64 holds the ids exactly: feature ids stay below 2**35 (< 2**53)
-        out.keys[:n, 0] = 0
+        out.keys[:n, 0] = a[:, 8] if a.shape[1] > 8 else 0
         out.keys[:n, 1] = a[:, 0]
         out.keys[:n, 2] = a[:, 1]
         out.position_m[:n, :2] = a[:, 2:4]

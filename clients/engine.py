@@ -16,16 +16,52 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+#: Joint types of a linkage link (the protocol's JointType values).
+JOINT_TYPES = {"root": 0, "revolute": 1, "prismatic": 2}
+
+
+@dataclass(frozen=True)
+class LinkDescription:
+    """One link of a linkage tool, as ``Hello.links`` describes it (SPEC "Link record").
+
+    Link 0 is the root (``parent = -1``, ``joint = "root"``): its frame is the tool frame. Every
+    other link hangs from an earlier ``parent`` by a ``"revolute"`` or ``"prismatic"`` joint with
+    the unit ``joint_axis`` in this link's frame; ``joint_origin`` (x y z qw qx qy qz) is this
+    link's frame in the parent's at q = 0. ``com_m`` and ``inertia_kg_m2`` ([Ixx, Iyy, Izz, Ixy,
+    Ixz, Iyz] about the COM) are in this link's frame."""
+
+    mass_kg: float
+    com_m: tuple = (0.0, 0.0, 0.0)
+    inertia_kg_m2: tuple = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    parent: int = -1
+    joint: str = "root"
+    joint_axis: tuple = (0.0, 0.0, 1.0)
+    joint_origin: tuple = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+    def record(self) -> dict:
+        """The link record of ``Hello.links``."""
+        if self.joint not in JOINT_TYPES:
+            raise ValueError(f"joint: expected one of {', '.join(JOINT_TYPES)}, got {self.joint!r}")
+        return dict(mass_kg=float(self.mass_kg), com_m=[float(v) for v in self.com_m],
+                    inertia_kg_m2=[float(v) for v in self.inertia_kg_m2], parent=int(self.parent),
+                    joint_type=JOINT_TYPES[self.joint], joint_axis=[float(v) for v in self.joint_axis],
+                    joint_origin=[float(v) for v in self.joint_origin])
+
+
 @dataclass(frozen=True)
 class ToolDescription:
-    """The virtual tool as the Hello describes it (rigid kinds; linkages come later)."""
+    """The virtual tool as the Hello describes it: a rigid body (``1dof``, ``planar``,
+    ``spatial``) or a ``linkage`` (its ``links``, held by the hand at link ``held_link``'s frame
+    origin; ``mass_kg`` is then the total, informative)."""
 
-    kind: str  # "1dof" | "planar" | "spatial"
+    kind: str  # "1dof" | "planar" | "spatial" | "linkage"
     mass_kg: float
     com_m: tuple = (0.0, 0.0, 0.0)  # tool frame
     #: [Ixx, Iyy, Izz, Ixy, Ixz, Iyz] about the COM, tool frame (planar: Izz is what matters)
     inertia_kg_m2: tuple = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     axis: tuple = (1.0, 0.0, 0.0)  # 1dof only
+    links: tuple = ()  # linkage only: LinkDescription, root first
+    held_link: int = 0  # linkage only
 
 
 class ContactBuffer:
@@ -86,7 +122,19 @@ class Engine(abc.ABC):
     @abc.abstractmethod
     def drive_tool(self, proxy_pose: np.ndarray, proxy_twist: np.ndarray, wrench: np.ndarray) -> None:
         """Make the engine's tool follow the proxy (pose (7,), twist (6,), world frame) without
-        tunnelling or injecting energy; ``wrench`` (6,) is what the server says acts on the tool."""
+        tunnelling or injecting energy; ``wrench`` (6,) is what the server says acts on the tool.
+        A linkage: the root link's frame (``drive_joints`` came first with the joints)."""
+
+    def drive_joints(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray) -> None:
+        """A linkage engine: the proxy's joint positions, rates and efforts (links 1..L-1), given
+        just before ``drive_tool`` with the same ProxyState (empty arrays from a server that does
+        not model the joints: keep the last targets). Rigid-tool engines never get it."""
+        raise NotImplementedError(f"{type(self).__name__} has no linkage tool")
+
+    def joint_positions(self, out: np.ndarray) -> np.ndarray:
+        """A linkage engine: fill ``out`` (L-1,) with its own joint positions (those the contacts
+        are computed at; sent as ``ContactUpdate.tool_joint_position``) and return it."""
+        raise NotImplementedError(f"{type(self).__name__} has no linkage tool")
 
     @abc.abstractmethod
     def tool_pose(self, out: np.ndarray) -> np.ndarray:

@@ -55,11 +55,17 @@ class PymunkWindow:
                     self.on_close()
         self.screen.fill((255, 255, 255))
         self.engine.space.debug_draw(self.options)
-        x, y, th = self.engine._target[:3]
-        c, s = math.cos(th), math.sin(th)
-        a, b = TOOL_LENGTH_M / 2, TOOL_WIDTH_M / 2
-        outline = [self._px(x + c * lx - s * ly, y + s * lx + c * ly) for lx, ly in ((-a, -b), (a, -b), (a, b), (-a, b))]
-        pygame.draw.polygon(self.screen, (40, 80, 220), outline, 1)
+        if getattr(self.engine, "_linkage", False):  # the proxy's links
+            frames = [t[:3] for t in self.engine.link_targets()]
+            local = self.engine._link_local
+        else:
+            frames = [self.engine._target[:3]]
+            a, b = TOOL_LENGTH_M / 2, TOOL_WIDTH_M / 2
+            local = ((-a, -b), (a, -b), (a, b), (-a, b))
+        for x, y, th in frames:
+            c, s = math.cos(th), math.sin(th)
+            outline = [self._px(x + c * lx - s * ly, y + s * lx + c * ly) for lx, ly in local]
+            pygame.draw.polygon(self.screen, (40, 80, 220), outline, 1)
         if self.last_contacts is not None:
             pos, nor, sep = self.last_contacts
             for i in range(len(sep)):

@@ -3,7 +3,8 @@
 Scenes (geometry in :mod:`.scenes`, SI units, pymunk works in metres directly):
 ``testbed`` (the paper's Fig. 12: enclosure, tight hole in the bottom wall, peg at the origin),
 ``hole`` (the peg rotated 90 deg and resting in the hole: Figs. 16/17), ``wall`` (the Fig. 14 wall
-alone: touched at y_COM = 124 mm) and ``push`` (a closed enclosure with three movable boxes).
+alone: touched at y_COM = 124 mm), ``push`` (a closed enclosure with three movable boxes) and
+``linkage`` (the testbed with a 3-bar planar linkage as the tool, held by its last link).
 Half-planes become static slabs 0.2 m thick. No gravity (a horizontal device); ``push``'s boxes
 slide on a damped floor (``Space.damping`` 0.3: 70 % of their speed is lost per second).
 
@@ -28,6 +29,17 @@ Chipmunk's negated (it points from the tool, shape a, to the environment). Chipm
 two points per shape pair (the ends of a clipped face-face overlap); each is classified by
 geometry into vertex-face / face-vertex / vertex-vertex with the feature indices, which makes the
 keys stable. ``v_constr = n . v(c_p)`` for movable bodies.
+
+**The linkage** (scene ``linkage``, issue 6): three dynamic bars joined by ``PivotJoint``s (the
+engine's own chain), each link driven like the peg (pivot + gear to a kinematic control body at
+the proxy's pose of that link, from the ProxyState's root pose and joint positions). Every link
+is queried with its own inflated polygon; keys are ``(link, env body, feature)``. A link touching
+another link of the chain (not its neighbours, which share a pivot) is a self-contact: its
+query reports the other link as an environment body (id ``SELF_BODY_BASE + link``, its velocity
+for ``v_constr``), and the other link's query reports the mirror contact, so each self-contact
+arrives as two contacts, one on each link. Links do not collide with each other in the engine
+(one group): the proxy keeps them apart and the drive makes the engine follow. The ContactUpdate
+carries the engine's joint positions (``joint_positions``).
 """
 from __future__ import annotations
 
@@ -38,8 +50,9 @@ import pymunk
 
 from .contacts import (FACE_FACE, FACE_VERTEX, VERTEX_FACE, VERTEX_VERTEX, feature_id, fill_planar, planar_angle,
                        planar_pose, reduce_contacts)
-from .engine import ContactBuffer, Engine, SceneInfo, ToolDescription
-from .scenes import TOOL_IZZ_KG_M2, TOOL_LENGTH_M, TOOL_MASS_KG, TOOL_WIDTH_M, Box, HalfPlane, scene
+from .engine import ContactBuffer, Engine, LinkDescription, SceneInfo, ToolDescription
+from .scenes import (LINK_COUNT, LINK_IZZ_KG_M2, LINK_LENGTH_M, LINK_MASS_KG, LINK_WIDTH_M, TOOL_IZZ_KG_M2,
+                     TOOL_LENGTH_M, TOOL_MASS_KG, TOOL_WIDTH_M, Box, HalfPlane, scene)
 
 _RAW_CAPACITY = 256
 _TOOL_GROUP = 1
@@ -47,6 +60,8 @@ _SLAB_THICKNESS_M = 0.2
 _SLAB_HALF_LENGTH_M = 0.5
 #: distance under which a contact point is taken to be at a vertex [m]
 _VERTEX_TOL_M = 1e-6
+#: env_body id of a tool link seen by another link's query (a self-contact): this + link index
+SELF_BODY_BASE = 1000
 
 
 class _EnvShape:
@@ -131,10 +146,11 @@ class PymunkEngine(Engine):
     # ------------------------------------------------------------------------ interface
     @classmethod
     def scenes(cls) -> tuple[str, ...]:
-        return ("testbed", "hole", "wall", "push")
+        return ("testbed", "hole", "wall", "push", "linkage")
 
     def load_scene(self, name: str) -> SceneInfo:
         sc = scene(name, self.scenes())
+        self._linkage = name == "linkage"
         space = pymunk.Space()
         space.gravity = (0.0, 0.0)
         space.iterations = 20
@@ -161,6 +177,8 @@ class PymunkEngine(Engine):
             shape.elasticity = 0.0
             space.add(shape)
             self._env[shape] = _EnvShape(body_id, shape, static)
+        if self._linkage:
+            return self._load_linkage(name, sc, space)
         # The tool and its driver.
         half_l, half_w = TOOL_LENGTH_M / 2, TOOL_WIDTH_M / 2
         self._tool_local = [(-half_l, -half_w), (half_l, -half_w), (half_l, half_w), (-half_l, half_w)]
@@ -202,11 +220,116 @@ class PymunkEngine(Engine):
                              f"max_force {self.max_force_n} N, {self.max_torque_n_m} N m")
         return SceneInfo(name, info_tool, env_rate_hz=self.rate_hz, facts=facts)
 
+    def _drive(self, space, body: pymunk.Body, x: float, y: float, th: float) -> pymunk.Body:
+        """A kinematic control body at (x, y, th) and the pivot + gear coupling of ``body`` to it."""
+        control = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
+        control.position = (x, y)
+        control.angle = th
+        pivot = pymunk.PivotJoint(control, body, body.center_of_gravity, body.center_of_gravity)
+        pivot.max_bias = self.max_speed_m_per_s
+        pivot.max_force = self.max_force_n
+        pivot.error_bias = (1.0 - 0.3) ** 60.0  # 30 % of the error per 1/60 s
+        gear = pymunk.GearJoint(control, body, 0.0, 1.0)
+        gear.max_bias = self.max_spin_rad_per_s
+        gear.max_force = self.max_torque_n_m
+        gear.error_bias = (1.0 - 0.3) ** 60.0
+        space.add(control, pivot, gear)
+        return control
+
+    def _load_linkage(self, name, sc, space) -> SceneInfo:
+        """The chain of ``scenes.LINK_*`` bars (module docstring)."""
+        L, W = LINK_LENGTH_M, LINK_WIDTH_M
+        self._link_local = [(0.0, -W / 2), (L, -W / 2), (L, W / 2), (0.0, W / 2)]
+        x, y, th = sc.tool_start
+        self.links, self.link_shapes, self.controls = [], [], []
+        self._self_env: dict[pymunk.Shape, tuple[int, _EnvShape]] = {}
+        for k in range(LINK_COUNT):
+            body = pymunk.Body(LINK_MASS_KG, LINK_IZZ_KG_M2)
+            body.center_of_gravity = (L / 2, 0.0)  # body position = the link frame's origin (its pivot)
+            body.position = (x + k * L * math.cos(th), y + k * L * math.sin(th))
+            body.angle = th
+            shape = pymunk.Poly(body, self._link_local)
+            shape.friction = 0.5
+            shape.elasticity = 0.0
+            shape.filter = pymunk.ShapeFilter(group=_TOOL_GROUP)
+            space.add(body, shape)
+            if k:
+                space.add(pymunk.PivotJoint(self.links[-1], body, (L, 0.0), (0.0, 0.0)))
+            self.controls.append(self._drive(space, body, body.position.x, body.position.y, th))
+            self.links.append(body)
+            self.link_shapes.append(shape)
+            self._self_env[shape] = (k, _EnvShape(SELF_BODY_BASE + k, shape, False))
+        self.space, self.tool, self.tool_shape, self.control = space, self.links[0], self.link_shapes[0], self.controls[0]
+        self._tool_local = self._link_local
+        self._target = (x, y, th, 0.0, 0.0, 0.0)
+        self._joint_target = np.zeros(LINK_COUNT - 1)
+        self._joint_rate_target = np.zeros(LINK_COUNT - 1)
+        self._wrench = (0.0, 0.0, 0.0)
+        self._t = 0.0
+        self.steps = 0
+        self._scene = sc
+        self.set_epsilon(self._eps)
+        if self._gui_wanted and self.window is None:
+            from .gui import PymunkWindow  # pygame is an optional extra
+
+            self.window = PymunkWindow(self)
+        inertia = (LINK_MASS_KG * W * W / 12.0, LINK_MASS_KG * L * L / 12.0, LINK_IZZ_KG_M2, 0.0, 0.0, 0.0)
+        links = [LinkDescription(LINK_MASS_KG, (L / 2, 0.0, 0.0), inertia)]
+        links += [LinkDescription(LINK_MASS_KG, (L / 2, 0.0, 0.0), inertia, k - 1, "revolute", (0.0, 0.0, 1.0),
+                                  (L, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)) for k in range(1, LINK_COUNT)]
+        info_tool = ToolDescription("linkage", LINK_MASS_KG * LINK_COUNT, links=tuple(links), held_link=LINK_COUNT - 1)
+        facts = dict(sc.facts)
+        facts["obstacles"] = [ob.name for ob in sc.obstacles]
+        facts["coupling"] = (f"each link: pivot+gear joints to a kinematic proxy body: max_bias "
+                             f"{self.max_speed_m_per_s} m/s, max_force {self.max_force_n} N, {self.max_torque_n_m} N m")
+        return SceneInfo(name, info_tool, env_rate_hz=self.rate_hz, facts=facts)
+
+    def link_targets(self) -> list[tuple[float, float, float, float, float, float]]:
+        """(x, y, angle, vx, vy, w) of every link's frame at the proxy's state (the last ProxyState):
+        the planar chain's forward kinematics from the root and the joints."""
+        x, y, th, vx, vy, w = self._target
+        out = [(x, y, th, vx, vy, w)]
+        for k in range(1, LINK_COUNT):
+            # the next pivot is at (L, 0) of this link: its velocity adds w x r
+            rx, ry = LINK_LENGTH_M * math.cos(th), LINK_LENGTH_M * math.sin(th)
+            x, y, vx, vy = x + rx, y + ry, vx - w * ry, vy + w * rx
+            th += float(self._joint_target[k - 1])
+            w += float(self._joint_rate_target[k - 1])
+            out.append((x, y, th, vx, vy, w))
+        return out
+
+    def drive_joints(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray) -> None:
+        if not self._linkage:
+            raise NotImplementedError("this scene's tool is rigid: it has no joints")
+        if len(position) == 0:
+            return  # a server that does not model the joints: they keep their last targets
+        if len(position) != LINK_COUNT - 1 or len(velocity) != LINK_COUNT - 1:
+            raise ValueError(f"position, velocity: expected {LINK_COUNT - 1} joints, got {len(position)}, {len(velocity)}")
+        self._joint_target[:] = position
+        self._joint_rate_target[:] = velocity
+
+    def joint_positions(self, out: np.ndarray) -> np.ndarray:
+        if not self._linkage:
+            raise NotImplementedError("this scene's tool is rigid: it has no joints")
+        # in (-pi, pi]: the drive keeps each body's angle continuous with its own past, so two
+        # neighbours' raw angles may be a turn apart (the chain's pose is the same)
+        for k in range(1, LINK_COUNT):
+            out[k - 1] = _wrap(self.links[k].angle - self.links[k - 1].angle)
+        return out
+
     def set_epsilon(self, epsilon_m: float) -> None:
         epsilon_m = float(epsilon_m)
         if not (math.isfinite(epsilon_m) and epsilon_m >= 0):
             raise ValueError(f"epsilon_m: must be a finite number >= 0, got {epsilon_m!r}")
         self._eps = epsilon_m
+        if self.space is not None and getattr(self, "_linkage", False):
+            # one query shape per link; group 0 so the other links' shapes are found too
+            self._queries = []
+            for body in self.links:
+                q = pymunk.Poly(body, self._link_local, radius=epsilon_m)
+                q.filter = pymunk.ShapeFilter()
+                self._queries.append(q)
+            return
         if self.space is not None:
             q = pymunk.Poly(self.tool, self._tool_local, radius=epsilon_m)
             q.filter = pymunk.ShapeFilter(group=_TOOL_GROUP)
@@ -229,22 +352,25 @@ class PymunkEngine(Engine):
         dt_s = float(dt_s)
         if not (math.isfinite(dt_s) and dt_s > 0):
             raise ValueError(f"dt_s: must be a finite number > 0, got {dt_s!r}")
-        x, y, th, vx, vy, w = self._target
-        speed = math.hypot(vx, vy)
-        if speed > self.max_speed_m_per_s:
-            vx, vy = vx * self.max_speed_m_per_s / speed, vy * self.max_speed_m_per_s / speed
-        w = max(-self.max_spin_rad_per_s, min(self.max_spin_rad_per_s, w))
-        c = self.control
-        # Keep the control angle continuous with the tool's (the gear joint sees raw angles).
-        th = self.tool.angle + _wrap(th - self.tool.angle)
-        c.position = (x, y)
-        c.angle = th
-        c.velocity = (vx, vy)
-        c.angular_velocity = w
+        targets = self.link_targets() if self._linkage else [self._target]
+        bodies = self.links if self._linkage else [self.tool]
+        controls = self.controls if self._linkage else [self.control]
+        for (x, y, th, vx, vy, w), body, c in zip(targets, bodies, controls):
+            speed = math.hypot(vx, vy)
+            if speed > self.max_speed_m_per_s:
+                vx, vy = vx * self.max_speed_m_per_s / speed, vy * self.max_speed_m_per_s / speed
+            w = max(-self.max_spin_rad_per_s, min(self.max_spin_rad_per_s, w))
+            # Keep the control angle continuous with the body's (the gear joint sees raw angles).
+            th = body.angle + _wrap(th - body.angle)
+            # (a link's control body sits at the link frame's origin, the drive's anchors at its COM)
+            c.position = (x, y)
+            c.angle = th
+            c.velocity = (vx, vy)
+            c.angular_velocity = w
         tool = self.tool
         h = dt_s / self.substeps
         for _ in range(self.substeps):
-            if self.use_wrench:
+            if self.use_wrench and not self._linkage:
                 tool.force = (self._wrench[0], self._wrench[1])
                 tool.torque = self._wrench[2]
             self.space.step(h)
@@ -255,13 +381,34 @@ class PymunkEngine(Engine):
 
     def contacts(self, buf: ContactBuffer, max_contacts: int) -> int:
         rows = []
+        if self._linkage:
+            for k, (body, query) in enumerate(zip(self.links, self._queries)):
+                self._query_rows(rows, k, body, query)
+        else:
+            self._query_rows(rows, 0, self.tool, self._query)
+        self.contacts_found = len(rows)
+        if len(rows) <= min(max_contacts, buf.capacity):
+            out = fill_planar(buf, rows)
+        else:
+            fill_planar(self._raw, rows)
+            out = reduce_contacts(self._raw, buf, max_contacts)
+        if self.window is not None:
+            self.window.last_contacts = (buf.position_m[:out].copy(), buf.normal[:out].copy(),
+                                         buf.separation_m[:out].copy())
+        return out
+
+    def _query_rows(self, rows: list, link: int, tool: pymunk.Body, query: pymunk.Poly) -> None:
+        """The epsilon-active contacts of one tool body (a link) as rows for ``fill_planar``."""
         eps = self._eps
-        tool = self.tool
         tvx = tvy = tnx = tny = None
-        for info in self.space.shape_query(self._query):
+        for info in self.space.shape_query(query):
             env = self._env.get(info.shape)
             if env is None:
-                continue
+                other = self._self_env.get(info.shape) if self._linkage else None
+                # a self-contact needs a link that is not this one nor a neighbour (they share a pivot)
+                if other is None or abs(other[0] - link) <= 1:
+                    continue
+                env = other[1]
             cps = info.contact_point_set
             nab = cps.normal  # tool (a) -> environment (b)
             ux, uy = nab.x, nab.y
@@ -295,17 +442,7 @@ class PymunkEngine(Engine):
                 else:
                     v = env.shape.body.velocity_at_world_point((bx, by))
                     vc = -(ux * v.x + uy * v.y)  # n . v(c_p), n = -u
-                rows.append((env.body_id, feat, bx, by, -ux, -uy, p.distance + eps, vc))
-        self.contacts_found = len(rows)
-        if len(rows) <= min(max_contacts, buf.capacity):
-            out = fill_planar(buf, rows)
-        else:
-            fill_planar(self._raw, rows)
-            out = reduce_contacts(self._raw, buf, max_contacts)
-        if self.window is not None:
-            self.window.last_contacts = (buf.position_m[:out].copy(), buf.normal[:out].copy(),
-                                         buf.separation_m[:out].copy())
-        return out
+                rows.append((env.body_id, feat, bx, by, -ux, -uy, p.distance + eps, vc, link))
 
     def close(self) -> None:
         if self.window is not None:

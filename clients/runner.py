@@ -56,7 +56,8 @@ from .engine import ContactBuffer, Engine
 __all__ = ["ClientError", "ClientRunner", "TOOL_KINDS"]
 
 _NS = 1_000_000_000
-TOOL_KINDS = {"1dof": ToolKind.ONE_DOF, "planar": ToolKind.PLANAR, "spatial": ToolKind.SPATIAL}
+TOOL_KINDS = {"1dof": ToolKind.ONE_DOF, "planar": ToolKind.PLANAR, "spatial": ToolKind.SPATIAL,
+              "linkage": ToolKind.LINKAGE}
 _RTT_RING = 4096
 #: a realtime loop this far behind its schedule restarts the schedule instead of catching up
 _RESYNC_NS = 250_000_000
@@ -119,7 +120,12 @@ class ClientRunner:
             engine=engine.name[:200], tool_kind=TOOL_KINDS[tool.kind], mass_kg=float(tool.mass_kg),
             com_m=tuple(float(v) for v in tool.com_m), inertia_kg_m2=tuple(float(v) for v in tool.inertia_kg_m2),
             axis=tuple(float(v) for v in (tool.axis if tool.kind == "1dof" else (1.0, 0.0, 0.0))),
-            epsilon_m=self.requested_epsilon_m, max_contacts=max_contacts, env_rate_hz=float(self.scene_info.env_rate_hz))
+            epsilon_m=self.requested_epsilon_m, max_contacts=max_contacts, env_rate_hz=float(self.scene_info.env_rate_hz),
+            links=tuple(ln.record() for ln in tool.links) if tool.kind == "linkage" else (),
+            held_link=int(tool.held_link) if tool.kind == "linkage" else 0)
+        #: a linkage's joint positions (sent with every ContactUpdate) and count
+        self._linkage = tool.kind == "linkage"
+        self._joints = np.zeros(max(0, len(tool.links) - 1))
         Hello(client_nonce=1, **self._hello_fields)  # fail early on a field the codec would refuse
         self.hmac_key = hmac_key
         self.realtime = bool(realtime)
@@ -293,6 +299,8 @@ class ClientRunner:
         c["proxy_superseded"] += fresh - 1
         c["proxy_applied"] += 1
         self.last_proxy = newest
+        if self._linkage:
+            self.engine.drive_joints(newest.joint_position, newest.joint_velocity, newest.joint_effort)
         self.engine.drive_tool(newest.proxy_pose, newest.proxy_twist, newest.wrench)
         ack = newest.ack_seq
         if ack and ep.contact_seq - ack < _RTT_RING:
@@ -326,10 +334,12 @@ class ClientRunner:
         if not 0 <= n <= cap:
             raise RuntimeError(f"{engine.name}: contacts() returned {n}, outside 0..{cap}")
         engine.tool_pose(self.tool_pose)
+        joints = engine.joint_positions(self._joints) if self._linkage else None
         ep = self.endpoint
         now = time.monotonic_ns()
         seq = ep.send_contacts(now, engine.time_s, self.tool_pose, buf.keys[:n], buf.position_m[:n],
-                               buf.normal[:n], buf.separation_m[:n], buf.v_constr_m_per_s[:n])
+                               buf.normal[:n], buf.separation_m[:n], buf.v_constr_m_per_s[:n],
+                               tool_joint_position=joints)
         c = self._counts
         c["steps"] += 1
         if seq:

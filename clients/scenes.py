@@ -44,6 +44,18 @@ HOLE_BOTTOM_Y_M = BOTTOM_WALL_Y_M + HOLE_DEPTH_M  # 0.174
 #: Pose (x, y, angle) of the peg resting in the hole: rotated 90 deg, touching sides and bottom.
 IN_HOLE_POSE = (HOLE_CENTRE_X_M, HOLE_BOTTOM_Y_M - TOOL_LENGTH_M / 2, math.pi / 2)
 
+#: The ``linkage`` scene's tool (issue 6; our choice): a planar chain of LINK_COUNT equal bars
+#: joined end to end by pivots (revolute about +z), held by its last link. A link's frame is at
+#: its proximal pivot, the bar spanning x in [0, L] and y in [-W/2, W/2] of that frame; the next
+#: link's pivot is at (L, 0). The bar's COM is at (L/2, 0); uniform: Izz = m (L^2 + W^2) / 12.
+LINK_COUNT = 3
+LINK_LENGTH_M = 0.070
+LINK_WIDTH_M = 0.016
+LINK_MASS_KG = 0.15
+LINK_IZZ_KG_M2 = LINK_MASS_KG * (LINK_LENGTH_M ** 2 + LINK_WIDTH_M ** 2) / 12.0
+#: the root link's frame at the start: the straight chain centred on the origin
+LINKAGE_START = (-1.5 * LINK_LENGTH_M, 0.0, 0.0)
+
 
 @dataclass(frozen=True)
 class HalfPlane:
@@ -145,6 +157,16 @@ SCENES: dict[str, PlanarScene] = {
         ),
         facts={**_COMMON_FACTS, "movable": "box A 40x40 mm 0.10 kg at (0, 60 mm); box B 60x30 mm 0.15 kg at "
                                             "(100, 50) mm, 0.3 rad; box C 30x30 mm 0.05 kg at (-110, 80) mm"},
+    ),
+    "linkage": PlanarScene(
+        "linkage",
+        "the testbed with a 3-bar planar linkage (pivot joints) as the tool, held by its last link",
+        _enclosure(with_hole=True),
+        tool_start=LINKAGE_START,
+        facts={"links": LINK_COUNT, "link_size_m": (LINK_LENGTH_M, LINK_WIDTH_M), "link_mass_kg": LINK_MASS_KG,
+               "link_izz_kg_m2": LINK_IZZ_KG_M2, "held_link": LINK_COUNT - 1,
+               "frame": _COMMON_FACTS["frame"], "bottom_wall_y_m": BOTTOM_WALL_Y_M,
+               "hole_x_m": (HOLE_CENTRE_X_M - HOLE_WIDTH_M / 2, HOLE_CENTRE_X_M + HOLE_WIDTH_M / 2)},
     ),
     "piston": PlanarScene(
         "piston",

@@ -108,7 +108,7 @@ def test_version_refused_gives_one_line_and_status_1(capsys):
 
 def test_list_scenes(capsys):
     code, out, _ = run_main(capsys, "pymunk", "--list-scenes")
-    assert code == 0 and out.split() == ["testbed", "hole", "wall", "push"]
+    assert code == 0 and out.split() == ["testbed", "hole", "wall", "push", "linkage"]
 
 
 def test_a_good_run_prints_statistics_as_json(capsys, server_thread):

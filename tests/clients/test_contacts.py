@@ -77,7 +77,9 @@ def test_clustering_caps_keeps_real_unique_contacts_and_the_deepest(raw, cap):
     kept = [tuple(k) for k in dst.keys[:n]]
     all_keys = [tuple(k) for k in src.keys[:src.n]]
     assert len(set(kept)) == n and set(kept) <= set(all_keys)
-    deepest = all_keys[int(np.lexsort((src.keys[:src.n, 2], src.separation_m[:src.n]))[0])]
+    # deepest, ties by the whole key (tool link, body, feature), as cluster_rows ranks them
+    k = src.keys[:src.n]
+    deepest = all_keys[int(np.lexsort((k[:, 2], k[:, 1], k[:, 0], src.separation_m[:src.n]))[0])]
     assert deepest in kept
     for i, k in enumerate(kept):  # rows travel whole
         j = all_keys.index(k)
