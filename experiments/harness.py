@@ -273,6 +273,8 @@ class SimEnvClient:
         self.welcomed = False
         self.steps = 0
         self.updates_sent = 0
+        #: the server refused the Hello ("Reject CODE: reason"), e.g. a tool the model cannot hold
+        self.rejected = ""
 
     def service(self) -> None:
         now = self.clock.now_ns()
@@ -288,6 +290,8 @@ class SimEnvClient:
         if newest is not None:
             self.engine.drive_tool(newest.proxy_pose, newest.proxy_twist, newest.wrench)
         ep.poll(now)
+        if ep.reject is not None:
+            self.rejected = f"Reject {ep.reject.code}: {ep.reject.reason}"
         if ep.established and not self.welcomed:
             self.welcomed = True
             self.engine.set_epsilon(ep.welcome.epsilon_m)
@@ -375,6 +379,8 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
         rows, step_ns, pen, upd = rows[:n_steps], step_ns[:n_steps], (None if pen is None else pen[:n_steps]), upd[:n_steps]
         if crash and not np.any(rows[:, TEL_UPDATES] > 0):
             raise RunFailed(f"the server loop failed before the client engaged it: {crash}", crash)
+        if env.rejected and not np.any(rows[:, TEL_UPDATES] > 0):
+            raise RunFailed(f"the server refused the session: {env.rejected}", env.rejected)
         snap = sh.snapshot()
         counters = loop.ctrl.counters()
         tr = trace_from_rows(

@@ -146,6 +146,11 @@ QUICK_SEEDS = (1,)
 MODEL_TIMING_EVERY = 25
 
 
+def _refusal(why: str) -> bool:
+    """The model refused the contact parameters (a Reject in the handshake, or at engagement)."""
+    return "contact." in why and ("Reject" in why or why.startswith("ValueError"))
+
+
 def _p(a, q) -> float | None:
     return None if a is None or len(a) == 0 else round(float(np.percentile(a, q)), 3)
 
@@ -174,7 +179,7 @@ def evaluate(cfg: Config, *, seeds=SEEDS, quick: bool = False, scenarios=("wall"
                 M.static_contact_metrics(tr) if sc == "wall" else M.hole_metrics(tr))
     allm = walls + holes
     if not allm:
-        row.update(unstable=True, refused=any(e.startswith("ValueError: contact.") for e in failed),
+        row.update(unstable=True, refused=any(_refusal(e) for e in failed),
                    loop_exceptions=sorted(set(failed)), faults=len(failed), energy_injected_mj=None,
                    step_us_p50=None, step_us_p99=None, cpu_load_pct=None, feasible=False, seeds=list(seeds))
         return row
@@ -193,8 +198,8 @@ def evaluate(cfg: Config, *, seeds=SEEDS, quick: bool = False, scenarios=("wall"
     row["energy_injected_mj"] = round(float(max(m["energy_injected_mj"] for m in allm)), 3)
     row["faults"] = int(sum(m["faults"] + m["model_nonfinite"] for m in allm)) + len(failed)
     row["loop_exceptions"] = sorted({m["loop_exception"] for m in allm if m.get("loop_exception")} | set(failed))
-    # the model refused the contact parameters for this tool at this rate (at engagement)
-    row["refused"] = any(e.startswith("ValueError: contact.") for e in row["loop_exceptions"])
+    # the server refused the contact parameters for this tool at this rate (in the handshake)
+    row["refused"] = any(_refusal(e) for e in row["loop_exceptions"])
     row["unstable"] = bool(row["faults"] > 0 or any(h["unstable"] for h in holes))
     st = np.concatenate(step_us)
     row["step_us_p50"] = _p(st, 50)

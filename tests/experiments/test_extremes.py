@@ -320,15 +320,12 @@ def test_a_very_fast_hand_trips_the_speed_limit_and_fades():
     assert np.all(tr.cmd[-50:] == 0.0)                     # and the force faded to zero
 
 
-@pytest.mark.xfail(strict=True, reason="server/loop.py builds the LocalModel at engagement without catching its "
-                   "ValueError: a Hello whose tool the contact parameters cannot integrate stops the loop "
-                   "instead of ending that session (reported; the loop's owner to fix)")
-def test_a_session_the_model_refuses_ends_and_the_loop_keeps_running():
+def test_a_tool_the_model_refuses_is_rejected_in_the_handshake_and_the_loop_keeps_running():
     from hapticproxy.clients.stub_engine import StubEngine
+    from hapticproxy.experiments.harness import SimEnvClient
     from hapticproxy.server import config as cfgmod
     from hapticproxy.server.clock import SimClock
     from hapticproxy.server.loop import HapticLoop
-    from hapticproxy.experiments.harness import SimEnvClient
 
     # the paper's peg (0.25 kg) with 50000 N/m and 375 N s/m at 256 Hz: b dt / m = 5.9 > 2
     settings = cfgmod.load({"loop": {"rate_hz": 256.0}, "transport": {"url": "mem://extremes-refused"},
@@ -343,9 +340,11 @@ def test_a_session_the_model_refuses_ends_and_the_loop_keeps_running():
         loop.start()
         for _ in range(256):
             env.service()
-            loop.step()                                  # raises the model's ValueError today
+            assert loop.step()
         assert loop.model is None and loop.engagements == 0
-        assert not env.ep.established                    # the session was refused or ended
+        assert not env.ep.established
+        assert "contact.damping_n_s_per_m" in env.rejected        # the Reject names the field
+        assert np.all(loop.ctrl.cmd == 0.0)
     finally:
         env.close()
         loop.close()
