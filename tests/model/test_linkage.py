@@ -383,3 +383,18 @@ def test_joint_state_splits_the_hand_wrench_by_coordinates(planar):
         np.testing.assert_allclose(twist[[0, 1, 5]] if planar else twist, m.qd[:r], atol=1e-15)
         np.testing.assert_array_equal(jq, m.q[(3 if planar else 7):])
         np.testing.assert_array_equal(jqd, m.qd[r:])
+
+
+def test_rigid_tools_never_run_linkage_code():
+    """Scenes without a linkage pay nothing for it: a rigid model steps through the class's
+    ``step`` -> ``kernels.step_rigid`` and the loop's rigid kernel calls no linkage function."""
+    from hapticproxy.server import control
+    from hapticproxy.server.model import kernels
+
+    rigid = _model(ToolSpec.planar(0.3, 2e-4), warm=False)
+    assert rigid.step.__func__ is LocalModel.step and not rigid.is_linkage
+    linkage_names = {"step_linkage", "hand_state_linkage", "update_linkage", "_kin_linkage"}
+    for fn in (kernels.step_rigid, kernels.update_rigid, control.haptic_step):
+        assert not linkage_names & set(fn.py_func.__code__.co_names)
+    chain = _model(bar_chain(3), warm=False)
+    assert chain.step.__func__ is LocalModel._step_linkage
