@@ -348,7 +348,9 @@ def _check_device(settings: cfgmod.Settings) -> None:
 
     dev = load_device(settings["device"]["driver"], dict(settings["device"]), period_s=settings.period_ns * 1e-9)
     try:
-        if dev.kind != settings.tool_kind:
-            raise cfgmod.ConfigError("device.kind", f"driver built a {dev.kind} device, config says {settings.tool_kind}")
+        # a linkage tool runs on the device kind the config names (planar or spatial)
+        want = settings["device"]["kind"] if settings.tool_kind == "linkage" else settings.tool_kind
+        if dev.kind != want:
+            raise cfgmod.ConfigError("device.kind", f"driver built a {dev.kind} device, config says {want}")
     finally:
         dev.close()

@@ -146,3 +146,10 @@ def test_config_linkage_rules():
         make_settings(model={"tool": "linkage", "linkage_dynamics": "approximate"})
     assert make_settings(model={"tool": "linkage", "linkage_dynamics": "paper"})["model"]["linkage_dynamics"] == "paper"
     assert math.isfinite(BAR_L)
+
+
+def test_the_daemon_accepts_a_linkage_on_the_configured_device():
+    from hapticproxy.server.daemon import _check_device
+
+    _check_device(make_settings(model={"tool": "linkage"}))  # the sim driver builds the planar device
+    _check_device(make_settings(model={"tool": "linkage"}, device={"kind": "spatial"}))
