@@ -6,6 +6,8 @@ Examples::
     hapticproxy client stub --scene wall --connect 10.0.0.5:9870 --seed 7
     hapticproxy client pymunk --scene push --connect zenoh://10.0.0.5:7447/lab --gui
     hapticproxy client pybullet --list-scenes
+    hapticproxy client pymunk --scene linkage                       # a linkage tool (server: model.tool = "linkage")
+    hapticproxy client pybullet-linkage --scene chain               # the URDF chain (spatial device)
 
 Engines are found by name in :data:`ENGINES` (``"module:Class"``) and imported only when chosen,
 so an engine whose library is missing does not affect the others. Exit status: 0 after a normal
