@@ -32,7 +32,7 @@ STATUS_FIELDS = (
     "force_cap_n", "rate_limit_n_per_step", "engagements", "faults_total", "telemetry_overwritten",
     # what the session layer refused, by reason (stale_or_duplicate and decode_errors above)
     "datagrams_received", "bad_token", "wrong_peer", "unknown_session", "bad_mac", "unexpected",
-    "wrong_version", "rejects_sent", "dropped_empty",
+    "wrong_version", "rejects_sent", "dropped_empty", "poll_budget_cuts",
 )
 ST = {name: i for i, name in enumerate(STATUS_FIELDS)}
 NSTAT = len(STATUS_FIELDS)

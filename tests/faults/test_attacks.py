@@ -420,3 +420,38 @@ def test_an_unpaced_flood_is_counted_by_the_server_or_the_kernel_and_no_promise_
     print(f"unpaced flood: sent {sent}, read by the server {int(arrived(a, b)) - env_sent + drops and int(arrived(a, b))}, "
           f"kernel dropped {drops} (client datagrams sent meanwhile {env_sent}), fades {res['fades']}, "
           f"max step {res['max_force_step_n']:.3f} N")
+
+
+def test_a_flood_of_datagrams_slow_to_refuse_does_not_stretch_the_steps(live):
+    """1 kB msgpack packets of 1,000 nested arrays cost ~40 us each to unpack and refuse (ten
+    times other junk): read 32 per step they stretched steps to milliseconds. The poll's time
+    budget leaves the rest for the next step: the loop keeps its rate (counts of steps, missed
+    deadlines and budget cuts, never timings)."""
+    deep = b"\x91" * 1023 + b"\x01"
+    with live._lock:
+        b = _settled(live)
+        env0 = live.env.ep.counters.sent
+        drops0 = _kernel_drops(live.port)
+    sent = 0
+    with _attacker() as atk:
+        atk.setblocking(False)
+        for _ in range(FLOOD):
+            try:
+                atk.sendto(deep, ("127.0.0.1", live.port))
+                sent += 1
+            except BlockingIOError:
+                pass
+    with live._lock:
+        a = _settled(live)
+        env_sent = live.env.ep.counters.sent - env0
+        drops = _kernel_drops(live.port) - drops0
+    # read by the server (all refused as malformed) or dropped by the kernel; the real client's
+    # datagrams are in both books
+    assert (a["datagrams_received"] - b["datagrams_received"]) + drops == sent + env_sent
+    assert a["decode_errors"] - b["decode_errors"] <= sent
+    stepped = a["steps"] - b["steps"]
+    missed = a["missed_deadlines"] - b["missed_deadlines"]
+    assert a["poll_budget_cuts"] > b["poll_budget_cuts"]  # the budget did the bounding
+    assert stepped / (stepped + missed) >= 0.9, (stepped, missed)
+    s = live.wait(lambda s: s["updates"] >= a["updates"] + 10 and s["loop_state"] == "engaged" and s["gain"] == 1.0)
+    assert s["session_id"] == b["session_id"] and s["faults_total"] == 0
