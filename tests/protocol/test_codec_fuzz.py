@@ -1,7 +1,10 @@
 """Property-based fuzzing of the decoder: it never raises, and whatever it accepts is valid.
 
-The first property runs 10,000 cases in the default run (the issue's floor); the others add
-structure-aware cases (msgpack-shaped garbage, byte flips and field swaps of real packets).
+Default run: 18,000 cases (random bytes 10,000 -- the issue's floor on its own -- plus 3,000
+mutated real packets, 3,000 msgpack-shaped garbage, 2,000 poisoned contact values), 1,000 cases
+whose accepted ContactUpdates are applied to a local model, and a 5,000-input smoke of the long
+run's generator. Opt-in (``-m slow``): the same four properties with 1,000,000 cases in all, and
+the long run itself (``python -m hapticproxy.benchmarks.fuzz_codec``, 1,000,000 inputs).
 """
 from __future__ import annotations
 
@@ -9,6 +12,7 @@ import math
 
 import msgpack
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -93,20 +97,20 @@ _float_bins = st.lists(st.floats(allow_nan=True, allow_infinity=True, width=64),
     lambda xs: np.asarray(xs, "<f8").tobytes())
 
 
-@settings(max_examples=3_000, deadline=None, suppress_health_check=list(HealthCheck))
-@given(
+STRUCTURED = st.tuples(
     st.sampled_from([int(m.type_id) for m in M.MESSAGES] + [0, 99]),
     st.sampled_from([1, 1, 1, 2]),
     st.lists(st.one_of(_values, _float_bins, st.integers(0, 20)), max_size=16),
-)
-def test_structured_garbage_never_raises(type_id, major, fields):
-    check(msgpack.packb([major, 0, type_id, 1, 1] + fields, use_bin_type=True))
+).map(lambda t: msgpack.packb([t[1], 0, t[0], 1, 1] + t[2], use_bin_type=True))
 
 
-@settings(max_examples=2_000, deadline=None, suppress_health_check=list(HealthCheck))
-@given(st.integers(0, 16), st.lists(st.floats(allow_nan=True, allow_infinity=True, width=64), min_size=1, max_size=8),
-       st.integers(0, 10_000))
-def test_poisoned_contact_values_are_rejected_or_valid(n, poison, where):
+@settings(max_examples=3_000, deadline=None, suppress_health_check=list(HealthCheck))
+@given(STRUCTURED)
+def test_structured_garbage_never_raises(data):
+    check(data)
+
+
+def _poisoned(n: int, poison: list, where: int) -> bytes:
     obj = msgpack.unpackb(_valid_packet(n, 5))
     data = np.frombuffer(obj[10], "<f8").copy()
     pose = np.frombuffer(obj[7], "<f8").copy()
@@ -116,4 +120,73 @@ def test_poisoned_contact_values_are_rejected_or_valid(n, poison, where):
         else:
             pose[(where + i) % 7] = x
     obj[10], obj[7] = data.tobytes(), pose.tobytes()
-    check(msgpack.packb(obj, use_bin_type=True))
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+POISONED = st.tuples(st.integers(0, 16),
+                     st.lists(st.floats(allow_nan=True, allow_infinity=True, width=64), min_size=1, max_size=8),
+                     st.integers(0, 10_000)).map(lambda t: _poisoned(*t))
+
+
+@settings(max_examples=2_000, deadline=None, suppress_health_check=list(HealthCheck))
+@given(POISONED)
+def test_poisoned_contact_values_are_rejected_or_valid(data):
+    check(data)
+
+
+# ------------------------------------------------------------------ what reaches the model
+_PROBE = None
+
+
+def _probe():
+    global _PROBE
+    if _PROBE is None:
+        from hapticproxy.benchmarks.fuzz_codec import ModelProbe
+
+        _PROBE = ModelProbe()
+    return _PROBE
+
+
+@settings(max_examples=1_000, deadline=None, suppress_health_check=list(HealthCheck))
+@given(st.one_of(_mutations(), POISONED))
+def test_accepted_updates_keep_a_local_model_finite(data):
+    """Whatever the decoder accepts, applied to a local model (update + one step from a fresh
+    state), leaves it finite."""
+    out = CODEC.try_decode(data)
+    if isinstance(out, ContactUpdate):
+        assert not _probe().nonfinite(out)
+
+
+def test_the_long_runs_generator_finds_nothing_in_a_short_run():
+    from hapticproxy.benchmarks.fuzz_codec import run_chunk
+
+    r = run_chunk(seed=3, n=5_000, quiet_gc=False)
+    assert r["inputs"] == 5_000
+    assert not r["unhandled"] and not r["catch_all"] and not r["invalid"] and r["model_nonfinite"] == 0
+    assert sum(r["accepted"].values()) > 100 and len(r["rejected"]) >= 8  # it reaches deep and wide
+
+
+# ------------------------------------------------------------------ the long runs (opt-in)
+def _long(strategy, n: int):
+    return settings(max_examples=n, deadline=None, database=None, suppress_health_check=list(HealthCheck))(
+        given(strategy)(check))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, strategy, n", [
+    ("random bytes", st.binary(max_size=256), 600_000),
+    ("mutated packets", _mutations(), 250_000),
+    ("poisoned values", POISONED, 100_000),
+    ("structured garbage", STRUCTURED, 50_000),
+])
+def test_long_hypothesis_run_one_million_cases_in_all(name, strategy, n):
+    _long(strategy, n)()
+
+
+@pytest.mark.slow
+def test_long_run_one_million_inputs():
+    from hapticproxy.benchmarks.fuzz_codec import run_random
+
+    st_, crashes = run_random(1_000_000, seed=1, jobs=2)
+    assert st_.inputs == 1_000_000 and not crashes
+    assert not st_.unhandled and not st_.catch_all and not st_.invalid and st_.model_nonfinite == 0
