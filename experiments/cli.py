@@ -7,6 +7,7 @@ trade-off.
     hapticproxy experiment fig16 --out out/fig16     # the tight hole: drift and rotation
     hapticproxy experiment fig17 --out out/fig17     # the tight hole at k = 15000 N/m: stability
     hapticproxy experiment tradeoff --out out/trade  # the speed / accuracy sweep, Pareto plot
+    hapticproxy experiment rates --out out/rates     # only the sweep's real-time achieved-rate runs
     hapticproxy experiment all --out out/exp         # every one of them, a folder each
 
 ``--quick``: the short version (shorter runs, fewer seeds and configurations). ``--mode``:
@@ -24,7 +25,7 @@ import os
 import sys
 import time
 
-NAMES = ("fig6", "fig9", "fig14", "fig16", "fig17", "tradeoff")
+NAMES = ("fig6", "fig9", "fig14", "fig16", "fig17", "tradeoff", "rates")
 
 
 def _summary(name: str, res: dict) -> list[str]:
@@ -47,6 +48,10 @@ def run_one(name: str, out: str, *, mode: str, quick: bool, log) -> dict:
         from .tradeoff import run_tradeoff
 
         return run_tradeoff(out, quick=quick, log=log)
+    if name == "rates":
+        from .tradeoff import run_rates
+
+        return run_rates(out, quick=quick, log=log)
     from .figures import FIGURES
 
     return FIGURES[name](out, mode=mode, quick=quick, log=log)
@@ -61,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="figures 14/16/17: the real server in real time (default) or simulated time")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     args = p.parse_args(argv)
-    names = NAMES if args.name == "all" else (args.name,)
+    names = tuple(n for n in NAMES if n != "rates") if args.name == "all" else (args.name,)
     log = None if args.quiet else (lambda msg: print(f"experiment: {msg}", file=sys.stderr, flush=True))
     status = 0
     for name in names:
@@ -73,13 +78,18 @@ def main(argv: list[str] | None = None) -> int:
             print(f"hapticproxy experiment {name}: {exc}", file=sys.stderr)
             status = 1
             continue
-        if name == "tradeoff":
+        if name == "rates":
+            for r in res["realtime_rates"]:
+                print(f"rates {r['rate_hz']:g} Hz: " + (f"failed: {r['error']}" if "error" in r else
+                      f"achieved {r['achieved_rate_hz']:.1f} Hz, missed {r['missed_deadlines']}, compute p99 "
+                      f"{r['compute_us'].get('p99')} us"))
+        elif name == "tradeoff":
             print(f"tradeoff: {len(res['rows'])} configurations; table {os.path.join(out, 'tradeoff.md')}, "
                   f"stable region {os.path.join(out, 'stable_region.md')}, Pareto plot {os.path.join(out, 'pareto.png')}")
         else:
             for line in _summary(name, res):
                 print(line)
-        what = "tradeoff.json, tables" if name == "tradeoff" else "metrics.json"
+        what = {"tradeoff": "tradeoff.json, tables", "rates": "rates.json, rates.md"}.get(name, "metrics.json")
         print(f"{name}: wrote {out}/{what} and plots ({time.perf_counter() - t0:.1f} s)")
     return status
 

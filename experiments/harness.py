@@ -459,9 +459,12 @@ def run_realtime(spec: RunSpec, *, log=None, connect_timeout_s: float = 30.0) ->
             rows = sup.shared.ring[np.arange(head - n, head) % sup.ring_rows].copy()
         finally:
             stop.set()
-            th.join(10)
-            sup.close()
-            eng.close()
+            if th.ident is not None:
+                th.join(10)
+            try:
+                sup.close()
+            finally:
+                eng.close()
     if err:
         raise RuntimeError(f"environment client failed: {err[0]}")
     span = (snap["t_last_ns"] - snap["t_start_ns"]) * 1e-9

@@ -324,6 +324,16 @@ def realtime_rates(rates=REALTIME_RATES, seconds: float = 3.0, log=None) -> list
     return out
 
 
+def run_rates(out, *, quick: bool = False, log=None) -> dict:
+    """``hapticproxy experiment rates``: only the real-time achieved-rate runs of the trade-off."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rt = realtime_rates(rates=(512.0, 4000.0) if quick else REALTIME_RATES, log=log)
+    (out / "rates.json").write_text(json.dumps(rt, indent=1, default=float) + "\n")
+    (out / "rates.md").write_text(table_md([], rt).strip() + "\n")
+    return {"realtime_rates": rt}
+
+
 def stable_region(*, quick: bool, seeds, log=None) -> list[dict]:
     """The stable band of contact stiffness per (controller, rate): stiffness ascending; a
     stiffness is stable when no run of ``evaluate`` (the wall push and 6 s of Fig. 16's
@@ -448,7 +458,7 @@ def _fmt(fmt: str, v) -> str:
 def table_md(rows: list[dict], rt: list[dict]) -> str:
     head = "| " + " | ".join(c for c, _ in _COLS) + " |"
     sep = "| " + " | ".join("---" if c in ("dimension", "label") else "---:" for c, _ in _COLS) + " |"
-    lines = [head, sep]
+    lines = [head, sep] if rows else []
     for r in rows:
         lines.append("| " + " | ".join(_fmt(f, r.get(c)) for c, f in _COLS) + " |")
     if rt:
@@ -482,6 +492,28 @@ def region_md(region: list[dict]) -> str:
     return "\n".join(lines)
 
 
+FLOOR_MM = 0.01
+
+
+def short_label(r: dict) -> str:
+    """What sets a row apart from the base configuration, for the plot."""
+    out = []
+    if r["rate_hz"] != BASE.rate_hz:
+        out.append(f"{r['rate_hz']:g} Hz")
+    if r["stiffness_n_per_m"] != BASE.stiffness_n_per_m:
+        out.append(f"k {r['stiffness_n_per_m']:g}")
+    if r["epsilon_m"] != BASE.epsilon_m:
+        out.append(f"eps {r['epsilon_m'] * 1e3:g} mm")
+    if r["capacity"] != BASE.capacity:
+        out.append(f"cap {r['capacity']}")
+    if tuple(r["env_rate_hz"]) != BASE.env_rate_hz:
+        lo, hi = r["env_rate_hz"]
+        out.append(f"env {lo:g} Hz" if lo == hi else f"env {lo:g}-{hi:g} Hz")
+    if r.get("kernel", "numba") != "numba":
+        out.append(r["kernel"])
+    return ", ".join(out) or "base (1 kHz, k 4000, eps 5 mm, cap 16, env 30-60 Hz)"
+
+
 def plot_pareto(rows: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -497,18 +529,20 @@ def plot_pareto(rows: list[dict], path: Path) -> None:
             rs = [r for r in rows if r["dimension"] == d and r.get(err) is not None and r.get("cpu_load_pct") is not None]
             ok = [r for r in rs if not r["unstable"]]
             bad = [r for r in rs if r["unstable"]]
-            ax.scatter([r["cpu_load_pct"] for r in ok], [r[err] for r in ok], s=22, color=cmap(i % 10), label=d)
-            ax.scatter([r["cpu_load_pct"] for r in bad], [r[err] for r in bad], s=40, marker="x", color=cmap(i % 10))
+            ax.scatter([r["cpu_load_pct"] for r in ok], [max(r[err], FLOOR_MM) for r in ok], s=22, color=cmap(i % 10),
+                       label=d)
+            ax.scatter([r["cpu_load_pct"] for r in bad], [max(r[err], FLOOR_MM) for r in bad], s=40, marker="x",
+                       color=cmap(i % 10))
         front = pareto_front(rows, "cpu_load_pct", err)
-        ax.plot([r["cpu_load_pct"] for r in front], [r[err] for r in front], "k--", lw=0.8, label="Pareto front")
+        ax.plot([r["cpu_load_pct"] for r in front], [max(r[err], FLOOR_MM) for r in front], "k--", lw=0.8,
+                label="Pareto front")
         for r in front:
-            ax.annotate(r["label"].split(" k=")[0].split("/")[-1] + f" {r['rate_hz']:g}Hz cap{r['capacity']} "
-                        f"eps{r['epsilon_m'] * 1e3:g}", (r["cpu_load_pct"], r[err]), fontsize=6,
-                        xytext=(3, 3), textcoords="offset points")
+            ax.annotate(short_label(r), (r["cpu_load_pct"], max(r[err], FLOOR_MM)), fontsize=6.5,
+                        xytext=(4, 2), textcoords="offset points")
         ax.set_xscale("log")
-        ax.set_yscale("symlog", linthresh=1.0)
+        ax.set_yscale("log")
         ax.set_xlabel("cost: CPU load of the haptic loop [% of one core] (step p50 x rate)")
-        ax.set_ylabel(name)
+        ax.set_ylabel(name + f" (values < {FLOOR_MM:g} drawn at {FLOOR_MM:g})")
         ax.grid(alpha=0.3, which="both")
     axes[0].legend(fontsize=7, loc="upper right")
     fig.suptitle("Speed / accuracy trade-off (simulated time; x: unstable)", fontsize=10)
