@@ -24,14 +24,17 @@ every accepted message is re-checked independently of the decoder (every float f
 within the limits): a failure is an *invalid value that reached the model*; and every accepted
 ContactUpdate is applied to a spatial ``LocalModel`` (update + one haptic step from a fresh
 state): a non-finite model state counts there too (``model_nonfinite``). Each decode is timed
-(``perf_counter_ns``, garbage collector frozen and disabled as in the haptic-loop process; the
-worst case includes whatever the OS did meanwhile). With ``--jobs N``
+(``perf_counter_ns``, garbage collector frozen and disabled as in the haptic-loop process): the
+worst observed time includes whatever the OS did meanwhile, so every decode slower than 20 us is
+timed again at once (best of 3) and the 20 slowest by that measure again at the end (best of 5):
+the slowest input's own cost. With ``--jobs N``
 the inputs are split across N child processes; a child that dies (e.g. a segfault in a C
 extension) is a *crash* (its chunk's seed is reported) and the run goes on.
 """
 from __future__ import annotations
 
 import argparse
+import heapq
 import json
 import math
 import multiprocessing as mp
@@ -55,6 +58,7 @@ LIMITS = Limits()
 IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 POISON = (math.nan, math.inf, -math.inf, 1e300, -1e300, 1e9 * 1.0000001, 5e-324, -0.0, 1e-320, 2.0 ** 63)
 CHUNK = 50_000
+RETIME_NS = 20_000  # a decode slower than this is timed again for the input's own cost
 
 
 # ------------------------------------------------------------------------------ seeds
@@ -342,6 +346,7 @@ class Stats:
         self.worst_ns = 0
         self.worst_len = 0
         self.hist = np.zeros(10001, dtype=np.int64)  # 1 us bins, last = >= 10 ms
+        self.slowest: list = []  # heap of (ns, input): the 20 slowest, re-timed at the end
 
     def merge(self, d: dict) -> None:
         self.inputs += d["inputs"]
@@ -356,12 +361,38 @@ class Stats:
         if d["worst_ns"] > self.worst_ns:
             self.worst_ns, self.worst_len = d["worst_ns"], d["worst_len"]
         self.hist += np.asarray(d["hist"], dtype=np.int64)
+        for item in d["slowest"]:
+            self._keep_slow(item[0], bytes.fromhex(item[1]))
+
+    def _keep_slow(self, dt: int, data: bytes) -> None:
+        if len(self.slowest) < 20:
+            heapq.heappush(self.slowest, (dt, data))
+        elif dt > self.slowest[0][0]:
+            heapq.heapreplace(self.slowest, (dt, data))
 
     def as_dict(self) -> dict:
         return {"inputs": self.inputs, "accepted": self.accepted, "rejected": self.rejected,
                 "unhandled": self.unhandled[:20], "catch_all": self.catch_all[:20], "invalid": self.invalid[:20],
                 "model_nonfinite": self.model_nonfinite, "worst_ns": self.worst_ns, "worst_len": self.worst_len,
-                "hist": self.hist.tolist()}
+                "hist": self.hist.tolist(), "slowest": [(dt, d.hex()) for dt, d in self.slowest]}
+
+    def retime_slowest(self, repeats: int = 5) -> tuple[float, int]:
+        """The inputs slowest by their own cost (each slow decode was timed again at once), decoded
+        again here (best of ``repeats``). Returns (us, input bytes) of the slowest."""
+        codec = Codec(LIMITS)
+        best = (0.0, 0, b"")
+        for _, data in self.slowest:
+            t = min(_timed(codec, data) for _ in range(repeats)) / 1000.0
+            if t > best[0]:
+                best = (t, len(data), data)
+        self.slowest_input = best[2]
+        return best[:2]
+
+
+def _timed(codec: Codec, data: bytes) -> int:
+    t0 = time.perf_counter_ns()
+    codec.try_decode(data)
+    return time.perf_counter_ns() - t0
 
 
 def check_one(codec: Codec, data: bytes, st: Stats, probe: ModelProbe | None) -> None:
@@ -376,6 +407,11 @@ def check_one(codec: Codec, data: bytes, st: Stats, probe: ModelProbe | None) ->
     st.hist[min(dt // 1000, 10000)] += 1
     if dt > st.worst_ns:
         st.worst_ns, st.worst_len = dt, len(data)
+    if dt > RETIME_NS:
+        # slow this time: its own cost is the best of three more (a preemption lands in one)
+        own = min(_timed(codec, data) for _ in range(3))
+        if len(st.slowest) < 20 or own > st.slowest[0][0]:
+            st._keep_slow(own, bytes(data))
     if isinstance(out, ProtocolError):
         name = out.code.name.lower() if isinstance(out.code, M.ErrorCode) else str(out.code)
         st.rejected[name] = st.rejected.get(name, 0) + 1
@@ -457,8 +493,12 @@ def run_atheris(inputs: int, seed: int, corpus_dir: str) -> None:
 
     import atheris  # noqa: F401 - optional
 
-    with atheris.instrument_imports():
-        import hapticproxy.protocol.codec as codec_mod
+    import hapticproxy.protocol.codec as codec_mod
+
+    # the codec is imported already (this module uses it): instrument its functions in place
+    for obj in list(vars(codec_mod).values()) + list(vars(codec_mod.Codec).values()):
+        if callable(obj) and getattr(obj, "__module__", "") == codec_mod.__name__ and hasattr(obj, "__code__"):
+            atheris.instrument_func(obj)
     codec = codec_mod.Codec(LIMITS)
     probe = ModelProbe()
     st = Stats()
@@ -468,13 +508,15 @@ def run_atheris(inputs: int, seed: int, corpus_dir: str) -> None:
         with open(os.path.join(corpus_dir, f"seed-{i}"), "wb") as f:
             f.write(s)
 
+    def report() -> None:
+        print(json.dumps(figures(st, [], "atheris", seed, time.monotonic() - t0), indent=1), flush=True)
+
     def one(data: bytes) -> None:
         check_one(codec, data, st, probe)
+        if st.inputs == inputs:  # libFuzzer's last run: it exits without Python's atexit
+            report()
 
-    def report() -> None:
-        print(json.dumps(figures(st, [], "atheris", seed, time.monotonic() - t0)), flush=True)
-
-    atexit.register(report)
+    atexit.register(lambda: st.inputs < inputs and report())
     atheris.Setup([sys.argv[0], f"-runs={inputs}", f"-seed={seed}", "-max_len=9000", "-rss_limit_mb=4096",
                    "-print_final_stats=1", corpus_dir], one)
     atheris.Fuzz()
@@ -482,6 +524,8 @@ def run_atheris(inputs: int, seed: int, corpus_dir: str) -> None:
 
 # ------------------------------------------------------------------------------ CLI
 def figures(st: Stats, crashes: list[int], engine: str, seed: int, seconds: float) -> dict:
+    retimed = st.retime_slowest()
+    retimed = (round(retimed[0], 1), retimed[1])
     n = int(st.hist.sum())
     cum = np.cumsum(st.hist)
     p999 = float(np.searchsorted(cum, 0.999 * n) + 1) if n else None
@@ -493,7 +537,9 @@ def figures(st: Stats, crashes: list[int], engine: str, seed: int, seconds: floa
         "invalid_reached_model": len(st.invalid), "model_nonfinite": st.model_nonfinite,
         "accepted": dict(sorted(st.accepted.items())), "accepted_total": sum(st.accepted.values()),
         "rejected": dict(sorted(st.rejected.items(), key=lambda kv: -kv[1])), "rejected_total": sum(st.rejected.values()),
-        "decode_us": {"p50": p50, "p999": p999, "worst": round(st.worst_ns / 1000, 1), "worst_input_bytes": st.worst_len},
+        "decode_us": {"p50": p50, "p999": p999, "worst_observed": round(st.worst_ns / 1000, 1),
+                      "worst_observed_input_bytes": st.worst_len, "slowest_input_retimed": retimed[0],
+                      "slowest_input_bytes": retimed[1], "slowest_input_head": st.slowest_input[:48].hex()},
         "examples": {"unhandled": st.unhandled[:5], "catch_all": st.catch_all[:5], "invalid": st.invalid[:5]},
         "machine": f"{platform.machine()} {os.cpu_count()} cpus, {platform.system()} {platform.release()}, "
                    f"python {platform.python_version()}, load average {os.getloadavg()[0]:.2f} at the end",
