@@ -38,8 +38,9 @@ changing by more than the rate limit per step; within the fade/ramp envelope ``g
 environment silent for longer than the watchdog (+1 step) -> not engaged any more; a fade reaching
 zero force within the fade time (+1 step); the first command of a ramp-in from zero at most
 ``FIRST_COMMAND_MAX_N`` (0.2 N). For the stall and the crash, what the *device* rendered (its own
-record): zero within its watchdog (+2 ticks) of the stop, zero until the server re-arms, the first
-command after the re-arm at most 0.2 N, never above the cap.
+record): no tick renders force with its last accepted command older than its watchdog (50 ms),
+nothing from that cut until the server re-arms, the first command after the re-arm at most 0.2
+N, never above the cap (``zero_ms``: from the stop to the cut, including the device's tick).
 
 ``unstable``: a speed trip, a force at the cap, or, over the last second before the fault (or of
 the run), a force swinging by more than 1 N or a device moving by more than 1 mm while engaged at
@@ -188,7 +189,8 @@ def _device_main(port: int, out_path: str, seconds_max: float, stop, ready) -> N
         "hand": {"type": "constant", "wrench": [0.0, PUSH_N, 0.0]}}, period_s=period_ns * 1e-9))
     prog = DeviceProgram(sim, ("127.0.0.1", port), watchdog_s=DEVICE_WATCHDOG_S, period_s=period_ns * 1e-9)
     n = int(seconds_max * 1000) + 2000
-    rec = np.zeros((n, 7))  # t_s (CLOCK_MONOTONIC), armed, fault, epoch, fx, fy, tz (rendered)
+    # t_s (CLOCK_MONOTONIC), armed, fault, epoch, fx, fy, tz (rendered), last accepted command t_s
+    rec = np.zeros((n, 8))
     i = 0
     deadline = time.monotonic_ns()
     ready.set()
@@ -197,7 +199,7 @@ def _device_main(port: int, out_path: str, seconds_max: float, stop, ready) -> N
             prog.tick()
             now = time.monotonic_ns()
             w = sim.last_command
-            rec[i] = (now * 1e-9, prog.armed, prog.fault, prog.key[1], w[0], w[1], w[5])
+            rec[i] = (now * 1e-9, prog.armed, prog.fault, prog.key[1], w[0], w[1], w[5], prog._last_cmd_ns * 1e-9)
             i += 1
             deadline += period_ns
             if now > deadline + 5 * period_ns:
@@ -357,6 +359,7 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
             ready.wait(60)
         sup = Supervisor(s, record=str(rec_path))
         sup.start()
+        rec_start = sup.writer._read  # the ring row the recording starts at
         loop_pid = int(sup.shared.status[sup._st("pid")])
         client_url = url
         topts = None
@@ -417,9 +420,10 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
             os.kill(loop_pid, signal.SIGKILL)
             sup.proc.join(10)
             # what the file holds right after the crash, before the supervisor drains the rest
-            _, rows_now = telemetry.read(rec_path)
-            crash_info = {"head": int(sup.shared.head[0]), "head_before": head_before, "file_rows_at_crash": len(rows_now),
-                          "flush_rows": sup.writer.flush_rows}
+            meta_now, rows_now = telemetry.read(rec_path)
+            crash_info = {"rows": int(sup.shared.head[0]) - rec_start, "head_before": head_before,
+                          "file_rows_at_crash": len(rows_now), "flushed_at_crash": sup.writer.rows_written,
+                          "torn_at_crash": meta_now["torn_bytes"], "flush_rows": sup.writer.flush_rows}
         elif case.link == "stall":
             proxy.stall(SILENT_S)
         elif case.link == "reset":
@@ -473,11 +477,15 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
         row["broken"] = {**row["broken"], **dev["device_broken"]}
         row["violations"] = row["server_violations"] + row["device_violations"]
     if crash_info:
-        row["telemetry_rows_lost"] = crash_info["head"] - crash_info["file_rows"]
-        row["telemetry_unflushed_at_crash"] = crash_info["head"] - crash_info["file_rows_at_crash"]
+        # at the crash every flushed block is readable (nothing torn); the supervisor then drains
+        # the rest of the ring (shared memory outlives the loop process): nothing is lost
+        row["telemetry_rows"] = crash_info["rows"]
+        row["telemetry_in_file_at_crash"] = crash_info["file_rows_at_crash"]
         row["telemetry_flush_rows"] = crash_info["flush_rows"]
-        row["telemetry_torn_bytes"] = crash_info["torn_bytes"]
-        if row["telemetry_unflushed_at_crash"] > crash_info["flush_rows"] or crash_info["torn_bytes"]:
+        row["telemetry_rows_lost"] = crash_info["rows"] - crash_info["file_rows"]
+        row["telemetry_torn_bytes"] = crash_info["torn_at_crash"] + crash_info["torn_bytes"]
+        if (crash_info["file_rows_at_crash"] != crash_info["flushed_at_crash"] or row["telemetry_torn_bytes"]
+                or row["telemetry_rows_lost"]):
             row["broken"]["telemetry"] = 1
             row["violations"] += 1
     if "state_before_rearm" in events:
@@ -648,13 +656,21 @@ def analyse_device(rec: np.ndarray, lim: dict, ev: dict, case: Case) -> dict:
     after = t >= t_f
     zero = after & (mag == 0) & (armed == 0)
     zero_ms = float((t[np.argmax(zero)] - t_f) * 1e3) if zero.any() else None
-    limit_s = DEVICE_WATCHDOG_S + 0.0025
-    late = after & (t > t_f + limit_s) & (mag > 0)
-    t_rearm = ev.get("rearm_s", math.inf)
-    late &= t < t_rearm
-    k = int(late.sum())
+    # the device's own watchdog: no tick renders force once its last accepted command is older
+    # than watchdog_s (the tick notices at its next period: a late tick of this non-real-time
+    # program delays the cut, it does not break the rule)
+    stale = (mag > 0) & (t - rec[:, 7] > DEVICE_WATCHDOG_S + 0.001)
+    k = int(stale.sum())
     if k:
-        broken["device output after its watchdog, before a re-arm"] = k
+        broken["device output with no command for longer than its watchdog"] = k
+        nbad += k
+    # forces do not come back by themselves: from the cut to the re-arm, nothing
+    t_rearm = ev.get("rearm_s", math.inf)
+    t_zero = t[np.argmax(zero)] if zero.any() else math.inf
+    back = (t > t_zero) & (t < t_rearm) & (mag > 0)
+    k = int(back.sum())
+    if k:
+        broken["device output after its watchdog cut, before a re-arm"] = k
         nbad += k
     over = (np.abs(w[:, :2]) > lim["force_cap_n"] + TOL).any(axis=1) | (np.abs(w[:, 2]) > lim["torque_cap_n_m"] + TOL)
     if over.any():
