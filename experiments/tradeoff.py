@@ -123,8 +123,9 @@ QUICK_SWEEPS = (
 )
 #: Candidate presets (rate, contacts, epsilon): the old ones and the neighbours worth a look.
 CANDIDATES = ((512.0, 16, 0.005), (1000.0, 16, 0.005), (1000.0, 32, 0.005), (2000.0, 32, 0.005),
-              (2000.0, 64, 0.005), (4000.0, 32, 0.005), (4000.0, 64, 0.005), (1000.0, 32, 0.010),
-              (2000.0, 32, 0.010), (4000.0, 32, 0.010))
+              (2000.0, 64, 0.005), (4000.0, 32, 0.005), (4000.0, 64, 0.005), (512.0, 16, 0.010),
+              (1000.0, 32, 0.010), (2000.0, 32, 0.010), (2000.0, 64, 0.010), (4000.0, 32, 0.010),
+              (4000.0, 64, 0.010))
 #: The stable-region grid: controllers (with the model settings), rates, stiffnesses.
 REGION_CONTROLLERS = (
     ("four_channel", dict(controller="four_channel", policy="deformation", epsilon_m=0.005)),
