@@ -489,7 +489,12 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
             row["broken"]["telemetry"] = 1
             row["violations"] += 1
     if "state_before_rearm" in events:
+        from hapticproxy.server.shm import TEL
+
         row["state_before_rearm"] = events["state_before_rearm"]
+        after = rows[:, TEL["t_s"]] >= ev_rel["rearm_s"]
+        f = np.abs(rows[after][:, [TEL["cmd_fx"], TEL["cmd_fy"], TEL["cmd_fz"]]])
+        row["max_force_after_rearm_n"] = round(float(f.max()), 3) if len(f) else None
     row.update(case=case.name, faults=int(snap["faults_total"]), updates=int(snap["updates"]),
                missed_deadlines=int(snap["missed_deadlines"]), rt_scheduling=bool(snap["rt_scheduling"]))
     row.update(extra)
