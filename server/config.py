@@ -214,7 +214,7 @@ PRESETS: dict[str, tuple[dict, str]] = {
                  "up to about 50 kN/m with b = 7.5 ms x k; force steps up to 1 N per step"),
     "accurate": ({"loop": {"rate_hz": 4000.0}, "model": {"capacity": 64, "epsilon_m": 0.010}},
                  "4 kHz, 64 contacts, epsilon up to 10 mm: 3 % of a core; stable contacts up to about "
-                 "200 kN/m with b = 7.5 ms x k (1 MN/m with b = 30 N s/m); force steps up to 0.25 N per "
+                 "200 kN/m with b = 7.5 ms x k (1 MN/m with b = 30 N s/m); force steps up to 0.35 N per "
                  "step; wants SCHED_FIFO and a quiet core (a model update's step can outlast the 250 us period)"),
 }
 

@@ -343,3 +343,15 @@ def test_a_tool_the_model_refuses_is_rejected_in_the_handshake_and_the_loop_keep
     finally:
         env.close()
         loop.close()
+
+
+def test_beyond_the_refusal_the_model_alone_gains_energy(monkeypatch):
+    """Why the refusal exists: built with the check disabled, a 1 g tool with 1 kN/m and
+    7.5 N s/m at 1 kHz (k dt^2 / m = 1, b dt / m = 7.5 > 2) gains energy it was never given."""
+    from hapticproxy.server.model import model as model_mod
+
+    monkeypatch.setattr(model_mod, "check_step_stability", lambda *a, **k: None)
+    r = press("1dof", 1e-3, 1000.0, 7.5, 1000.0)
+    assert r["finite"]
+    assert r["excess"] > 0.5                     # most of its energy came from nowhere: not passive
+    assert r["travel_m"] > 0.005                 # pressed 0.5 mm into the floor, it leaves by centimetres
