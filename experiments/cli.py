@@ -1,5 +1,4 @@
-"""``hapticproxy experiment NAME --out DIR``: the paper's experiments and the speed / accuracy
-trade-off.
+"""``hapticproxy experiment NAME --out DIR``: the paper's experiments and the speed/accuracy trade-off.
 
     hapticproxy experiment fig6  --out out/fig6      # 1-DOF peg, proxy deformation vs none
     hapticproxy experiment fig9  --out out/fig9      # 1-DOF peg, epsilon 5 mm vs active geometry
