@@ -333,7 +333,13 @@ class HapticLoop:
                 self.poll_cut += 1
                 break
         if upd is not None:
-            self._on_update(upd, wake)
+            try:
+                self._on_update(upd, wake)
+            except Exception:  # noqa: BLE001 - e.g. a finite but absurd proxy state the codec refuses
+                # The loop must outlive anything an update can raise: treat it like a non-finite
+                # value (zero wrench, device disabled, re-arm needed), never die with force on.
+                self.update_errors += 1
+                self._on_fault(ctl.RC_NONFINITE, 0)
         elif self.state == LS["engaged"] and wake - self.last_update_ns > self.watchdog_ns:
             self.state = LS["fading"]
             self.watchdog = WD_SILENT

@@ -379,3 +379,18 @@ def test_a_tool_the_model_cannot_integrate_is_refused_in_the_handshake(rig_facto
     assert r.env.ep.state == "rejected"
     assert "stiffness" in r.env.ep.reject.reason
     assert r.loop.model is None and r.loop.engagements == 0
+
+
+def test_an_exception_while_applying_an_update_faults_safely_instead_of_killing_the_loop(rig_factory):
+    dev = PointDevice(hand=PUSH)
+    r = rig_factory(device=dev)
+    r.run(2.0)
+
+    def boom(*a, **k):
+        raise ValueError("proxy_pose: absurd value")
+
+    r.loop.endpoint.send_proxy_state = boom
+    r.run(0.1)
+    assert r.loop.state_name == "fault" and not dev.enabled
+    assert r.loop.update_errors >= 1
+    assert dev.commands[-1][1] == 0.0
