@@ -242,22 +242,25 @@ def _safety(cp, cs, cc, cmd):
 
 
 @njit(**_JIT)
-def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, hand, R, c):
-    """One haptic step after the device read. ``dev``: device state row (see devices.base);
-    ``cmd`` (6): output, device frame. ``active``: a session has engaged the model.
-    ``hand`` (6), ``R`` (3x3), ``c`` (3): scratch. Returns RC_*."""
-    cc[CC_STEPS] += 1
-    rc = RC_OK
+def _fault_zero(cs, cc, cmd):
+    """A non-finite value before the device: zero output, no gain, counted."""
+    for k in range(6):
+        cmd[k] = 0.0
+        cs[CS_PREV + k] = 0.0
+    cs[CS_GAIN] = 0.0
+    cs[CS_TARGET] = 0.0
+    cc[CC_NONFINITE] += 1
+    return RC_NONFINITE
+
+
+@njit(**_JIT)
+def _device_in(cp, cs, cc, dev, cmd):
+    """Check the device row, map the handle into the world, the speed trip; clear the step's
+    wrench rows. Returns RC_NONFINITE (output already zeroed), RC_SPEED or RC_OK."""
     for j in range(13):
         if not math.isfinite(dev[j]):
-            for k in range(6):
-                cmd[k] = 0.0
-                cs[CS_PREV + k] = 0.0
-            cs[CS_GAIN] = 0.0
-            cs[CS_TARGET] = 0.0
-            cc[CC_NONFINITE] += 1
-            return RC_NONFINITE
-    # device handle -> world
+            return _fault_zero(cs, cc, cmd)
+    rc = RC_OK
     _rot(cp, CP_ROFF, dev[0], dev[1], dev[2], cs, CS_DPOSE)
     for j in range(3):
         cs[CS_DPOSE + j] += cp[CP_POFF + j]
@@ -271,55 +274,117 @@ def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, han
         cs[CS_TARGET] = 0.0
         cc[CC_SPEED_TRIPS] += 1
         rc = RC_SPEED
-    ctype = int(cp[CP_TYPE])
     for j in range(6):
         cs[CS_ENV + j] = 0.0
         cs[CS_HAND + j] = 0.0
         cs[CS_FC + j] = 0.0
         cs[CS_CMDW + j] = 0.0
+    return rc
+
+
+@njit(**_JIT)
+def _coupling(cp, cs, mode, ax, ay, az, scratch):
+    """Position channels: the spring-damper wrench on the proxy (CS_FC) from the device handle
+    minus the proxy hand point, world. ``mode`` 0: along the unit axis (ax, ay, az) only;
+    1: planar (x, y, rotation about z); 2: spatial (rotation vector of q_dev conj(q_proxy))."""
+    ex = cs[CS_DPOSE] - cs[CS_PPOSE]
+    ey = cs[CS_DPOSE + 1] - cs[CS_PPOSE + 1]
+    ez = cs[CS_DPOSE + 2] - cs[CS_PPOSE + 2]
+    evx = cs[CS_DTWIST] - cs[CS_PTWIST]
+    evy = cs[CS_DTWIST + 1] - cs[CS_PTWIST + 1]
+    evz = cs[CS_DTWIST + 2] - cs[CS_PTWIST + 2]
+    erx = 0.0; ery = 0.0; erz = 0.0
+    ewx = cs[CS_DTWIST + 3] - cs[CS_PTWIST + 3]
+    ewy = cs[CS_DTWIST + 4] - cs[CS_PTWIST + 4]
+    ewz = cs[CS_DTWIST + 5] - cs[CS_PTWIST + 5]
+    if mode == 0:
+        e = ex * ax + ey * ay + ez * az
+        ev = evx * ax + evy * ay + evz * az
+        ex = e * ax; ey = e * ay; ez = e * az
+        evx = ev * ax; evy = ev * ay; evz = ev * az
+        ewx = 0.0; ewy = 0.0; ewz = 0.0
+    elif mode == 1:
+        thd = 2.0 * math.atan2(cs[CS_DPOSE + 6], cs[CS_DPOSE + 3])
+        thp = 2.0 * math.atan2(cs[CS_PPOSE + 6], cs[CS_PPOSE + 3])
+        erz = _wrap(thd - thp)
+        ez = 0.0; evz = 0.0; ewx = 0.0; ewy = 0.0
+    else:
+        pw = cs[CS_PPOSE + 3]; px = cs[CS_PPOSE + 4]; py = cs[CS_PPOSE + 5]; pz = cs[CS_PPOSE + 6]
+        _qmul(cs[CS_DPOSE + 3], cs[CS_DPOSE + 4], cs[CS_DPOSE + 5], cs[CS_DPOSE + 6],
+              pw, -px, -py, -pz, scratch, 0)
+        qw = scratch[0]; qx = scratch[1]; qy = scratch[2]; qz = scratch[3]
+        if qw < 0.0:
+            qw = -qw; qx = -qx; qy = -qy; qz = -qz
+        vn = math.sqrt(qx * qx + qy * qy + qz * qz)
+        if vn > 1e-12:
+            ang = 2.0 * math.atan2(vn, qw)
+            erx = ang * qx / vn; ery = ang * qy / vn; erz = ang * qz / vn
+    kt = cp[CP_KT]; bt = cp[CP_BT]; kr = cp[CP_KR]; br = cp[CP_BR]
+    cs[CS_FC] = kt * ex + bt * evx
+    cs[CS_FC + 1] = kt * ey + bt * evy
+    cs[CS_FC + 2] = kt * ez + bt * evz
+    cs[CS_FC + 3] = kr * erx + br * ewx
+    cs[CS_FC + 4] = kr * ery + br * ewy
+    cs[CS_FC + 5] = kr * erz + br * ewz
+
+
+@njit(**_JIT)
+def _hand_channel(cp, cs, cc, dev, ctype):
+    """The wrench on the proxy at the hand point (CS_HAND): the measured hand wrench (four-channel
+    force channel; skipped and counted when the device has no finite reading) plus CS_FC."""
+    hg = 0.0
+    if ctype == CTRL_FOUR_CHANNEL:
+        hg = cp[CP_HG]
+        have = True
+        for j in range(6):
+            if not math.isfinite(dev[13 + j]):
+                have = False
+        if not have:
+            hg = 0.0
+            cc[CC_HAND_MISSING] += 1
+    if hg != 0.0:
+        _rot(cp, CP_ROFF, dev[13], dev[14], dev[15], cs, CS_HAND)
+        _rot(cp, CP_ROFF, dev[16], dev[17], dev[18], cs, CS_HAND + 3)
+        for j in range(6):
+            cs[CS_HAND + j] *= hg
+    for j in range(6):
+        cs[CS_HAND + j] += cs[CS_FC + j]
+
+
+@njit(**_JIT)
+def _command_out(cp, cs, cc, cmd, ctype, rc):
+    """Controller output (CS_CMDW, world) -> device frame -> safety filter. Returns RC_*."""
+    if ctype == CTRL_FOUR_CHANNEL:
+        for j in range(6):
+            cs[CS_CMDW + j] = cp[CP_EG] * cs[CS_ENV + j] - cs[CS_FC + j]
+    elif ctype == CTRL_COUPLER:
+        for j in range(6):
+            cs[CS_CMDW + j] = -cs[CS_FC + j]
+    else:
+        for j in range(6):
+            cs[CS_CMDW + j] = cs[CS_ENV + j]
+    _rot_t(cp, CP_ROFF, cs[CS_CMDW], cs[CS_CMDW + 1], cs[CS_CMDW + 2], cmd, 0)
+    _rot_t(cp, CP_ROFF, cs[CS_CMDW + 3], cs[CS_CMDW + 4], cs[CS_CMDW + 5], cmd, 3)
+    src = _safety(cp, cs, cc, cmd)
+    if src != RC_OK:
+        return src
+    return rc
+
+
+@njit(**_JIT)
+def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, hand, R, c):
+    """One haptic step after the device read. ``dev``: device state row (see devices.base);
+    ``cmd`` (6): output, device frame. ``active``: a session has engaged the model.
+    ``hand`` (6), ``R`` (3x3), ``c`` (3): scratch. Returns RC_*."""
+    cc[CC_STEPS] += 1
+    rc = _device_in(cp, cs, cc, dev, cmd)
+    if rc == RC_NONFINITE:
+        return rc
+    ctype = int(cp[CP_TYPE])
     if active:
         proxy_hand_state(kind, par, st, R, c, cs, CS_PPOSE)
-        # position channels: device minus proxy at the hand point, world
-        ex = cs[CS_DPOSE] - cs[CS_PPOSE]
-        ey = cs[CS_DPOSE + 1] - cs[CS_PPOSE + 1]
-        ez = cs[CS_DPOSE + 2] - cs[CS_PPOSE + 2]
-        evx = cs[CS_DTWIST] - cs[CS_PTWIST]
-        evy = cs[CS_DTWIST + 1] - cs[CS_PTWIST + 1]
-        evz = cs[CS_DTWIST + 2] - cs[CS_PTWIST + 2]
-        erx = 0.0; ery = 0.0; erz = 0.0
-        ewx = cs[CS_DTWIST + 3] - cs[CS_PTWIST + 3]
-        ewy = cs[CS_DTWIST + 4] - cs[CS_PTWIST + 4]
-        ewz = cs[CS_DTWIST + 5] - cs[CS_PTWIST + 5]
-        if kind == TOOL_1DOF:
-            ax = par[P_AXIS]; ay = par[P_AXIS + 1]; az = par[P_AXIS + 2]
-            e = ex * ax + ey * ay + ez * az
-            ev = evx * ax + evy * ay + evz * az
-            ex = e * ax; ey = e * ay; ez = e * az
-            evx = ev * ax; evy = ev * ay; evz = ev * az
-            ewx = 0.0; ewy = 0.0; ewz = 0.0
-        elif kind == TOOL_PLANAR:
-            thd = 2.0 * math.atan2(cs[CS_DPOSE + 6], cs[CS_DPOSE + 3])
-            erz = _wrap(thd - st[S_Q + 2])
-            ez = 0.0; evz = 0.0; ewx = 0.0; ewy = 0.0
-        else:
-            # rotation vector of q_dev * conj(q_proxy)
-            pw = cs[CS_PPOSE + 3]; px = cs[CS_PPOSE + 4]; py = cs[CS_PPOSE + 5]; pz = cs[CS_PPOSE + 6]
-            _qmul(cs[CS_DPOSE + 3], cs[CS_DPOSE + 4], cs[CS_DPOSE + 5], cs[CS_DPOSE + 6],
-                  pw, -px, -py, -pz, hand, 0)
-            qw = hand[0]; qx = hand[1]; qy = hand[2]; qz = hand[3]
-            if qw < 0.0:
-                qw = -qw; qx = -qx; qy = -qy; qz = -qz
-            vn = math.sqrt(qx * qx + qy * qy + qz * qz)
-            if vn > 1e-12:
-                ang = 2.0 * math.atan2(vn, qw)
-                erx = ang * qx / vn; ery = ang * qy / vn; erz = ang * qz / vn
-        kt = cp[CP_KT]; bt = cp[CP_BT]; kr = cp[CP_KR]; br = cp[CP_BR]
-        cs[CS_FC] = kt * ex + bt * evx
-        cs[CS_FC + 1] = kt * ey + bt * evy
-        cs[CS_FC + 2] = kt * ez + bt * evz
-        cs[CS_FC + 3] = kr * erx + br * ewx
-        cs[CS_FC + 4] = kr * ery + br * ewy
-        cs[CS_FC + 5] = kr * erz + br * ewz
+        mode = 0 if kind == TOOL_1DOF else (1 if kind == TOOL_PLANAR else 2)
+        _coupling(cp, cs, mode, par[P_AXIS], par[P_AXIS + 1], par[P_AXIS + 2], hand)
         if ctype == CTRL_DIRECT:
             # the device is the tool: proxy COM state from the handle (hand point = tool origin)
             _rigid_pose(kind, par, st, R, c)
@@ -362,23 +427,7 @@ def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, han
                 st[S_QD + 4] = wy
                 st[S_QD + 5] = wz
         else:
-            hg = 0.0
-            if ctype == CTRL_FOUR_CHANNEL:
-                hg = cp[CP_HG]
-                have = True
-                for j in range(6):
-                    if not math.isfinite(dev[13 + j]):
-                        have = False
-                if not have:
-                    hg = 0.0
-                    cc[CC_HAND_MISSING] += 1
-            if hg != 0.0:
-                _rot(cp, CP_ROFF, dev[13], dev[14], dev[15], cs, CS_HAND)
-                _rot(cp, CP_ROFF, dev[16], dev[17], dev[18], cs, CS_HAND + 3)
-                for j in range(6):
-                    cs[CS_HAND + j] *= hg
-            for j in range(6):
-                cs[CS_HAND + j] += cs[CS_FC + j]
+            _hand_channel(cp, cs, cc, dev, ctype)
         # reduce the hand wrench to the tool's hand space and step the model
         if kind == TOOL_1DOF:
             hand[0] = (cs[CS_HAND] * par[P_AXIS] + cs[CS_HAND + 1] * par[P_AXIS + 1]
@@ -391,13 +440,7 @@ def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, han
             for j in range(6):
                 hand[j] = cs[CS_HAND + j]
         if step_rigid(kind, par, st, C, CI, cnt, wk, hand) != 0:
-            for k in range(6):
-                cmd[k] = 0.0
-                cs[CS_PREV + k] = 0.0
-            cs[CS_GAIN] = 0.0
-            cs[CS_TARGET] = 0.0
-            cc[CC_NONFINITE] += 1
-            return RC_NONFINITE
+            return _fault_zero(cs, cc, cmd)
         if kind == TOOL_1DOF:
             for j in range(3):
                 cs[CS_ENV + j] = st[S_FENV] * par[P_AXIS + j]
@@ -408,23 +451,9 @@ def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, han
         else:
             for j in range(6):
                 cs[CS_ENV + j] = st[S_FENV + j]
-        if ctype == CTRL_FOUR_CHANNEL:
-            for j in range(6):
-                cs[CS_CMDW + j] = cp[CP_EG] * cs[CS_ENV + j] - cs[CS_FC + j]
-        elif ctype == CTRL_COUPLER:
-            for j in range(6):
-                cs[CS_CMDW + j] = -cs[CS_FC + j]
-        else:
-            for j in range(6):
-                cs[CS_CMDW + j] = cs[CS_ENV + j]
         proxy_hand_state(kind, par, st, R, c, cs, CS_PPOSE)
-    # world -> device frame
-    _rot_t(cp, CP_ROFF, cs[CS_CMDW], cs[CS_CMDW + 1], cs[CS_CMDW + 2], cmd, 0)
-    _rot_t(cp, CP_ROFF, cs[CS_CMDW + 3], cs[CS_CMDW + 4], cs[CS_CMDW + 5], cmd, 3)
-    src = _safety(cp, cs, cc, cmd)
-    if src != RC_OK:
-        return src
-    return rc
+        return _command_out(cp, cs, cc, cmd, ctype, rc)
+    return _command_out(cp, cs, cc, cmd, -1, rc)  # no model: only the (fading) safety filter on zero
 
 
 @njit(**_JIT)
@@ -435,90 +464,14 @@ def haptic_step_linkage(cp, cs, cc, dev, cmd, par, lmeta, lk, lki, st, C, CI, cn
     linkages by the config: the device cannot be a whole chain), the model step is
     ``linkage.step_linkage``. Returns RC_*."""
     cc[CC_STEPS] += 1
-    rc = RC_OK
-    for j in range(13):
-        if not math.isfinite(dev[j]):
-            for k in range(6):
-                cmd[k] = 0.0
-                cs[CS_PREV + k] = 0.0
-            cs[CS_GAIN] = 0.0
-            cs[CS_TARGET] = 0.0
-            cc[CC_NONFINITE] += 1
-            return RC_NONFINITE
+    rc = _device_in(cp, cs, cc, dev, cmd)
+    if rc == RC_NONFINITE:
+        return rc
     planar = lmeta[LM_PLANAR] == 1
-    # device handle -> world
-    _rot(cp, CP_ROFF, dev[0], dev[1], dev[2], cs, CS_DPOSE)
-    for j in range(3):
-        cs[CS_DPOSE + j] += cp[CP_POFF + j]
-    _qmul(cp[CP_QOFF], cp[CP_QOFF + 1], cp[CP_QOFF + 2], cp[CP_QOFF + 3],
-          dev[3], dev[4], dev[5], dev[6], cs, CS_DPOSE + 3)
-    _rot(cp, CP_ROFF, dev[7], dev[8], dev[9], cs, CS_DTWIST)
-    _rot(cp, CP_ROFF, dev[10], dev[11], dev[12], cs, CS_DTWIST + 3)
-    speed = math.sqrt(dev[7] ** 2 + dev[8] ** 2 + dev[9] ** 2)
-    wspeed = math.sqrt(dev[10] ** 2 + dev[11] ** 2 + dev[12] ** 2)
-    if speed > cp[CP_VMAX] or wspeed > cp[CP_WMAX]:
-        cs[CS_TARGET] = 0.0
-        cc[CC_SPEED_TRIPS] += 1
-        rc = RC_SPEED
     ctype = int(cp[CP_TYPE])
-    for j in range(6):
-        cs[CS_ENV + j] = 0.0
-        cs[CS_HAND + j] = 0.0
-        cs[CS_FC + j] = 0.0
-        cs[CS_CMDW + j] = 0.0
     hand_state_linkage(lmeta, lk, lki, st, lw, cs, CS_PPOSE)
-    # position channels: device minus the held link's frame, world
-    ex = cs[CS_DPOSE] - cs[CS_PPOSE]
-    ey = cs[CS_DPOSE + 1] - cs[CS_PPOSE + 1]
-    ez = cs[CS_DPOSE + 2] - cs[CS_PPOSE + 2]
-    evx = cs[CS_DTWIST] - cs[CS_PTWIST]
-    evy = cs[CS_DTWIST + 1] - cs[CS_PTWIST + 1]
-    evz = cs[CS_DTWIST + 2] - cs[CS_PTWIST + 2]
-    erx = 0.0; ery = 0.0; erz = 0.0
-    ewx = cs[CS_DTWIST + 3] - cs[CS_PTWIST + 3]
-    ewy = cs[CS_DTWIST + 4] - cs[CS_PTWIST + 4]
-    ewz = cs[CS_DTWIST + 5] - cs[CS_PTWIST + 5]
-    if planar:
-        thd = 2.0 * math.atan2(cs[CS_DPOSE + 6], cs[CS_DPOSE + 3])
-        thp = 2.0 * math.atan2(cs[CS_PPOSE + 6], cs[CS_PPOSE + 3])
-        erz = _wrap(thd - thp)
-        ez = 0.0; evz = 0.0; ewx = 0.0; ewy = 0.0
-    else:
-        # rotation vector of q_dev * conj(q_proxy)
-        pw = cs[CS_PPOSE + 3]; px = cs[CS_PPOSE + 4]; py = cs[CS_PPOSE + 5]; pz = cs[CS_PPOSE + 6]
-        _qmul(cs[CS_DPOSE + 3], cs[CS_DPOSE + 4], cs[CS_DPOSE + 5], cs[CS_DPOSE + 6],
-              pw, -px, -py, -pz, hand, 0)
-        qw = hand[0]; qx = hand[1]; qy = hand[2]; qz = hand[3]
-        if qw < 0.0:
-            qw = -qw; qx = -qx; qy = -qy; qz = -qz
-        vn = math.sqrt(qx * qx + qy * qy + qz * qz)
-        if vn > 1e-12:
-            ang = 2.0 * math.atan2(vn, qw)
-            erx = ang * qx / vn; ery = ang * qy / vn; erz = ang * qz / vn
-    kt = cp[CP_KT]; bt = cp[CP_BT]; kr = cp[CP_KR]; br = cp[CP_BR]
-    cs[CS_FC] = kt * ex + bt * evx
-    cs[CS_FC + 1] = kt * ey + bt * evy
-    cs[CS_FC + 2] = kt * ez + bt * evz
-    cs[CS_FC + 3] = kr * erx + br * ewx
-    cs[CS_FC + 4] = kr * ery + br * ewy
-    cs[CS_FC + 5] = kr * erz + br * ewz
-    hg = 0.0
-    if ctype == CTRL_FOUR_CHANNEL:
-        hg = cp[CP_HG]
-        have = True
-        for j in range(6):
-            if not math.isfinite(dev[13 + j]):
-                have = False
-        if not have:
-            hg = 0.0
-            cc[CC_HAND_MISSING] += 1
-    if hg != 0.0:
-        _rot(cp, CP_ROFF, dev[13], dev[14], dev[15], cs, CS_HAND)
-        _rot(cp, CP_ROFF, dev[16], dev[17], dev[18], cs, CS_HAND + 3)
-        for j in range(6):
-            cs[CS_HAND + j] *= hg
-    for j in range(6):
-        cs[CS_HAND + j] += cs[CS_FC + j]
+    _coupling(cp, cs, 1 if planar else 2, 1.0, 0.0, 0.0, hand)
+    _hand_channel(cp, cs, cc, dev, ctype)
     # the hand wrench in the tool's hand space, at the held link's frame origin
     if planar:
         hand[0] = cs[CS_HAND]
@@ -528,13 +481,7 @@ def haptic_step_linkage(cp, cs, cc, dev, cmd, par, lmeta, lk, lki, st, C, CI, cn
         for j in range(6):
             hand[j] = cs[CS_HAND + j]
     if step_linkage(par, lmeta, lk, lki, st, C, CI, cnt, wk, lw, hand) != 0:
-        for k in range(6):
-            cmd[k] = 0.0
-            cs[CS_PREV + k] = 0.0
-        cs[CS_GAIN] = 0.0
-        cs[CS_TARGET] = 0.0
-        cc[CC_NONFINITE] += 1
-        return RC_NONFINITE
+        return _fault_zero(cs, cc, cmd)
     if planar:
         cs[CS_ENV] = st[S_FENV]
         cs[CS_ENV + 1] = st[S_FENV + 1]
@@ -542,20 +489,8 @@ def haptic_step_linkage(cp, cs, cc, dev, cmd, par, lmeta, lk, lki, st, C, CI, cn
     else:
         for j in range(6):
             cs[CS_ENV + j] = st[S_FENV + j]
-    if ctype == CTRL_FOUR_CHANNEL:
-        for j in range(6):
-            cs[CS_CMDW + j] = cp[CP_EG] * cs[CS_ENV + j] - cs[CS_FC + j]
-    else:
-        for j in range(6):
-            cs[CS_CMDW + j] = -cs[CS_FC + j]
     hand_state_linkage(lmeta, lk, lki, st, lw, cs, CS_PPOSE)
-    # world -> device frame
-    _rot_t(cp, CP_ROFF, cs[CS_CMDW], cs[CS_CMDW + 1], cs[CS_CMDW + 2], cmd, 0)
-    _rot_t(cp, CP_ROFF, cs[CS_CMDW + 3], cs[CS_CMDW + 4], cs[CS_CMDW + 5], cmd, 3)
-    src = _safety(cp, cs, cc, cmd)
-    if src != RC_OK:
-        return src
-    return rc
+    return _command_out(cp, cs, cc, cmd, ctype, rc)
 
 
 @njit(**_JIT)
