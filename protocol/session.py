@@ -517,14 +517,15 @@ class ServerEndpoint:
             self._reject(peer, hello.client_nonce, ErrorCode.UNSUPPORTED_TOOL,
                          f"tool kind {hello.tool_kind.name} not supported by this server")
             return
+        # the cheap refusal first: a flood of Hellos at a full server must not cost a check each
+        if len(self.sessions) >= cfg.max_sessions:
+            self._reject(peer, hello.client_nonce, ErrorCode.SERVER_FULL, f"all {cfg.max_sessions} session slots in use")
+            return
         if cfg.hello_check is not None:
             why = cfg.hello_check(hello)
             if why:
                 self._reject(peer, hello.client_nonce, ErrorCode.INVALID_HELLO, why)
                 return
-        if len(self.sessions) >= cfg.max_sessions:
-            self._reject(peer, hello.client_nonce, ErrorCode.SERVER_FULL, f"all {cfg.max_sessions} session slots in use")
-            return
         minor = min(PROTOCOL_MINOR, vmax[1]) if vmax[0] == PROTOCOL_MAJOR else PROTOCOL_MINOR
         session_id = 0
         while session_id == 0 or session_id in self.sessions:

@@ -185,7 +185,9 @@ class Transport(abc.ABC):
         Returns ``(0, None)`` immediately when nothing is waiting; ``nbytes == 0`` means exactly
         that, because empty datagrams are refused on send and discarded (counted in
         ``dropped_empty``) on arrival. ``buffer`` must hold at least ``max_packet_bytes``.
-        Oversize arrivals are discarded, counted, and the next datagram is tried.
+        Oversize arrivals are discarded, counted, and the next datagram is tried (a backend may
+        bound how many it discards in one call, UDP at 64, and then return ``(0, None)``: the
+        next call goes on, so a flood of junk cannot hold a haptic step).
         """
         if self._closed:
             raise TransportClosedError(f"{self.scheme} transport is closed")

@@ -63,6 +63,9 @@ def _check_buf(name: str, value: object) -> int | None:
     return n or None
 
 
+#: Empty or oversize datagrams one ``recv_into`` call discards at most before returning.
+_MAX_DISCARDS = 64
+
 class UdpTransport(Transport):
     """A non-blocking UDP endpoint.
 
@@ -173,7 +176,10 @@ class UdpTransport(Transport):
             target = buffer
         read_bytes = self._read_bytes
         counters = self.counters
-        while True:
+        # Bounded: a flood of empty or oversize datagrams must not hold one call (and with it a
+        # haptic step) without limit; after _MAX_DISCARDS of them this call reports nothing and
+        # the next call goes on.
+        for _ in range(_MAX_DISCARDS):
             try:
                 if self.role == "client":
                     n = sock.recv_into(target, read_bytes, _MSG_TRUNC)
@@ -199,6 +205,7 @@ class UdpTransport(Transport):
             if target is not buffer:
                 buffer[:n] = target[:n]
             return n, peer
+        return 0, None
 
     def _close(self) -> None:
         self._sock.close()
