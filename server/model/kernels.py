@@ -615,6 +615,26 @@ def _zero_outputs(st):
 
 
 @njit(**_JIT)
+def commit_velocity(d, st, C, D, Zn, V, m):
+    """After a finite ``_core``: store the new velocity, the friction stick points and the
+    kinetic energy qd^T D qd / 2; returns qd for the tool's own integrator (rigid or linkage)."""
+    qd = V[_V_QD]
+    for a in range(d):
+        st[S_QD + a] = qd[a]
+    for i in range(m):
+        for j in range(3):
+            C[i, C_Z + j] = Zn[i, j]
+    ke = 0.0
+    for a in range(d):
+        s = 0.0
+        for b in range(d):
+            s += D[a, b] * qd[b]
+        ke += qd[a] * s
+    st[S_KE] = 0.5 * ke
+    return qd
+
+
+@njit(**_JIT)
 def step_rigid(kind, par, st, C, CI, cnt, wk, hand):
     """One haptic step of a rigid tool. ``hand``: wrench on the proxy at the hand point, world
     frame (1dof: force along the axis; planar: fx, fy, tau_z; spatial: f (3), tau (3)).
@@ -639,20 +659,8 @@ def step_rigid(kind, par, st, C, CI, cnt, wk, hand):
     _kin_rigid(kind, par, st, C, m, R, c, D, V[_V_TAUG], Jpt, X, Jh)
     ok = _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V, m)
     if ok:
-        qd = V[_V_QD]
-        for a in range(d):
-            st[S_QD + a] = qd[a]
-        for i in range(m):
-            for j in range(3):
-                C[i, C_Z + j] = Zn[i, j]
+        qd = commit_velocity(d, st, C, D, Zn, V, m)
         _integrate_rigid(kind, st, qd, par[P_DT])
-        ke = 0.0
-        for a in range(d):
-            s = 0.0
-            for b in range(d):
-                s += D[a, b] * qd[b]
-            ke += qd[a] * s
-        st[S_KE] = 0.5 * ke
     else:
         _zero_outputs(st)
         cnt[K_NONFINITE] += 1

@@ -39,11 +39,11 @@ import math
 from numba import njit
 
 from .kernels import (
-    _V_QD, _V_T1, _V_TAUG, _core, _views, _zero_outputs, apply_update, select_and_check,
+    _V_T1, _V_TAUG, _core, _views, commit_velocity, _zero_outputs, apply_update, select_and_check,
     validate_contacts,
 )
 from .layout import (
-    C_P, C_Z, CI_KEY, E_HAND_NONFINITE, E_OK, JT_PRISMATIC, JT_REVOLUTE, K_M, K_NONFINITE, K_STEPS,
+    C_P, CI_KEY, E_HAND_NONFINITE, E_OK, JT_PRISMATIC, JT_REVOLUTE, K_M, K_NONFINITE, K_STEPS,
     LI_CHAIN, LI_NCHAIN, LI_PARENT, LI_TYPE, LK_AXIS, LK_COM, LK_I, LK_MASS, LK_OP, LK_OR,
     LM_COR, LM_D, LM_H, LM_HELD, LM_NLINKS, LM_NQR, LM_PLANAR, LM_R,
     LW_A, LW_AC, LW_AL, LW_C, LW_IW, LW_JV, LW_JW, LW_P, LW_R, LW_V, LW_W,
@@ -392,20 +392,8 @@ def step_linkage(par, lmeta, lk, lki, st, C, CI, cnt, wk, lw, hand):
     _kin_linkage(lmeta, lk, lki, par, st, C, CI, m, lw, D, V[_V_TAUG], Jpt, X, Jh)
     ok = _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V, m)
     if ok:
-        qd = V[_V_QD]
-        for a in range(d):
-            st[S_QD + a] = qd[a]
-        for i in range(m):
-            for j in range(3):
-                C[i, C_Z + j] = Zn[i, j]
+        qd = commit_velocity(d, st, C, D, Zn, V, m)
         integrate_linkage(lmeta, st, qd, par[P_DT])
-        ke = 0.0
-        for a in range(d):
-            s = 0.0
-            for b in range(d):
-                s += D[a, b] * qd[b]
-            ke += qd[a] * s
-        st[S_KE] = 0.5 * ke
     else:
         _zero_outputs(st)
         cnt[K_NONFINITE] += 1
