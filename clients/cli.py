@@ -34,6 +34,7 @@ ENGINES: dict[str, str] = {
     "pymunk": "hapticproxy.clients.pymunk_engine:PymunkEngine",
     "pybullet": "hapticproxy.clients.pybullet_engine:PybulletEngine",
     "stub": "hapticproxy.clients.stub_engine:StubEngine",
+    "peg1d": "hapticproxy.clients.peg_engine:PegEngine",
     "pybullet-linkage": "hapticproxy.clients.pybullet_linkage:PybulletLinkageEngine",
 }
 #: library each engine module needs (for a clear message when it is missing)

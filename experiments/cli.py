@@ -12,7 +12,7 @@
 ``--quick``: the short version (shorter runs, fewer seeds and configurations). ``--mode``:
 ``realtime`` (default for the figures: the real server process at 512 Hz, the client over UDP
 on 127.0.0.1) or ``simulated`` (the same stack in simulated time, deterministic). Figs. 6 and 9
-are simulations of the local model alone, as in the paper. Each writes PNG plots and
+run the 1-DOF peg (1-DOF device, peg engine, 20 ms delay), Figs. 14-17 the planar testbed. Each writes PNG plots and
 ``metrics.json`` (keyed by method) into ``--out`` and prints a one-line summary per method.
 Exit status 0, 2 on bad arguments, 1 when a run fails.
 """
@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="output folder (created)")
     p.add_argument("--quick", action="store_true", help="the short version")
     p.add_argument("--mode", choices=("realtime", "simulated"), default="realtime",
-                   help="figures 14/16/17: the real server in real time (default) or simulated time")
+                   help="figures: the real server in real time (default) or simulated time")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     args = p.parse_args(argv)
     names = tuple(n for n in NAMES if n != "rates") if args.name == "all" else (args.name,)

@@ -87,16 +87,21 @@ class Hand:
         s = np.sin(2 * math.pi * self.frequency_hz * (t - self.start_s))
         return np.where(on, s[:, None] * w[None, :], 0.0)
 
-    def device_config(self, seconds: float, folder: Path) -> dict:
+    def device_config(self, seconds: float, folder: Path, device_kind: str = "planar") -> dict:
         """The ``[device.hand]`` table: a ``steps`` profile for a constant wrench, a ``replay``
-        of a sampled wrench file (1 kHz, linearly interpolated) for a sinusoid."""
+        of a sampled wrench file (1 kHz, linearly interpolated) for a sinusoid. Wrenches in the
+        device's reduced coordinates: planar ``(fx, fy, tz)``; a ``1dof`` device along world x
+        takes ``fx`` alone."""
+        cols = {"planar": 3, "1dof": 1}.get(device_kind)
+        if cols is None:
+            raise ValueError(f"device_kind: expected planar or 1dof, got {device_kind!r}")
         if self.kind == "constant":
-            return {"type": "steps", "steps": [[0.0, [0.0, 0.0, 0.0]], [float(self.start_s), list(self.wrench)]]}
+            return {"type": "steps", "steps": [[0.0, [0.0] * cols], [float(self.start_s), list(self.wrench)[:cols]]]}
         if self.kind != "sinusoid":
             raise ValueError(f"hand.kind: expected constant or sinusoid, got {self.kind!r}")
         t = np.arange(0.0, self.start_s + seconds + 1.0, 1e-3)
         path = Path(folder) / f"hand-{abs(hash(self)) & 0xFFFFFFFF:08x}.npz"
-        np.savez(path, t_s=t, wrench=self.value(t))
+        np.savez(path, t_s=t, wrench=self.value(t)[:, :cols])
         return {"type": "replay", "mode": "wrench", "file": str(path)}
 
 
@@ -114,15 +119,19 @@ class RunSpec:
     damping_n_s_per_m: float = 30.0
     restitution: float = 0.0
     capacity: int = 16
-    engine: str = "stub"                      # stub | pymunk
+    engine: str = "stub"                      # stub | pymunk | peg1d
     scene: str = "testbed"
-    env_rate_hz: tuple[float, float] = (30.0, 60.0)   # stub: the range its rate wanders in; pymunk: [0] fixed
-    env_delay_s: float = 0.0                  # extra one-way delay of every ContactUpdate (simulated runs)
+    env_rate_hz: tuple[float, float] = (30.0, 60.0)   # stub: the range its rate wanders in; pymunk, peg1d: [0] fixed
+    #: extra one-way delay of every client -> server datagram (the ContactUpdates): in real time an
+    #: impairing UDP relay between client and server, in simulated time a delayed queue
+    env_delay_s: float = 0.0
     seed: int = 1
     hand: Hand = Hand("constant", (0.0, 0.5, 0.0))
     seconds: float = 5.0                      # after the hand starts
     workspace_m: float = 0.25
     device: tuple = ()                        # extra [device] keys as (key, value) pairs
+    device_kind: str = "planar"               # planar | 1dof (along world x)
+    safety: tuple = ()                        # extra [safety] keys as (key, value) pairs
 
     @classmethod
     def for_method(cls, method: str, **kw) -> "RunSpec":
@@ -132,9 +141,10 @@ class RunSpec:
         return replace(self, **kw)
 
     def settings_dict(self, url: str, status_port: int | None, folder: Path) -> dict:
-        dev = {"driver": "sim", "kind": "planar", "workspace_min_m": [-self.workspace_m] * 2,
-               "workspace_max_m": [self.workspace_m] * 2,
-               "hand": self.hand.device_config(self.seconds, folder)}
+        nd = 3 if self.device_kind == "1dof" else 2
+        dev = {"driver": "sim", "kind": self.device_kind, "workspace_min_m": [-self.workspace_m] * nd,
+               "workspace_max_m": [self.workspace_m] * nd,
+               "hand": self.hand.device_config(self.seconds, folder, self.device_kind)}
         if self.scene == "hole":
             # the paper's user turned the handle with the peg: the device starts at 90 deg, so
             # its frame is the world's (the hand's F_x shakes the peg across the hole)
@@ -150,6 +160,7 @@ class RunSpec:
                       "contact_frame": self.contact_frame},
             "controller": {"type": self.controller},
             "device": dev,
+            "safety": dict(self.safety),
             "telemetry": {"ring_s": float(self.hand.start_s + self.seconds + 3.0)},
         }
 
@@ -162,7 +173,11 @@ class RunSpec:
             from hapticproxy.clients.pymunk_engine import PymunkEngine
 
             return PymunkEngine(rate_hz=float(self.env_rate_hz[0]))
-        raise ValueError(f"engine: expected stub or pymunk, got {self.engine!r}")
+        if self.engine == "peg1d":
+            from hapticproxy.clients.peg_engine import PegEngine
+
+            return PegEngine(rate_hz=float(self.env_rate_hz[0]))
+        raise ValueError(f"engine: expected stub, pymunk or peg1d, got {self.engine!r}")
 
 
 @dataclass
@@ -260,7 +275,8 @@ class SimEnvClient:
         self.tr = open_transport(url, "client")
         self.hello = Hello(client_nonce=1, engine=engine.name[:200], tool_kind=TOOL_KINDS[tool.kind],
                            mass_kg=float(tool.mass_kg), com_m=tuple(float(v) for v in tool.com_m),
-                           inertia_kg_m2=tuple(float(v) for v in tool.inertia_kg_m2), axis=(1.0, 0.0, 0.0),
+                           inertia_kg_m2=tuple(float(v) for v in tool.inertia_kg_m2),
+                           axis=tuple(float(v) for v in (tool.axis if tool.kind == "1dof" else (1.0, 0.0, 0.0))),
                            epsilon_m=float(epsilon_m), max_contacts=int(max_contacts),
                            env_rate_hz=float(self.info.env_rate_hz))
         self.ep = ClientEndpoint(self.tr.send, self.hello)
@@ -432,8 +448,16 @@ def run_realtime(spec: RunSpec, *, log=None, connect_timeout_s: float = 30.0) ->
         sup = Supervisor(settings)
         eng = spec.make_engine()
         stop = threading.Event()
-        runner = ClientRunner(eng, url, scene=spec.scene, epsilon_m=spec.epsilon_m, max_contacts=spec.capacity,
-                              connect_timeout_s=connect_timeout_s)
+        relay = None
+        client_url = url
+        if spec.env_delay_s > 0:
+            from hapticproxy.protocol.transport.impair import ImpairingRelay, Impairment
+
+            host, _, port = url.removeprefix("udp://").rpartition(":")
+            relay = ImpairingRelay((host, int(port)), c2s=Impairment(delay_s=float(spec.env_delay_s)))
+            client_url = relay.url
+        runner = ClientRunner(eng, client_url, scene=spec.scene, epsilon_m=spec.epsilon_m,
+                              max_contacts=spec.capacity, connect_timeout_s=connect_timeout_s)
         err: list[BaseException] = []
 
         def client():
@@ -445,6 +469,8 @@ def run_realtime(spec: RunSpec, *, log=None, connect_timeout_s: float = 30.0) ->
         th = threading.Thread(target=client, name="experiment-client", daemon=True)
         try:
             sup.start()
+            if relay is not None:
+                relay.start()
             th.start()
             total = spec.hand.start_s + spec.seconds
             t0 = time.monotonic()
@@ -465,6 +491,8 @@ def run_realtime(spec: RunSpec, *, log=None, connect_timeout_s: float = 30.0) ->
                 sup.close()
             finally:
                 eng.close()
+                if relay is not None:
+                    relay.close()
     if err:
         raise RuntimeError(f"environment client failed: {err[0]}")
     span = (snap["t_last_ns"] - snap["t_start_ns"]) * 1e-9

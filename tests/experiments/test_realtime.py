@@ -24,3 +24,21 @@ def test_static_contact_on_the_real_server_over_udp():
         assert len(tr.t_s) > 100
     finally:
         assert multiprocessing.active_children() == []     # the loop process was stopped
+
+
+def test_peg_on_the_real_server_through_a_delaying_relay():
+    """Fig. 9's LM5 on the real system: the 1-DOF device at 512 Hz, the peg engine at 50 Hz over
+    UDP through an impairing relay that delays every ContactUpdate by 20 ms."""
+    from hapticproxy.experiments.figures import PegView, peg_metrics, peg_spec
+
+    spec = peg_spec("LM5", "deformation", 0.005, "realtime", True).but(seconds=3.0)
+    tr = run_realtime(spec)
+    try:
+        assert tr.faults == 0 and tr.model_nonfinite == 0
+        assert tr.extra["updates"] > 60                       # 50 Hz for seconds
+        m = peg_metrics(PegView.of_trace(tr), 3.0)
+        assert m["both_walls_fraction"] > 0.95                # epsilon keeps both walls in the model
+        assert m["peak_excursion_mm"] < 1.0                   # the peg stays tight in its hole
+        assert not m["unstable"]
+    finally:
+        assert multiprocessing.active_children() == []
