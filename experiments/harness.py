@@ -2,12 +2,13 @@
 
 A :class:`RunSpec` says everything a run needs: the method (controller, update policy,
 epsilon, contact frame), the contact parameters, the haptic rate and contact cap, the
-environment (engine, scene, rate, extra delay) and the scripted hand on the simulated planar
-device. It runs
+environment (engine, scene, rate, extra delay) and the scripted hand on the simulated device
+(planar; or 1-DOF for the paper's 1-DOF peg). It runs
 
 - **in real time** (:func:`run_realtime`): the real server (``Supervisor``: the loop alone in its
-  own process at the requested rate, the simulated planar device in that process) and the
-  environment client (``ClientRunner`` in a thread of this process) over UDP on 127.0.0.1; the
+  own process at the requested rate, the simulated device in that process) and the
+  environment client (``ClientRunner`` in a thread of this process) over UDP on 127.0.0.1
+  (through an impairing relay that delays it when ``env_delay_s`` > 0); the
   figures come from the telemetry ring in shared memory. This is the issue's "real server loop
   ... the environment over the real protocol at 30-60 Hz".
 - **in simulated time** (:func:`run_simulated`): the same ``HapticLoop``, device, controller,
