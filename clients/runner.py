@@ -51,7 +51,7 @@ from hapticproxy.protocol.messages import ErrorCode, ToolKind
 from hapticproxy.protocol.session import ClientConfig, ClientEndpoint, ClientState
 from hapticproxy.protocol.transport import TransportError, open_transport, parse_transport_url
 
-from .engine import ContactBuffer, Engine
+from .engine import ContactBuffer, Engine, SceneInfo
 
 __all__ = ["ClientError", "ClientRunner", "TOOL_KINDS"]
 
@@ -65,6 +65,19 @@ _RESYNC_NS = 250_000_000
 
 class ClientError(Exception):
     """A condition the client cannot recover from; ``str()`` is one line for the user."""
+
+
+def hello_fields(engine: Engine, info: SceneInfo, epsilon_m: float, max_contacts: int) -> dict:
+    """The fields of the Hello (all but ``client_nonce``) that describe ``engine``'s tool in the
+    scene it loaded (``info``), asking for ``epsilon_m`` and ``max_contacts``."""
+    tool = info.tool
+    return dict(
+        engine=engine.name[:200], tool_kind=TOOL_KINDS[tool.kind], mass_kg=float(tool.mass_kg),
+        com_m=tuple(float(v) for v in tool.com_m), inertia_kg_m2=tuple(float(v) for v in tool.inertia_kg_m2),
+        axis=tuple(float(v) for v in (tool.axis if tool.kind == "1dof" else (1.0, 0.0, 0.0))),
+        epsilon_m=float(epsilon_m), max_contacts=int(max_contacts), env_rate_hz=float(info.env_rate_hz),
+        links=tuple(ln.record() for ln in tool.links) if tool.kind == "linkage" else (),
+        held_link=int(tool.held_link) if tool.kind == "linkage" else 0)
 
 
 class ClientRunner:
@@ -116,13 +129,7 @@ class ClientRunner:
         self.requested_epsilon_m = float(epsilon_m)
         self.requested_max_contacts = max_contacts
         engine.set_epsilon(self.requested_epsilon_m)
-        self._hello_fields = dict(
-            engine=engine.name[:200], tool_kind=TOOL_KINDS[tool.kind], mass_kg=float(tool.mass_kg),
-            com_m=tuple(float(v) for v in tool.com_m), inertia_kg_m2=tuple(float(v) for v in tool.inertia_kg_m2),
-            axis=tuple(float(v) for v in (tool.axis if tool.kind == "1dof" else (1.0, 0.0, 0.0))),
-            epsilon_m=self.requested_epsilon_m, max_contacts=max_contacts, env_rate_hz=float(self.scene_info.env_rate_hz),
-            links=tuple(ln.record() for ln in tool.links) if tool.kind == "linkage" else (),
-            held_link=int(tool.held_link) if tool.kind == "linkage" else 0)
+        self._hello_fields = hello_fields(engine, self.scene_info, self.requested_epsilon_m, max_contacts)
         #: a linkage's joint positions (sent with every ContactUpdate) and count
         self._linkage = tool.kind == "linkage"
         self._joints = np.zeros(max(0, len(tool.links) - 1))

@@ -263,7 +263,7 @@ class SimEnvClient:
     def __init__(self, engine, url: str, clock, *, scene: str, epsilon_m: float, max_contacts: int,
                  delay_s: float = 0.0) -> None:
         from hapticproxy.clients.engine import ContactBuffer
-        from hapticproxy.clients.runner import TOOL_KINDS
+        from hapticproxy.clients.runner import hello_fields
         from hapticproxy.protocol.codec import Hello
         from hapticproxy.protocol.session import ClientEndpoint
         from hapticproxy.protocol.transport import open_transport
@@ -272,14 +272,8 @@ class SimEnvClient:
         self.clock = clock
         self.info = engine.load_scene(scene)
         engine.set_epsilon(epsilon_m)
-        tool = self.info.tool
         self.tr = open_transport(url, "client")
-        self.hello = Hello(client_nonce=1, engine=engine.name[:200], tool_kind=TOOL_KINDS[tool.kind],
-                           mass_kg=float(tool.mass_kg), com_m=tuple(float(v) for v in tool.com_m),
-                           inertia_kg_m2=tuple(float(v) for v in tool.inertia_kg_m2),
-                           axis=tuple(float(v) for v in (tool.axis if tool.kind == "1dof" else (1.0, 0.0, 0.0))),
-                           epsilon_m=float(epsilon_m), max_contacts=int(max_contacts),
-                           env_rate_hz=float(self.info.env_rate_hz))
+        self.hello = Hello(client_nonce=1, **hello_fields(engine, self.info, epsilon_m, max_contacts))
         self.ep = ClientEndpoint(self.tr.send, self.hello)
         self.buf = ContactBuffer(max_contacts)
         self.pose = np.zeros(7)
