@@ -30,6 +30,9 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
   fi
   echo "$WANT" > "$STAMP"
 fi
+# Compile every kernel now (or load it from numba's cache): nothing may compile once the haptic
+# loop has armed its deadlines. Quiet when everything is cached already.
+"$VENV/bin/hapticproxy" warmup --quiet || { echo "run.sh: compiling the kernels failed" >&2; exit 1; }
 
 job=${1:-demo}
 [ $# -gt 0 ] && shift

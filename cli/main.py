@@ -32,6 +32,7 @@ COMMANDS = {
     "client": ("hapticproxy.clients.cli", "run an environment client: pymunk | pybullet | stub"),
     "device": ("hapticproxy.server.devices.remote", "run a device program that streams to a server over UDP"),
     "experiment": ("hapticproxy.experiments.cli", "reproduce the paper's figures; the speed/accuracy trade-off"),
+    "warmup": ("hapticproxy.server.warm", "compile every numba kernel now (set-up does it; later runs load them)"),
 }
 
 

@@ -57,6 +57,7 @@ from .messages import (
     JointType,
     MessageSpec,
     MessageType,
+    ServerState,
     ToolKind,
 )
 
@@ -630,6 +631,7 @@ class _DecodeScratch(threading.local):
 
 
 _EMPTY = np.zeros(0)
+_SERVER_STATES = frozenset(int(v) for v in ServerState)
 _EMPTY.flags.writeable = False
 
 
@@ -969,7 +971,15 @@ class Codec:
         nf = len(obj) - HEADER_LEN
         if nf < 9:
             raise _bad(ErrorCode.MISSING_FIELD, PROXY_STATE.fields[nf].name, f"ProxyState needs 9 fields, got {nf}")
-        extra = nf - 9
+        # 1.2: server_state, then any later fields
+        state = 0
+        if nf > 9:
+            state = obj[14]
+            if type(state) is not int:
+                raise _bad(ErrorCode.WRONG_TYPE, "server_state", f"expected an integer, got {type(state).__name__}")
+            if state not in _SERVER_STATES:
+                raise _bad(ErrorCode.OUT_OF_RANGE, "server_state", f"{state} is not a ServerState")
+        extra = nf - 10 if nf > 10 else 0
         if extra:
             self.counters.unknown_trailing_fields += extra
             self.counters.packets_with_unknown_fields += 1
@@ -1014,6 +1024,7 @@ class Codec:
         msg.joint_position = a[19:19 + j]
         msg.joint_velocity = a[19 + j:19 + 2 * j]
         msg.joint_effort = a[19 + 2 * j:]
+        msg.server_state = state
         msg.unknown_fields = extra
         return msg
 
@@ -1030,7 +1041,7 @@ class Codec:
         if tid == MessageType.PROXY_STATE:
             return self.encode_proxy_state(
                 msg.session_id, msg.token, msg.seq, msg.ack_seq, msg.server_time_s, msg.proxy_pose, msg.proxy_twist,
-                msg.wrench, msg.joint_position, msg.joint_velocity, msg.joint_effort)
+                msg.wrench, msg.joint_position, msg.joint_velocity, msg.joint_effort, msg.server_state)
         encoders = self._encoders.get(tid)
         if encoders is None:
             raise ValueError(f"message type {type(msg).__name__} not declared in this codec")
@@ -1044,7 +1055,7 @@ class Codec:
 
     def encode_proxy_state(self, session_id: int, token: int, seq: int, ack_seq: int, server_time_s: float,
                            proxy_pose, proxy_twist, wrench, joint_position=_EMPTY, joint_velocity=_EMPTY,
-                           joint_effort=_EMPTY) -> bytes:
+                           joint_effort=_EMPTY, server_state: int = 0) -> bytes:
         """Encode a ProxyState from arrays (the server's acknowledgement). Every value rule of the
         decoder is applied (one vectorised test); ``ValueError`` names the bad field."""
         bins = []
@@ -1058,7 +1069,7 @@ class Codec:
             bins.append(v.tobytes())
         packet = self._pack([PROTOCOL_MAJOR, self.minor, 5, _u(session_id, "session_id", 0xFFFF_FFFF),
                              _u(token, "token", _U64_MAX), _u(seq, "seq", _U64_MAX), _u(ack_seq, "ack_seq", _U64_MAX),
-                             float(server_time_s)] + bins)
+                             float(server_time_s)] + bins + ([int(server_state)] if self.minor >= 2 else []))
         # The decoder's value rules, on all six arrays at once.
         allb = b"".join(bins)
         a = _ndarray((len(allb) >> 3,), _F8, allb)
@@ -1073,6 +1084,8 @@ class Codec:
             raise ValueError(f"server_time_s must be finite, got {server_time_s!r}")
         if seq < 1:
             raise ValueError("seq must be >= 1")
+        if int(server_state) not in _SERVER_STATES:
+            raise ValueError(f"server_state must be a ServerState, got {server_state!r}")
         self.counters.encoded += 1
         return packet
 

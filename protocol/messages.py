@@ -31,8 +31,9 @@ from typing import Any
 #: Major version this code speaks. A different major fails closed in the handshake.
 PROTOCOL_MAJOR = 1
 #: Highest minor version of :data:`PROTOCOL_MAJOR` this code speaks. 1.1 appended
-#: ``ContactUpdate.tool_joint_position`` (a linkage engine's joint positions).
-PROTOCOL_MINOR = 1
+#: ``ContactUpdate.tool_joint_position`` (a linkage engine's joint positions); 1.2 appended
+#: ``ProxyState.server_state`` (whether the proxy is being rendered).
+PROTOCOL_MINOR = 2
 
 
 class _Required:
@@ -74,6 +75,20 @@ TOOL_KIND_NAMES = {
     ToolKind.SPATIAL: "spatial",
     ToolKind.LINKAGE: "linkage",
 }
+
+
+class ServerState(IntEnum):
+    """``ProxyState.server_state``: what the server does with the proxy it reports.
+
+    An engine follows the proxy while it is ``ENGAGED``; in every other state the proxy is held
+    where it is (not driven by the device), so an engine may keep its tool still.
+    """
+
+    UNKNOWN = 0  # not reported (a 1.0 / 1.1 server): assume engaged
+    IDLE = 1  # no session drives the model; nothing is rendered
+    ENGAGED = 2  # the proxy is rendered to the device (also while the force ramps in)
+    FADING = 3  # the force fades to zero (environment silent, session ended, stopping); proxy held
+    FAULT = 4  # output off after a fault; proxy held; it recovers by itself or by a re-arm
 
 
 class JointType(IntEnum):
@@ -341,6 +356,9 @@ PROXY_STATE = MessageSpec(
         FieldSpec("joint_velocity", "bin f64[J]", "rad/s or m/s", "-", doc="linkage: dq/dt, same order; others: empty"),
         FieldSpec("joint_effort", "bin f64[J]", "N m or N", "-", sign="positive along +q",
                   doc="linkage: joint effort the environment may apply; others: empty"),
+        FieldSpec("server_state", "u8", check="enum", enum=ServerState, default=0, since_minor=2,
+                  doc="ServerState: 1 idle, 2 engaged, 3 fading, 4 fault (0: not reported); follow the proxy "
+                      "only while engaged: otherwise it is held and not rendered"),
     ),
 )
 

@@ -341,7 +341,7 @@ class ServerEndpoint:
 
     def send_proxy_state(self, session_id: int, now_ns: int | None, proxy_pose, proxy_twist, wrench,
                          joint_position=None, joint_velocity=None, joint_effort=None,
-                         server_time_s: float | None = None) -> bool:
+                         server_time_s: float | None = None, server_state: int = 0) -> bool:
         """Acknowledge with the proxy state (``ack_seq`` = newest ContactUpdate accepted).
 
         Poses/twists/wrenches as in SPEC.md (world frame; pose x y z qw qx qy qz). Returns
@@ -361,7 +361,7 @@ class ServerEndpoint:
             joint_position=empty if joint_position is None else joint_position,
             joint_velocity=empty if joint_velocity is None else joint_velocity,
             joint_effort=empty if joint_effort is None else joint_effort,
-            session_id=s.session_id, token=s.token)
+            server_state=server_state, session_id=s.session_id, token=s.token)
         self._emit(self.codec.encode(msg), s.peer)
         s.last_tx_ns = now
         return True

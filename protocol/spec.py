@@ -30,6 +30,7 @@ from .messages import (
     ErrorCode,
     FieldSpec,
     JointType,
+    ServerState,
     ToolKind,
 )
 from .session import HMAC_TAG_BYTES, ClientConfig, ServerConfig
@@ -107,6 +108,9 @@ def render_tables() -> str:
         [int(j), j.name.lower(), {JointType.ROOT: "none (link 0 only, floating base = tool pose)",
                                   JointType.REVOLUTE: "rad, right-handed about joint_axis",
                                   JointType.PRISMATIC: "m, along joint_axis"}[j]] for j in JointType]))
+    parts += [""]
+    parts.append(_table(["server_state", "name", "meaning"], [
+        [int(v), v.name.lower(), _STATE_DOCS[v]] for v in ServerState]))
     parts += ["", "### Error codes (Error.code, Reject.code, Bye.code)", ""]
     parts.append(_table(["code", "name", "meaning"], [[int(c), f"`{c.name}`", _CODE_DOCS[c]] for c in ErrorCode]))
     lim, scfg, ccfg = Limits(), ServerConfig(), ClientConfig()
@@ -129,6 +133,14 @@ def render_tables() -> str:
     ]))
     return "\n".join(parts)
 
+
+_STATE_DOCS = {
+    ServerState.UNKNOWN: "not reported (a 1.0 or 1.1 server); treat as engaged",
+    ServerState.IDLE: "no session drives the model; nothing is rendered",
+    ServerState.ENGAGED: "the proxy is rendered to the device, also while the force ramps in: follow it",
+    ServerState.FADING: "the force fades to zero (environment silent, session ending, server stopping); the proxy is held",
+    ServerState.FAULT: "output off after a fault; the proxy is held until the server recovers or is re-armed",
+}
 
 _CODE_DOCS = {
     ErrorCode.OVERSIZE: "datagram longer than max_packet_bytes; dropped before unpacking",

@@ -14,7 +14,8 @@ Layout (all keys optional; ``hapticproxy serve --print-config`` prints the effec
     [controller] type, stiffness_n_per_m, damping_n_s_per_m, rot_stiffness_n_m_per_rad,
                 rot_damping_n_m_s_per_rad, hand_gain, env_gain, mapping
     [safety]    max_force_n, max_torque_n_m, force_rate_n_per_s, torque_rate_n_m_per_s,
-                max_speed_m_per_s, max_angular_speed_rad_per_s, watchdog_s, fade_s, ramp_in_s
+                max_speed_m_per_s, max_angular_speed_rad_per_s, watchdog_s, fade_s, ramp_in_s,
+                stall_recover_s, stall_trips_max, stall_window_s
     [device]    driver (entry point name) and the driver's own keys (validated by the driver)
     [telemetry] ring_s, record, flush_rows
     [status]    address
@@ -185,6 +186,11 @@ SCHEMA: dict[str, dict[str, tuple[Any, Callable, str]]] = {
         "watchdog_s": (0.1, _num(0.001, 10), "environment silent this long -> forces fade"),
         "fade_s": (0.2, _num(0.001, 10), "fade-out time [s]"),
         "ramp_in_s": (0.5, _num(0.001, 10), "ramp-in time after engaging or re-arming [s]"),
+        "stall_recover_s": (0.5, _num(0.0, 60), "after a device-watchdog trip caused by a late loop (a stall of "
+                            "the loop process), the loop must be on time this long before the force ramps back in [s]"),
+        "stall_trips_max": (3, _num(0, 1000, integer=True), "more stall trips than this within stall_window_s "
+                            "latch the fault until `status --rearm` (0: every stall trip latches)"),
+        "stall_window_s": (60.0, _num(0.0, 86400), "window over which stall trips are counted [s]"),
     },
     "telemetry": {
         "ring_s": (10.0, _num(0.1, 600), "telemetry ring length [s]"),

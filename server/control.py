@@ -43,7 +43,7 @@ import numpy as np
 from numba import njit
 
 from .model.kernels import _rigid_pose, step_rigid
-from .model.layout import LM_PLANAR, P_AXIS, P_HAND, P_ORIGIN, S_FENV, S_Q, S_QD, TOOL_1DOF, TOOL_PLANAR
+from .model.layout import LM_PLANAR, P_AXIS, P_HAND, P_ORIGIN, S_FENV, S_Q, S_QD, TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL
 from .model.linkage import hand_state_linkage, step_linkage
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
@@ -87,7 +87,9 @@ CS_DTWIST = 33     # 33..38 device handle twist, world
 CS_PPOSE = 39      # 39..45 proxy hand-point (tool-frame) pose, world, after the step
 CS_PTWIST = 46     # 46..51 proxy hand-point twist, world, after the step
 CS_CMDW = 52       # 52..57 controller command before safety, world
-NCS = 58
+CS_DRIVE = 58      # 1: the device drives the proxy (hand and coupling channels, model step); 0: held
+CS_SLIDE = 59      # 1: the device->world offset follows the proxy while the force ramps in
+NCS = 60
 
 # ---- counters (int64[NCC])
 CC_STEPS = 0
@@ -254,13 +256,8 @@ def _fault_zero(cs, cc, cmd):
 
 
 @njit(**_JIT)
-def _device_in(cp, cs, cc, dev, cmd):
-    """Check the device row, map the handle into the world, the speed trip; clear the step's
-    wrench rows. Returns RC_NONFINITE (output already zeroed), RC_SPEED or RC_OK."""
-    for j in range(13):
-        if not math.isfinite(dev[j]):
-            return _fault_zero(cs, cc, cmd)
-    rc = RC_OK
+def _map_device(cp, cs, dev):
+    """The device handle's pose and twist in the world (CS_DPOSE, CS_DTWIST) through the offset."""
     _rot(cp, CP_ROFF, dev[0], dev[1], dev[2], cs, CS_DPOSE)
     for j in range(3):
         cs[CS_DPOSE + j] += cp[CP_POFF + j]
@@ -268,6 +265,58 @@ def _device_in(cp, cs, cc, dev, cmd):
           dev[3], dev[4], dev[5], dev[6], cs, CS_DPOSE + 3)
     _rot(cp, CP_ROFF, dev[7], dev[8], dev[9], cs, CS_DTWIST)
     _rot(cp, CP_ROFF, dev[10], dev[11], dev[12], cs, CS_DTWIST + 3)
+
+
+@njit(**_JIT)
+def _slide(cp, cs, dev, mode):
+    """Re-index: set the device -> world offset so that the handle maps exactly onto the proxy's
+    hand point (CS_PPOSE), then map the handle again. Run every step while the force ramps in:
+    a hand that keeps pushing moves the device while the output is still small, and a fixed
+    offset would store that motion in the coupling spring (and drag the proxy into what it
+    touches) to release it when the ramp ends. With the offset following, the spring stays
+    relaxed and only the damper couples the two until the ramp is complete. ``mode`` as in
+    ``_coupling``: 0 keeps the axis alignment set at engagement, 1 re-aligns about +z, 2 fully."""
+    if mode == 1:
+        th = (2.0 * math.atan2(cs[CS_PPOSE + 6], cs[CS_PPOSE + 3])
+              - 2.0 * math.atan2(dev[6], dev[3]))
+        ch = math.cos(0.5 * th)
+        sh = math.sin(0.5 * th)
+        cp[CP_QOFF] = ch; cp[CP_QOFF + 1] = 0.0; cp[CP_QOFF + 2] = 0.0; cp[CP_QOFF + 3] = sh
+    elif mode == 2:
+        # q_off = q_proxy conj(q_dev)
+        _qmul(cs[CS_PPOSE + 3], cs[CS_PPOSE + 4], cs[CS_PPOSE + 5], cs[CS_PPOSE + 6],
+              dev[3], -dev[4], -dev[5], -dev[6], cp, CP_QOFF)
+        qn = math.sqrt(cp[CP_QOFF] ** 2 + cp[CP_QOFF + 1] ** 2 + cp[CP_QOFF + 2] ** 2 + cp[CP_QOFF + 3] ** 2)
+        for j in range(4):
+            cp[CP_QOFF + j] /= qn
+    if mode != 0:
+        w = cp[CP_QOFF]; x = cp[CP_QOFF + 1]; y = cp[CP_QOFF + 2]; z = cp[CP_QOFF + 3]
+        cp[CP_ROFF] = 1.0 - 2.0 * (y * y + z * z)
+        cp[CP_ROFF + 1] = 2.0 * (x * y - w * z)
+        cp[CP_ROFF + 2] = 2.0 * (x * z + w * y)
+        cp[CP_ROFF + 3] = 2.0 * (x * y + w * z)
+        cp[CP_ROFF + 4] = 1.0 - 2.0 * (x * x + z * z)
+        cp[CP_ROFF + 5] = 2.0 * (y * z - w * x)
+        cp[CP_ROFF + 6] = 2.0 * (x * z - w * y)
+        cp[CP_ROFF + 7] = 2.0 * (y * z + w * x)
+        cp[CP_ROFF + 8] = 1.0 - 2.0 * (x * x + y * y)
+    for j in range(3):
+        cp[CP_POFF + j] = 0.0
+    _rot(cp, CP_ROFF, dev[0], dev[1], dev[2], cs, CS_DPOSE)
+    for j in range(3):
+        cp[CP_POFF + j] = cs[CS_PPOSE + j] - cs[CS_DPOSE + j]
+    _map_device(cp, cs, dev)
+
+
+@njit(**_JIT)
+def _device_in(cp, cs, cc, dev, cmd):
+    """Check the device row, map the handle into the world, the speed trip; clear the step's
+    wrench rows. Returns RC_NONFINITE (output already zeroed), RC_SPEED or RC_OK."""
+    for j in range(13):
+        if not math.isfinite(dev[j]):
+            return _fault_zero(cs, cc, cmd)
+    rc = RC_OK
+    _map_device(cp, cs, dev)
     speed = math.sqrt(dev[7] ** 2 + dev[8] ** 2 + dev[9] ** 2)
     wspeed = math.sqrt(dev[10] ** 2 + dev[11] ** 2 + dev[12] ** 2)
     if speed > cp[CP_VMAX] or wspeed > cp[CP_WMAX]:
@@ -372,6 +421,32 @@ def _command_out(cp, cs, cc, cmd, ctype, rc):
 
 
 @njit(**_JIT)
+def _env_from_state(kind, par, st, cs):
+    """The model's environment wrench (S_FENV, in the tool's coordinates) as a world wrench."""
+    if kind == TOOL_1DOF:
+        for j in range(3):
+            cs[CS_ENV + j] = st[S_FENV] * par[P_AXIS + j]
+    elif kind == TOOL_PLANAR:
+        cs[CS_ENV] = st[S_FENV]
+        cs[CS_ENV + 1] = st[S_FENV + 1]
+        cs[CS_ENV + 5] = st[S_FENV + 2]
+    else:
+        for j in range(6):
+            cs[CS_ENV + j] = st[S_FENV + j]
+
+
+@njit(**_JIT)
+def _ramp_slide(cp, cs, dev, mode, ctype):
+    """While the force ramps in after an engagement (CS_SLIDE), re-index every step; the slide
+    ends once the gain is whole. Direct coupling has no spring to keep relaxed."""
+    if cs[CS_SLIDE] != 0.0:
+        if cs[CS_GAIN] >= 1.0 or ctype == CTRL_DIRECT or cs[CS_DRIVE] == 0.0:
+            cs[CS_SLIDE] = 0.0
+        else:
+            _slide(cp, cs, dev, mode)
+
+
+@njit(**_JIT)
 def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, hand, R, c):
     """One haptic step after the device read. ``dev``: device state row (see devices.base);
     ``cmd`` (6): output, device frame. ``active``: a session has engaged the model.
@@ -384,7 +459,14 @@ def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, han
     if active:
         proxy_hand_state(kind, par, st, R, c, cs, CS_PPOSE)
         mode = 0 if kind == TOOL_1DOF else (1 if kind == TOOL_PLANAR else 2)
+        _ramp_slide(cp, cs, dev, mode, ctype)
         _coupling(cp, cs, mode, par[P_AXIS], par[P_AXIS + 1], par[P_AXIS + 2], hand)
+        if cs[CS_DRIVE] == 0.0:
+            # held: a device that renders nothing (idle, fading, fault) must not push the proxy
+            # into what it touches (a penetration stored there would be released at the next
+            # engagement); the environment wrench stays the last one computed
+            _env_from_state(kind, par, st, cs)
+            return _command_out(cp, cs, cc, cmd, ctype, rc)
         if ctype == CTRL_DIRECT:
             # the device is the tool: proxy COM state from the handle (hand point = tool origin)
             _rigid_pose(kind, par, st, R, c)
@@ -441,16 +523,7 @@ def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, han
                 hand[j] = cs[CS_HAND + j]
         if step_rigid(kind, par, st, C, CI, cnt, wk, hand) != 0:
             return _fault_zero(cs, cc, cmd)
-        if kind == TOOL_1DOF:
-            for j in range(3):
-                cs[CS_ENV + j] = st[S_FENV] * par[P_AXIS + j]
-        elif kind == TOOL_PLANAR:
-            cs[CS_ENV] = st[S_FENV]
-            cs[CS_ENV + 1] = st[S_FENV + 1]
-            cs[CS_ENV + 5] = st[S_FENV + 2]
-        else:
-            for j in range(6):
-                cs[CS_ENV + j] = st[S_FENV + j]
+        _env_from_state(kind, par, st, cs)
         proxy_hand_state(kind, par, st, R, c, cs, CS_PPOSE)
         return _command_out(cp, cs, cc, cmd, ctype, rc)
     return _command_out(cp, cs, cc, cmd, -1, rc)  # no model: only the (fading) safety filter on zero
@@ -470,7 +543,11 @@ def haptic_step_linkage(cp, cs, cc, dev, cmd, par, lmeta, lk, lki, st, C, CI, cn
     planar = lmeta[LM_PLANAR] == 1
     ctype = int(cp[CP_TYPE])
     hand_state_linkage(lmeta, lk, lki, st, lw, cs, CS_PPOSE)
+    _ramp_slide(cp, cs, dev, 1 if planar else 2, ctype)
     _coupling(cp, cs, 1 if planar else 2, 1.0, 0.0, 0.0, hand)
+    if cs[CS_DRIVE] == 0.0:
+        _env_from_state(TOOL_PLANAR if planar else TOOL_SPATIAL, par, st, cs)
+        return _command_out(cp, cs, cc, cmd, ctype, rc)
     _hand_channel(cp, cs, cc, dev, ctype)
     # the hand wrench in the tool's hand space, at the held link's frame origin
     if planar:
@@ -542,6 +619,7 @@ class Controller:
         cp[CP_RAMP] = dt / saf["ramp_in_s"]
         cp[CP_MASK:CP_MASK + 6] = KIND_WRENCH_MASK[device_kind]
         self.set_offset(np.eye(3), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+        self.cs[CS_DRIVE] = 1.0  # a bare kernel user drives its model; the loop holds until engaged
         self.cs[CS_DPOSE + 3] = 1.0
         self.cs[CS_PPOSE + 3] = 1.0
 
@@ -564,6 +642,25 @@ class Controller:
 
     def set_target(self, engaged: bool) -> None:
         self.cs[CS_TARGET] = 1.0 if engaged else 0.0
+
+    def engage(self, *, slide: bool) -> None:
+        """Render the model: the gain ramps in (from wherever it is) and the device drives the
+        proxy. ``slide``: re-index every step until the gain is whole (see ``_slide``)."""
+        cs = self.cs
+        cs[CS_TARGET] = 1.0
+        cs[CS_DRIVE] = 1.0
+        cs[CS_SLIDE] = 1.0 if slide and cs[CS_GAIN] < 1.0 else 0.0
+
+    def hold(self) -> None:
+        """Stop rendering: the gain fades to zero and the proxy is held (not driven)."""
+        cs = self.cs
+        cs[CS_TARGET] = 0.0
+        cs[CS_DRIVE] = 0.0
+        cs[CS_SLIDE] = 0.0
+
+    @property
+    def driving(self) -> bool:
+        return bool(self.cs[CS_DRIVE])
 
     def skip(self, steps: int) -> None:
         """The loop woke ``steps`` whole periods late and skipped them: the gain moves on as if
@@ -597,9 +694,12 @@ def quat_to_matrix(q) -> np.ndarray:
 
 
 def quat_mul(a, b) -> np.ndarray:
-    out = np.zeros(4)
-    _qmul(a[0], a[1], a[2], a[3], b[0], b[1], b[2], b[3], out, 0)
-    return out
+    """Hamilton product (w x y z). Plain Python: it runs at engagement, where calling a kernel
+    with a new signature would compile inside the loop."""
+    aw, ax, ay, az = (float(v) for v in a)
+    bw, bx, by, bz = (float(v) for v in b)
+    return np.array([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
 
 
 def index_offset(kind: str, device_pose: np.ndarray, proxy_pose: np.ndarray, tool_axis=None,

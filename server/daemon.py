@@ -28,12 +28,11 @@ import sys
 import time
 
 from . import config as cfgmod
-from .shm import CT, LOOP_STATES, SharedState
+from .lifecycle import LOOP_STATES, describe
+from .shm import SharedState
 
 log = logging.getLogger("hapticproxy.serve")
 
-FAULT_TEXT = {1: "non-finite value before the device (zero wrench, device disabled)",
-              2: "device fault (device disabled)", 3: "device speed over its limit (forces faded)"}
 
 
 # ------------------------------------------------------------------------------ loop process
@@ -64,6 +63,12 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
             loop._stop_flag = True
 
         signal.signal(signal.SIGTERM, on_term)
+        from .warm import cold
+
+        todo = cold()
+        if todo:
+            print(f"hapticproxy loop: compiling {len(todo)} kernels before the loop starts (first run on this "
+                  "machine: about a minute; `hapticproxy warmup` does it ahead) ...", file=sys.stderr, flush=True)
         loop.warm_up()
         if naive:
             loop.start()
@@ -134,8 +139,7 @@ class Supervisor:
         self.proc = None
         self.sock = None
         self._stop_requested = False
-        self._last_state = None
-        self._last_fault = 0.0
+        self._trans_seq = 0
         self.exit_code = 0
 
     def _hmac_key(self):
@@ -206,16 +210,12 @@ class Supervisor:
         return code
 
     def _log_changes(self) -> None:
-        st = self.shared.status
-        state = int(st[self._st("loop_state")])
-        if state != self._last_state:
-            self._last_state = state
-            log.info("loop state: %s", LOOP_STATES[state] if 0 <= state < len(LOOP_STATES) else state)
-        fault = st[self._st("fault")]
-        if fault != self._last_fault:
-            self._last_fault = fault
-            if fault:
-                log.error("fault: %s; re-arm with `hapticproxy status --rearm`", FAULT_TEXT.get(int(fault), fault))
+        """Log every transition the loop wrote since the last call, with its reason."""
+        for seq, _t_ns, frm, to, reason, detail in self.shared.transitions_since(self._trans_seq):
+            self._trans_seq = seq
+            name = (lambda i: LOOP_STATES[i] if 0 <= i < len(LOOP_STATES) else str(i))
+            level = logging.ERROR if name(to) == "fault" else logging.INFO
+            log.log(level, "loop %s -> %s: %s", name(frm), name(to), describe(reason, detail))
 
     def _serve_status(self, timeout_s: float) -> None:
         r, _, _ = select.select([self.sock], [], [], timeout_s)

@@ -25,10 +25,8 @@ ContactUpdate costs the model update and the ProxyState encode (at the engine's 
 Every ``housekeeping_s`` (10 ms) it also runs the session timers (heartbeats, timeouts), the
 supervisor's requests (stop, re-arm) and publishes its counters to the shared status block.
 
-Loop states: ``idle`` (no session: zero force), ``engaged`` (a client drives the model),
-``fading`` (environment silent past the watchdog, or its session ended: the model keeps its last
-geometry while the force fades to zero), ``fault`` (non-finite value, device fault or speed trip:
-device disabled or faded, waits for a re-arm), ``stopping`` (ramping down before exit).
+Loop states and their transitions: ``lifecycle`` (one table; ``HapticLoop.transition`` is the
+only place that changes the state).
 """
 from __future__ import annotations
 
@@ -43,9 +41,12 @@ from hapticproxy.protocol.messages import ToolKind
 from hapticproxy.protocol.session import ServerConfig, ServerEndpoint
 
 from . import control as ctl
-from .devices.base import DEV_FAULT_LINK, DEV_FAULT_NAMES, DEV_NSTATE, DS_TIME, empty_state, load_device
+from .devices.base import (
+    DEV_FAULT_LINK, DEV_FAULT_NAMES, DEV_FAULT_WATCHDOG, DEV_NSTATE, DS_TIME, empty_state, load_device,
+)
+from .lifecycle import LOOP_STATES, LS, SERVER_STATE_BY_CODE, TRANSITIONS, Fault, Reason
 from .model.model import ContactParams, LinkSpec, LocalModel, ToolSpec, warm_up as model_warm_up
-from .shm import CT, HBINS, LS, ST, SharedState
+from .shm import CT, HBINS, ST, SharedState
 
 _KIND_TO_TOOLKIND = {"1dof": ToolKind.ONE_DOF, "planar": ToolKind.PLANAR, "spatial": ToolKind.SPATIAL,
                      "linkage": ToolKind.LINKAGE}
@@ -62,12 +63,6 @@ WD_OK = 0
 WD_SILENT = 1
 WD_SESSION_ENDED = 2
 
-FAULT_NONE = 0
-FAULT_NONFINITE = 1
-FAULT_DEVICE = 2
-FAULT_SPEED = 3
-FAULT_NAMES = {FAULT_NONE: "none", FAULT_NONFINITE: "non-finite value before the device",
-               FAULT_DEVICE: "device fault", FAULT_SPEED: "device speed over its limit"}
 
 
 @njit(cache=True, nogil=True)
@@ -173,7 +168,10 @@ def q_from_tool_pose(kind: str, pose, com_m, axis=None, joints=None) -> np.ndarr
 
 
 class HapticLoop:
-    """The server loop. Build with validated settings; ``run()`` or ``step()`` by hand in tests."""
+    """The server loop. Build with validated settings; ``run()`` or ``step()`` by hand in tests.
+
+    Every change of ``state`` goes through :meth:`transition` (the table is
+    ``lifecycle.TRANSITIONS``)."""
 
     def __init__(self, settings, *, clock=None, transport=None, device=None, shared: SharedState | None = None,
                  hmac_key: bytes | None = None, max_packets_per_step: int = 32) -> None:
@@ -194,6 +192,7 @@ class HapticLoop:
         self.transport = transport if transport is not None else open_transport(settings["transport"]["url"], "server")
         tcfg = settings["transport"]
         mcfg = settings["model"]
+        scfg = settings["safety"]
         self.server_config = ServerConfig(
             haptic_rate_hz=settings.rate_hz,
             max_epsilon_m=0.0 if mcfg["policy"] == "lm0" else mcfg["epsilon_m"],
@@ -209,6 +208,7 @@ class HapticLoop:
         self.device = device if device is not None else load_device(
             settings["device"]["driver"], dict(settings["device"]), period_s=self.dt_s, clock_ns=self.clock.now_ns)
         self.ctrl = ctl.Controller(settings, self.device.kind, self.device.limits)
+        self._index_mapping = settings["controller"]["mapping"] == "index"
         #: a linkage tool is engaged: the step runs ``control.haptic_step_linkage``
         self._linkage = False
         self._largs = None
@@ -229,38 +229,96 @@ class HapticLoop:
         self.acks = 0
         self.update_errors = 0
         self.engagements = 0
-        self.state = LS["idle"]
+        # lifecycle (changed only by transition())
+        self.state = LS["starting"]
         self.watchdog = WD_OK
-        self.fault = FAULT_NONE
+        self.fault = Fault.NONE
         self.device_fault = 0
         self.faults_total = 0
-        self.stopping = False
-        self.stopped = False
+        self.last_reason = Reason.START
         self._stop_flag = False
+        # stalls: a late loop trips the device's own watchdog; it recovers once on time again
+        self._dev_wd_ns = int(round(float(getattr(self.device.limits, "watchdog_s", 0.0)) * 1e9))
+        self._recover_ns = int(scfg["stall_recover_s"] * 1e9)
+        self._stall_window_ns = int(scfg["stall_window_s"] * 1e9)
+        self._stall_trips_max = int(scfg["stall_trips_max"])
+        self._trip_times: list[int] = []
+        self.stall_trips = 0
+        self.stall_recoveries = 0
+        self._last_write_ns = 0   # end of the last step (its device write)
+        self._stall_ns = 0        # the latest gap between steps longer than two periods
+        self._stall_at = 0        # when it ended
+        self._ontime_since = 0    # the last step that missed a deadline (or ended a stall)
         #: the supervisor's pid; when it changes (the supervisor died) the loop stops cleanly
         self.parent_pid = 0
         self._deadline = 0
         self._t0 = 0
-        self.watchdog_ns = int(settings["safety"]["watchdog_s"] * 1e9)
+        self.watchdog_ns = int(scfg["watchdog_s"] * 1e9)
         self._use_engine_frame = mcfg["contact_frame"] == "engine"
         self._hk_every = max(1, int(round(0.01 * settings.rate_hz)))
         self._hk_count = 0
-        self._stop_deadline = 0
+        self._hk_n = 0
+        self._kernels_compiled = -1
         self._scratch_pose = np.zeros(13)
         self._R = np.zeros((3, 3))
         self._c = np.zeros(3)
+        self._st_missed = ST["missed_deadlines"]
         # arrays the kernel gets while no model is engaged (active = 0: never stepped)
         self._dummy = LocalModel(ToolSpec.one_dof(1.0), period_s=self.dt_s, capacity=1, warm=False).kernel_args()
+        self.ctrl.hold()  # nothing drives a proxy until a session engages
         st = self.shared.status
         st[ST["period_ns"]] = self.period_ns
         st[ST["rate_hz"]] = settings.rate_hz
         st[ST["force_cap_n"]] = self.ctrl.force_cap_n
         st[ST["rate_limit_n_per_step"]] = self.ctrl.force_rate_n_per_step
-        st[ST["loop_state"]] = LS["starting"]
+        st[ST["loop_state"]] = self.state
+
+    # ---------------------------------------------------------------------------- lifecycle
+    @property
+    def stopping(self) -> bool:
+        return self.state == LS["stopping"] or self.state == LS["stopped"]
+
+    @property
+    def stopped(self) -> bool:
+        return self.state == LS["stopped"]
+
+    def transition(self, to: str, reason: Reason, detail: float = 0.0) -> None:
+        """Change state (``lifecycle.TRANSITIONS``), apply what the new state means for the force
+        and the proxy, log it. Runs at events only (engagement, silence, faults), never per step."""
+        frm = LOOP_STATES[int(self.state)]
+        if to not in TRANSITIONS[frm]:
+            raise RuntimeError(f"haptic loop: no transition {frm} -> {to} ({Reason(reason).name})")
+        c = self.ctrl
+        if to == "engaged":
+            c.engage(slide=self._index_mapping)
+        else:
+            c.hold()
+            if self.model is not None:
+                self.model.stop()  # held where it is: nothing pushes it while nothing is rendered
+        if to == "idle":
+            self._drop_model()
+        if to == "fading":
+            self.watchdog = WD_SILENT if reason == Reason.SILENT else WD_SESSION_ENDED
+        elif to != "fault":
+            self.watchdog = WD_OK
+        self.state = LS[to]
+        self.last_reason = Reason(reason)
+        sh = self.shared
+        sh.log_transition(self.clock.now_ns(), LS[frm], self.state, int(reason), float(detail))
+        sh.status[ST["loop_state"]] = self.state
+
+    def _drop_model(self) -> None:
+        self.model = None
+        self._margs = None
+        self._linkage = False
+        self._largs = None
+        self.session_id = 0
 
     # ---------------------------------------------------------------------------- set-up
     def warm_up(self) -> None:
-        """Compile/load every kernel this loop calls, on throw-away arrays, before the first step."""
+        """Compile/load every kernel this loop calls, with the argument types the loop passes, on
+        throw-away arrays, before the first step: nothing may compile once deadlines are armed
+        (a compile takes seconds; ``status.late_compiles`` counts any that still happens)."""
         model_warm_up()
         s = self.settings
         c = ctl.Controller(s, self.device.kind, self.device.limits)
@@ -270,25 +328,30 @@ class HapticLoop:
                          period_s=self.dt_s, capacity=4, warm=False)
         dev = empty_state()
         for active in (0, 1):
-            ctl.haptic_step(c.cp, c.cs, c.cc, dev, c.cmd, active, *tmp.kernel_args(), c.hand, c.R, c.c)
+            for drive, slide in ((1.0, 1.0), (0.0, 0.0)):
+                c.cs[ctl.CS_DRIVE] = drive
+                c.cs[ctl.CS_SLIDE] = slide
+                ctl.haptic_step(c.cp, c.cs, c.cc, dev, c.cmd, active, *tmp.kernel_args(), c.hand, c.R, c.c)
         if self.kind == "linkage":
             links = (LinkSpec(0.1, inertia_kg_m2=(1e-4, 1e-4, 1e-4)),
                      LinkSpec(0.1, (0.03, 0.0, 0.0), (1e-4, 1e-4, 1e-4), 0, "revolute", (0.0, 0.0, 1.0), (0.06, 0.0, 0.0)))
             lm = LocalModel(ToolSpec.linkage(links, 1, dev_kind == "planar"), period_s=self.dt_s, capacity=4, warm=False)
             kind_, par_, st_, C_, CI_, cnt_, wk_ = lm.kernel_args()
-            ctl.haptic_step_linkage(c.cp, c.cs, c.cc, dev, c.cmd, par_, *lm.linkage_args()[:3], st_, C_, CI_, cnt_,
-                                    wk_, lm.linkage_args()[3], c.hand)
+            for drive in (1.0, 0.0):
+                c.cs[ctl.CS_DRIVE] = drive
+                ctl.haptic_step_linkage(c.cp, c.cs, c.cc, dev, c.cmd, par_, *lm.linkage_args()[:3], st_, C_, CI_,
+                                        cnt_, wk_, lm.linkage_args()[3], c.hand)
         ctl.fade_only(c.cp, c.cs, c.cc, c.cmd)
         ring = np.zeros((4, self.shared.ring.shape[1]))
         head = np.zeros(1, dtype=np.int64)
         hist = np.zeros(HBINS, dtype=np.int64)
         status = np.zeros_like(self.shared.status)
-        _account(ring, head, hist, hist.copy(), status, self.period_ns, 1, 1, 0.0, 0.0, 0.0, 0.0, 0.0,
-                 c.cs, dev, c.cmd)
+        self._account_step(ring, head, hist, hist.copy(), status, 1, 1, 0, c.cs, dev, c.cmd)
         ctl.proxy_hand_state(tmp.kind, tmp.kernel_args()[1], tmp.kernel_args()[2], c.R, c.c, self._scratch_pose, 0)
         warm = getattr(self.device, "warm_up", None)
         if callable(warm):
             warm()
+        self._kernels_compiled = kernels_compiled()
 
     def start(self) -> None:
         """Arm the device and set the first deadline one period from now."""
@@ -296,9 +359,13 @@ class HapticLoop:
         now = self.clock.now_ns()
         self._t0 = now
         self._deadline = now + self.period_ns
+        self._last_write_ns = now
+        self._ontime_since = now
+        if self._kernels_compiled < 0:
+            self._kernels_compiled = kernels_compiled()
         st = self.shared.status
         st[ST["t_start_ns"]] = now
-        st[ST["loop_state"]] = self.state
+        self.transition("idle", Reason.START)
         st[ST["ready"]] = 1.0
 
     # ---------------------------------------------------------------------------- the step
@@ -308,13 +375,20 @@ class HapticLoop:
         deadline = self._deadline
         wake = clock.wait_until(deadline)
         late = wake - deadline
-        if late >= self.period_ns:  # missed whole periods: skip them rather than burst
-            missed = late // self.period_ns
-            self.shared.status[10] += missed  # missed_deadlines
-            self._deadline = deadline + (missed + 1) * self.period_ns
+        period = self.period_ns
+        if late >= period:  # missed whole periods: skip them rather than burst
+            missed = late // period
+            self.shared.status[self._st_missed] += missed
+            self._deadline = deadline + (missed + 1) * period
             self.ctrl.skip(missed)  # fades and ramp-ins keep their times, not their step counts
+            self._ontime_since = wake
         else:
-            self._deadline = deadline + self.period_ns
+            self._deadline = deadline + period
+        gap = wake - self._last_write_ns
+        if gap > 2 * period:  # the process did not run: a stall (what the device saw, too)
+            self._stall_ns = gap
+            self._stall_at = wake
+            self._ontime_since = wake
         # 1-2: poll without blocking; newest ContactUpdate wins
         tr = self.transport
         ep = self.endpoint
@@ -339,11 +413,9 @@ class HapticLoop:
                 # The loop must outlive anything an update can raise: treat it like a non-finite
                 # value (zero wrench, device disabled, re-arm needed), never die with force on.
                 self.update_errors += 1
-                self._on_fault(ctl.RC_NONFINITE, 0)
+                self._on_fault(ctl.RC_NONFINITE, 0, wake, Reason.UPDATE_ERROR)
         elif self.state == LS["engaged"] and wake - self.last_update_ns > self.watchdog_ns:
-            self.state = LS["fading"]
-            self.watchdog = WD_SILENT
-            self.ctrl.set_target(False)
+            self.transition("fading", Reason.SILENT, (wake - self.last_update_ns) * 1e-6)
         # 3: device
         dev = self.dev
         rc_dev = self.device.read(dev)
@@ -365,23 +437,29 @@ class HapticLoop:
         # 5: device command
         rc_w = self.device.write(c.cmd)
         if rc or rc_dev or rc_w:
-            self._on_fault(rc, rc_dev or rc_w)
-        if self.state == LS["fading"] or self.state == LS["stopping"]:
-            if c.cs[ctl.CS_GAIN] <= 0.0:
-                self._after_fade()
+            self._on_fault(rc, rc_dev or rc_w, wake)
+        if (self.state == LS["fading"] or self.state == LS["stopping"]) and c.cs[ctl.CS_GAIN] <= 0.0:
+            self._after_fade()
         # 6: account
         if clock.simulated:
             clock.charge()
         end = clock.now_ns()
+        self._last_write_ns = end
         sh = self.shared
-        _account(sh.ring, sh.head, sh.hist_late, sh.hist_step, sh.status, self.period_ns, late, end - wake,
-                 (wake - self._t0) * 1e-9, self.state, c.cs[ctl.CS_GAIN], self._contacts(), self.updates,
-                 c.cs, dev, c.cmd)
+        self._account_step(sh.ring, sh.head, sh.hist_late, sh.hist_step, sh.status, late, end - wake, wake - self._t0,
+                           c.cs, dev, c.cmd)
         self._hk_count += 1
         if self._hk_count >= self._hk_every:
             self._hk_count = 0
             self._housekeeping(end)
         return not self.stopped
+
+    def _account_step(self, ring, head, hist_late, hist_step, status, late_ns, comp_ns, since_start_ns, cs, dev,
+                      cmd) -> None:
+        # every scalar converted here, so the kernel always sees the one signature warm_up compiled
+        _account(ring, head, hist_late, hist_step, status, self.period_ns, int(late_ns), int(comp_ns),
+                 since_start_ns * 1e-9, float(self.state), float(cs[ctl.CS_GAIN]), self._contacts(),
+                 float(self.updates), cs, dev, cmd)
 
     def _contacts(self) -> float:
         return float(self._margs[5][0]) if self._margs is not None else 0.0
@@ -417,11 +495,7 @@ class HapticLoop:
         self._track_env(upd, now)
         self.updates += 1
         if self.state == LS["fading"] and self.watchdog == WD_SILENT:
-            self.state = LS["engaged"]
-            self.watchdog = WD_OK
-            if self.ctrl.cs[ctl.CS_GAIN] <= 0.0:
-                self._reindex()  # the hand moved freely while the force was off: no spring kick
-            self.ctrl.set_target(True)
+            self.transition("engaged", Reason.RESUMED)
         self._ack(now)
 
     def _engine_q(self, upd):
@@ -471,18 +545,21 @@ class HapticLoop:
     def _ack(self, now: int) -> None:
         cs = self.ctrl.cs
         m = self.model
+        state = SERVER_STATE_BY_CODE[int(self.state)]
         if self._linkage:
             # the root frame's pose and twist; the hand wrench as the wrench on the root frame's
             # origin plus one effort per joint (J_h^T F_h split by coordinates)
             pose, twist, wrench, effort, jq, jqd = m.joint_state(cs[ctl.CS_HAND:ctl.CS_HAND + 6])
             if self.endpoint.send_proxy_state(self.session_id, now, pose, twist, wrench, server_time_s=m.time_s,
-                                              joint_position=jq, joint_velocity=jqd, joint_effort=effort):
+                                              joint_position=jq, joint_velocity=jqd, joint_effort=effort,
+                                              server_state=state):
                 self.acks += 1
             return
         kind, par, st_ = self._margs[0], self._margs[1], self._margs[2]
         ctl.proxy_hand_state(kind, par, st_, self._R, self._c, self._scratch_pose, 0)
         if self.endpoint.send_proxy_state(self.session_id, now, self._scratch_pose[:7], self._scratch_pose[7:13],
-                                          cs[ctl.CS_HAND:ctl.CS_HAND + 6], server_time_s=m.time_s):
+                                          cs[ctl.CS_HAND:ctl.CS_HAND + 6], server_time_s=m.time_s,
+                                          server_state=state):
             self.acks += 1
 
     def _engage(self, upd, now: int) -> None:
@@ -539,14 +616,13 @@ class HapticLoop:
         self.engagements += 1
         self.last_update_ns = now
         self.env_rate_hz = 0.0
-        self.watchdog = WD_OK
-        if self.fault == FAULT_NONE:
-            self.state = LS["engaged"]
-            c.set_target(True)
+        if self.fault == Fault.NONE:
+            self.transition("engaged", Reason.ENGAGE, self.session_id)
 
     def _reindex(self) -> None:
-        """Map the device onto the proxy's hand point (no jump), unless mapping is absolute."""
-        if self.settings["controller"]["mapping"] != "index" or self._margs is None:
+        """Map the device onto the proxy's hand point (no jump), unless mapping is absolute. At
+        engagement; while the force ramps in, the kernel keeps re-indexing (``control._slide``)."""
+        if not self._index_mapping or self._margs is None:
             return
         kind, par, st_ = self._margs[0], self._margs[1], self._margs[2]
         if self._linkage:
@@ -563,34 +639,80 @@ class HapticLoop:
         """Gain reached zero while fading or stopping."""
         if self.state == LS["stopping"]:
             self.endpoint.close_all("server stopping")
-            self.stopped = True
-            self.state = LS["stopped"]
-            self.shared.status[ST["loop_state"]] = self.state
+            self.transition("stopped", Reason.STOPPED)
             return
         if self.watchdog == WD_SESSION_ENDED:
-            self.model = None
-            self._margs = None
-            self._linkage = False
-            self._largs = None
-            self.session_id = 0
-            self.state = LS["idle"]
-            self.watchdog = WD_OK
+            self.transition("idle", Reason.FADED)
 
-    def _on_fault(self, rc: int, dev_code: int) -> None:
-        if self.state == LS["fault"]:
+    def _stalled_recently(self, now: int) -> bool:
+        """The loop stalled long enough (and recently enough) to explain the device's watchdog."""
+        wd = self._dev_wd_ns if self._dev_wd_ns > 0 else 50_000_000
+        return self._stall_at > 0 and now - self._stall_at <= 1_000_000_000 and 2 * self._stall_ns >= wd
+
+    def _on_fault(self, rc: int, dev_code: int, now: int, reason: Reason | None = None) -> None:
+        if dev_code == DEV_FAULT_WATCHDOG and self.state != LS["stopping"] and self._stalled_recently(now):
+            self._on_stall_trip(now)
+            return
+        if self.state == LS["fault"] or self.stopped:
             return
         if rc == ctl.RC_SPEED and not dev_code:
-            self.fault = FAULT_SPEED  # fade out (the kernel dropped the gain target), device stays on
+            self.fault = Fault.SPEED  # fade out (the kernel dropped the gain target), device stays on
+            why = Reason.SPEED
         elif dev_code:
-            self.fault = FAULT_DEVICE
+            self.fault = Fault.DEVICE
             self.device_fault = dev_code
             self.device.disable()
+            why = Reason.DEVICE_FAULT
         else:
-            self.fault = FAULT_NONFINITE
+            self.fault = Fault.NONFINITE
             self.device.disable()
+            why = Reason.NONFINITE
         self.faults_total += 1
-        self.state = LS["fault"]
-        self.ctrl.set_target(False)
+        if self.state == LS["stopping"]:
+            return  # already ramping down; the output is off
+        self.transition("fault", reason or why, dev_code)
+
+    def _on_stall_trip(self, now: int) -> None:
+        """The device's watchdog cut the output because this loop did not run in time. Nothing
+        was wrong with the device or the model: once the loop has been on time for
+        ``stall_recover_s`` the force ramps back in (housekeeping), unless it happens too often."""
+        stall_ms = self._stall_ns * 1e-6
+        if self.state == LS["fault"]:
+            if self.fault == Fault.STALL or self.fault == Fault.STALLS_REPEATED:
+                return  # the same stall, seen again by the device
+        self.stall_trips += 1
+        if self.state == LS["idle"] and self.ctrl.cs[ctl.CS_GAIN] <= 0.0:
+            # nothing was being rendered: no force can come back by surprise
+            self.device.enable()
+            if not self.device.fault:
+                self.transition("idle", Reason.STALL_IDLE, stall_ms)
+                return
+        self.device.disable()
+        self._trip_times = [t for t in self._trip_times if now - t <= self._stall_window_ns] + [now]
+        self.faults_total += 1
+        if len(self._trip_times) > self._stall_trips_max:
+            self.fault = Fault.STALLS_REPEATED
+            self.transition("fault", Reason.STALLS_REPEATED, len(self._trip_times))
+        else:
+            self.fault = Fault.STALL
+            self.transition("fault", Reason.STALL, stall_ms)
+
+    def _recover_from_stall(self, now: int) -> None:
+        on_time = now - self._ontime_since
+        if on_time < self._recover_ns:
+            return
+        self.device.enable()
+        if self.device.fault:
+            self.device.disable()
+            return  # the device still refuses: try again later
+        self.fault = Fault.NONE
+        self.device_fault = 0
+        self.stall_recoveries += 1
+        self.ctrl.cs[ctl.CS_GAIN] = 0.0
+        if self.model is not None and self.session_id in self.endpoint.sessions:
+            self.transition("engaged", Reason.RECOVERED, on_time * 1e-9)
+        else:
+            self.transition("idle", Reason.RECOVERED, on_time * 1e-9)
 
     def rearm(self) -> bool:
         """Clear a fault: re-enable the device; force ramps back in from zero."""
@@ -599,26 +721,21 @@ class HapticLoop:
         self.device.enable()
         if self.device.fault:
             return False
-        self.fault = FAULT_NONE
+        self.fault = Fault.NONE
         self.device_fault = 0
-        c = self.ctrl
-        c.cs[ctl.CS_GAIN] = 0.0
+        self._trip_times = []
+        self.ctrl.cs[ctl.CS_GAIN] = 0.0
         if self.model is not None and self.session_id in self.endpoint.sessions:
-            self.state = LS["engaged"]
-            self._reindex()
-            c.set_target(True)
+            self.transition("engaged", Reason.REARM)
         else:
-            self.state = LS["idle"]
-            c.set_target(False)
+            self.transition("idle", Reason.REARM)
         return True
 
     def request_stop(self) -> None:
         """Ramp forces down, then send Bye and stop (the next steps do it)."""
         if self.stopping:
             return
-        self.stopping = True
-        self.state = LS["stopping"]
-        self.ctrl.set_target(False)
+        self.transition("stopping", Reason.STOP)
         if self.ctrl.cs[ctl.CS_GAIN] <= 0.0:
             self._after_fade()
 
@@ -626,19 +743,20 @@ class HapticLoop:
     def _housekeeping(self, now: int) -> None:
         ep = self.endpoint
         ep.poll(now)
-        if (self.state == LS["fault"] and self.fault == FAULT_DEVICE and self.device_fault == DEV_FAULT_LINK
-                and self.engagements == 0):
-            # a remote device not connected yet at start-up: no force has ever been rendered,
-            # so arming it when its link comes up is not a force "coming back by itself"
-            self.device.enable()
-            if not self.device.fault:
-                self.fault = FAULT_NONE
-                self.device_fault = 0
-                self.state = LS["idle"]
-        if self.session_id and self.session_id not in ep.sessions and self.state in (LS["engaged"], LS["fading"]):
-            self.state = LS["fading"]
-            self.watchdog = WD_SESSION_ENDED
-            self.ctrl.set_target(False)
+        if self.state == LS["fault"]:
+            if self.fault == Fault.STALL:
+                self._recover_from_stall(now)
+            elif self.fault == Fault.DEVICE and self.device_fault == DEV_FAULT_LINK and self.engagements == 0:
+                # a remote device not connected yet at start-up: no force has ever been rendered,
+                # so arming it when its link comes up is not a force "coming back by itself"
+                self.device.enable()
+                if not self.device.fault:
+                    self.fault = Fault.NONE
+                    self.device_fault = 0
+                    self.transition("idle", Reason.LINK_UP)
+        if (self.session_id and self.session_id not in ep.sessions and self.watchdog != WD_SESSION_ENDED
+                and (self.state == LS["engaged"] or self.state == LS["fading"])):
+            self.transition("fading", Reason.SESSION_ENDED, self.session_id)
         sh = self.shared
         ctrl_ = sh.control
         if self.parent_pid and os.getppid() != self.parent_pid:
@@ -657,6 +775,14 @@ class HapticLoop:
             sh.status[ST["compute_max_us"]] = 0.0
             sh.status[ST["overruns"]] = 0.0
             sh.status[ST["missed_deadlines"]] = 0.0
+        self._hk_n += 1
+        if self._hk_n % 100 == 0 and self._kernels_compiled >= 0:
+            # about once a second: a kernel compiled after warm-up stalls the loop for seconds;
+            # counted so a test (and a person reading status) sees that warm-up missed one
+            n = kernels_compiled()
+            if n > self._kernels_compiled:
+                sh.status[ST["late_compiles"]] += n - self._kernels_compiled
+                self._kernels_compiled = n
         self.publish(now)
 
     def publish(self, now: int) -> None:
@@ -697,6 +823,8 @@ class HapticLoop:
         st[ST["rejects_sent"]] = ec.rejects_sent
         st[ST["dropped_empty"]] = getattr(tc, "dropped_empty", 0)
         st[ST["poll_budget_cuts"]] = self.poll_cut
+        st[ST["stall_trips"]] = self.stall_trips
+        st[ST["stall_recoveries"]] = self.stall_recoveries
 
     # ---------------------------------------------------------------------------- running
     def run(self, *, max_steps: int | None = None, duration_s: float | None = None) -> None:
@@ -729,7 +857,8 @@ class HapticLoop:
         d = {
             "updates": self.updates, "acks": self.acks, "update_errors": self.update_errors,
             "engagements": self.engagements, "faults_total": self.faults_total,
-            "state": self.state_name, "fault": FAULT_NAMES[self.fault],
+            "stall_trips": self.stall_trips, "stall_recoveries": self.stall_recoveries,
+            "state": self.state_name, "fault": Fault(self.fault).name.lower(),
             "device_fault": DEV_FAULT_NAMES.get(self.device_fault, str(self.device_fault)),
         }
         d.update({f"ctrl_{k}": v for k, v in self.ctrl.counters().items()})
@@ -738,12 +867,31 @@ class HapticLoop:
 
     @property
     def state_name(self) -> str:
-        from .shm import LOOP_STATES
-
         return LOOP_STATES[int(self.state)]
 
     def device_time_s(self) -> float:
         return float(self.dev[DS_TIME])
 
 
-__all__ = ["HapticLoop", "tool_from_hello", "q_from_tool_pose", "DEV_NSTATE"]
+def kernel_signatures() -> dict[str, int]:
+    """Signatures compiled (or loaded) so far, per numba kernel of this package."""
+    import sys
+
+    from numba.core.registry import CPUDispatcher
+
+    out: dict[str, int] = {}
+    for name, mod in list(sys.modules.items()):
+        if not name.startswith("hapticproxy.") or mod is None:
+            continue
+        for obj in vars(mod).values():
+            if isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == name:
+                out[f"{name}.{obj.py_func.__name__}"] = len(obj.overloads)
+    return out
+
+
+def kernels_compiled() -> int:
+    """Signatures compiled (or loaded) so far by every numba kernel of this package."""
+    return sum(kernel_signatures().values())
+
+
+__all__ = ["HapticLoop", "tool_from_hello", "q_from_tool_pose", "kernels_compiled", "DEV_NSTATE"]

@@ -9,7 +9,9 @@ One ``multiprocessing.shared_memory`` block holds, as numpy views:
 - ``control`` (int64[NCTL]): requests from the supervisor (stop, re-arm, reset statistics), each
   a counter the supervisor increments and the loop acknowledges by copying it;
 - ``ring`` (float64[rows, NTEL]) with ``head`` (rows ever written): the telemetry ring the
-  supervisor drains to a file, so a crash of the loop process loses nothing already in it.
+  supervisor drains to a file, so a crash of the loop process loses nothing already in it;
+- ``translog`` (:data:`TRANSITION_DTYPE`[TLOG_ROWS]): the loop's last state transitions with
+  their reasons (``lifecycle``), row ``seq % TLOG_ROWS``; the supervisor logs each one once.
 
 The loop writes, the supervisor reads (except ``control``). Every field is a float64/int64 that
 is written whole, so a reader sees either the old or the new value of each; percentiles read
@@ -21,7 +23,14 @@ from multiprocessing import shared_memory
 
 import numpy as np
 
+from .lifecycle import LOOP_STATES, LS  # noqa: F401 - re-exported: the states live in lifecycle
+
 HBINS = 4096
+#: Rows of the transition log: more transitions than this between two reads of the supervisor
+#: (every 50 ms) lose the oldest from the log, never from the counters.
+TLOG_ROWS = 64
+TRANSITION_DTYPE = np.dtype([("seq", np.int64), ("t_ns", np.int64), ("from_state", np.int64),
+                             ("to_state", np.int64), ("reason", np.int64), ("detail", np.float64)])
 
 STATUS_FIELDS = (
     "pid", "steps", "rate_hz", "period_ns", "t_start_ns", "t_last_ns", "rt_scheduling",
@@ -33,6 +42,9 @@ STATUS_FIELDS = (
     # what the session layer refused, by reason (stale_or_duplicate and decode_errors above)
     "datagrams_received", "bad_token", "wrong_peer", "unknown_session", "bad_mac", "unexpected",
     "wrong_version", "rejects_sent", "dropped_empty", "poll_budget_cuts",
+    # lifecycle: transitions written to the log, stall trips (device watchdog cut by a late
+    # loop), recoveries from them, kernels compiled after the loop was armed (must stay 0)
+    "transitions", "stall_trips", "stall_recoveries", "late_compiles",
 )
 ST = {name: i for i, name in enumerate(STATUS_FIELDS)}
 NSTAT = len(STATUS_FIELDS)
@@ -41,8 +53,6 @@ CONTROL_FIELDS = ("stop", "stop_ack", "rearm", "rearm_ack", "reset_stats", "rese
 CT = {name: i for i, name in enumerate(CONTROL_FIELDS)}
 NCTL = len(CONTROL_FIELDS)
 
-LOOP_STATES = ("idle", "engaged", "fading", "fault", "stopping", "stopped", "starting")
-LS = {name: float(i) for i, name in enumerate(LOOP_STATES)}
 
 _AX6 = ("fx", "fy", "fz", "tx", "ty", "tz")
 TEL_FIELDS = (
@@ -67,7 +77,8 @@ class SharedState:
     def __init__(self, ring_rows: int, shm: shared_memory.SharedMemory | None) -> None:
         self.ring_rows = int(ring_rows)
         self._shm = shm
-        sizes = [NSTAT * 8, 2 * HBINS * 8, NCTL * 8, 8, self.ring_rows * NTEL * 8]
+        sizes = [NSTAT * 8, 2 * HBINS * 8, NCTL * 8, 8, TLOG_ROWS * TRANSITION_DTYPE.itemsize,
+                 self.ring_rows * NTEL * 8]
         total = sum(sizes)
         buf = shm.buf if shm is not None else memoryview(bytearray(total))
         self._buf = buf
@@ -78,11 +89,12 @@ class SharedState:
         self.hist_step = hist[1]
         self.control = np.ndarray((NCTL,), np.int64, buf, off); off += sizes[2]
         self.head = np.ndarray((1,), np.int64, buf, off); off += sizes[3]
+        self.translog = np.ndarray((TLOG_ROWS,), TRANSITION_DTYPE, buf, off); off += sizes[4]
         self.ring = np.ndarray((self.ring_rows, NTEL), np.float64, buf, off)
 
     @staticmethod
     def nbytes(ring_rows: int) -> int:
-        return NSTAT * 8 + 2 * HBINS * 8 + NCTL * 8 + 8 + int(ring_rows) * NTEL * 8
+        return NSTAT * 8 + 2 * HBINS * 8 + NCTL * 8 + 8 + TLOG_ROWS * TRANSITION_DTYPE.itemsize + int(ring_rows) * NTEL * 8
 
     @classmethod
     def create(cls, ring_rows: int) -> "SharedState":
@@ -93,6 +105,7 @@ class SharedState:
         s.hist_step[:] = 0
         s.control[:] = 0
         s.head[0] = 0
+        s.translog[:] = np.zeros(TLOG_ROWS, TRANSITION_DTYPE)
         return s
 
     @classmethod
@@ -114,7 +127,7 @@ class SharedState:
         if self._shm is None:
             return
         # drop the views before closing the mapping
-        self.status = self.hist_late = self.hist_step = self.control = self.head = self.ring = None
+        self.status = self.hist_late = self.hist_step = self.control = self.head = self.ring = self.translog = None
         self._buf = None
         try:
             self._shm.close()
@@ -137,6 +150,26 @@ class SharedState:
         for key, hist in (("lateness_us", self.hist_late), ("compute_us", self.hist_step)):
             out[key] = percentiles(hist)
         out["loop_state"] = LOOP_STATES[int(out["loop_state"])] if 0 <= out["loop_state"] < len(LOOP_STATES) else "?"
+        return out
+
+    def log_transition(self, t_ns: int, from_state: float, to_state: float, reason: int, detail: float) -> None:
+        """Append one transition (the loop; the supervisor reads them with ``transitions_since``).
+        The row is written before ``status.transitions`` counts it, so a reader never sees a
+        counted row half written."""
+        seq = int(self.status[ST["transitions"]]) + 1
+        self.translog[seq % TLOG_ROWS] = (seq, t_ns, int(from_state), int(to_state), int(reason), float(detail))
+        self.status[ST["transitions"]] = seq
+
+    def transitions_since(self, seq: int) -> list[tuple]:
+        """Transitions logged after ``seq`` (oldest first; at most the last TLOG_ROWS)."""
+        last = int(self.status[ST["transitions"]])
+        first = max(seq + 1, last - TLOG_ROWS + 1)
+        out = []
+        for k in range(first, last + 1):
+            r = self.translog[k % TLOG_ROWS]
+            if int(r["seq"]) == k:
+                out.append((k, int(r["t_ns"]), int(r["from_state"]), int(r["to_state"]), int(r["reason"]),
+                            float(r["detail"])))
         return out
 
     def request(self, name: str) -> int:

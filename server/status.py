@@ -27,13 +27,31 @@ def query(address: str = DEFAULT_ADDRESS, request: dict | None = None, timeout_s
     return json.loads(data)
 
 
+def _fault_name(code) -> str:
+    from .lifecycle import FAULT_TEXT, Fault
+
+    try:
+        f = Fault(int(code))
+    except ValueError:
+        return str(code)
+    return "none" if f == Fault.NONE else f"{f.name.lower()}: {FAULT_TEXT[f]}"
+
+
+def _device_fault_name(code) -> str:
+    from .devices.base import DEV_FAULT_NAMES
+
+    return DEV_FAULT_NAMES.get(int(code), str(code))
+
+
 def format_status(s: dict) -> str:
     lat = s.get("lateness_us", {})
     comp = s.get("compute_us", {})
     period_us = s.get("period_ns", 0) / 1000 or float("nan")
     rate = 1e6 / period_us if period_us == period_us else float("nan")
     lines = [
-        f"state        {s.get('loop_state')}  (fault: {int(s.get('fault', 0))}, device fault: {int(s.get('device_fault', 0))})",
+        f"state        {s.get('loop_state')}  (fault: {_fault_name(s.get('fault', 0))}, device fault: "
+        f"{_device_fault_name(s.get('device_fault', 0))}; stall trips {int(s.get('stall_trips', 0))}, "
+        f"recovered {int(s.get('stall_recoveries', 0))})",
         f"rate         {rate:.0f} Hz, {int(s.get('steps', 0))} steps, overruns {int(s.get('overruns', 0))}, "
         f"missed deadlines {int(s.get('missed_deadlines', 0))}",
         f"lateness us  p50 {lat.get('p50')}  p99 {lat.get('p99')}  p99.9 {lat.get('p999')}  "

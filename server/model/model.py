@@ -490,6 +490,11 @@ class LocalModel:
         self._CI[:] = 0
         self._cnt[:] = 0
 
+    def stop(self) -> None:
+        """Bring the proxy to rest where it is (its velocity to zero; contacts and pose kept): the
+        server holds the proxy while nothing is rendered."""
+        self._st[S_QD:S_QD + self.dof] = 0.0
+
     # -- the two operations --------------------------------------------------------------------
     def update(self, keys, position_m, normal, separation_m, v_constr_m_per_s=None, tool_q=None) -> None:
         """Replace the local contacts by the engine's set (world frame, SI units).

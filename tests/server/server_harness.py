@@ -19,7 +19,8 @@ from hapticproxy.protocol.transport import open_transport
 from hapticproxy.server import config as cfg
 from hapticproxy.server.clock import SimClock
 from hapticproxy.server.devices.base import (
-    DEV_FAULT_DISABLED, DEV_FAULT_NONFINITE_COMMAND, DEV_OK, DeviceDriver, DeviceLimits, empty_state,
+    DEV_FAULT_DISABLED, DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_OK, DeviceDriver, DeviceLimits,
+    empty_state,
 )
 from hapticproxy.server.loop import HapticLoop
 
@@ -105,6 +106,52 @@ class PointDevice(DeviceDriver):
         return self._fault if self._fault else (DEV_OK if self._enabled else DEV_FAULT_DISABLED * 0)
 
 
+class WatchdogDevice(PointDevice):
+    """A ``PointDevice`` that lives in real (simulated) time like hardware: its own watchdog cuts
+    the output when no ``write`` came within ``watchdog_s`` (latched until ``enable``), and a gap
+    between writes (a stall of the loop) is integrated too, the hand pushing on a handle that
+    renders nothing. ``clock``: the loop's clock."""
+
+    def __init__(self, clock, *, watchdog_s=0.05, **kw):
+        super().__init__(**kw)
+        self.clock = clock
+        self.wd_ns = int(round(watchdog_s * 1e9))
+        self._last_ns = None
+        self._limits = DeviceLimits(40.0, 2.0, 5.0, 100.0, watchdog_s=watchdog_s)
+        self.trips = 0
+
+    def enable(self):
+        super().enable()
+        self._last_ns = self.clock.now_ns()
+
+    def _check(self):
+        now = self.clock.now_ns()
+        if (self._enabled and self._fault == DEV_OK and self._last_ns is not None
+                and now - self._last_ns > self.wd_ns):
+            self._fault = DEV_FAULT_WATCHDOG
+            self.trips += 1
+        return now
+
+    def read(self, s):
+        self._check()
+        super().read(s)
+        return self._fault
+
+    def write(self, w):
+        now = self._check()
+        if self._last_ns is not None:
+            # the time the loop did not run: the hand moved the handle, nothing was rendered
+            extra = int((now - self._last_ns) // int(self.dt * 1e9)) - 1
+            for _ in range(max(0, extra)):
+                en, self._enabled = self._enabled, False
+                PointDevice.write(self, np.zeros(6))
+                self.commands.pop()
+                self._enabled = en
+        self._last_ns = now
+        super().write(w)
+        return self._fault
+
+
 class WallEnv:
     """Environment client: a planar box tool (half sizes ``hx``, ``hy``) and a floor at y = ``wall_y``
     (normal +y). The engine's tool follows the proxy pose it last received (kinematic drive).
@@ -123,7 +170,9 @@ class WallEnv:
         self.rng = np.random.default_rng(seed)
         self.pose = np.array([start_pose[0], start_pose[1], 0.0, math.cos(start_pose[2] / 2), 0, 0,
                               math.sin(start_pose[2] / 2)])
-        tk = ToolKind.PLANAR if kind == "planar" else ToolKind.ONE_DOF
+        self.kind = kind
+        self.hz = hx  # spatial: a box hx x hy x hx (half sizes)
+        tk = {"planar": ToolKind.PLANAR, "1dof": ToolKind.ONE_DOF, "spatial": ToolKind.SPATIAL}[kind]
         axis = (0.0, 1.0, 0.0) if kind == "1dof" else (1.0, 0.0, 0.0)
         self.hello = Hello(client_nonce=1, engine="wall-env", tool_kind=tk, mass_kg=mass_kg,
                            inertia_kg_m2=(inertia, inertia, inertia, 0, 0, 0), axis=axis,
@@ -136,25 +185,32 @@ class WallEnv:
         self.alive = True
         self.started = False
 
+    def _corners(self):
+        """World (x, y, z) of the tool's bottom corners (planar/1dof: two, spatial: four)."""
+        w, qx, qy, qz = self.pose[3:7]
+        R = np.array([[1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy)],
+                      [2 * (qx * qy + w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - w * qx)],
+                      [2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy)]])
+        if self.kind == "spatial":
+            body = [(sx * self.hx, -self.hy, sz * self.hz) for sx in (-1, 1) for sz in (-1, 1)]
+        else:
+            body = [(-self.hx, -self.hy, 0.0), (self.hx, -self.hy, 0.0)]
+        return [self.pose[:3] + R @ np.array(b) for b in body]
+
     def _stop_at_wall(self):
         # the engine's tool cannot enter the floor (a rigid engine resolves that itself)
-        th = 2 * math.atan2(self.pose[6], self.pose[3])
-        c, s = math.cos(th), math.sin(th)
-        low = min(self.pose[1] + s * bx + c * by for bx, by in ((-self.hx, -self.hy), (self.hx, -self.hy)))
+        low = min(p[1] for p in self._corners())
         if low < self.wall_y:
             self.pose[1] += self.wall_y - low
 
     def contacts(self):
-        th = 2 * math.atan2(self.pose[6], self.pose[3])
-        c, s = math.cos(th), math.sin(th)
         keys, pos, nor, sep = [], [], [], []
-        for i, (bx, by) in enumerate(((-self.hx, -self.hy), (self.hx, -self.hy))):
-            x = self.pose[0] + c * bx - s * by
-            y = self.pose[1] + s * bx + c * by
+        for i, p in enumerate(self._corners()):
+            x, y, z = p
             d = y - self.wall_y
             if d <= self.eps:
                 keys.append((0, 1, i))
-                pos.append((x, self.wall_y, 0.0))
+                pos.append((x, self.wall_y, z))
                 nor.append((0.0, 1.0, 0.0))
                 sep.append(d)
         n = len(keys)

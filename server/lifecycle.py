@@ -1,0 +1,132 @@
+"""The haptic loop's lifecycle: its states, the transitions between them, why each happens.
+
+One table (:data:`TRANSITIONS`) says which state may follow which; the loop changes state only
+through ``HapticLoop.transition(to, reason)``, which checks the table, applies what the new state
+means for the force and the proxy (:data:`RENDERS`), counts the transition and writes it to the
+shared transition log, from which the supervisor logs every one of them with its reason.
+
+States (what the device gets, what the proxy does):
+
+- ``starting``: kernels loading; nothing is written.
+- ``idle``: no session drives the model; zero force; no proxy.
+- ``engaged``: a session drives the model; the force ramps in (``ramp_in_s``) and is then
+  rendered in full; the device drives the proxy. While the force ramps in, the device is
+  re-indexed onto the proxy every step, so a hand that keeps pushing stores nothing in the
+  coupling (see ``control._slide``).
+- ``fading``: the environment is silent past ``safety.watchdog_s`` or its session ended: the force
+  fades to zero over ``fade_s``; the proxy is held (a device that renders less and less must not
+  push it into what it touches).
+- ``fault``: output off (device disabled, or faded for a speed trip); the proxy is held. A fault
+  caused by a late loop (the device's own watchdog tripped by a stall of the loop process)
+  recovers by itself once the loop has been on time for ``safety.stall_recover_s``; more than
+  ``safety.stall_trips_max`` such trips within ``safety.stall_window_s`` latch. Every other
+  fault (a non-finite value, a fault the device reports, a speed trip) waits for a re-arm.
+- ``stopping``: ramping down before exit; ``stopped``: done.
+"""
+from __future__ import annotations
+
+from enum import IntEnum
+
+from hapticproxy.protocol.messages import ServerState
+
+LOOP_STATES = ("idle", "engaged", "fading", "fault", "stopping", "stopped", "starting")
+#: state name -> code (float: it is stored in the float64 status block and telemetry rows)
+LS = {name: float(i) for i, name in enumerate(LOOP_STATES)}
+
+#: Which states may follow which. A state may follow itself only where an event is worth logging
+#: without a change of state (a stall while idle, a session ending while already fading).
+TRANSITIONS: dict[str, frozenset[str]] = {
+    "starting": frozenset({"idle", "fault", "stopping"}),
+    "idle": frozenset({"idle", "engaged", "fault", "stopping"}),
+    "engaged": frozenset({"fading", "fault", "stopping"}),
+    "fading": frozenset({"fading", "engaged", "idle", "fault", "stopping"}),
+    "fault": frozenset({"engaged", "idle", "fault", "stopping"}),
+    "stopping": frozenset({"stopped", "stopping"}),
+    "stopped": frozenset(),
+}
+
+#: What each state tells an engine (``ProxyState.server_state``).
+SERVER_STATE = {
+    "starting": ServerState.IDLE, "idle": ServerState.IDLE, "engaged": ServerState.ENGAGED,
+    "fading": ServerState.FADING, "stopping": ServerState.FADING, "stopped": ServerState.IDLE,
+    "fault": ServerState.FAULT,
+}
+#: ServerState by loop-state code, for the acknowledgement path (no dict of names per ack).
+SERVER_STATE_BY_CODE = tuple(int(SERVER_STATE[name]) for name in LOOP_STATES)
+
+
+class Fault(IntEnum):
+    """Why the loop is in ``fault`` (``status`` shows the name)."""
+
+    NONE = 0
+    NONFINITE = 1       # a non-finite value before the device: zero wrench, device disabled
+    DEVICE = 2          # the device reported a fault: device disabled
+    SPEED = 3           # the device moved faster than its limit: forces faded, device on
+    STALL = 4           # the device's watchdog tripped because the loop was late: recovers by itself
+    STALLS_REPEATED = 5  # more stall trips than allowed in the window: latched
+
+
+FAULT_TEXT = {
+    Fault.NONE: "none",
+    Fault.NONFINITE: "non-finite value before the device (zero wrench, device disabled)",
+    Fault.DEVICE: "device fault (device disabled)",
+    Fault.SPEED: "device speed over its limit (forces faded)",
+    Fault.STALL: "device watchdog tripped by a late loop (recovers once the loop is on time)",
+    Fault.STALLS_REPEATED: "device watchdog tripped by late loops too often (latched)",
+}
+#: Faults that clear by themselves; every other one waits for ``status --rearm``.
+SELF_CLEARING = frozenset({Fault.STALL})
+
+
+class Reason(IntEnum):
+    """Why a transition happened (logged by the supervisor with the transition's detail value)."""
+
+    START = 1
+    ENGAGE = 2            # detail: session id
+    SILENT = 3            # detail: ms since the last ContactUpdate
+    RESUMED = 4           # the environment spoke again while fading
+    SESSION_ENDED = 5     # detail: session id
+    FADED = 6             # the fade reached zero
+    NONFINITE = 7
+    DEVICE_FAULT = 8      # detail: the device's fault code
+    SPEED = 9
+    STALL = 10            # detail: the stall, ms
+    STALL_IDLE = 11       # detail: the stall, ms (nothing was rendered: re-enabled at once)
+    STALLS_REPEATED = 12  # detail: trips within the window
+    RECOVERED = 13        # detail: s on time before recovering
+    REARM = 14
+    LINK_UP = 15          # a remote device's link came up before anything was rendered
+    STOP = 16
+    STOPPED = 17
+    UPDATE_ERROR = 18     # an update raised: treated as a non-finite value
+
+
+REASON_TEXT = {
+    Reason.START: "loop started",
+    Reason.ENGAGE: "session {detail:.0f} engaged: force ramps in",
+    Reason.SILENT: "environment silent for {detail:.0f} ms: force fades",
+    Reason.RESUMED: "environment back: force ramps in",
+    Reason.SESSION_ENDED: "session {detail:.0f} ended: force fades",
+    Reason.FADED: "force faded to zero",
+    Reason.NONFINITE: "non-finite value before the device: zero wrench, device disabled; re-arm with `hapticproxy status --rearm`",
+    Reason.DEVICE_FAULT: "device fault {detail:.0f}: device disabled; re-arm with `hapticproxy status --rearm`",
+    Reason.SPEED: "device faster than its limit: forces faded; re-arm with `hapticproxy status --rearm`",
+    Reason.STALL: "the loop stalled {detail:.0f} ms and the device's watchdog cut the output; recovers once on time",
+    Reason.STALL_IDLE: "the loop stalled {detail:.0f} ms before anything was rendered; device re-enabled",
+    Reason.STALLS_REPEATED: "{detail:.0f} stall trips within safety.stall_window_s: latched; re-arm with "
+                            "`hapticproxy status --rearm`",
+    Reason.RECOVERED: "loop on time for {detail:.2f} s after a stall: force ramps in",
+    Reason.REARM: "re-armed",
+    Reason.LINK_UP: "device link up",
+    Reason.STOP: "stop requested: force ramps down",
+    Reason.STOPPED: "stopped",
+    Reason.UPDATE_ERROR: "a contact update could not be applied: zero wrench, device disabled; re-arm with "
+                         "`hapticproxy status --rearm`",
+}
+
+
+def describe(reason: int, detail: float) -> str:
+    try:
+        return REASON_TEXT[Reason(int(reason))].format(detail=detail)
+    except (ValueError, KeyError):
+        return f"reason {int(reason)}"

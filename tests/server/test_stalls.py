@@ -1,0 +1,151 @@
+"""A stalled loop (the OS did not run it for 50-250 ms) in simulated time.
+
+The device keeps its own watchdog (50 ms) and keeps moving while the loop does not run, the hand
+pushing on the dead handle (``WatchdogDevice``). Promises: a stall before anything is rendered
+never faults; a stall while engaged cuts the output (the device's watchdog), holds the proxy
+(nothing drags it into the floor meanwhile) and recovers by itself through the normal ramp-in
+once the loop has been on time for ``safety.stall_recover_s``, without a kick; more than
+``safety.stall_trips_max`` trips within ``safety.stall_window_s`` latch until a re-arm; every
+transition is in the transition log with its reason.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from server_harness import Rig, WatchdogDevice, make_settings
+
+from hapticproxy.server.clock import SimClock
+from hapticproxy.server.lifecycle import Fault, Reason
+from hapticproxy.server.shm import LS, TEL
+
+PUSH = lambda t: (0.0, -0.5, 0.0)  # noqa: E731 - a pure force hand pushing onto the floor
+
+
+def _rig(**sections):
+    clock = SimClock(start_ns=1_000_000_000)
+    settings = make_settings(**sections)
+    dev = WatchdogDevice(clock, hand=PUSH, period_s=settings.period_ns * 1e-9)
+    return Rig(settings, dev, {"start_pose": (0.0, 0.012, 0.0)}, clock=clock)
+
+
+def _reasons(loop):
+    return [Reason(r[4]) for r in loop.shared.transitions_since(0)]
+
+
+@pytest.fixture
+def rig():
+    made = []
+
+    def make(**sections):
+        r = _rig(**sections)
+        made.append(r)
+        return r
+
+    yield make
+    for r in made:
+        r.close()
+
+
+@pytest.mark.parametrize("stall_ms", [60, 120, 250])
+def test_a_stall_before_engagement_never_faults(rig, stall_ms):
+    r = rig()
+    r.env.alive = False
+    r.run(0.2)
+    r.clock.stall(stall_ms * 1_000_000)
+    rows = r.run(0.3)
+    assert r.device.trips == 1                      # the device's watchdog did cut it
+    assert r.loop.stall_trips == 1
+    assert not np.any(rows[:, TEL["loop_state"]] == LS["fault"])
+    assert r.loop.state_name == "idle" and r.device.enabled
+    assert Reason.STALL_IDLE in _reasons(r.loop)
+    r.env.alive = True                              # a client then engages as usual
+    r.run(2.0)
+    assert r.loop.state_name == "engaged"
+    assert abs(r.device.commands[-1][1] - 0.5) < 0.05
+
+
+@pytest.mark.parametrize("stall_ms", [60, 120, 250])
+def test_a_stall_while_engaged_recovers_by_itself_without_a_kick(rig, stall_ms):
+    r = rig()
+    r.run(3.0)
+    assert abs(r.device.commands[-1][1] - 0.5) < 0.02
+    proxy_y = r.loop.ctrl.cs[39 + 1]  # CS_PPOSE y: where the proxy rests on the floor
+    n0 = len(r.device.commands)
+    r.clock.stall(stall_ms * 1_000_000)
+    rows = r.run(0.2)
+    assert r.loop.state_name == "fault" and r.loop.fault == Fault.STALL
+    assert r.loop.stall_trips == 1
+    # held: the hand pushed the dead handle into the floor, the proxy did not follow
+    assert np.all(np.abs(rows[:, TEL["proxy_y"]] - proxy_y) < 1e-6)
+    assert rows[-1, TEL["dev_y"]] < proxy_y - 0.005
+    r.run(0.5)                                      # on time for stall_recover_s (0.5 s) ...
+    assert r.loop.state_name == "engaged"           # ... then the force ramps back in by itself
+    assert r.loop.stall_recoveries == 1
+    r.run(2.5)
+    fy = np.array(r.device.commands[n0:])[:, 1]
+    assert np.max(np.abs(fy)) <= 0.5 + 1.0          # never more than the steady force + 1 N
+    assert abs(fy[-1] - 0.5) < 0.02                 # and the contact is rendered again
+    steps = np.abs(np.diff(fy))
+    assert np.max(steps) <= r.loop.ctrl.force_rate_n_per_step + 1e-12
+    reasons = _reasons(r.loop)
+    assert reasons[-2:] == [Reason.STALL, Reason.RECOVERED]
+
+
+def test_the_stall_recovery_waits_until_the_loop_is_on_time(rig):
+    r = rig(safety={"stall_recover_s": 0.3})
+    r.run(2.0)
+    r.clock.stall(80_000_000)
+    r.run(0.2)
+    for _ in range(3):                              # late again and again: no recovery yet
+        r.clock.stall(3_000_000)
+        r.run(0.2)
+        assert r.loop.state_name == "fault"
+    r.run(0.35)
+    assert r.loop.state_name == "engaged"
+
+
+def test_repeated_stalls_latch_until_rearmed(rig):
+    r = rig(safety={"stall_trips_max": 2, "stall_window_s": 10.0})
+    r.run(2.0)
+    for _ in range(2):
+        r.clock.stall(70_000_000)
+        r.run(1.5)
+        assert r.loop.state_name == "engaged"
+    r.clock.stall(70_000_000)
+    r.run(2.0)
+    assert r.loop.state_name == "fault" and r.loop.fault == Fault.STALLS_REPEATED
+    assert np.all(np.array(r.device.commands[-1000:]) == 0.0)
+    assert _reasons(r.loop)[-1] == Reason.STALLS_REPEATED
+    assert r.loop.rearm()
+    r.run(2.0)
+    assert r.loop.state_name == "engaged"
+    assert abs(r.device.commands[-1][1] - 0.5) < 0.02
+
+
+def test_stall_trips_outside_the_window_do_not_add_up(rig):
+    r = rig(safety={"stall_trips_max": 1, "stall_window_s": 2.0})
+    r.run(2.0)
+    for _ in range(3):
+        r.clock.stall(70_000_000)
+        r.run(2.5)                                  # each trip older than the window by the next
+        assert r.loop.state_name == "engaged"
+    assert r.loop.stall_trips == 3 and r.loop.stall_recoveries == 3
+
+
+def test_a_late_step_that_trips_nothing_is_not_a_fault(rig):
+    r = rig()
+    r.run(2.0)
+    r.clock.stall(20_000_000)                       # shorter than the device's watchdog
+    r.run(0.5)
+    assert r.loop.state_name == "engaged" and r.loop.stall_trips == 0
+
+
+def test_a_watchdog_trip_without_a_stall_latches(rig):
+    """The device's watchdog tripping while the loop was on time is the device's (or its link's)
+    fault, not the loop's: it latches as a device fault."""
+    r = rig()
+    r.run(2.0)
+    r.device._fault = 2                             # DEV_FAULT_WATCHDOG, the loop on time
+    r.run(1.0)
+    assert r.loop.state_name == "fault" and r.loop.fault == Fault.DEVICE
+    assert r.loop.stall_trips == 0

@@ -1,0 +1,37 @@
+"""Nothing compiles once the loop is armed: ``HapticLoop.warm_up`` covers every kernel signature
+the loop calls in every state, for every device and tool kind (a compile inside the loop is a
+stall of seconds that trips the device's watchdog: the first start on a fresh machine faulted
+this way). Each kind runs in a fresh interpreter, so nothing another test compiled can hide a
+signature warm-up missed; ``hapticproxy warmup`` is what set-up runs."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+HERE = Path(__file__).parent
+
+
+@pytest.mark.parametrize("kind", ["1dof", "planar", "spatial", "linkage", "planar-watchdog"])
+def test_no_kernel_compiles_after_warm_up_in_any_state(kind):
+    out = subprocess.run([sys.executable, str(HERE / "warm_probe.py"), kind], capture_output=True, text=True,
+                         timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert res["visited"] == ["engaged", "fading", "fault", "idle", "stopped", "stopping"], res
+    assert res["state"] == "stopped"
+    assert res["after_warm_up"] == 0, res
+    assert res["late_compiles"] == 0, res
+
+
+def test_warmup_command_leaves_nothing_cold():
+    from hapticproxy.server.warm import SERVER_KERNEL_MODULES, cold
+
+    out = subprocess.run([sys.executable, "-m", "hapticproxy.cli.main", "warmup"], capture_output=True, text=True,
+                         timeout=900)
+    assert out.returncode == 0, out.stderr
+    assert "kernels ready" in out.stderr
+    assert cold(SERVER_KERNEL_MODULES) == []
