@@ -135,7 +135,7 @@ def _matrix() -> list[Case]:
         Case("environment silent 400 ms", kind="silent"),
         Case("client killed mid-contact", kind="kill"),
         Case("client Bye mid-contact", kind="bye"),
-        Case("server loop stalled 100 ms (remote device)", kind="stall", device="remote"),
+        Case("server loop stalled 100 ms (remote device): recovers", kind="stall", device="remote"),
         Case("server loop killed (remote device, telemetry)", kind="crash", device="remote"),
         Case("zenoh baseline (through the TCP proxy)", transport="zenoh"),
         Case("zenoh TCP delay 20 ms", transport="zenoh", tcp_delay_s=0.020),
@@ -176,9 +176,9 @@ def settings_for(url: str, *, device: str = "sim", device_port: int = 0, realtim
     })
 
 
-def _device_main(port: int, out_path: str, seconds_max: float, stop, ready) -> None:
-    """The remote device program (its own process): a simulated planar device, the same hand,
-    watchdog 50 ms; records per tick what the device rendered."""
+def _device_main(port: int, out_path: str, seconds_max: float, stop, ready, hand: dict | None = None) -> None:
+    """The remote device program (its own process): a simulated planar device, the same hand
+    (or ``hand``), watchdog 50 ms; records per tick what the device rendered."""
     from hapticproxy.server.devices.remote import DeviceProgram
     from hapticproxy.server.devices.sim import SimDevice, parse_sim_config
 
@@ -186,7 +186,7 @@ def _device_main(port: int, out_path: str, seconds_max: float, stop, ready) -> N
     sim = SimDevice(parse_sim_config({
         "kind": "planar", "damping_n_s_per_m": DEVICE_DAMPING, "watchdog_s": 0.0,
         "workspace_min_m": WORKSPACE[0], "workspace_max_m": WORKSPACE[1],
-        "hand": {"type": "constant", "wrench": [0.0, PUSH_N, 0.0]}}, period_s=period_ns * 1e-9))
+        "hand": hand or {"type": "constant", "wrench": [0.0, PUSH_N, 0.0]}}, period_s=period_ns * 1e-9))
     prog = DeviceProgram(sim, ("127.0.0.1", port), watchdog_s=DEVICE_WATCHDOG_S, period_s=period_ns * 1e-9)
     n = int(seconds_max * 1000) + 2000
     # t_s (CLOCK_MONOTONIC), armed, fault, epoch, fx, fy, tz (rendered), last accepted command t_s
@@ -254,11 +254,11 @@ def _engine(name: str):
 
 
 class _ThreadClient:
-    def __init__(self, engine_name: str, url: str, transport_options: dict | None = None) -> None:
+    def __init__(self, engine_name: str, url: str, transport_options: dict | None = None, scene: str = "testbed") -> None:
         from hapticproxy.clients.runner import ClientRunner
 
         self.engine = _engine(engine_name)
-        self.runner = ClientRunner(self.engine, url, scene="testbed", epsilon_m=0.005, max_contacts=16,
+        self.runner = ClientRunner(self.engine, url, scene=scene, epsilon_m=0.005, max_contacts=16,
                                    connect_timeout_s=60.0, reconnect_delay_s=0.3,
                                    transport_options=transport_options)
         self.stop = threading.Event()
@@ -411,10 +411,8 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
                 os.kill(loop_pid, signal.SIGCONT)
                 stopped = False
             events["fault_end_s"] = time.monotonic()
-            _serve(sup, 0.5)
-            events["state_before_rearm"] = sup.shared.snapshot()["loop_state"]
-            events["rearm_s"] = time.monotonic()
-            sup.shared.request("rearm")
+            _serve(sup, 0.25)
+            events["state_after_stall"] = sup.shared.snapshot()["loop_state"]  # in fault: recovers by itself
         elif case.kind == "crash":
             head_before = int(sup.shared.head[0])
             os.kill(loop_pid, signal.SIGKILL)
@@ -443,6 +441,11 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
         snap = sup.shared.snapshot()
         rows = _ring(sup)
         t0_s = snap["t_start_ns"] * 1e-9
+        if case.kind == "stall":
+            # the device is re-enabled when the loop recovers (instead of a person's re-arm)
+            rec = [t_ns for _, t_ns, _f, _t, r, _d in sup.shared.transitions_since(0) if r == 13]  # RECOVERED
+            if rec:
+                events["rearm_s"] = rec[0] * 1e-9
     finally:
         if stopped:
             os.kill(loop_pid, signal.SIGCONT)
@@ -488,13 +491,19 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
                 or row["telemetry_rows_lost"]):
             row["broken"]["telemetry"] = 1
             row["violations"] += 1
-    if "state_before_rearm" in events:
+    if "state_after_stall" in events:
         from hapticproxy.server.shm import TEL
 
-        row["state_before_rearm"] = events["state_before_rearm"]
-        after = rows[:, TEL["t_s"]] >= ev_rel["rearm_s"]
-        f = np.abs(rows[after][:, [TEL["cmd_fx"], TEL["cmd_fy"], TEL["cmd_fz"]]])
-        row["max_force_after_rearm_n"] = round(float(f.max()), 3) if len(f) else None
+        row["state_after_stall"] = events["state_after_stall"]
+        row["stall_trips"] = int(snap["stall_trips"])
+        row["stall_recoveries"] = int(snap["stall_recoveries"])
+        if "rearm_s" not in ev_rel:
+            row["broken"]["no recovery after the stall"] = 1
+            row["violations"] += 1
+        else:
+            after = rows[:, TEL["t_s"]] >= ev_rel["rearm_s"]
+            f = np.abs(rows[after][:, [TEL["cmd_fx"], TEL["cmd_fy"], TEL["cmd_fz"]]])
+            row["max_force_after_recovery_n"] = round(float(f.max()), 3) if len(f) else None
     row.update(case=case.name, faults=int(snap["faults_total"]), updates=int(snap["updates"]),
                missed_deadlines=int(snap["missed_deadlines"]), rt_scheduling=bool(snap["rt_scheduling"]))
     row.update(extra)
@@ -669,13 +678,15 @@ def analyse_device(rec: np.ndarray, lim: dict, ev: dict, case: Case) -> dict:
     if k:
         broken["device output with no command for longer than its watchdog"] = k
         nbad += k
-    # forces do not come back by themselves: from the cut to the re-arm, nothing
+    # forces do not come back by themselves: from the cut on, nothing under the same command key
+    # (epoch); only the server's next enable (a re-arm, or its recovery once on time) re-arms it
     t_rearm = ev.get("rearm_s", math.inf)
     t_zero = t[np.argmax(zero)] if zero.any() else math.inf
-    back = (t > t_zero) & (t < t_rearm) & (mag > 0)
+    cut_epoch = epoch[np.argmax(zero)] if zero.any() else -1
+    back = (t > t_zero) & (epoch == cut_epoch) & (mag > 0)
     k = int(back.sum())
     if k:
-        broken["device output after its watchdog cut, before a re-arm"] = k
+        broken["device output after its watchdog cut, before the server re-enabled it"] = k
         nbad += k
     over = (np.abs(w[:, :2]) > lim["force_cap_n"] + TOL).any(axis=1) | (np.abs(w[:, 2]) > lim["torque_cap_n_m"] + TOL)
     if over.any():
@@ -703,7 +714,7 @@ def machine() -> str:
 
 
 COLUMNS = ("case", "max_force_n", "max_force_step_n", "force_cap_n", "rate_limit_n_per_step", "fade_ms", "unstable",
-           "violations")
+           "peak_n", "steady_n", "recover_ms", "stall_trips", "violations")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -715,15 +726,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO for the loop")
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
     args = ap.parse_args(argv)
+    from . import faults_lifecycle as lc
+
     cases = CASES
+    life = lc.cases()
     if args.cases:
         wanted = [w.strip().lower() for w in args.cases.split(",") if w.strip()]
         cases = [c for c in CASES if any(w in c.name.lower() for w in wanted)]
+        life = [c for c in life if any(w in c.name.lower() for w in wanted)]
     if args.list:
-        for c in cases:
+        for c in cases + life:
             print(c.name)
         return 0
-    if not cases:
+    if not cases and not life:
         print("hapticproxy bench faults: no case matches --cases", file=sys.stderr)
         return 2
     info = {"machine": machine(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
@@ -731,9 +746,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps({"run": info}), flush=True)
     rows = []
-    for c in cases:
+    this = sys.modules[__name__]
+    for c in cases + life:
         try:
-            row = run_case(c, engine=args.engine, realtime=not args.no_realtime, seconds=args.seconds)
+            if isinstance(c, lc.LifecycleCase):
+                row = lc.run_lifecycle_case(c, this, engine=args.engine, realtime=not args.no_realtime)
+            else:
+                row = run_case(c, engine=args.engine, realtime=not args.no_realtime, seconds=args.seconds)
         except Exception as exc:  # noqa: BLE001 - one failed case does not hide the others
             row = {"case": c.name, "error": f"{type(exc).__name__}: {exc}", "violations": None}
         rows.append(row)

@@ -89,7 +89,8 @@ CS_PTWIST = 46     # 46..51 proxy hand-point twist, world, after the step
 CS_CMDW = 52       # 52..57 controller command before safety, world
 CS_DRIVE = 58      # 1: the device drives the proxy (hand and coupling channels, model step); 0: held
 CS_SLIDE = 59      # 1: the device->world offset follows the proxy while the force ramps in
-NCS = 60
+CS_SKIPPED = 60    # periods the loop skipped before this step (it woke late): the gain moves on
+NCS = 61
 
 # ---- counters (int64[NCC])
 CC_STEPS = 0
@@ -186,10 +187,14 @@ def _safety(cp, cs, cc, cmd):
         return RC_NONFINITE
     g_old = cs[CS_GAIN]
     g = g_old
+    # the gain keeps its time across periods the loop skipped (a fade reaches zero in fade_s of
+    # wall-clock time), while the bounds below still compare with the previous output
+    steps = 1.0 + cs[CS_SKIPPED]
+    cs[CS_SKIPPED] = 0.0
     if cs[CS_TARGET] > g:
-        g = min(cs[CS_TARGET], g + cp[CP_RAMP])
+        g = min(cs[CS_TARGET], g + steps * cp[CP_RAMP])
     elif cs[CS_TARGET] < g:
-        g = max(cs[CS_TARGET], g - cp[CP_FADE])
+        g = max(cs[CS_TARGET], g - steps * cp[CP_FADE])
     cs[CS_GAIN] = g
     fading = g < g_old
     ramping = g > g_old
@@ -223,7 +228,7 @@ def _safety(cp, cs, cc, cmd):
             # A ramp adds force at the ramp's own slope (cap * dt / ramp_in_s per step) at most,
             # also when it resumes an interrupted fade (whose output the fade held below the
             # gained command): force comes back gradually, never as a step.
-            grow = abs(prev) + cap * cp[CP_RAMP]
+            grow = abs(prev) + cap * cp[CP_RAMP]  # per written command, skipped periods or not
             if v > grow:
                 v = grow
             elif v < -grow:
@@ -666,13 +671,10 @@ class Controller:
         """The loop woke ``steps`` whole periods late and skipped them: the gain moves on as if
         they had run, so a fade reaches zero and a ramp-in completes in their wall-clock times
         (``fade_s``, ``ramp_in_s``), not in a number of steps. The output itself still changes
-        only through the kernel's rate limit and fade/ramp bounds."""
-        cs = self.cs
-        g = cs[CS_GAIN]
-        if cs[CS_TARGET] < g:
-            cs[CS_GAIN] = max(cs[CS_TARGET], g - steps * self.cp[CP_FADE])
-        elif cs[CS_TARGET] > g:
-            cs[CS_GAIN] = min(cs[CS_TARGET], g + steps * self.cp[CP_RAMP])
+        only through the kernel's rate limit and fade/ramp bounds, which compare with the last
+        command written (so a ramp that the gain finished during a stall still adds force at the
+        ramp's slope per command, and a fade still never pushes harder)."""
+        self.cs[CS_SKIPPED] += steps
 
     @property
     def gain(self) -> float:

@@ -243,12 +243,16 @@ class HapticLoop:
         self._stall_window_ns = int(scfg["stall_window_s"] * 1e9)
         self._stall_trips_max = int(scfg["stall_trips_max"])
         self._trip_times: list[int] = []
+        #: a gap between two steps' device writes longer than this is a stall: half the device's
+        #: own watchdog (a step late by a period or two threatens nothing; it is counted as a
+        #: missed deadline, not as being off time)
+        self._stall_gap_ns = max(2 * self.period_ns, self._dev_wd_ns // 2 if self._dev_wd_ns > 0 else 25_000_000)
         self.stall_trips = 0
         self.stall_recoveries = 0
         self._last_write_ns = 0   # end of the last step (its device write)
         self._stall_ns = 0        # the latest gap between steps longer than two periods
         self._stall_at = 0        # when it ended
-        self._ontime_since = 0    # the last step that missed a deadline (or ended a stall)
+        self._ontime_since = 0    # the end of the last stall
         #: the supervisor's pid; when it changes (the supervisor died) the loop stops cleanly
         self.parent_pid = 0
         self._deadline = 0
@@ -381,11 +385,10 @@ class HapticLoop:
             self.shared.status[self._st_missed] += missed
             self._deadline = deadline + (missed + 1) * period
             self.ctrl.skip(missed)  # fades and ramp-ins keep their times, not their step counts
-            self._ontime_since = wake
         else:
             self._deadline = deadline + period
         gap = wake - self._last_write_ns
-        if gap > 2 * period:  # the process did not run: a stall (what the device saw, too)
+        if gap > self._stall_gap_ns:  # the process did not run: a stall (what the device saw, too)
             self._stall_ns = gap
             self._stall_at = wake
             self._ontime_since = wake
@@ -645,12 +648,21 @@ class HapticLoop:
             self.transition("idle", Reason.FADED)
 
     def _stalled_recently(self, now: int) -> bool:
-        """The loop stalled long enough (and recently enough) to explain the device's watchdog."""
+        """The loop stalled long enough (and recently enough) to explain the device's watchdog.
+        A stall inside this step (between its wake-up and its device write) shows only now: the
+        time since the previous step's end."""
+        gap = self.clock.now_ns() - self._last_write_ns  # one period and one step's compute when on time
+        if gap > self._stall_gap_ns:
+            self._stall_ns = gap
+            self._stall_at = now
+            self._ontime_since = now
         wd = self._dev_wd_ns if self._dev_wd_ns > 0 else 50_000_000
         return self._stall_at > 0 and now - self._stall_at <= 1_000_000_000 and 2 * self._stall_ns >= wd
 
     def _on_fault(self, rc: int, dev_code: int, now: int, reason: Reason | None = None) -> None:
-        if dev_code == DEV_FAULT_WATCHDOG and self.state != LS["stopping"] and self._stalled_recently(now):
+        # the device's watchdog, or a remote device's link, cut by this loop's own stall
+        if ((dev_code == DEV_FAULT_WATCHDOG or dev_code == DEV_FAULT_LINK) and self.state != LS["stopping"]
+                and self._stalled_recently(now)):
             self._on_stall_trip(now)
             return
         if self.state == LS["fault"] or self.stopped:

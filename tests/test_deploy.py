@@ -3,6 +3,7 @@ import configparser
 import json
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -63,3 +64,83 @@ def test_container_command_parses():
     entry = json.loads(re.search(r"^ENTRYPOINT (\[.*\])$", text, re.M).group(1))
     cmd = json.loads(re.search(r"^CMD (\[.*\])$", text, re.M).group(1))
     _check_command(entry + cmd)
+
+
+def _unit_for_this_checkout(tmp_path) -> Path:
+    """The unit with its commands pointing at this checkout's installed command (verify checks
+    that every command exists and is executable)."""
+    unit = (ROOT / "deploy" / "systemd" / "hapticproxy.service").read_text()
+    exe = Path(sys.executable).parent / "hapticproxy"
+    out = tmp_path / "hapticproxy.service"
+    out.write_text(unit.replace("/opt/hapticproxy/.venv/bin/hapticproxy", str(exe)))
+    return out
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
+def test_systemd_unit_verifies(tmp_path):
+    r = subprocess.run(["systemd-analyze", "verify", str(_unit_for_this_checkout(tmp_path))], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 0 and r.stderr.strip() == "", r.stderr  # unknown keys are only warned about
+
+
+@pytest.mark.skipif(shutil.which("systemd-sysusers") is None, reason="systemd-sysusers not installed")
+def test_sysusers_creates_the_service_user():
+    path = ROOT / "deploy" / "systemd" / "hapticproxy.sysusers"
+    r = subprocess.run(["systemd-sysusers", "--dry-run", str(path)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert "Creating user 'hapticproxy'" in r.stdout + r.stderr
+
+
+def test_systemd_unit_never_cold_starts_and_keeps_real_time():
+    cp = configparser.ConfigParser(strict=True, interpolation=None)
+    cp.read(ROOT / "deploy" / "systemd" / "hapticproxy.service")
+    svc = cp["Service"]
+    assert svc["User"] == "hapticproxy" and svc["CacheDirectory"] == "hapticproxy"
+    assert "NUMBA_CACHE_DIR=/var/cache/hapticproxy/" in svc["Environment"]
+    assert shlex.split(svc["ExecStartPre"])[1:] == ["warmup", "--quiet"]
+    # hardening options a real-time, JIT-compiled process cannot take
+    assert "RestrictRealtime" not in svc and "MemoryDenyWriteExecute" not in svc
+    assert svc["AmbientCapabilities"] == "CAP_SYS_NICE"
+
+
+def test_container_is_built_warm_and_runs_as_its_own_user():
+    text = (ROOT / "deploy" / "container" / "Containerfile").read_text()
+    lines = [ln for ln in text.splitlines() if ln and not ln.startswith("#")]
+    assert not any(ln.startswith("EXPOSE") for ln in lines)  # the default config binds 127.0.0.1
+    assert any(ln.startswith("ENV NUMBA_CACHE_DIR=") for ln in lines)
+    build = "\n".join(ln for ln in lines if ln.startswith(("RUN", " &&")))
+    assert "hapticproxy warmup" in build and "chown -R hapticproxy" in build
+    users = [ln.split()[1] for ln in lines if ln.startswith("USER ")]
+    assert users and users[-1] == "hapticproxy"
+    health = next(ln for ln in lines if ln.startswith("HEALTHCHECK"))
+    assert "status" in health or "status" in text[text.index("HEALTHCHECK"):].split("\n", 2)[1]
+    ignored = (ROOT / ".dockerignore").read_text().split()
+    assert {".venv", "out", "**/__pycache__", "**/*.nbi", "**/*.nbc"} <= set(ignored)
+
+
+def test_the_units_warm_up_fills_its_cache_and_the_server_then_compiles_nothing(tmp_path):
+    """What the systemd unit does (and the container build): `hapticproxy warmup` with the
+    service's NUMBA_CACHE_DIR, then `serve`: the loop process loads every kernel from that cache
+    and says nothing about compiling."""
+    import os
+
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    w = subprocess.run(HP + ["warmup"], capture_output=True, text=True, timeout=900, env=env)
+    assert w.returncode == 0, w.stderr
+    assert "compiling" in w.stderr                              # the cache was empty
+    again = subprocess.run(HP + ["warmup"], capture_output=True, text=True, timeout=300, env=env)
+    assert "(0 compiled now" in again.stderr and "compiling" not in again.stderr
+    port = _free_udp_port()
+    s = subprocess.run(HP + ["serve", "--url", f"udp://127.0.0.1:{_free_udp_port()}", "--status",
+                             f"127.0.0.1:{port}", "--duration", "0.5"], capture_output=True, text=True,
+                       timeout=300, env=env)
+    assert s.returncode == 0, s.stderr
+    assert "compiling" not in s.stderr
+
+
+def _free_udp_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sk:
+        sk.bind(("127.0.0.1", 0))
+        return sk.getsockname()[1]

@@ -96,11 +96,14 @@ def test_the_stall_recovery_waits_until_the_loop_is_on_time(rig):
     r.run(2.0)
     r.clock.stall(80_000_000)
     r.run(0.2)
-    for _ in range(3):                              # late again and again: no recovery yet
-        r.clock.stall(3_000_000)
-        r.run(0.2)
+    for _ in range(3):                              # stalled again and again: no recovery yet
+        r.clock.stall(30_000_000)                   # (each shorter than the device's watchdog)
+        r.run(0.2)                                  # 0.2 s on time < 0.3 s
         assert r.loop.state_name == "fault"
-    r.run(0.35)
+    r.clock.stall(3_000_000)                        # a few missed deadlines are no stall: they do
+    r.run(0.05)                                     # not restart the wait (0.25 s on time)
+    assert r.loop.state_name == "fault"
+    r.run(0.1)                                      # 0.35 s on time
     assert r.loop.state_name == "engaged"
 
 
