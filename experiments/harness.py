@@ -348,7 +348,7 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
         folder = Path(folder or tmp)
         settings = cfgmod.load(spec.settings_dict(url, 1, folder))
         clock = SimClock(start_ns=_NS)
-        loop = HapticLoop(settings, clock=clock)
+        loop = HapticLoop.build(settings, clock=clock)
     env = None
     try:
         loop.warm_up()

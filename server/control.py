@@ -592,6 +592,7 @@ class Controller:
         ctl = settings["controller"]
         saf = settings["safety"]
         dt = settings.period_ns * 1e-9
+        self.device_kind = device_kind
         self.cp = np.zeros(NCP)
         self.cs = np.zeros(NCS)
         self.cc = np.zeros(NCC, dtype=np.int64)

@@ -56,7 +56,7 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         settings = cfgmod.Settings(data, "<supervisor>")
         lcfg = settings["loop"]
         clock = SleepClock() if naive else MonotonicClock()
-        loop = HapticLoop(settings, clock=clock, shared=shared, hmac_key=hmac_key)
+        loop = HapticLoop.build(settings, clock=clock, shared=shared, hmac_key=hmac_key)
         loop.parent_pid = parent  # a loop whose supervisor died stops (forces fade, Bye, exit)
 
         def on_term(signum, frame):  # noqa: ARG001 - checked in housekeeping, never in a kernel

@@ -167,16 +167,96 @@ def q_from_tool_pose(kind: str, pose, com_m, axis=None, joints=None) -> np.ndarr
     return np.array([px + rx, py + ry, pz + rz, w, x, y, z])
 
 
+class ModelFactory:
+    """Builds the local model for a client's Hello: the server's contact parameters, rate and
+    policy; the tool from the Hello. The handshake's check builds it (a Hello the model cannot
+    hold is refused by name) and keeps it for the engagement that follows, so an engagement
+    never builds a second one."""
+
+    KEEP = 4  # models kept from recent Hello checks (one per concurrent handshake is plenty)
+
+    def __init__(self, settings, device_kind: str, period_s: float) -> None:
+        mcfg = settings["model"]
+        self.settings = settings
+        self.device_kind = device_kind
+        self.period_s = float(period_s)
+        self.linkage = settings.tool_kind == "linkage"
+        self.contact = ContactParams(
+            stiffness_n_per_m=mcfg["stiffness_n_per_m"], damping_n_s_per_m=mcfg["damping_n_s_per_m"],
+            restitution=mcfg["restitution"], mu_static=mcfg["mu_static"], mu_kinetic=mcfg["mu_kinetic"])
+        self._kept: list[tuple[object, tuple, tuple]] = []  # (hello, (eps, max_contacts), (tool, model))
+
+    def build(self, hello, epsilon_m: float, max_contacts: int):
+        """(tool, LocalModel) for ``hello``; ValueError naming the field when it cannot be modelled."""
+        mcfg = self.settings["model"]
+        tool = tool_from_hello(hello, planar=(self.device_kind == "planar") if self.linkage else None)
+        eps = 0.0 if mcfg["policy"] == "lm0" else float(epsilon_m)
+        model = LocalModel(tool, self.contact, period_s=self.period_s, policy=mcfg["policy"], epsilon_m=eps,
+                           capacity=mcfg["capacity"], gravity_m_per_s2=mcfg["gravity_m_per_s2"],
+                           max_update_contacts=max(mcfg["capacity"], int(max_contacts)),
+                           linkage_dynamics=mcfg["linkage_dynamics"], warm=False)
+        return tool, model
+
+    def check(self, hello, epsilon_m: float, max_contacts: int) -> str:
+        """"" if the model can hold ``hello``'s tool (the model is kept for :meth:`take`), else why not."""
+        try:
+            built = self.build(hello, epsilon_m, max_contacts)
+        except ValueError as exc:
+            return str(exc)
+        self._kept = [k for k in self._kept if k[0] is not hello][-(self.KEEP - 1):] + [
+            (hello, (float(epsilon_m), int(max_contacts)), built)]
+        return ""
+
+    def take(self, hello, epsilon_m: float, max_contacts: int):
+        """The model the check built for this Hello with these grants, or a new one."""
+        key = (float(epsilon_m), int(max_contacts))
+        for i, (h, k, built) in enumerate(self._kept):
+            if h is hello and k == key:
+                del self._kept[i]
+                return built
+        return self.build(hello, epsilon_m, max_contacts)
+
+
 class HapticLoop:
-    """The server loop. Build with validated settings; ``run()`` or ``step()`` by hand in tests.
+    """The server loop. It receives its parts built (``HapticLoop.build`` builds them from the
+    settings) and checks at construction that they fit each other: the device's kind is the one
+    the settings model, the controller was made for that device, the transport can be polled.
+    ``run()``, or ``step()`` by hand in tests.
 
     Every change of ``state`` goes through :meth:`transition` (the table is
     ``lifecycle.TRANSITIONS``)."""
 
-    def __init__(self, settings, *, clock=None, transport=None, device=None, shared: SharedState | None = None,
-                 hmac_key: bytes | None = None, max_packets_per_step: int = 32) -> None:
+    @classmethod
+    def build(cls, settings, *, clock=None, transport=None, device=None, shared: SharedState | None = None,
+              hmac_key: bytes | None = None, **kw) -> "HapticLoop":
+        """Open what is not given (the transport at ``transport.url``, the ``[device]`` driver); the
+        loop closes what it opened."""
         from hapticproxy.protocol.transport import open_transport
 
+        from .clock import MonotonicClock
+
+        clock = clock or MonotonicClock()
+        own_t = transport is None
+        own_d = device is None
+        if own_t:
+            transport = open_transport(settings["transport"]["url"], "server")
+        try:
+            if own_d:
+                device = load_device(settings["device"]["driver"], dict(settings["device"]),
+                                     period_s=settings.period_ns * 1e-9, clock_ns=clock.now_ns)
+            loop = cls(settings, clock=clock, transport=transport, device=device, shared=shared, hmac_key=hmac_key,
+                       **kw)
+        except BaseException:
+            if own_t:
+                transport.close()
+            raise
+        loop._owns_transport, loop._owns_device = own_t, own_d
+        return loop
+
+    def __init__(self, settings, *, transport, device, clock=None, shared: SharedState | None = None,
+                 endpoint: ServerEndpoint | None = None, controller: ctl.Controller | None = None,
+                 models: ModelFactory | None = None, hmac_key: bytes | None = None,
+                 max_packets_per_step: int = 32) -> None:
         from .clock import MonotonicClock
 
         self.settings = settings
@@ -188,8 +268,19 @@ class HapticLoop:
         self.poll_budget_ns = int(POLL_BUDGET * settings.period_ns)
         self.poll_cut = 0  # steps whose poll stopped at the time budget (datagrams left for later)
         self.shared = shared or SharedState.local(max(16, int(settings["telemetry"]["ring_s"] * settings.rate_hz)))
-        self._owns_transport = transport is None
-        self.transport = transport if transport is not None else open_transport(settings["transport"]["url"], "server")
+        # the parts, checked against each other
+        want = settings["device"]["kind"] if self.kind == "linkage" else self.kind
+        if getattr(device, "kind", None) != want:
+            raise ValueError(f"device: the loop models a {self.kind} tool on a {want} device, got a "
+                             f"{getattr(device, 'kind', '?')} device")
+        for name in ("recv_into", "send", "max_packet_bytes", "counters"):
+            if not hasattr(transport, name):
+                raise ValueError(f"transport: {type(transport).__name__} has no {name}")
+        self.transport = transport
+        self.device = device
+        self._owns_transport = False
+        self._owns_device = False
+        self.models = models or ModelFactory(settings, device.kind, self.dt_s)
         tcfg = settings["transport"]
         mcfg = settings["model"]
         scfg = settings["safety"]
@@ -203,18 +294,14 @@ class HapticLoop:
             supported_tools=frozenset({_KIND_TO_TOOLKIND[self.kind]}),
             hello_check=self._check_hello,
         )
-        self.endpoint = ServerEndpoint(self.transport.send, self.server_config, hmac_key=hmac_key)
-        self._owns_device = device is None
-        self.device = device if device is not None else load_device(
-            settings["device"]["driver"], dict(settings["device"]), period_s=self.dt_s, clock_ns=self.clock.now_ns)
-        self.ctrl = ctl.Controller(settings, self.device.kind, self.device.limits)
+        self.endpoint = endpoint or ServerEndpoint(self.transport.send, self.server_config, hmac_key=hmac_key)
+        self.ctrl = controller or ctl.Controller(settings, self.device.kind, self.device.limits)
+        if self.ctrl.device_kind != self.device.kind:
+            raise ValueError(f"controller: made for a {self.ctrl.device_kind} device, the device is {self.device.kind}")
         self._index_mapping = settings["controller"]["mapping"] == "index"
         #: a linkage tool is engaged: the step runs ``control.haptic_step_linkage``
         self._linkage = False
         self._largs = None
-        self.contact = ContactParams(
-            stiffness_n_per_m=mcfg["stiffness_n_per_m"], damping_n_s_per_m=mcfg["damping_n_s_per_m"],
-            restitution=mcfg["restitution"], mu_static=mcfg["mu_static"], mu_kinetic=mcfg["mu_kinetic"])
         self.dev = empty_state()
         self.rxbuf = bytearray(self.transport.max_packet_bytes)
         # model state (set when a client engages)
@@ -514,27 +601,17 @@ class HapticLoop:
             return q_from_tool_pose(self._tool_kind, upd.tool_pose, None, None, joints)
         return q_from_tool_pose(self._tool_kind, upd.tool_pose, self._hello_com, self._hello_axis)
 
+    def _granted(self, hello) -> tuple[float, int]:
+        """What the handshake grants this Hello (the session layer's rule)."""
+        cfg = self.server_config
+        return (min(float(hello.epsilon_m), cfg.max_epsilon_m),
+                min(int(hello.max_contacts), cfg.max_contacts, self.endpoint.codec.limits.max_contacts))
+
     def _check_hello(self, hello) -> str:
         """A Hello whose tool the model can hold with this server's contact parameters and rate:
-        "" or why not (Reject INVALID_HELLO), so a session never engages a tool that would fail."""
-        try:
-            self._new_model(hello, min(float(hello.epsilon_m), self.server_config.max_epsilon_m),
-                            int(hello.max_contacts))
-        except ValueError as exc:
-            return str(exc)
-        return ""
-
-    def _new_model(self, hello, epsilon_m: float, max_contacts: int):
-        """(tool, LocalModel) for a client's Hello; ValueError when the tool cannot be modelled."""
-        mcfg = self.settings["model"]
-        linkage = self.kind == "linkage"
-        tool = tool_from_hello(hello, planar=(self.device.kind == "planar") if linkage else None)
-        eps = 0.0 if mcfg["policy"] == "lm0" else float(epsilon_m)
-        model = LocalModel(tool, self.contact, period_s=self.dt_s, policy=mcfg["policy"], epsilon_m=eps,
-                           capacity=mcfg["capacity"], gravity_m_per_s2=mcfg["gravity_m_per_s2"],
-                           max_update_contacts=max(mcfg["capacity"], max_contacts),
-                           linkage_dynamics=mcfg["linkage_dynamics"], warm=False)
-        return tool, model
+        "" or why not (Reject INVALID_HELLO), so a session never engages a tool that would fail.
+        The model built for the check is the one the engagement uses."""
+        return self.models.check(hello, *self._granted(hello))
 
     def _track_env(self, upd, now: int) -> None:
         if self.last_update_ns:
@@ -574,7 +651,7 @@ class HapticLoop:
         hello = sess.hello
         linkage = self.kind == "linkage"
         try:
-            tool, model = self._new_model(hello, float(sess.epsilon_m), sess.max_contacts)
+            tool, model = self.models.take(hello, float(sess.epsilon_m), sess.max_contacts)
         except ValueError:
             self.update_errors += 1  # the handshake's check refuses such a Hello; never engage it
             return

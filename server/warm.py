@@ -80,7 +80,7 @@ def warm_server() -> int:
     n = 0
     for device_kind, tool in (("1dof", ""), ("planar", ""), ("spatial", ""), ("planar", "linkage"),
                               ("spatial", "linkage")):
-        loop = HapticLoop(_settings(device_kind, tool))
+        loop = HapticLoop.build(_settings(device_kind, tool))
         try:
             loop.warm_up()
             n += 1

@@ -329,7 +329,7 @@ def test_a_tool_the_model_refuses_is_rejected_in_the_handshake_and_the_loop_keep
                             "model": {"stiffness_n_per_m": 5e4, "damping_n_s_per_m": 375.0},
                             "device": {"driver": "sim", "kind": "planar"}, "telemetry": {"ring_s": 1.0}})
     clock = SimClock(start_ns=10**9)
-    loop = HapticLoop(settings, clock=clock)
+    loop = HapticLoop.build(settings, clock=clock)
     env = SimEnvClient(StubEngine(seed=1), "mem://extremes-refused", clock, scene="wall", epsilon_m=0.005,
                        max_contacts=16)
     try:

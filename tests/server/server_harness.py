@@ -274,7 +274,7 @@ class Rig:
         self.clock = clock or SimClock(start_ns=1_000_000_000)
         self.settings = settings
         self.device = device
-        self.loop = HapticLoop(settings, clock=self.clock, device=device)
+        self.loop = HapticLoop.build(settings, clock=self.clock, device=device)
         self.loop.warm_up()
         self.loop.start()
         self.env = WallEnv(settings["transport"]["url"], self.clock, **(env_kwargs or {}))

@@ -41,7 +41,7 @@ class LinkageRig:
         self.settings = make_settings(**sections)
         self.clock = SimClock(start_ns=1_000_000_000)
         self.device = PointDevice(hand=PUSH, period_s=self.settings.period_ns * 1e-9)
-        self.loop = HapticLoop(self.settings, clock=self.clock, device=self.device)
+        self.loop = HapticLoop.build(self.settings, clock=self.clock, device=self.device)
         self.loop.warm_up()
         self.loop.start()
         self.env = LinkageWallEnv(self.settings["transport"]["url"], self.clock, **(env_kwargs or {}))
@@ -113,7 +113,7 @@ def test_engine_joint_positions_keep_the_proxy_out_of_the_floor(linkage_rig, sen
 def test_a_hello_the_model_cannot_hold_is_refused_by_name():
     s = make_settings(model={"tool": "linkage"})
     clock = SimClock(start_ns=1_000_000_000)
-    loop = HapticLoop(s, clock=clock, device=PointDevice(period_s=1e-3))
+    loop = HapticLoop.build(s, clock=clock, device=PointDevice(period_s=1e-3))
     tr = open_transport(s["transport"]["url"], "client")
     try:
         links = bar_links(3)

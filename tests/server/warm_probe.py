@@ -31,7 +31,7 @@ def main(kind: str) -> None:
         dev = WatchdogDevice(clock, hand=lambda t: (0.0, -0.5, 0.0), period_s=1e-3)
     else:
         dev = load_device("sim", dict(settings["device"]), period_s=1e-3, clock_ns=clock.now_ns)
-    loop = HapticLoop(settings, clock=clock, device=dev)
+    loop = HapticLoop.build(settings, clock=clock, device=dev)
     loop.warm_up()
     n0 = kernels_compiled()
     sig0 = kernel_signatures()
