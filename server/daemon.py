@@ -326,8 +326,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"hapticproxy serve: {exc}", file=sys.stderr)
         return 2
-    for key, why in settings.outside_stable_region:
-        log.warning("OUTSIDE THE STABLE REGION (safety.allow_outside_stable_region = true): %s: %s", key, why)
+    warn_outside_stable_region(settings)
     sup = Supervisor(settings, record=args.record, duration_s=args.duration)
 
     def on_signal(signum, frame):  # noqa: ARG001
@@ -346,6 +345,12 @@ def main(argv: list[str] | None = None) -> int:
     if code == 0:
         log.info("stopped cleanly")
     return code
+
+
+def warn_outside_stable_region(settings: cfgmod.Settings) -> None:
+    """Log every setting accepted outside the measured stable region (the research override)."""
+    for key, why in settings.outside_stable_region:
+        log.warning("OUTSIDE THE STABLE REGION (safety.allow_outside_stable_region = true): %s: %s", key, why)
 
 
 def _check_device(settings: cfgmod.Settings) -> None:
