@@ -39,9 +39,10 @@ on the command line (``serve --preset``: it wins over what the file pins for the
 preset sets), then the other command-line options.
 
 The stable region: contact stiffness and damping outside the region that the stable-region
-sweep measured for the configured rate, controller and policy, and a force-rate limit that lets
-one step change the force by more than 1 N, are refused with the reason and the nearest safe
-value, unless ``[safety] allow_outside_stable_region = true`` (for research: the daemon logs
+sweep measured for the configured rate, controller and policy, a force-rate limit that lets one
+step change the force by more than 1 N, and a spring stiffer than the device's own mass takes at
+the rate (the coupling spring, or the contact with direct coupling; for drivers that report
+``mass_kg``), are refused with the reason and the nearest safe value, unless ``[safety] allow_outside_stable_region = true`` (for research: the daemon logs
 each such setting as a warning at start and ``status`` lists them).
 """
 import copy
@@ -353,11 +354,16 @@ def load(source: str | Path | dict | None = None, overrides: dict | None = None)
         rate_hz=rate, controller=cfg.controller.type, policy=cfg.model.policy,
         stiffness_n_per_m=cfg.model.stiffness_n_per_m, damping_n_s_per_m=cfg.model.damping_n_s_per_m,
         force_rate_n_per_s=s.force_rate_n_per_s)
+    device = device_config(cfg.device, period_s=int(round(1e9 / rate)) * 1e-9)
+    mass = device.get("mass_kg")
+    outside += stability.above_device_limits(
+        rate_hz=rate, controller=cfg.controller.type, device_mass_kg=mass if isinstance(mass, (int, float)) else None,
+        stiffness_n_per_m=cfg.model.stiffness_n_per_m, coupling_stiffness_n_per_m=cfg.controller.stiffness_n_per_m)
     if outside and not s.allow_outside_stable_region:
         key, why = outside[0]
         raise ConfigError(key, f"{why}; or set safety.allow_outside_stable_region = true (research only)")
     data = schema.builtins(cfg)
-    data["device"] = device_config(cfg.device, period_s=int(round(1e9 / rate)) * 1e-9)
+    data["device"] = device
     preset = data.pop("preset")
     data = {"preset": preset, **data}
     return Settings(data, name, tuple(outside))

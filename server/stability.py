@@ -116,6 +116,33 @@ def max_force_rate_n_per_s(rate_hz: float) -> float:
     return MAX_FORCE_STEP_N * float(rate_hz)
 
 
+#: k dt^2 / m at most this for a spring acting on the device's own mass, explicitly integrated at
+#: the haptic rate (the simulated device keeps its end-stops to the same rule: ``sim.ENDSTOP_STABILITY``)
+DEVICE_SPRING_STABILITY = 2.0
+
+
+def device_spring_limit_n_per_m(mass_kg: float, rate_hz: float) -> float:
+    """The stiffest spring the device's own mass takes at this rate: 2 m rate^2."""
+    return DEVICE_SPRING_STABILITY * float(mass_kg) * float(rate_hz) ** 2
+
+
+def above_device_limits(*, rate_hz: float, controller: str, device_mass_kg: float | None, stiffness_n_per_m: float,
+                        coupling_stiffness_n_per_m: float) -> list[tuple[str, str]]:
+    """Springs stiffer than the device's mass takes at this rate (the device's own limit): the
+    coupling spring of the four-channel and coupler controllers, or, with direct coupling (the
+    device is the tool), the contact stiffness. ``device_mass_kg`` None: the driver does not say."""
+    if device_mass_kg is None:
+        return []
+    k_dev = device_spring_limit_n_per_m(device_mass_kg, rate_hz)
+    key, k = (("model.stiffness_n_per_m", stiffness_n_per_m) if controller == "direct"
+              else ("controller.stiffness_n_per_m", coupling_stiffness_n_per_m))
+    if k <= k_dev:
+        return []
+    return [(key, f"{k:g} N/m on the device's {device_mass_kg:g} kg at {rate_hz:g} Hz is beyond what the haptic step "
+                  f"integrates stably (k dt^2 / m <= {DEVICE_SPRING_STABILITY:g}, the device's own limit); "
+                  f"nearest safe value {k_dev:.6g}")]
+
+
 def outside_stable_region(*, rate_hz: float, controller: str, policy: str, stiffness_n_per_m: float,
                           damping_n_s_per_m: float, force_rate_n_per_s: float) -> list[tuple[str, str]]:
     """Every setting outside the measured region, as ``(key, reason with the nearest safe value)``."""

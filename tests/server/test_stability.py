@@ -135,3 +135,22 @@ def test_the_override_accepts_and_says_so(caplog):
     assert text.count("WARNING") == 2 and "model.stiffness_n_per_m" in text
     assert "WARNING" not in format_status({"outside_stable_region": []})
     assert cfg.load().outside_stable_region == ()
+
+
+def test_a_spring_stiffer_than_the_devices_mass_takes_is_refused():
+    from hapticproxy.server.devices import sim
+
+    assert st.DEVICE_SPRING_STABILITY == sim.ENDSTOP_STABILITY
+    # a 10 g 1-DOF handle at 256 Hz takes 2 x 0.01 x 256^2 = 1311 N/m: the 1500 N/m coupling is too stiff
+    dev = {"kind": "1dof", "mass_kg": 0.01}
+    with pytest.raises(cfg.ConfigError) as e:
+        cfg.load({"loop": {"rate_hz": 256.0}, "device": dev})
+    assert e.value.key == "controller.stiffness_n_per_m" and "nearest safe value 1310.72" in e.value.reason
+    cfg.load({"loop": {"rate_hz": 256.0}, "device": dev, "controller": {"stiffness_n_per_m": 1310.0}})
+    # direct coupling: the device is the tool, the contact spring acts on its mass
+    with pytest.raises(cfg.ConfigError) as e:
+        cfg.load({"loop": {"rate_hz": 256.0}, "device": dev, "controller": {"type": "direct"},
+                  "model": {"stiffness_n_per_m": 2000.0, "damping_n_s_per_m": 10.0}})
+    assert e.value.key == "model.stiffness_n_per_m" and "device's 0.01 kg" in e.value.reason
+    s = cfg.load({"loop": {"rate_hz": 256.0}, "device": dev, "safety": {"allow_outside_stable_region": True}})
+    assert [k for k, _ in s.outside_stable_region] == ["controller.stiffness_n_per_m"]
