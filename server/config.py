@@ -46,7 +46,6 @@ the rate (the coupling spring, or the contact with direct coupling; for drivers 
 each such setting as a warning at start and ``status`` lists them).
 """
 import copy
-import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -215,13 +214,14 @@ DOCS.update({f"device.{k}": v for k, v in schema.descriptions(DeviceHeader).item
 PRESETS: dict[str, tuple[dict, str]] = {
     "fast": ({"loop": {"rate_hz": 512.0}, "model": {"capacity": 16, "epsilon_m": 0.010}},
              "512 Hz (the paper's rate), 16 contacts, epsilon up to 10 mm: least CPU (0.4 % of a core); "
-             "stable contacts up to about 10 kN/m with b = 7.5 ms x k; force steps up to 1 N per step"),
+             "stable contacts up to about 10 kN/m with b = 7.5 ms x k; force steps limited to 1 N per step (the "
+             "default force rate at 512 Hz is 512 N/s; the sweep's 1.95 N steps were measured at 1000 N/s)"),
     "balanced": ({"loop": {"rate_hz": 1000.0}, "model": {"capacity": 32, "epsilon_m": 0.010}},
                  "1 kHz, 32 contacts, epsilon up to 10 mm: the default (0.8 % of a core); stable contacts "
                  "up to about 50 kN/m with b = 7.5 ms x k; force steps up to 1 N per step"),
     "accurate": ({"loop": {"rate_hz": 4000.0}, "model": {"capacity": 64, "epsilon_m": 0.010}},
                  "4 kHz, 64 contacts, epsilon up to 10 mm: 3 % of a core; stable contacts up to about "
-                 "200 kN/m with b = 7.5 ms x k (1 MN/m with b = 30 N s/m); force steps up to 0.25 N per "
+                 "200 kN/m with b = 7.5 ms x k (1 MN/m with b = 30 N s/m); force steps up to 0.35 N per "
                  "step; wants SCHED_FIFO and a quiet core (a model update's step can outlast the 250 us period)"),
 }
 

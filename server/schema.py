@@ -231,17 +231,13 @@ def convert(cls, raw, *, prefix: str, fail: Fail, siblings: dict[str, type] | No
     """
     raw = plain(raw)
     if not isinstance(raw, dict):
-        return _raise(fail(prefix, f"expected a table, got {raw!r}"))
+        raise fail(prefix, f"expected a table, got {raw!r}")
     try:
         obj = msgspec.convert(raw, cls, strict=True)
     except msgspec.ValidationError as exc:
         raise _translate(cls, raw, str(exc), prefix, fail, siblings or {}, kind) from None
     _finite(raw, prefix, fail)
     return obj
-
-
-def _raise(exc):
-    raise exc
 
 
 def _translate(cls, raw, text: str, prefix: str, fail: Fail, siblings, kind: str) -> Exception:

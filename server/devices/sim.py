@@ -105,7 +105,6 @@ ENDSTOP_STABILITY = 2.0
 # One Struct per kind: its keys, defaults and bounds (the module docstring says what each means).
 # A key of another kind "does not apply" to this one. ``Limits*`` are the keys every driver of
 # the kind shares (the remote driver's tables extend them).
-Pos = Annotated[float, Meta(gt=0.0)]
 Mass = Annotated[float, Meta(gt=0.0, le=1e3)]
 NonNeg = Annotated[float, Meta(ge=0.0)]
 Vec = Union[float, list[float]]
