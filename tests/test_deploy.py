@@ -63,3 +63,15 @@ def test_container_command_parses():
     entry = json.loads(re.search(r"^ENTRYPOINT (\[.*\])$", text, re.M).group(1))
     cmd = json.loads(re.search(r"^CMD (\[.*\])$", text, re.M).group(1))
     _check_command(entry + cmd)
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.name)
+def test_example_config_prints_every_key_and_loads_back_the_same(path, tmp_path):
+    s = cfg.load(path)
+    text = s.to_toml()
+    assert "[device]" in text and "\nmax_force_n = " in text.split("[device]")[1]
+    f = tmp_path / path.name
+    f.write_text(text)
+    assert cfg.load(f).data == s.data
+    fast = cfg.load(path, {"preset": "fast"})          # --preset wins over what the file pins
+    assert fast.rate_hz == 512.0 and fast["model"]["capacity"] == 16
