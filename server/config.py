@@ -1,41 +1,63 @@
 """Server configuration: one TOML file (scene + server settings), every key with a default that
-works on loopback, validated at start with the key and the reason.
+works on loopback, validated once at start with the key and the reason.
 
     hapticproxy serve --config scene.toml
 
-Layout (all keys optional; ``hapticproxy serve --print-config`` prints the effective values)::
+Each table is declared once, as a msgspec Struct below (its keys, types, defaults, bounds and
+docs); :func:`load` converts the file into them (``server/schema.py`` words the refusals:
+``config loop.rate_hz: must be >= 100, got 50``, ``config loop.rtae_hz: unknown key (did you
+mean 'rate_hz'?)``), then checks what spans keys: the fade and ramp against the rate, the tool
+against the device, and the stable region (``server/stability.py``). ``[device]`` belongs to
+the driver named by ``device.driver``: the loader asks the driver for the table's effective
+values (every key of the kind, the hand's too), so a bad device key is refused here as well,
+and ``hapticproxy serve --print-config`` prints every key that is in effect.
+
+Layout (all keys optional)::
 
     preset = "balanced"            # fast | balanced | accurate (applied first, keys override)
 
-    [loop]      rate_hz, spin_us ("auto" or us), realtime, cpu
-    [transport] url, hmac_key_file, max_sessions, heartbeat_interval_s, silence_timeout_s
-    [model]     tool, policy, contact_frame, epsilon_m, capacity, stiffness_n_per_m, damping_n_s_per_m,
-                restitution, mu_static, mu_kinetic, gravity_m_per_s2, linkage_dynamics
+    [loop]       rate_hz, spin_us ("auto" or us), realtime, cpu
+    [transport]  url, hmac_key_file, max_sessions, heartbeat_interval_s, silence_timeout_s
+    [model]      tool, policy, contact_frame, epsilon_m, capacity, stiffness_n_per_m,
+                 damping_n_s_per_m, restitution, mu_static, mu_kinetic, gravity_m_per_s2,
+                 linkage_dynamics
     [controller] type, stiffness_n_per_m, damping_n_s_per_m, rot_stiffness_n_m_per_rad,
-                rot_damping_n_m_s_per_rad, hand_gain, env_gain, mapping
-    [safety]    max_force_n, max_torque_n_m, force_rate_n_per_s, torque_rate_n_m_per_s,
-                max_speed_m_per_s, max_angular_speed_rad_per_s, watchdog_s, fade_s, ramp_in_s,
-                stall_recover_s, stall_trips_max, stall_window_s
-    [device]    driver (entry point name) and the driver's own keys (validated by the driver)
-    [telemetry] ring_s, record, flush_rows
-    [status]    address
+                 rot_damping_n_m_s_per_rad, hand_gain, env_gain, mapping
+    [safety]     max_force_n, max_torque_n_m, force_rate_n_per_s, torque_rate_n_m_per_s,
+                 max_speed_m_per_s, max_angular_speed_rad_per_s, watchdog_s, fade_s, ramp_in_s,
+                 stall_recover_s, stall_trips_max, stall_window_s, allow_outside_stable_region
+    [device]     driver (entry point name) and the driver's own keys (its Structs: devices/sim.py,
+                 devices/remote.py, devices/hands.py for [device.hand])
+    [telemetry]  ring_s, record, flush_rows
+    [status]     address
 
 Presets trade speed for accuracy (what each costs and buys is in ``PRESETS``, EXPERIMENTS.md
 and the README): ``fast`` 512 Hz (the paper's rate), 16 contacts; ``balanced`` 1 kHz, 32
-contacts; ``accurate`` 4 kHz, 64 contacts. All use the deformation policy with epsilon up to
-10 mm (what a client may request).
-"""
-from __future__ import annotations
+contacts; ``accurate`` 4 kHz, 64 contacts. All let clients request epsilon up to 10 mm.
+Precedence, lowest first: the defaults, the file's ``preset``, the file's keys, a preset given
+on the command line (``serve --preset``: it wins over what the file pins for the keys the
+preset sets), then the other command-line options.
 
+The stable region: contact stiffness and damping outside the region that the stable-region
+sweep measured for the configured rate, controller and policy, a force-rate limit that lets one
+step change the force by more than 1 N, and a spring stiffer than the device's own mass takes at
+the rate (the coupling spring, or the contact with direct coupling; for drivers that report
+``mass_kg``), are refused with the reason and the nearest safe value, unless ``[safety] allow_outside_stable_region = true`` (for research: the daemon logs
+each such setting as a warning at start and ``status`` lists them).
+"""
 import copy
-import difflib
-import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Annotated, Any, Literal, Union
 
-from hapticproxy.protocol.transport import parse_transport_url as parse_url
+import msgspec
+from msgspec import Meta, Struct
+
+from hapticproxy.protocol.transport import transport_options
+
+from . import schema
+from . import stability
 
 POLICIES = ("rigid", "lm0", "lm", "deformation")
 CONTROLLERS = ("four_channel", "coupler", "direct")
@@ -58,153 +80,131 @@ class ConfigError(ValueError):
         self.reason = reason
 
 
-# --------------------------------------------------------------------------- value checkers
-def _num(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False, integer: bool = False):
-    def check(key: str, v: Any) -> Any:
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise ConfigError(key, f"expected a number, got {v!r}")
-        if integer and not (isinstance(v, int) or float(v).is_integer()):
-            raise ConfigError(key, f"expected an integer, got {v!r}")
-        if not math.isfinite(v):
-            raise ConfigError(key, f"must be finite, got {v!r}")
-        if lo is not None and (v <= lo if lo_open else v < lo):
-            raise ConfigError(key, f"must be {'>' if lo_open else '>='} {lo}, got {v!r}")
-        if hi is not None and v > hi:
-            raise ConfigError(key, f"must be <= {hi}, got {v!r}")
-        return int(v) if integer else float(v)
-    return check
+def _num(lo=None, hi=None, *, lo_open: bool = False, doc: str = "", integer: bool = False):
+    """A number in [lo, hi] (``lo_open``: (lo, hi]) with its doc."""
+    return Annotated[int if integer else float,
+                     Meta(ge=None if lo_open else lo, gt=lo if lo_open else None, le=hi, description=doc)]
 
 
-def _choice(options: tuple[str, ...]):
-    def check(key: str, v: Any) -> str:
-        if v not in options:
-            raise ConfigError(key, f"expected one of {', '.join(options)}; got {v!r}")
-        return v
-    return check
+def _doc(t, doc: str):
+    return Annotated[t, Meta(description=doc)]
 
 
-def _bool(key: str, v: Any) -> bool:
-    if not isinstance(v, bool):
-        raise ConfigError(key, f"expected true or false, got {v!r}")
-    return v
+# ---------------------------------------------------------------------------------- tables
+class _Table(Struct, forbid_unknown_fields=True, kw_only=True):
+    pass
 
 
-def _str(key: str, v: Any) -> str:
-    if not isinstance(v, str):
-        raise ConfigError(key, f"expected a string, got {v!r}")
-    return v
+class LoopConfig(_Table):
+    rate_hz: _num(100, 20000, doc="haptic rate [Hz]; 512 is the paper's, 4000 works") = 1000.0
+    spin_us: _doc(Union[Literal["auto"], _num(0, 5000)],
+                  "spin phase before each deadline [us]; auto = measured sleep overshoot") = "auto"
+    realtime: _doc(bool, "ask for SCHED_FIFO (reported in status when refused)") = True
+    cpu: _num(-1, 1023, integer=True, doc="pin the loop process to this CPU (-1: no pinning)") = -1
 
 
-def _vec3(key: str, v: Any) -> tuple:
-    if not (isinstance(v, (list, tuple)) and len(v) == 3):
-        raise ConfigError(key, f"expected 3 numbers, got {v!r}")
-    return tuple(_num()(f"{key}[{i}]", x) for i, x in enumerate(v))
+class TransportConfig(_Table):
+    url: _doc(str, "where clients connect: udp://, zenoh://, mem:// (options in the query)") = "udp://127.0.0.1:9870"
+    hmac_key_file: _doc(str, "file with a shared HMAC key (hex); empty: no authentication") = ""
+    max_sessions: _num(1, 16, integer=True, doc="concurrent environment clients") = 1
+    heartbeat_interval_s: _num(0.001, 10, lo_open=True, doc="heartbeat when quiet this long [s]") = 0.1
+    silence_timeout_s: _num(0.01, 60, lo_open=True, doc="end a session silent this long (Bye 61) [s]") = 1.0
 
 
-def _url(key: str, v: Any) -> str:
-    _str(key, v)
-    try:
-        parse_url(v)
-    except ValueError as exc:
-        raise ConfigError(key, str(exc)) from None
-    return v
+class ModelConfig(_Table):
+    tool: _doc(Literal["", "1dof", "planar", "spatial", "linkage"],
+               "tool kind accepted from clients; empty: the device's kind; linkage: a kinematic tree "
+               "(planar on a planar device, spatial on a spatial one)") = ""
+    policy: _doc(Literal["rigid", "lm0", "lm", "deformation"], "update policy (rigid = the IR baseline)") = "deformation"
+    contact_frame: _doc(Literal["engine", "proxy"],
+                        "engine: reported features taken in the engine tool's frame (ContactUpdate.tool_pose); "
+                        "proxy: the paper's eq. 1, relative to the proxy's COM") = "engine"
+    epsilon_m: _num(0, 0.1, doc="largest epsilon granted to clients [m]") = 0.005
+    capacity: _num(1, 64, integer=True, doc="contacts kept by the model (granted max_contacts)") = 32
+    stiffness_n_per_m: _num(0, 1e6, lo_open=True, doc="local contact stiffness [N/m]; at most the stable "
+                            "region's bound for the rate and controller (server/stability.py)") = 4000.0
+    damping_n_s_per_m: _num(0, 1e4, doc="local contact damping [N s/m]; at most 7.5 ms x the stable "
+                            "region's stiffness bound") = 30.0
+    restitution: _num(0, 1, doc="collision restitution") = 0.0
+    mu_static: _num(0, 10, doc="static friction coefficient") = 0.0
+    mu_kinetic: _num(0, 10, doc="kinetic friction coefficient") = 0.0
+    gravity_m_per_s2: _doc(tuple[float, float, float], "gravity on the proxy, world [m/s^2]") = (0.0, 0.0, 0.0)
+    linkage_dynamics: _doc(Literal["full", "paper"],
+                           "linkage proxy: full = with the Coriolis/centripetal terms (energy-consistent); "
+                           "paper = neglected, the paper's eq. 7 as written") = "full"
 
 
-def _spin(key: str, v: Any):
-    if v == "auto":
-        return v
-    return _num(0, 5000)(key, v)
+class ControllerConfig(_Table):
+    type: _doc(Literal["four_channel", "coupler", "direct"], "four_channel | coupler | direct (IR baseline)") = "four_channel"
+    stiffness_n_per_m: _num(0, 1e6, doc="position channel, translational spring [N/m]") = 1500.0
+    damping_n_s_per_m: _num(0, 1e4, doc="position channel, translational damper [N s/m]") = 15.0
+    rot_stiffness_n_m_per_rad: _num(0, 1e4, doc="position channel, rotational spring [N m/rad]") = 1.5
+    rot_damping_n_m_s_per_rad: _num(0, 1e3, doc="position channel, rotational damper [N m s/rad]") = 0.015
+    hand_gain: _num(0, 1, doc="force channel: measured hand wrench -> proxy") = 1.0
+    env_gain: _num(0, 1, doc="force channel: environment wrench -> device") = 1.0
+    mapping: _doc(Literal["index", "absolute"],
+                  "index: at engagement the device is mapped onto the proxy (no jump); "
+                  "absolute: device coordinates are world coordinates") = "index"
 
 
-def _hostport(key: str, v: Any) -> str:
-    _str(key, v)
-    host, sep, port = v.rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise ConfigError(key, f"expected HOST:PORT, got {v!r}")
-    return v
+class SafetyConfig(_Table):
+    max_force_n: _num(0, 1000, lo_open=True, doc="force cap per axis [N] (the device's own cap applies too)") = 10.0
+    max_torque_n_m: _num(0, 100, lo_open=True, doc="torque cap per axis [N m]") = 0.5
+    force_rate_n_per_s: _doc(Union[Literal["auto"], _num(0, 1e6, lo_open=True)],
+                             "largest force change per second [N/s]; at most 1 N x rate_hz, so one haptic "
+                             "step never changes the force by more than 1 N (a larger step is felt as a "
+                             "kick: 1e6 N/s let a 9.5 N step through); auto = min(1000, 1 N x rate_hz)") = "auto"
+    torque_rate_n_m_per_s: _num(0, 1e5, lo_open=True, doc="largest torque change per second [N m/s]") = 50.0
+    max_speed_m_per_s: _num(0, 100, lo_open=True, doc="device speed that trips a fade-out [m/s]") = 2.0
+    max_angular_speed_rad_per_s: _num(0, 1000, lo_open=True, doc="device angular speed that trips [rad/s]") = 30.0
+    watchdog_s: _num(0.001, 10, doc="environment silent this long -> forces fade [s]") = 0.1
+    fade_s: _num(0.001, 10, doc="fade-out time [s]") = 0.2
+    ramp_in_s: _num(0.001, 10, doc="ramp-in time after engaging or re-arming [s]") = 0.5
+    stall_recover_s: _num(0.0, 60, doc="after a device-watchdog trip caused by a late loop (a stall of the "
+                          "loop process), the loop must be on time this long before the force ramps back in [s]") = 0.5
+    stall_trips_max: _num(0, 1000, integer=True, doc="more stall trips than this within stall_window_s latch the "
+                          "fault until `status --rearm` (0: every stall trip latches)") = 3
+    stall_window_s: _num(0.0, 86400, doc="window over which stall trips are counted [s]") = 60.0
+    allow_outside_stable_region: _doc(bool, "research only: accept contact stiffness, damping and force rate "
+                                      "outside the measured stable region (logged as a warning at start, "
+                                      "listed by status)") = False
 
 
-def _cpu(key: str, v: Any) -> int:
-    return _num(-1, 1023, integer=True)(key, v)
+class TelemetryConfig(_Table):
+    ring_s: _num(0.1, 600, doc="telemetry ring length [s]") = 10.0
+    record: _doc(str, "record telemetry to this file (empty: only on request)") = ""
+    flush_rows: _num(16, 1 << 20, integer=True, doc="rows per flushed block of the recording") = 512
 
 
-# --------------------------------------------------------------------------------- schema
-#: section -> key -> (default, checker, doc). ``device`` is passed through to the driver.
-SCHEMA: dict[str, dict[str, tuple[Any, Callable, str]]] = {
-    "loop": {
-        "rate_hz": (1000.0, _num(100, 20000), "haptic rate [Hz]; 512 is the paper's, 4000 works"),
-        "spin_us": ("auto", _spin, "spin phase before each deadline [us]; auto = measured sleep overshoot"),
-        "realtime": (True, _bool, "ask for SCHED_FIFO (reported in status when refused)"),
-        "cpu": (-1, _cpu, "pin the loop process to this CPU (-1: no pinning)"),
-    },
-    "transport": {
-        "url": ("udp://127.0.0.1:9870", _url, "where clients connect: udp://, zenoh://, mem://"),
-        "hmac_key_file": ("", _str, "file with a shared HMAC key (hex); empty: no authentication"),
-        "max_sessions": (1, _num(1, 16, integer=True), "concurrent environment clients"),
-        "heartbeat_interval_s": (0.1, _num(0.001, 10, lo_open=True), "heartbeat when quiet this long"),
-        "silence_timeout_s": (1.0, _num(0.01, 60, lo_open=True), "end a session silent this long (Bye 61)"),
-    },
-    "model": {
-        "tool": ("", lambda k, v: v if v == "" else _choice(MODEL_TOOLS)(k, v),
-                 "tool kind accepted from clients; empty: the device's kind; linkage: a kinematic tree "
-                 "(planar on a planar device, spatial on a spatial one)"),
-        "policy": ("deformation", _choice(POLICIES), "update policy (rigid = the IR baseline)"),
-        "contact_frame": ("engine", _choice(("engine", "proxy")),
-                          "engine: reported features taken in the engine tool's frame (ContactUpdate.tool_pose); "
-                          "proxy: the paper's eq. 1, relative to the proxy's COM"),
-        "epsilon_m": (0.005, _num(0, 0.1), "largest epsilon granted to clients [m]"),
-        "capacity": (32, _num(1, 64, integer=True), "contacts kept by the model (granted max_contacts)"),
-        "stiffness_n_per_m": (4000.0, _num(0, 1e6, lo_open=True), "local contact stiffness"),
-        "damping_n_s_per_m": (30.0, _num(0, 1e4), "local contact damping"),
-        "restitution": (0.0, _num(0, 1), "collision restitution"),
-        "mu_static": (0.0, _num(0, 10), "static friction coefficient"),
-        "mu_kinetic": (0.0, _num(0, 10), "kinetic friction coefficient"),
-        "gravity_m_per_s2": ((0.0, 0.0, 0.0), _vec3, "gravity on the proxy, world"),
-        "linkage_dynamics": ("full", _choice(LINKAGE_DYNAMICS),
-                             "linkage proxy: full = with the Coriolis/centripetal terms (energy-consistent); "
-                             "paper = neglected, the paper's eq. 7 as written"),
-    },
-    "controller": {
-        "type": ("four_channel", _choice(CONTROLLERS), "four_channel | coupler | direct (IR baseline)"),
-        "stiffness_n_per_m": (1500.0, _num(0, 1e6), "position channel, translational spring"),
-        "damping_n_s_per_m": (15.0, _num(0, 1e4), "position channel, translational damper"),
-        "rot_stiffness_n_m_per_rad": (1.5, _num(0, 1e4), "position channel, rotational spring"),
-        "rot_damping_n_m_s_per_rad": (0.015, _num(0, 1e3), "position channel, rotational damper"),
-        "hand_gain": (1.0, _num(0, 1), "force channel: measured hand wrench -> proxy"),
-        "env_gain": (1.0, _num(0, 1), "force channel: environment wrench -> device"),
-        "mapping": ("index", _choice(MAPPINGS),
-                    "index: at engagement the device is mapped onto the proxy (no jump); "
-                    "absolute: device coordinates are world coordinates"),
-    },
-    "safety": {
-        "max_force_n": (10.0, _num(0, 1000, lo_open=True), "force cap per axis [N]"),
-        "max_torque_n_m": (0.5, _num(0, 100, lo_open=True), "torque cap per axis [N m]"),
-        "force_rate_n_per_s": (1000.0, _num(0, 1e6, lo_open=True), "largest force change per second"),
-        "torque_rate_n_m_per_s": (50.0, _num(0, 1e5, lo_open=True), "largest torque change per second"),
-        "max_speed_m_per_s": (2.0, _num(0, 100, lo_open=True), "device speed that trips a fade-out"),
-        "max_angular_speed_rad_per_s": (30.0, _num(0, 1000, lo_open=True), "device angular speed that trips"),
-        "watchdog_s": (0.1, _num(0.001, 10), "environment silent this long -> forces fade"),
-        "fade_s": (0.2, _num(0.001, 10), "fade-out time [s]"),
-        "ramp_in_s": (0.5, _num(0.001, 10), "ramp-in time after engaging or re-arming [s]"),
-        "stall_recover_s": (0.5, _num(0.0, 60), "after a device-watchdog trip caused by a late loop (a stall of "
-                            "the loop process), the loop must be on time this long before the force ramps back in [s]"),
-        "stall_trips_max": (3, _num(0, 1000, integer=True), "more stall trips than this within stall_window_s "
-                            "latch the fault until `status --rearm` (0: every stall trip latches)"),
-        "stall_window_s": (60.0, _num(0.0, 86400), "window over which stall trips are counted [s]"),
-    },
-    "telemetry": {
-        "ring_s": (10.0, _num(0.1, 600), "telemetry ring length [s]"),
-        "record": ("", _str, "record telemetry to this file (empty: only on request)"),
-        "flush_rows": (512, _num(16, 1 << 20, integer=True), "rows per flushed block of the recording"),
-    },
-    "status": {
-        "address": ("127.0.0.1:9871", _hostport, "UDP address the status server answers on"),
-    },
-}
+class StatusConfig(_Table):
+    address: _doc(str, "UDP address the status server answers on (HOST:PORT)") = "127.0.0.1:9871"
 
+
+class DeviceHeader(Struct, kw_only=True):
+    """The keys of ``[device]`` the server reads itself; the rest is the driver's."""
+    driver: _doc(Annotated[str, Meta(min_length=1)], "device driver (entry point in hapticproxy.devices)") = "sim"
+    kind: _doc(Literal["1dof", "planar", "spatial"], "1dof | planar | spatial") = "planar"
+
+
+class ServerConfig(_Table):
+    """The whole file."""
+    preset: _doc(Literal["fast", "balanced", "accurate"], "fast | balanced | accurate (keys override it)") = "balanced"
+    loop: LoopConfig = msgspec.field(default_factory=LoopConfig)
+    transport: TransportConfig = msgspec.field(default_factory=TransportConfig)
+    model: ModelConfig = msgspec.field(default_factory=ModelConfig)
+    controller: ControllerConfig = msgspec.field(default_factory=ControllerConfig)
+    safety: SafetyConfig = msgspec.field(default_factory=SafetyConfig)
+    device: dict = msgspec.field(default_factory=dict)
+    telemetry: TelemetryConfig = msgspec.field(default_factory=TelemetryConfig)
+    status: StatusConfig = msgspec.field(default_factory=StatusConfig)
+
+
+SECTIONS = ("loop", "transport", "model", "controller", "safety", "device", "telemetry", "status")
 DEVICE_DEFAULTS = {"driver": "sim", "kind": "planar"}
+#: dotted key -> doc, for ``--print-config``
+DOCS = schema.descriptions(ServerConfig)
+DOCS.update({f"device.{k}": v for k, v in schema.descriptions(DeviceHeader).items()})
 
-#: name -> (overrides, what it costs and buys)
 #: name -> (overrides, what it costs and buys). Derived from the speed / accuracy sweep
 #: (``hapticproxy experiment tradeoff``, EXPERIMENTS.md): the loop's CPU is small at any rate
 #: (about 8 us per step); the haptic rate buys the stable stiffness band (about proportional
@@ -214,7 +214,8 @@ DEVICE_DEFAULTS = {"driver": "sim", "kind": "planar"}
 PRESETS: dict[str, tuple[dict, str]] = {
     "fast": ({"loop": {"rate_hz": 512.0}, "model": {"capacity": 16, "epsilon_m": 0.010}},
              "512 Hz (the paper's rate), 16 contacts, epsilon up to 10 mm: least CPU (0.4 % of a core); "
-             "stable contacts up to about 10 kN/m with b = 7.5 ms x k; force steps up to 2 N per step"),
+             "stable contacts up to about 10 kN/m with b = 7.5 ms x k; force steps limited to 1 N per step (the "
+             "default force rate at 512 Hz is 512 N/s; the sweep's 1.95 N steps were measured at 1000 N/s)"),
     "balanced": ({"loop": {"rate_hz": 1000.0}, "model": {"capacity": 32, "epsilon_m": 0.010}},
                  "1 kHz, 32 contacts, epsilon up to 10 mm: the default (0.8 % of a core); stable contacts "
                  "up to about 50 kN/m with b = 7.5 ms x k; force steps up to 1 N per step"),
@@ -227,10 +228,14 @@ PRESETS: dict[str, tuple[dict, str]] = {
 
 @dataclass(frozen=True)
 class Settings:
-    """Validated configuration: ``section(name)`` returns a dict of that section."""
+    """Validated configuration: ``settings["model"]["policy"]`` is a plain dict of that table.
+
+    ``outside_stable_region``: the settings that are outside the measured stable region and were
+    accepted because ``safety.allow_outside_stable_region`` is set, as ``(key, reason)``."""
 
     data: dict
     source: str = "<defaults>"
+    outside_stable_region: tuple = ()
 
     def __getitem__(self, section: str) -> dict:
         return self.data[section]
@@ -250,11 +255,9 @@ class Settings:
     def as_dict(self) -> dict:
         return copy.deepcopy(self.data)
 
-
-def _unknown(key: str, options) -> ConfigError:
-    close = difflib.get_close_matches(key.rsplit(".", 1)[-1], list(options), n=1)
-    hint = f" (did you mean {close[0]!r}?)" if close else ""
-    return ConfigError(key, f"unknown key{hint}")
+    def to_toml(self) -> str:
+        """Every key in effect as TOML, each with its doc (``serve --print-config``)."""
+        return to_toml(self.data)
 
 
 def _merge(base: dict, over: dict) -> dict:
@@ -267,97 +270,138 @@ def _merge(base: dict, over: dict) -> dict:
     return out
 
 
+def _fail(key: str, reason: str) -> ConfigError:
+    return ConfigError(key, reason)
+
+
 def defaults() -> dict:
-    d = {sec: {k: spec[0] for k, spec in keys.items()} for sec, keys in SCHEMA.items()}
+    """The tables as the Structs declare them (no preset applied)."""
+    d = schema.builtins(ServerConfig())
+    d.pop("preset")
     d["device"] = dict(DEVICE_DEFAULTS)
     return d
+
+
+def _preset(name: Any, key: str = "preset") -> dict:
+    if not isinstance(name, str) or name not in PRESETS:
+        raise ConfigError(key, f"expected one of {', '.join(PRESETS)}; got {name!r}")
+    return PRESETS[name][0]
+
+
+def _read(source) -> tuple[dict, str]:
+    if source is None:
+        return {}, "<defaults>"
+    if isinstance(source, dict):
+        return copy.deepcopy(source), "<dict>"
+    path = Path(source)
+    try:
+        return tomllib.loads(path.read_text()), str(path)
+    except FileNotFoundError:
+        raise ConfigError("file", f"no such file: {path}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError("file", f"{path} is not valid TOML: {exc}") from None
 
 
 def load(source: str | Path | dict | None = None, overrides: dict | None = None) -> Settings:
     """Load and validate a config (a TOML path, a dict, or ``None`` for the defaults).
 
     Raises :class:`ConfigError` naming the first bad key. ``overrides`` (a dict of the same
-    shape) is applied last, e.g. by command-line options.
+    shape, e.g. from command-line options) is applied last; a ``preset`` in it wins over the
+    file's keys for the keys that preset sets (module docstring: precedence).
     """
-    name = "<defaults>"
-    if source is None:
-        raw: dict = {}
-    elif isinstance(source, dict):
-        raw, name = copy.deepcopy(source), "<dict>"
-    else:
-        path = Path(source)
-        name = str(path)
-        try:
-            raw = tomllib.loads(path.read_text())
-        except FileNotFoundError:
-            raise ConfigError("file", f"no such file: {path}") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError("file", f"{path} is not valid TOML: {exc}") from None
-    if overrides:
-        raw = _merge(raw, overrides)
-    preset = raw.pop("preset", "balanced")
-    if preset not in PRESETS:
-        raise ConfigError("preset", f"expected one of {', '.join(PRESETS)}; got {preset!r}")
-    for sec in raw:
-        if sec not in SCHEMA and sec != "device":
-            raise _unknown(sec, list(SCHEMA) + ["device", "preset"])
-        if not isinstance(raw[sec], dict):
-            raise ConfigError(sec, f"expected a table, got {raw[sec]!r}")
-    data = _merge(_merge(defaults(), PRESETS[preset][0]), raw)
-    for sec, keys in SCHEMA.items():
-        for k in data[sec]:
-            if k not in keys:
-                raise _unknown(f"{sec}.{k}", keys)
-        for k, (_, check, _) in keys.items():
-            data[sec][k] = check(f"{sec}.{k}", data[sec][k])
-    dev = data["device"]
-    if not isinstance(dev.get("driver"), str) or not dev["driver"]:
-        raise ConfigError("device.driver", f"expected a driver name, got {dev.get('driver')!r}")
-    if dev.get("kind") not in TOOL_KINDS:
-        raise ConfigError("device.kind", f"expected one of {', '.join(TOOL_KINDS)}; got {dev.get('kind')!r}")
-    data["preset"] = preset
-    s = data["safety"]
-    rate = data["loop"]["rate_hz"]
-    if s["fade_s"] * rate < 2:
-        raise ConfigError("safety.fade_s", f"{s['fade_s']} s is shorter than two haptic steps at {rate} Hz")
-    first = max(s["max_force_n"], s["max_torque_n_m"]) / (s["ramp_in_s"] * rate)
+    raw, name = _read(source)
+    over = copy.deepcopy(overrides or {})
+    cli_preset = over.pop("preset", None)
+    merged = _merge(_preset(raw.get("preset", "balanced")), raw)
+    if cli_preset is not None:
+        merged = _merge(merged, _preset(cli_preset, "preset"))
+        merged["preset"] = cli_preset
+    merged = _merge(merged, over)
+    merged.setdefault("device", {})
+    if isinstance(merged["device"], dict):
+        merged["device"] = {**DEVICE_DEFAULTS, **merged["device"]}
+    cfg = schema.convert(ServerConfig, merged, prefix="", fail=_fail)
+    hdr = schema.convert(DeviceHeader, {k: cfg.device[k] for k in ("driver", "kind") if k in cfg.device},
+                         prefix="device", fail=_fail)
+    s = cfg.safety
+    rate = cfg.loop.rate_hz
+    if s.force_rate_n_per_s == "auto":
+        s.force_rate_n_per_s = min(1000.0, stability.max_force_rate_n_per_s(rate))
+    try:
+        transport_options(cfg.transport.url)
+    except ValueError as exc:
+        raise ConfigError("transport.url", str(exc)) from None
+    _hostport("status.address", cfg.status.address)
+    if s.fade_s * rate < 2:
+        raise ConfigError("safety.fade_s", f"{s.fade_s} s is shorter than two haptic steps at {rate} Hz")
+    first = max(s.max_force_n, s.max_torque_n_m) / (s.ramp_in_s * rate)
     if first > FIRST_COMMAND_MAX_N:
-        raise ConfigError("safety.ramp_in_s", f"{s['ramp_in_s']} s is too short for a {s['max_force_n']} N cap at "
+        raise ConfigError("safety.ramp_in_s", f"{s.ramp_in_s} s is too short for a {s.max_force_n} N cap at "
                           f"{rate} Hz: the first command after engaging could reach {first:.3f} N "
                           f"(at most {FIRST_COMMAND_MAX_N} N)")
-    if data["transport"]["silence_timeout_s"] <= data["transport"]["heartbeat_interval_s"]:
+    if cfg.transport.silence_timeout_s <= cfg.transport.heartbeat_interval_s:
         raise ConfigError("transport.silence_timeout_s", "must exceed transport.heartbeat_interval_s")
-    tool = data["model"]["tool"] or dev["kind"]
+    tool = cfg.model.tool or hdr.kind
     if tool == "linkage":
-        if dev["kind"] not in ("planar", "spatial"):
-            raise ConfigError("model.tool", f"a linkage needs a planar or spatial device, device.kind is {dev['kind']!r}")
-        if data["controller"]["type"] == "direct":
+        if hdr.kind not in ("planar", "spatial"):
+            raise ConfigError("model.tool", f"a linkage needs a planar or spatial device, device.kind is {hdr.kind!r}")
+        if cfg.controller.type == "direct":
             raise ConfigError("controller.type", "direct coupling makes the device the tool, which a linkage "
                               "cannot be (the hand holds one link of a dynamic chain): use four_channel or coupler")
-    elif tool != dev["kind"]:
-        raise ConfigError("model.tool", f"tool kind {tool!r} does not match device.kind {dev['kind']!r}")
-    return Settings(data, name)
+    elif tool != hdr.kind:
+        raise ConfigError("model.tool", f"tool kind {tool!r} does not match device.kind {hdr.kind!r}")
+    outside = stability.outside_stable_region(
+        rate_hz=rate, controller=cfg.controller.type, policy=cfg.model.policy,
+        stiffness_n_per_m=cfg.model.stiffness_n_per_m, damping_n_s_per_m=cfg.model.damping_n_s_per_m,
+        force_rate_n_per_s=s.force_rate_n_per_s)
+    device = device_config(cfg.device, period_s=int(round(1e9 / rate)) * 1e-9)
+    mass = device.get("mass_kg")
+    outside += stability.above_device_limits(
+        rate_hz=rate, controller=cfg.controller.type, device_mass_kg=mass if isinstance(mass, (int, float)) else None,
+        stiffness_n_per_m=cfg.model.stiffness_n_per_m, coupling_stiffness_n_per_m=cfg.controller.stiffness_n_per_m)
+    if outside and not s.allow_outside_stable_region:
+        key, why = outside[0]
+        raise ConfigError(key, f"{why}; or set safety.allow_outside_stable_region = true (research only)")
+    data = schema.builtins(cfg)
+    data["device"] = device
+    preset = data.pop("preset")
+    data = {"preset": preset, **data}
+    return Settings(data, name, tuple(outside))
+
+
+def _hostport(key: str, v: str) -> None:
+    host, sep, port = v.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ConfigError(key, f"expected HOST:PORT, got {v!r}")
+
+
+def device_config(table: dict, *, period_s: float) -> dict:
+    """The ``[device]`` table with the driver's effective values (every key of the kind, the
+    hand's too), from the driver's ``effective_config`` hook (an attribute of the entry point's
+    factory: ``factory.effective_config(table, period_s=...) -> dict``, raising
+    ``ValueError("device.<key>: ...")``). A driver without the hook validates its table when it
+    is built; its table is passed on as written."""
+    from importlib.metadata import entry_points
+
+    name = table["driver"]
+    eps = {ep.name: ep for ep in entry_points(group="hapticproxy.devices")}
+    if name not in eps:
+        raise ConfigError("device.driver", f"unknown device {name!r}; installed: {', '.join(sorted(eps))}")
+    hook = getattr(eps[name].load(), "effective_config", None)
+    if hook is None:
+        return copy.deepcopy(table)
+    try:
+        return hook(copy.deepcopy(table), period_s=period_s)
+    except ConfigError:
+        raise
+    except ValueError as exc:
+        key, sep, why = str(exc).partition(": ")
+        if sep and key.startswith("device"):
+            raise ConfigError(key, why) from None
+        raise ConfigError("device", str(exc)) from None
 
 
 def to_toml(data: dict) -> str:
-    """Render a config dict as TOML (for ``--print-config`` and the deploy examples)."""
-    def val(v):
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, str):
-            return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-        if isinstance(v, (list, tuple)):
-            return "[" + ", ".join(val(x) for x in v) + "]"
-        if isinstance(v, dict):
-            return "{ " + ", ".join(f"{k} = {val(x)}" for k, x in v.items()) + " }"
-        return repr(v)
-    lines = []
-    if "preset" in data:
-        lines.append(f"preset = {val(data['preset'])}")
-    for sec, body in data.items():
-        if sec == "preset":
-            continue
-        lines.append(f"\n[{sec}]")
-        for k, v in body.items():
-            lines.append(f"{k} = {val(v)}")
-    return "\n".join(lines) + "\n"
+    """Render a config dict as TOML, each key with its doc (``--print-config``, the deploy
+    examples). Loading the text gives the same settings."""
+    return schema.to_toml(data, DOCS)

@@ -249,6 +249,7 @@ class Supervisor:
             snap["telemetry_rows_written"] = self.writer.rows_written if self.writer else 0
             snap["config_source"] = self.settings.source
             snap["url"] = self.settings["transport"]["url"]
+            snap["outside_stable_region"] = [f"{k}: {why}" for k, why in self.settings.outside_stable_region]
             span = (snap["t_last_ns"] - snap["t_start_ns"]) * 1e-9
             snap["achieved_rate_hz"] = (snap["steps"] - 1) / span if span > 0 and snap["steps"] > 1 else 0.0
             return snap
@@ -290,13 +291,16 @@ class Supervisor:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="hapticproxy serve", description="Run the haptics server daemon.")
     p.add_argument("--config", help="TOML scene/config file (defaults: loopback UDP, simulated planar device)")
-    p.add_argument("--preset", choices=list(cfgmod.PRESETS), help="speed/accuracy preset (overrides the file's)")
+    p.add_argument("--preset", choices=list(cfgmod.PRESETS),
+                   help="speed/accuracy preset; wins over the file's preset and over the keys the preset sets "
+                        "(loop.rate_hz, model.capacity, model.epsilon_m) even where the file pins them")
     p.add_argument("--url", help="transport URL clients connect to (overrides transport.url)")
     p.add_argument("--status", help="status address HOST:PORT (overrides status.address)")
     p.add_argument("--rate", type=float, help="haptic rate in Hz (overrides loop.rate_hz)")
     p.add_argument("--record", default="", help="record telemetry to this file")
     p.add_argument("--duration", type=float, help="stop cleanly after this many seconds")
-    p.add_argument("--print-config", action="store_true", help="print the effective config as TOML and exit")
+    p.add_argument("--print-config", action="store_true",
+                   help="print every key in effect (the device's and the hand's too) as TOML and exit")
     p.add_argument("-q", "--quiet", action="store_true")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
@@ -313,7 +317,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         settings = cfgmod.load(args.config, over)
         if args.print_config:
-            print(cfgmod.to_toml(settings.as_dict()), end="")
+            print(settings.to_toml(), end="")
             return 0
         _check_device(settings)
     except cfgmod.ConfigError as exc:
@@ -322,6 +326,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"hapticproxy serve: {exc}", file=sys.stderr)
         return 2
+    warn_outside_stable_region(settings)
     sup = Supervisor(settings, record=args.record, duration_s=args.duration)
 
     def on_signal(signum, frame):  # noqa: ARG001
@@ -340,6 +345,12 @@ def main(argv: list[str] | None = None) -> int:
     if code == 0:
         log.info("stopped cleanly")
     return code
+
+
+def warn_outside_stable_region(settings: cfgmod.Settings) -> None:
+    """Log every setting accepted outside the measured stable region (the research override)."""
+    for key, why in settings.outside_stable_region:
+        log.warning("OUTSIDE THE STABLE REGION (safety.allow_outside_stable_region = true): %s: %s", key, why)
 
 
 def _check_device(settings: cfgmod.Settings) -> None:

@@ -65,6 +65,8 @@ def format_status(s: dict) -> str:
         f"watchdog     {('ok', 'environment silent: fading', 'session ended: fading')[int(s.get('watchdog', 0))]}"
         f"  gain {s.get('gain', 0):.3f}  saturated {int(s.get('saturated', 0))}  rate-limited {int(s.get('rate_limited', 0))}",
     ]
+    for why in s.get("outside_stable_region") or ():
+        lines.append(f"WARNING      outside the stable region (safety.allow_outside_stable_region): {why}")
     return "\n".join(lines)
 
 

@@ -144,3 +144,15 @@ def _free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sk:
         sk.bind(("127.0.0.1", 0))
         return sk.getsockname()[1]
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.name)
+def test_example_config_prints_every_key_and_loads_back_the_same(path, tmp_path):
+    s = cfg.load(path)
+    text = s.to_toml()
+    assert "[device]" in text and "\nmax_force_n = " in text.split("[device]")[1]
+    f = tmp_path / path.name
+    f.write_text(text)
+    assert cfg.load(f).data == s.data
+    fast = cfg.load(path, {"preset": "fast"})          # --preset wins over what the file pins
+    assert fast.rate_hz == 512.0 and fast["model"]["capacity"] == 16

@@ -10,7 +10,9 @@ Open an endpoint with :func:`open_transport`::
 
 URL formats (options may also be given as a mapping or as keyword arguments; keyword arguments
 win over mapping entries, which win over URL query parameters; unknown options raise
-``ValueError`` naming them):
+``ValueError`` naming them). A backend's options are its constructor's keyword parameters
+(:func:`transport_option_types`: one declaration, the constructor's signature);
+:func:`transport_options` parses and converts them without opening anything:
 
 ``mem://NAME``
     In-process bus for tests (:class:`~.mem.MemTransport`). Options: ``max_packet_bytes``,
@@ -35,6 +37,8 @@ the protocol package needs only the standard library.
 """
 from __future__ import annotations
 
+import difflib
+import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -68,12 +72,23 @@ __all__ = [
     "UdpTransport",
     "open_transport",
     "parse_transport_url",
+    "transport_option_types",
+    "transport_options",
 ]
 
 SCHEMES = ("mem", "udp", "zenoh")
 
-# Allowed options per scheme and how to convert them from URL query strings.
-_INT = int
+
+def _int(value: Any) -> int:
+    if isinstance(value, bool):
+        raise ValueError
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    if isinstance(value, str):
+        return int(value.strip())
+    raise ValueError
 
 
 def _bool(value: Any) -> bool:
@@ -84,31 +99,53 @@ def _bool(value: Any) -> bool:
         return True
     if text in ("0", "false", "no", "off"):
         return False
-    raise ValueError(f"expected a boolean, got {value!r}")
+    raise ValueError
 
 
 def _float(value: Any) -> float:
+    if isinstance(value, bool):
+        raise ValueError
     return float(value)
 
 
 def _str(value: Any) -> str:
+    if not isinstance(value, (str, int, float)) or isinstance(value, bool):
+        raise ValueError
     return str(value)
 
 
-_OPTIONS: dict[str, dict[str, Any]] = {
-    "mem": {"max_packet_bytes": _INT, "queue_capacity": _INT},
-    "udp": {"max_packet_bytes": _INT, "rcvbuf_bytes": _INT, "sndbuf_bytes": _INT},
-    "zenoh": {
-        "max_packet_bytes": _INT,
-        "mode": _str,
-        "protocol": _str,
-        "config": _str,
-        "ring_capacity": _INT,
-        "connect_timeout_s": _float,
-        "express": _bool,
-        "lowlatency": _bool,
-    },
-}
+#: annotation of a backend's keyword parameter -> (converter from a URL string or a value, what it wants)
+_CONVERTERS = {"int": (_int, "an integer"), "float": (_float, "a number"), "bool": (_bool, "true or false"),
+               "str": (_str, "a string")}
+#: the backends' parameters that come from the URL itself or from ``open_transport``'s arguments
+_NOT_OPTIONS = ("self", "host", "port", "name", "session", "role")
+
+
+def _backend(scheme: str) -> type:
+    if scheme == "mem":
+        return MemTransport
+    if scheme == "udp":
+        return UdpTransport
+    # the module imports zenoh only when a ZenohTransport is built
+    from .zenoh_backend import ZenohTransport
+
+    return ZenohTransport
+
+
+def transport_option_types(scheme: str) -> dict[str, tuple[Any, Any, str]]:
+    """A scheme's options: ``name -> (converter, default, what it wants)``. Declared once, by the
+    backend's constructor (its keyword parameters, their annotations and defaults)."""
+    if scheme not in SCHEMES:
+        raise ValueError(f"transport url scheme must be one of {', '.join(SCHEMES)}; got {scheme!r}")
+    out: dict[str, tuple[Any, Any, str]] = {}
+    for name, p in inspect.signature(_backend(scheme).__init__).parameters.items():
+        if name in _NOT_OPTIONS or p.kind not in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY):
+            continue
+        ann = p.annotation if isinstance(p.annotation, str) else getattr(p.annotation, "__name__", str(p.annotation))
+        base = next(t.strip() for t in ann.split("|") if t.strip() != "None")
+        conv, what = _CONVERTERS[base]
+        out[name] = (conv, p.default, what)
+    return out
 
 
 @dataclass(frozen=True)
@@ -157,20 +194,39 @@ def parse_transport_url(url: str) -> TransportUrl:
     return TransportUrl(scheme, host=host, port=port, name=name, options=options)
 
 
-def _merge_options(parsed: TransportUrl, config: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:
-    allowed = _OPTIONS[parsed.scheme]
+def transport_options(url_or_config: str | Mapping[str, Any], **options: Any) -> tuple[TransportUrl, dict[str, Any]]:
+    """Parse a transport URL (or a mapping with ``"url"``) and its options without opening
+    anything: ``(parsed url, converted options)``. Keyword arguments win over mapping entries,
+    which win over URL query parameters. ``ValueError`` naming the option when one is unknown or
+    has a bad value (what a config loader calls to refuse a bad URL at start)."""
+    if isinstance(url_or_config, str):
+        url, config = url_or_config, {}
+    elif isinstance(url_or_config, Mapping):
+        if "url" not in url_or_config:
+            raise ValueError("transport config mapping needs a 'url' key")
+        config = dict(url_or_config)
+        url = config.pop("url")
+    else:
+        raise ValueError(f"url_or_config must be a URL string or a mapping, got {type(url_or_config).__name__}")
+    parsed = parse_transport_url(url)
+    allowed = transport_option_types(parsed.scheme)
     merged: dict[str, Any] = {}
-    for source in (parsed.options, config, overrides):
+    for source in (parsed.options, config, options):
         for key, value in source.items():
             if key not in allowed:
-                raise ValueError(
-                    f"unknown option {key!r} for {parsed.scheme} transport; allowed: {', '.join(sorted(allowed))}"
-                )
+                close = difflib.get_close_matches(str(key), list(allowed), n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise ValueError(f"unknown option {key!r} for {parsed.scheme} transport{hint}; "
+                                 f"allowed: {', '.join(sorted(allowed))}")
+            conv, default, what = allowed[key]
+            if value is None and default is None:
+                merged[key] = None
+                continue
             try:
-                merged[key] = allowed[key](value)
+                merged[key] = conv(value)
             except (TypeError, ValueError):
-                raise ValueError(f"option {key!r} has a bad value {value!r}") from None
-    return merged
+                raise ValueError(f"option {key!r} has a bad value {value!r} (expected {what})") from None
+    return parsed, merged
 
 
 def open_transport(url_or_config: str | Mapping[str, Any], role: str = "server", **options: Any) -> Transport:
@@ -191,17 +247,7 @@ def open_transport(url_or_config: str | Mapping[str, Any], role: str = "server",
     """
     if role not in ("server", "client"):
         raise ValueError(f"role must be 'server' or 'client', got {role!r}")
-    if isinstance(url_or_config, str):
-        url, config = url_or_config, {}
-    elif isinstance(url_or_config, Mapping):
-        if "url" not in url_or_config:
-            raise ValueError("transport config mapping needs a 'url' key")
-        config = dict(url_or_config)
-        url = config.pop("url")
-    else:
-        raise ValueError(f"url_or_config must be a URL string or a mapping, got {type(url_or_config).__name__}")
-    parsed = parse_transport_url(url)
-    kwargs = _merge_options(parsed, config, options)
+    parsed, kwargs = transport_options(url_or_config, **options)
     if parsed.scheme == "mem":
         return MemTransport(parsed.name, role, **kwargs)
     if parsed.scheme == "udp":

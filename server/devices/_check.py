@@ -1,5 +1,11 @@
 """Config checking for the device drivers: every error is ``ValueError("device.<key>: <reason>")``.
 
+A driver declares its ``[device]`` table as msgspec Structs (one per kind, see ``sim.py``,
+``remote.py``, ``hands.py``); :func:`convert` turns a table into one (types, bounds, unknown
+keys, with the dotted key and a did-you-mean hint: ``server/schema.py``). What a type cannot
+say (lengths that depend on the kind, unit vectors, the workspace) is checked by the helpers
+below, on the converted values.
+
 Reduced coordinates: a kind's own coordinates, written in config as a short list, expanded here
 to the world 6-vectors (x y z rx ry rz or fx fy fz tx ty tz) the kernels use:
 
@@ -13,10 +19,11 @@ A full 6-vector is accepted for every kind (components the kind cannot move in a
 """
 from __future__ import annotations
 
-import difflib
 import math
 
 import numpy as np
+
+from .. import schema
 
 REDUCED_DIMS = {"1dof": 1, "planar": 3, "spatial": 6}
 #: where the reduced components sit in the 6-vector (1dof: along the axis, see ``vector6``)
@@ -27,15 +34,18 @@ def fail(key: str, reason: str) -> ValueError:
     return ValueError(f"{key}: {reason}")
 
 
-def check_keys(prefix: str, cfg, allowed) -> None:
-    """Unknown keys are errors, named, with the closest known key as a hint."""
-    if not isinstance(cfg, dict):
-        raise fail(prefix, f"expected a table, got {cfg!r}")
-    for k in cfg:
-        if k not in allowed:
-            close = difflib.get_close_matches(str(k), list(allowed), n=1)
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise fail(f"{prefix}.{k}", f"unknown key{hint}; known: {', '.join(sorted(allowed))}")
+def convert(cls, cfg, prefix: str = "device", *, siblings: dict | None = None, kind: str = ""):
+    """A table -> the Struct ``cls``; refusals as ``ValueError("<prefix>.<key>: <reason>")``."""
+    return schema.convert(cls, cfg, prefix=prefix, fail=fail, siblings=siblings, kind=kind)
+
+
+def table(obj, first=("driver", "kind"), last=("hand",)) -> dict:
+    """A converted table as a plain dict (every key), ``first`` keys first and ``last`` last."""
+    d = schema.builtins(obj)
+    out = {k: d[k] for k in first if k in d}
+    out.update((k, v) for k, v in d.items() if k not in first and k not in last)
+    out.update((k, d[k]) for k in last if k in d)
+    return out
 
 
 def num(key: str, v, *, lo=None, hi=None, lo_open=False, hi_open=False) -> float:
@@ -121,12 +131,6 @@ def placed6(key: str, v, kind: str) -> np.ndarray:
     out = np.zeros(6)
     out[list(PLANAR_SLOTS)] = a
     return out
-
-
-def boolean(key: str, v) -> bool:
-    if not isinstance(v, bool):
-        raise fail(key, f"expected true or false, got {v!r}")
-    return v
 
 
 def string(key: str, v, choices=None) -> str:

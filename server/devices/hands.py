@@ -59,8 +59,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated, Any, Literal, Optional, Union
 
+import msgspec
 import numpy as np
+from msgspec import Meta, Struct
 from numba import njit
 
 from . import _check as ck
@@ -68,7 +71,6 @@ from .layout import HO_B, HO_BR, HO_I, HO_K, HO_KR, HO_M, HO_VT, HO_W, HO_XT, NH
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
-HAND_TYPES = ("none", "constant", "sinusoid", "steps", "impedance", "replay")
 
 # -- hand parameters (float64[NHP]) -------------------------------------------------------------
 HP_MODE = 0       # MODE_*
@@ -178,9 +180,109 @@ def hand_eval(hp, tab, st, hout):
 
 
 # ------------------------------------------------------------------------------------ config
+#: A wrench, displacement or pose in reduced coordinates (or a 6-vector): a list, or a bare number.
+Vec = Union[float, list[float]]
+#: Per-component (frequency, phase): a number for all, or one per coordinate.
+PerAxis = Union[float, list[float]]
+Grip = Annotated[float, Meta(ge=0.0, le=1e7)]
+Period = Annotated[float, Meta(ge=0.0)]
+#: ``[[t_s, values...], ...]`` rows (checked row by row: strictly increasing times, lengths).
+Rows = list[list[Any]]
+
+
+class _HandTable(Struct, forbid_unknown_fields=True, kw_only=True):
+    type: str = "none"
+
+
+class HandNone(_HandTable):
+    """``type = "none"``: the handle is free."""
+    type: Literal["none"] = "none"
+
+
+class HandConstant(_HandTable):
+    type: Literal["constant"] = "constant"
+    wrench: Optional[Vec] = None          # None: zeros
+
+
+class HandSinusoid(_HandTable):
+    type: Literal["sinusoid"] = "sinusoid"
+    amplitude: Optional[Vec] = None       # None: 1 N on the first coordinate
+    frequency_hz: PerAxis = 1.0
+    phase_rad: PerAxis = 0.0
+    offset: Optional[Vec] = None          # None: zeros
+
+
+class HandSteps(_HandTable):
+    type: Literal["steps"] = "steps"
+    steps: Optional[Rows] = None          # None: [[0, zeros]]
+    repeat_period_s: Period = 0.0
+
+
+class HandImpedance(_HandTable):
+    type: Literal["impedance"] = "impedance"
+    stiffness_n_per_m: Grip = 300.0
+    damping_n_s_per_m: Grip = 5.0
+    mass_kg: Grip = 0.1
+    rot_stiffness_n_m_per_rad: Grip = 0.5
+    rot_damping_n_m_s_per_rad: Grip = 0.01
+    inertia_kg_m2: Grip = 1e-4
+    target: dict = msgspec.field(default_factory=dict)
+
+
+class HandReplay(_HandTable):
+    type: Literal["replay"] = "replay"
+    file: str = ""                        # required
+    mode: Literal["pose", "wrench"] = "pose"
+    repeat_period_s: Period = 0.0
+    #: the grip (mode = "pose" only); None: the replay grip's defaults (``_GRIP_DEFAULTS``)
+    stiffness_n_per_m: Optional[Grip] = None
+    damping_n_s_per_m: Optional[Grip] = None
+    mass_kg: Optional[Grip] = None
+    rot_stiffness_n_m_per_rad: Optional[Grip] = None
+    rot_damping_n_m_s_per_rad: Optional[Grip] = None
+    inertia_kg_m2: Optional[Grip] = None
+
+
+class _TargetTable(Struct, forbid_unknown_fields=True, kw_only=True):
+    type: str = "constant"
+
+
+class TargetConstant(_TargetTable):
+    type: Literal["constant"] = "constant"
+    pose: Optional[Vec] = None            # None: the device's initial pose
+
+
+class TargetSinusoid(_TargetTable):
+    type: Literal["sinusoid"] = "sinusoid"
+    amplitude: Optional[Vec] = None       # None: 0.02 m on the first coordinate
+    frequency_hz: PerAxis = 1.0
+    phase_rad: PerAxis = 0.0
+    offset: Optional[Vec] = None          # None: the device's initial pose
+
+
+class TargetWaypoints(_TargetTable):
+    type: Literal["waypoints"] = "waypoints"
+    points: Optional[Rows] = None         # required
+    repeat_period_s: Period = 0.0
+
+
+#: hand type -> its table (one declaration per type: keys, defaults, bounds)
+HANDS: dict[str, type] = {"none": HandNone, "constant": HandConstant, "sinusoid": HandSinusoid,
+                          "steps": HandSteps, "impedance": HandImpedance, "replay": HandReplay}
+TARGETS: dict[str, type] = {"constant": TargetConstant, "sinusoid": TargetSinusoid, "waypoints": TargetWaypoints}
+HAND_TYPES = tuple(HANDS)
+
+_GRIP_KEYS = ("stiffness_n_per_m", "damping_n_s_per_m", "mass_kg", "rot_stiffness_n_m_per_rad",
+              "rot_damping_n_m_s_per_rad", "inertia_kg_m2")
+_GRIP_SLOTS = (HP_K, HP_B, HP_M, HP_KR, HP_BR, HP_I)
+#: the replay grip: stiff, so the hand drags the handle along the recording
+_REPLAY_GRIP = (2000.0, 20.0, 0.1, 5.0, 0.05, 1e-4)
+
+
 @dataclass
 class Hand:
-    """A parsed hand: the parameter vector and table the kernel reads, and what it was built from."""
+    """A parsed hand: the parameter vector and table the kernel reads, and its effective config
+    (every key of its type, defaults filled in, in the device's reduced coordinates)."""
 
     type: str
     hp: np.ndarray
@@ -196,27 +298,6 @@ class Hand:
         return float(self.hp[HP_I])
 
 
-_GRIP_KEYS = ("stiffness_n_per_m", "damping_n_s_per_m", "mass_kg", "rot_stiffness_n_m_per_rad",
-              "rot_damping_n_m_s_per_rad", "inertia_kg_m2")
-_GRIP_DEFAULTS = {
-    "impedance": (300.0, 5.0, 0.1, 0.5, 0.01, 1e-4),
-    "replay": (2000.0, 20.0, 0.1, 5.0, 0.05, 1e-4),
-}
-_KEYS = {
-    "none": ("type",),
-    "constant": ("type", "wrench"),
-    "sinusoid": ("type", "amplitude", "frequency_hz", "phase_rad", "offset"),
-    "steps": ("type", "steps", "repeat_period_s"),
-    "impedance": ("type", "target") + _GRIP_KEYS,
-    "replay": ("type", "file", "mode", "repeat_period_s") + _GRIP_KEYS,
-}
-_TARGET_KEYS = {
-    "constant": ("type", "pose"),
-    "sinusoid": ("type", "amplitude", "frequency_hz", "phase_rad", "offset"),
-    "waypoints": ("type", "points", "repeat_period_s"),
-}
-
-
 def _first_unit(kind: str, axis: np.ndarray, value: float) -> np.ndarray:
     """``value`` on the kind's first coordinate, as a world 6-vector."""
     out = np.zeros(6)
@@ -225,6 +306,16 @@ def _first_unit(kind: str, axis: np.ndarray, value: float) -> np.ndarray:
     else:
         out[0] = value
     return out
+
+
+def _reduced_first(kind: str, value: float) -> list[float]:
+    out = [0.0] * ck.REDUCED_DIMS[kind]
+    out[0] = value
+    return out
+
+
+def _as_list(v):
+    return [float(x) for x in v] if isinstance(v, (list, tuple)) else float(v)
 
 
 def _table(key: str, rows, *, kind, axis, origin, pose: bool) -> np.ndarray:
@@ -245,35 +336,53 @@ def _table(key: str, rows, *, kind, axis, origin, pose: bool) -> np.ndarray:
     return out
 
 
-def _repeat(key: str, cfg: dict, tab: np.ndarray) -> float:
-    period = ck.num(key, cfg.get("repeat_period_s", 0.0), lo=0.0)
+def _repeat(key: str, period: float, tab: np.ndarray) -> float:
     if period > 0.0 and period < tab[-1, 0]:
         raise ck.fail(key, f"must be 0 or at least the last time ({tab[-1, 0]:g} s), got {period:g}")
     return period
 
 
-def _grip(prefix: str, cfg: dict, htype: str, hp: np.ndarray) -> None:
-    defaults = _GRIP_DEFAULTS[htype]
-    for k, d, slot in zip(_GRIP_KEYS, defaults, (HP_K, HP_B, HP_M, HP_KR, HP_BR, HP_I)):
-        hp[slot] = ck.num(f"{prefix}.{k}", cfg.get(k, d), lo=0.0, hi=1e7)
-
-
-def _sinusoid(prefix: str, cfg: dict, hp: np.ndarray, *, kind, axis, origin, pose: bool,
-              default_amp: float, default_offset: np.ndarray) -> None:
-    if "amplitude" in cfg:
-        hp[HP_AMP:HP_AMP + 6] = ck.vector6(f"{prefix}.amplitude", cfg["amplitude"], kind, axis)
+def _sinusoid(prefix: str, c, hp: np.ndarray, *, kind, axis, origin, pose: bool,
+              default_amp: float, default_offset: np.ndarray, rest_reduced) -> dict:
+    """Fill the sinusoid slots of ``hp``; return the effective keys."""
+    if c.amplitude is not None:
+        hp[HP_AMP:HP_AMP + 6] = ck.vector6(f"{prefix}.amplitude", c.amplitude, kind, axis)
+        amp = _as_list(c.amplitude)
     else:
         hp[HP_AMP:HP_AMP + 6] = _first_unit(kind, axis, default_amp)
-    freq = ck.placed6(f"{prefix}.frequency_hz", cfg.get("frequency_hz", 1.0), kind)
+        amp = _reduced_first(kind, default_amp)
+    freq = ck.placed6(f"{prefix}.frequency_hz", c.frequency_hz, kind)
     if np.any(freq < 0) or np.any(freq > 1e4):
         raise ck.fail(f"{prefix}.frequency_hz", f"must be in [0, 10000] Hz, got {freq.tolist()}")
     hp[HP_FREQ:HP_FREQ + 6] = freq
-    hp[HP_PHASE:HP_PHASE + 6] = ck.placed6(f"{prefix}.phase_rad", cfg.get("phase_rad", 0.0), kind)
-    if "offset" in cfg:
-        hp[HP_OFF:HP_OFF + 6] = (ck.pose6(f"{prefix}.offset", cfg["offset"], kind, axis, origin) if pose
-                                 else ck.vector6(f"{prefix}.offset", cfg["offset"], kind, axis))
+    hp[HP_PHASE:HP_PHASE + 6] = ck.placed6(f"{prefix}.phase_rad", c.phase_rad, kind)
+    if c.offset is not None:
+        hp[HP_OFF:HP_OFF + 6] = (ck.pose6(f"{prefix}.offset", c.offset, kind, axis, origin) if pose
+                                 else ck.vector6(f"{prefix}.offset", c.offset, kind, axis))
+        off = _as_list(c.offset)
     else:
         hp[HP_OFF:HP_OFF + 6] = default_offset
+        off = list(rest_reduced) if pose else [0.0] * ck.REDUCED_DIMS[kind]
+    return {"amplitude": amp, "frequency_hz": _as_list(c.frequency_hz), "phase_rad": _as_list(c.phase_rad),
+            "offset": off}
+
+
+def _grip(c, defaults, hp: np.ndarray) -> dict:
+    out = {}
+    for k, d, slot in zip(_GRIP_KEYS, defaults, _GRIP_SLOTS):
+        v = getattr(c, k)
+        hp[slot] = d if v is None else v
+        out[k] = float(hp[slot])
+    return out
+
+
+def _rows_out(tab: np.ndarray, rows) -> list:
+    """The rows as given, normalised to ``[t_s, [values...]]``."""
+    out = []
+    for row in rows:
+        vals = row[1] if len(row) == 2 and isinstance(row[1], (list, tuple)) else list(row[1:])
+        out.append([float(row[0]), [float(x) for x in vals]])
+    return out
 
 
 def _load_recording(key: str, path: str, mode: str, *, kind, axis, origin) -> np.ndarray:
@@ -342,74 +451,86 @@ def _load_recording(key: str, path: str, mode: str, *, kind, axis, origin) -> np
     return out
 
 
-def parse_hand(cfg, *, kind: str, axis, origin, rest_pose6, prefix: str = "device.hand") -> Hand:
-    """Validate a ``[device.hand]`` table and build the kernel's arrays.
+def parse_hand(cfg, *, kind: str, axis, origin, rest_pose6, prefix: str = "device.hand",
+               rest_reduced=None) -> Hand:
+    """Validate a ``[device.hand]`` table (:data:`HANDS`) and build the kernel's arrays.
 
-    ``rest_pose6``: the device's initial pose as a world 6-vector (default impedance target).
+    ``rest_pose6``: the device's initial pose as a world 6-vector (default impedance target);
+    ``rest_reduced``: the same pose as written in the config (for the effective values).
     """
     axis = np.asarray(axis, dtype=np.float64)
     origin = np.asarray(origin, dtype=np.float64)
     rest = np.asarray(rest_pose6, dtype=np.float64)
+    if rest_reduced is None:
+        rest_reduced = rest.tolist()
     if cfg is None:
         cfg = {}
     if not isinstance(cfg, dict):
         raise ck.fail(prefix, f"expected a table, got {cfg!r}")
     htype = ck.string(f"{prefix}.type", cfg.get("type", "none"), HAND_TYPES)
-    ck.check_keys(prefix, cfg, _KEYS[htype])
+    c = ck.convert(HANDS[htype], cfg, prefix)
     hp = np.zeros(NHP)
     tab = np.zeros((1, NTAB))
     geo = dict(kind=kind, axis=axis, origin=origin)
+    eff: dict = {"type": htype}
     if htype == "none":
         hp[HP_MODE] = MODE_NONE
     elif htype == "constant":
         hp[HP_MODE] = MODE_WRENCH
         hp[HP_PROF] = PROF_CONSTANT
-        hp[HP_OFF:HP_OFF + 6] = ck.vector6(f"{prefix}.wrench", cfg.get("wrench", [0.0] * 6), kind, axis)
+        w = c.wrench if c.wrench is not None else [0.0] * ck.REDUCED_DIMS[kind]
+        hp[HP_OFF:HP_OFF + 6] = ck.vector6(f"{prefix}.wrench", w, kind, axis)
+        eff["wrench"] = _as_list(w)
     elif htype == "sinusoid":
         hp[HP_MODE] = MODE_WRENCH
         hp[HP_PROF] = PROF_SINUSOID
-        _sinusoid(prefix, cfg, hp, pose=False, default_amp=1.0, default_offset=np.zeros(6), **geo)
+        eff.update(_sinusoid(prefix, c, hp, pose=False, default_amp=1.0, default_offset=np.zeros(6),
+                             rest_reduced=rest_reduced, **geo))
     elif htype == "steps":
         hp[HP_MODE] = MODE_WRENCH
         hp[HP_PROF] = PROF_HOLD
-        tab = _table(f"{prefix}.steps", cfg.get("steps", [[0.0, [0.0] * 6]]), pose=False, **geo)
-        hp[HP_PERIOD] = _repeat(f"{prefix}.repeat_period_s", cfg, tab)
+        rows = c.steps if c.steps is not None else [[0.0, [0.0] * ck.REDUCED_DIMS[kind]]]
+        tab = _table(f"{prefix}.steps", rows, pose=False, **geo)
+        hp[HP_PERIOD] = _repeat(f"{prefix}.repeat_period_s", c.repeat_period_s, tab)
+        eff.update(steps=_rows_out(tab, rows), repeat_period_s=c.repeat_period_s)
     elif htype == "impedance":
         hp[HP_MODE] = MODE_IMPEDANCE
-        _grip(prefix, cfg, htype, hp)
+        eff.update(_grip(c, (None,) * 6, hp))
         tp = f"{prefix}.target"
-        tcfg = cfg.get("target", {})
-        if not isinstance(tcfg, dict):
-            raise ck.fail(tp, f"expected a table, got {tcfg!r}")
-        ttype = ck.string(f"{tp}.type", tcfg.get("type", "constant"), tuple(_TARGET_KEYS))
-        ck.check_keys(tp, tcfg, _TARGET_KEYS[ttype])
+        ttype = ck.string(f"{tp}.type", c.target.get("type", "constant"), tuple(TARGETS))
+        t = ck.convert(TARGETS[ttype], c.target, tp)
+        teff: dict = {"type": ttype}
         if ttype == "constant":
             hp[HP_PROF] = PROF_CONSTANT
-            hp[HP_OFF:HP_OFF + 6] = ck.pose6(f"{tp}.pose", tcfg["pose"], **geo) if "pose" in tcfg else rest
+            hp[HP_OFF:HP_OFF + 6] = ck.pose6(f"{tp}.pose", t.pose, **geo) if t.pose is not None else rest
+            teff["pose"] = _as_list(t.pose) if t.pose is not None else list(rest_reduced)
         elif ttype == "sinusoid":
             hp[HP_PROF] = PROF_SINUSOID
-            _sinusoid(tp, tcfg, hp, pose=True, default_amp=0.02, default_offset=rest, **geo)
+            teff.update(_sinusoid(tp, t, hp, pose=True, default_amp=0.02, default_offset=rest,
+                                  rest_reduced=rest_reduced, **geo))
         else:
             hp[HP_PROF] = PROF_LINEAR
-            if "points" not in tcfg:
+            if t.points is None:
                 raise ck.fail(f"{tp}.points", "required for waypoints: [[t_s, pose...], ...]")
-            tab = _table(f"{tp}.points", tcfg["points"], pose=True, **geo)
-            hp[HP_PERIOD] = _repeat(f"{tp}.repeat_period_s", tcfg, tab)
+            tab = _table(f"{tp}.points", t.points, pose=True, **geo)
+            hp[HP_PERIOD] = _repeat(f"{tp}.repeat_period_s", t.repeat_period_s, tab)
+            teff.update(points=_rows_out(tab, t.points), repeat_period_s=t.repeat_period_s)
+        eff["target"] = teff
     else:  # replay
-        mode = ck.string(f"{prefix}.mode", cfg.get("mode", "pose"), ("pose", "wrench"))
-        if "file" not in cfg:
+        if not c.file:
             raise ck.fail(f"{prefix}.file", "required: a CSV or .npz recording")
-        path = ck.string(f"{prefix}.file", cfg["file"])
-        if mode == "pose":
+        if c.mode == "pose":
             hp[HP_MODE] = MODE_IMPEDANCE
-            _grip(prefix, cfg, htype, hp)
+            grip = _grip(c, _REPLAY_GRIP, hp)
         else:
             hp[HP_MODE] = MODE_WRENCH
             for k in _GRIP_KEYS:
-                if k in cfg:
+                if getattr(c, k) is not None:
                     raise ck.fail(f"{prefix}.{k}", "only used with mode = \"pose\"")
-        tab = _load_recording(f"{prefix}.file", path, mode, **geo)
+            grip = {}
+        tab = _load_recording(f"{prefix}.file", c.file, c.mode, **geo)
         hp[HP_PROF] = PROF_LINEAR
-        hp[HP_PERIOD] = _repeat(f"{prefix}.repeat_period_s", cfg, tab)
+        hp[HP_PERIOD] = _repeat(f"{prefix}.repeat_period_s", c.repeat_period_s, tab)
+        eff.update(file=c.file, mode=c.mode, repeat_period_s=c.repeat_period_s, **grip)
     hp[HP_NROWS] = len(tab)
-    return Hand(htype, hp, np.ascontiguousarray(tab), dict(cfg))
+    return Hand(htype, hp, np.ascontiguousarray(tab), eff)

@@ -91,10 +91,13 @@ import struct
 import sys
 import threading
 import time
+from typing import Annotated
 
 import numpy as np
+from msgspec import Meta
 
 from . import _check as ck
+from . import sim as _sim
 from .base import (
     DEV_FAULT_DISABLED, DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_NAMES,
     DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_NSTATE, DEV_OK, DEVICE_KINDS, DS_TIME,
@@ -168,10 +171,6 @@ def pack_command(buf, *, device_session, server_session, epoch, seq, state_seq, 
 
 
 # =============================================================================== server side
-REMOTE_KEYS = ("driver", "kind", "listen", "device_address", "link_timeout_s", "connect_timeout_s",
-               "max_force_n", "max_torque_n_m", "max_speed_m_per_s", "max_angular_speed_rad_per_s",
-               "workspace_min_m", "workspace_max_m", "watchdog_s")
-
 REMOTE_COUNTERS = ("states", "stale", "duplicate", "malformed", "foreign", "old_session",
                    "kind_mismatch", "device_restarts", "link_losses", "device_faults",
                    "commands_sent", "send_errors", "unsent", "nonfinite_refused", "recv_errors")
@@ -441,48 +440,58 @@ class RemoteDevice(DeviceDriver):
             self._fault = fault if fault in DEV_FAULT_NAMES and fault != DEV_FAULT_DISABLED else DEV_FAULT_HARDWARE
 
 
-def parse_remote_config(config: dict, *, period_s: float) -> dict:
-    """Validate a ``[device]`` table for the ``remote`` driver; returns the effective values."""
-    from .sim import COMMON_DEFAULTS, KIND_DEFAULTS
+class Remote1dof(_sim.Limits1dof):
+    driver: str = "remote"
+    listen: str = DEFAULT_LISTEN
+    device_address: str = ""
+    link_timeout_s: Annotated[float, Meta(gt=0.0, le=60.0)] = DEFAULT_LINK_TIMEOUT_S
+    connect_timeout_s: Annotated[float, Meta(ge=0.0, le=600.0)] = 0.0
 
+
+class RemotePlanar(_sim.LimitsPlanar):
+    driver: str = "remote"
+    listen: str = DEFAULT_LISTEN
+    device_address: str = ""
+    link_timeout_s: Annotated[float, Meta(gt=0.0, le=60.0)] = DEFAULT_LINK_TIMEOUT_S
+    connect_timeout_s: Annotated[float, Meta(ge=0.0, le=600.0)] = 0.0
+
+
+class RemoteSpatial(_sim.LimitsSpatial):
+    driver: str = "remote"
+    listen: str = DEFAULT_LISTEN
+    device_address: str = ""
+    link_timeout_s: Annotated[float, Meta(gt=0.0, le=60.0)] = DEFAULT_LINK_TIMEOUT_S
+    connect_timeout_s: Annotated[float, Meta(ge=0.0, le=600.0)] = 0.0
+
+
+#: kind -> the ``[device]`` table of the ``remote`` driver
+REMOTE_CONFIGS: dict[str, type] = {"1dof": Remote1dof, "planar": RemotePlanar, "spatial": RemoteSpatial}
+REMOTE_KEYS = tuple(sorted({k for c in REMOTE_CONFIGS.values() for k in c.__struct_fields__}))
+
+
+def parse_remote_config(config: dict, *, period_s: float) -> dict:
+    """Validate a ``[device]`` table for the ``remote`` driver (:data:`REMOTE_CONFIGS`); returns
+    the effective values: ``values`` (every key, config form) and the parsed ``listen``,
+    ``device_address``, ``link_timeout_s``, ``connect_timeout_s``, ``limits``."""
     ck.num("period_s", period_s, lo=0.0, lo_open=True, hi=0.1)
-    if config is None:
-        config = {}
-    ck.check_keys("device", config, REMOTE_KEYS)
-    kind = ck.string("device.kind", config.get("kind", "planar"), DEVICE_KINDS)
-    kd = {**COMMON_DEFAULTS, **KIND_DEFAULTS[kind]}
-    out = {"driver": config.get("driver", "remote"), "kind": kind}
-    out["listen"] = parse_hostport("device.listen", config.get("listen", DEFAULT_LISTEN))
-    dev_addr = config.get("device_address", "")
-    out["device_address"] = parse_hostport("device.device_address", dev_addr) if dev_addr != "" else None
-    out["link_timeout_s"] = ck.num("device.link_timeout_s", config.get("link_timeout_s", DEFAULT_LINK_TIMEOUT_S),
-                                   lo=0.0, lo_open=True, hi=60.0)
-    if out["link_timeout_s"] < period_s:
-        raise ck.fail("device.link_timeout_s", f"{out['link_timeout_s']:g} s is shorter than one period ({period_s:g} s)")
-    out["connect_timeout_s"] = ck.num("device.connect_timeout_s", config.get("connect_timeout_s", 0.0), lo=0.0, hi=600.0)
-    for k in ("max_torque_n_m", "max_angular_speed_rad_per_s"):
-        if kd[k] is None and k in config:
-            raise ck.fail(f"device.{k}", f"does not apply to a {kind} device")
-    fmax = ck.num("device.max_force_n", config.get("max_force_n", kd["max_force_n"]), lo=0.0, lo_open=True, hi=1e4)
-    tmax = 0.0 if kind == "1dof" else ck.num("device.max_torque_n_m", config.get("max_torque_n_m", kd["max_torque_n_m"]),
-                                             lo=0.0, lo_open=True, hi=1e3)
-    vmax = ck.num("device.max_speed_m_per_s", config.get("max_speed_m_per_s", kd["max_speed_m_per_s"]),
-                  lo=0.0, lo_open=True, hi=1e3)
-    wmax = math.inf if kind == "1dof" else ck.num(
-        "device.max_angular_speed_rad_per_s", config.get("max_angular_speed_rad_per_s", kd["max_angular_speed_rad_per_s"]),
-        lo=0.0, lo_open=True, hi=1e4)
-    lens = (2, 3) if kind == "planar" else (3,)
-    lo = ck.numbers("device.workspace_min_m", config.get("workspace_min_m", kd["workspace_min_m"]), lens)
-    hi = ck.numbers("device.workspace_max_m", config.get("workspace_max_m", kd["workspace_max_m"]), lens)
-    if len(lo) != len(hi) or np.any(hi <= lo):
-        raise ck.fail("device.workspace_max_m", "must exceed workspace_min_m on every axis")
-    if kind == "planar":
-        lo, hi = np.append(lo[:2], 0.0), np.append(hi[:2], 0.0)
-    wd = ck.num("device.watchdog_s", config.get("watchdog_s", DEFAULT_DEVICE_WATCHDOG_S), lo=0.0, hi=10.0)
-    out["limits"] = DeviceLimits(max_force_n=fmax, max_torque_n_m=tmax, max_speed_m_per_s=vmax,
-                                 max_angular_speed_rad_per_s=wmax, workspace_min_m=tuple(lo.tolist()),
-                                 workspace_max_m=tuple(hi.tolist()), watchdog_s=wd)
+    c = _sim.convert_kind(REMOTE_CONFIGS, config, default_driver="remote")
+    out = {"driver": c.driver, "kind": c.kind}
+    out["listen"] = parse_hostport("device.listen", c.listen)
+    out["device_address"] = parse_hostport("device.device_address", c.device_address) if c.device_address else None
+    if c.link_timeout_s < period_s:
+        raise ck.fail("device.link_timeout_s", f"{c.link_timeout_s:g} s is shorter than one period ({period_s:g} s)")
+    out["link_timeout_s"] = c.link_timeout_s
+    out["connect_timeout_s"] = c.connect_timeout_s
+    lo, hi, dims = _sim.workspace(c)
+    c.workspace_min_m, c.workspace_max_m = lo[:dims].tolist(), hi[:dims].tolist()
+    out["limits"] = _sim.limits_of(c, lo, hi)
+    out["values"] = ck.table(c)
     return out
+
+
+def effective_config(config: dict, *, period_s: float) -> dict:
+    """The ``[device]`` table with every key of its kind, defaults filled in (``--print-config``)."""
+    return parse_remote_config(config, period_s=period_s)["values"]
 
 
 def make_remote_device(config: dict, *, period_s: float, clock_ns=None) -> RemoteDevice:
@@ -493,6 +502,10 @@ def make_remote_device(config: dict, *, period_s: float, clock_ns=None) -> Remot
     if v["connect_timeout_s"] > 0:
         dev.wait_for_link(v["connect_timeout_s"])
     return dev
+
+
+#: the config loader asks the driver for its effective table (``server/config.py``)
+make_remote_device.effective_config = effective_config
 
 
 # =============================================================================== device side

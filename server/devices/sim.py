@@ -77,8 +77,11 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Annotated, Literal, Optional, Union
 
+import msgspec
 import numpy as np
+from msgspec import Meta, Struct
 
 from . import _check as ck
 from . import dynamics as _dyn
@@ -93,49 +96,121 @@ from .layout import (
     ST_CMD, ST_POSE, ST_S, ST_SD, ST_STOP, ST_TH, ST_TWIST,
 )
 
-#: Per-kind defaults (``None``: the key does not apply to the kind).
-KIND_DEFAULTS: dict[str, dict] = {
-    "1dof": {
-        "mass_kg": 0.2, "inertia_kg_m2": None, "damping_n_s_per_m": 1.0, "rot_damping_n_m_s_per_rad": None,
-        "axis": [1.0, 0.0, 0.0], "origin_m": [0.0, 0.0, 0.0],
-        "workspace_min_m": [-0.1, -0.1, -0.1], "workspace_max_m": [0.1, 0.1, 0.1],
-        "rotation_limit_rad": None, "max_force_n": 10.0, "max_torque_n_m": None,
-        "max_angular_speed_rad_per_s": None,
-        "endstop_rot_stiffness_n_m_per_rad": None, "endstop_rot_damping_n_m_s_per_rad": None,
-    },
-    "planar": {
-        "mass_kg": 0.4, "inertia_kg_m2": 1.0e-3, "damping_n_s_per_m": 2.0, "rot_damping_n_m_s_per_rad": 2e-3,
-        "axis": None, "origin_m": None,
-        "workspace_min_m": [-0.06, -0.06], "workspace_max_m": [0.06, 0.06],
-        "rotation_limit_rad": 1.0, "max_force_n": 10.0, "max_torque_n_m": 0.5,
-        "max_angular_speed_rad_per_s": 20.0,
-    },
-    "spatial": {
-        "mass_kg": 0.3, "inertia_kg_m2": [6e-4, 6e-4, 4e-4], "damping_n_s_per_m": 1.0,
-        "rot_damping_n_m_s_per_rad": 1e-3, "axis": None, "origin_m": None,
-        "workspace_min_m": [-0.1, -0.1, -0.1], "workspace_max_m": [0.1, 0.1, 0.1],
-        "rotation_limit_rad": 1.0, "max_force_n": 8.0, "max_torque_n_m": 0.5,
-        "max_angular_speed_rad_per_s": 20.0,
-    },
-}
-COMMON_DEFAULTS = {
-    "endstop_damping_n_s_per_m": 50.0,
-    "endstop_rot_damping_n_m_s_per_rad": 0.05,
-    "max_speed_m_per_s": 2.0,
-    "watchdog_s": 0.05,
-}
 ENDSTOP_STIFFNESS_N_PER_M = 20000.0
 ENDSTOP_ROT_STIFFNESS_N_M_PER_RAD = 20.0
 #: k dt^2 / m at most this (symplectic Euler is stable below 4 for an undamped spring)
 ENDSTOP_STABILITY = 2.0
 
-CONFIG_KEYS = (
-    "driver", "kind", "mass_kg", "inertia_kg_m2", "damping_n_s_per_m", "rot_damping_n_m_s_per_rad",
-    "axis", "origin_m", "workspace_min_m", "workspace_max_m", "rotation_limit_rad",
-    "endstop_stiffness_n_per_m", "endstop_damping_n_s_per_m", "endstop_rot_stiffness_n_m_per_rad",
-    "endstop_rot_damping_n_m_s_per_rad", "max_force_n", "max_torque_n_m", "max_speed_m_per_s",
-    "max_angular_speed_rad_per_s", "watchdog_s", "initial_pose", "initial_velocity", "hand",
-)
+# --------------------------------------------------------------------------- the [device] table
+# One Struct per kind: its keys, defaults and bounds (the module docstring says what each means).
+# A key of another kind "does not apply" to this one. ``Limits*`` are the keys every driver of
+# the kind shares (the remote driver's tables extend them).
+Mass = Annotated[float, Meta(gt=0.0, le=1e3)]
+NonNeg = Annotated[float, Meta(ge=0.0)]
+Vec = Union[float, list[float]]
+Vec3 = tuple[float, float, float]
+
+
+class _Limits(Struct, forbid_unknown_fields=True, kw_only=True):
+    driver: str = "sim"
+    kind: str = "planar"
+    max_speed_m_per_s: Annotated[float, Meta(gt=0.0, le=1e3)] = 2.0
+    watchdog_s: Annotated[float, Meta(ge=0.0, le=10.0)] = 0.05
+
+
+class Limits1dof(_Limits):
+    kind: Literal["1dof"] = "1dof"
+    max_force_n: Annotated[float, Meta(gt=0.0, le=1e4)] = 10.0
+    workspace_min_m: list[float] = msgspec.field(default_factory=lambda: [-0.1, -0.1, -0.1])
+    workspace_max_m: list[float] = msgspec.field(default_factory=lambda: [0.1, 0.1, 0.1])
+
+
+class LimitsPlanar(_Limits):
+    kind: Literal["planar"] = "planar"
+    max_force_n: Annotated[float, Meta(gt=0.0, le=1e4)] = 10.0
+    max_torque_n_m: Annotated[float, Meta(gt=0.0, le=1e3)] = 0.5
+    max_angular_speed_rad_per_s: Annotated[float, Meta(gt=0.0, le=1e4)] = 20.0
+    workspace_min_m: list[float] = msgspec.field(default_factory=lambda: [-0.06, -0.06])
+    workspace_max_m: list[float] = msgspec.field(default_factory=lambda: [0.06, 0.06])
+
+
+class LimitsSpatial(_Limits):
+    kind: Literal["spatial"] = "spatial"
+    max_force_n: Annotated[float, Meta(gt=0.0, le=1e4)] = 8.0
+    max_torque_n_m: Annotated[float, Meta(gt=0.0, le=1e3)] = 0.5
+    max_angular_speed_rad_per_s: Annotated[float, Meta(gt=0.0, le=1e4)] = 20.0
+    workspace_min_m: list[float] = msgspec.field(default_factory=lambda: [-0.1, -0.1, -0.1])
+    workspace_max_m: list[float] = msgspec.field(default_factory=lambda: [0.1, 0.1, 0.1])
+
+
+class Sim1dof(Limits1dof):
+    mass_kg: Mass = 0.2
+    damping_n_s_per_m: Annotated[float, Meta(ge=0.0, le=1e5)] = 1.0
+    axis: Vec3 = (1.0, 0.0, 0.0)
+    origin_m: Vec3 = (0.0, 0.0, 0.0)
+    endstop_stiffness_n_per_m: Optional[NonNeg] = None          # None: min(20000, m / dt^2)
+    endstop_damping_n_s_per_m: Annotated[float, Meta(ge=0.0, le=1e6)] = 50.0
+    initial_pose: Optional[Vec] = None                          # None: s = 0
+    initial_velocity: Optional[Vec] = None                      # None: at rest
+    hand: dict = msgspec.field(default_factory=lambda: {"type": "none"})
+
+
+class SimPlanar(LimitsPlanar):
+    mass_kg: Mass = 0.4
+    inertia_kg_m2: Mass = 1.0e-3
+    damping_n_s_per_m: Annotated[float, Meta(ge=0.0, le=1e5)] = 2.0
+    rot_damping_n_m_s_per_rad: Annotated[float, Meta(ge=0.0, le=1e3)] = 2e-3
+    rotation_limit_rad: Annotated[float, Meta(ge=0.0, le=math.pi)] = 1.0
+    endstop_stiffness_n_per_m: Optional[NonNeg] = None          # None: min(20000, m / dt^2)
+    endstop_damping_n_s_per_m: Annotated[float, Meta(ge=0.0, le=1e6)] = 50.0
+    endstop_rot_stiffness_n_m_per_rad: Optional[NonNeg] = None  # None: min(20, I_min / dt^2)
+    endstop_rot_damping_n_m_s_per_rad: Annotated[float, Meta(ge=0.0, le=1e4)] = 0.05
+    initial_pose: Optional[Vec] = None                          # None: the workspace centre
+    initial_velocity: Optional[Vec] = None
+    hand: dict = msgspec.field(default_factory=lambda: {"type": "none"})
+
+
+class SimSpatial(LimitsSpatial):
+    mass_kg: Mass = 0.3
+    #: 3 principal moments, or a symmetric positive definite 3x3 matrix
+    inertia_kg_m2: list[Union[float, list[float]]] = msgspec.field(default_factory=lambda: [6e-4, 6e-4, 4e-4])
+    damping_n_s_per_m: Annotated[float, Meta(ge=0.0, le=1e5)] = 1.0
+    rot_damping_n_m_s_per_rad: Annotated[float, Meta(ge=0.0, le=1e3)] = 1e-3
+    rotation_limit_rad: Annotated[float, Meta(ge=0.0, le=math.pi)] = 1.0
+    endstop_stiffness_n_per_m: Optional[NonNeg] = None
+    endstop_damping_n_s_per_m: Annotated[float, Meta(ge=0.0, le=1e6)] = 50.0
+    endstop_rot_stiffness_n_m_per_rad: Optional[NonNeg] = None
+    endstop_rot_damping_n_m_s_per_rad: Annotated[float, Meta(ge=0.0, le=1e4)] = 0.05
+    initial_pose: Optional[Vec] = None
+    initial_velocity: Optional[Vec] = None
+    hand: dict = msgspec.field(default_factory=lambda: {"type": "none"})
+
+
+#: kind -> its ``[device]`` table for the ``sim`` driver
+SIM_CONFIGS: dict[str, type] = {"1dof": Sim1dof, "planar": SimPlanar, "spatial": SimSpatial}
+
+
+def _defaults(cls) -> dict:
+    return {k: v for k, v in msgspec.structs.asdict(cls()).items() if k not in ("driver", "kind", "hand")}
+
+
+#: Per-kind defaults (keys of the kind only), from the tables above.
+KIND_DEFAULTS: dict[str, dict] = {k: _defaults(c) for k, c in SIM_CONFIGS.items()}
+
+
+def convert_kind(configs: dict[str, type], config, *, default_driver: str):
+    """The kind's table (``configs[kind]``) from a ``[device]`` dict, or ``ValueError("device.<key>: ...")``."""
+    if config is None:
+        config = {}
+    if not isinstance(config, dict):
+        raise ck.fail("device", f"expected a table, got {config!r}")
+    kind = ck.string("device.kind", config.get("kind", "planar"), DEVICE_KINDS)
+    c = ck.convert(configs[kind], config, "device", siblings=configs, kind=kind)
+    if "driver" in config:
+        ck.string("device.driver", config["driver"])
+    else:
+        c.driver = default_driver
+    return c
 
 
 @dataclass
@@ -168,43 +243,48 @@ def _travel(origin, axis, lo, hi) -> tuple[float, float]:
     return s_lo, s_hi
 
 
+def workspace(c) -> tuple[np.ndarray, np.ndarray, int]:
+    """The workspace box of a ``Limits*`` table as 3-vectors (planar: z = 0) and its dimension."""
+    lens = (2, 3) if c.kind == "planar" else (3,)
+    lo = ck.numbers("device.workspace_min_m", c.workspace_min_m, lens)
+    hi = ck.numbers("device.workspace_max_m", c.workspace_max_m, lens)
+    dims = 2 if c.kind == "planar" else 3
+    lo, hi = np.append(lo[:dims], [0.0] * (3 - dims)), np.append(hi[:dims], [0.0] * (3 - dims))
+    for i in range(dims):
+        if not hi[i] > lo[i]:
+            raise ck.fail("device.workspace_max_m",
+                          f"must exceed workspace_min_m on every axis ({lo[:dims].tolist()} .. {hi[:dims].tolist()})")
+    return lo, hi, dims
+
+
+def limits_of(c, lo, hi) -> DeviceLimits:
+    """The ``DeviceLimits`` of a ``Limits*`` table (a 1dof device renders no torque and cannot turn)."""
+    one = c.kind == "1dof"
+    return DeviceLimits(max_force_n=c.max_force_n, max_torque_n_m=0.0 if one else c.max_torque_n_m,
+                        max_speed_m_per_s=c.max_speed_m_per_s,
+                        max_angular_speed_rad_per_s=math.inf if one else c.max_angular_speed_rad_per_s,
+                        workspace_min_m=tuple(lo.tolist()), workspace_max_m=tuple(hi.tolist()),
+                        watchdog_s=c.watchdog_s)
+
+
 def parse_sim_config(config: dict, *, period_s: float) -> SimSpec:
-    """Validate a ``[device]`` table for the ``sim`` driver. Raises ``ValueError("device.<key>: ...")``."""
+    """Validate a ``[device]`` table for the ``sim`` driver (:data:`SIM_CONFIGS`). Raises
+    ``ValueError("device.<key>: ...")``. ``values``: every key of the kind, defaults filled in."""
     dt = _period(period_s)
-    if config is None:
-        config = {}
-    ck.check_keys("device", config, CONFIG_KEYS)
-    if "driver" in config:
-        ck.string("device.driver", config["driver"])
-    kind = ck.string("device.kind", config.get("kind", "planar"), DEVICE_KINDS)
-    kd = {**COMMON_DEFAULTS, **KIND_DEFAULTS[kind]}
-    for k, v in kd.items():
-        if v is None and k in config:
-            raise ck.fail(f"device.{k}", f"does not apply to a {kind} device")
-
-    def get(k):
-        return config.get(k, kd.get(k))
-
-    values: dict = {"driver": config.get("driver", "sim"), "kind": kind}
+    c = convert_kind(SIM_CONFIGS, config, default_driver="sim")
+    kind = c.kind
     par = np.zeros(NPAR)
     par[P_KIND] = KIND_IDS[kind]
     par[P_DT] = dt
-    mass = ck.num("device.mass_kg", get("mass_kg"), lo=0.0, lo_open=True, hi=1e3)
-    par[P_MASS] = mass
-    par[P_B] = ck.num("device.damping_n_s_per_m", get("damping_n_s_per_m"), lo=0.0, hi=1e5)
-    values.update(mass_kg=mass, damping_n_s_per_m=par[P_B])
+    par[P_MASS] = mass = c.mass_kg
+    par[P_B] = c.damping_n_s_per_m
     i_min = None
     if kind == "planar":
-        izz = ck.num("device.inertia_kg_m2", get("inertia_kg_m2"), lo=0.0, lo_open=True, hi=1e3)
-        par[P_IZZ] = izz
-        i_min = izz
-        values["inertia_kg_m2"] = izz
+        par[P_IZZ] = i_min = c.inertia_kg_m2
     elif kind == "spatial":
-        raw = get("inertia_kg_m2")
-        arr = np.asarray(raw, dtype=object)
-        if arr.shape == (3, 3):
-            inertia = np.array([[ck.num(f"device.inertia_kg_m2[{i}][{j}]", raw[i][j]) for j in range(3)]
-                                for i in range(3)])
+        raw = c.inertia_kg_m2
+        if all(isinstance(r, list) for r in raw) and len(raw) == 3 and all(len(r) == 3 for r in raw):
+            inertia = np.array(raw, dtype=np.float64)
         else:
             inertia = np.diag(ck.numbers("device.inertia_kg_m2", raw, (3,)))
         if not np.allclose(inertia, inertia.T, rtol=1e-9, atol=1e-15):
@@ -214,106 +294,68 @@ def parse_sim_config(config: dict, *, period_s: float) -> SimSpec:
             raise ck.fail("device.inertia_kg_m2", f"must be positive definite (eigenvalues {eig.tolist()})")
         par[P_IB:P_IB + 9] = inertia.ravel()
         i_min = float(eig[0])
-        values["inertia_kg_m2"] = inertia.tolist()
+        c.inertia_kg_m2 = inertia.tolist() if np.any(inertia != np.diag(np.diag(inertia))) else np.diag(inertia).tolist()
     if kind != "1dof":
-        par[P_BR] = ck.num("device.rot_damping_n_m_s_per_rad", get("rot_damping_n_m_s_per_rad"), lo=0.0, hi=1e3)
-        values["rot_damping_n_m_s_per_rad"] = par[P_BR]
+        par[P_BR] = c.rot_damping_n_m_s_per_rad
 
     # geometry
     axis = np.array([1.0, 0.0, 0.0])
     origin = np.zeros(3)
     if kind == "1dof":
-        axis = ck.numbers("device.axis", get("axis"), (3,))
+        axis = np.array(c.axis)
         n = float(np.linalg.norm(axis))
         if abs(n - 1.0) > 1e-6:
             raise ck.fail("device.axis", f"must be a unit vector, |axis| = {n:.9g}")
         axis = axis / n
-        origin = ck.numbers("device.origin_m", get("origin_m"), (3,))
+        origin = np.array(c.origin_m)
         par[P_AXIS:P_AXIS + 3] = axis
         par[P_ORIGIN:P_ORIGIN + 3] = origin
-        values.update(axis=axis.tolist(), origin_m=origin.tolist())
-    lens = (2, 3) if kind == "planar" else (3,)
-    lo = ck.numbers("device.workspace_min_m", get("workspace_min_m"), lens)
-    hi = ck.numbers("device.workspace_max_m", get("workspace_max_m"), lens)
-    if kind == "planar":
-        lo, hi = np.append(lo[:2], 0.0), np.append(hi[:2], 0.0)
-        dims = 2
-    else:
-        dims = 3
-    for i in range(dims):
-        if not hi[i] > lo[i]:
-            raise ck.fail("device.workspace_max_m", f"must exceed workspace_min_m on every axis ({lo.tolist()} .. {hi.tolist()})")
+        c.axis, c.origin_m = tuple(axis.tolist()), tuple(origin.tolist())
+    lo, hi, dims = workspace(c)
     par[P_LO:P_LO + 3] = lo
     par[P_HI:P_HI + 3] = hi
-    values.update(workspace_min_m=lo[:dims].tolist(), workspace_max_m=hi[:dims].tolist())
+    c.workspace_min_m, c.workspace_max_m = lo[:dims].tolist(), hi[:dims].tolist()
     if kind == "1dof":
         if np.any(origin < lo) or np.any(origin > hi):
             raise ck.fail("device.origin_m", f"must be inside the workspace box ({lo.tolist()} .. {hi.tolist()})")
-        s_lo, s_hi = _travel(origin, axis, lo, hi)
-        par[P_SLO], par[P_SHI] = s_lo, s_hi
-    if kind != "1dof":
-        lim = ck.num("device.rotation_limit_rad", get("rotation_limit_rad"), lo=0.0, hi=math.pi)
-        par[P_ROTLIM] = lim
-        values["rotation_limit_rad"] = lim
+        par[P_SLO], par[P_SHI] = _travel(origin, axis, lo, hi)
+    else:
+        par[P_ROTLIM] = c.rotation_limit_rad
 
     # end-stops: the explicit spring must be stable at this period
     k_max = ENDSTOP_STABILITY * mass / dt ** 2
-    ks = ck.num("device.endstop_stiffness_n_per_m",
-                config.get("endstop_stiffness_n_per_m", min(ENDSTOP_STIFFNESS_N_PER_M, mass / dt ** 2)), lo=0.0)
-    if ks > k_max:
-        raise ck.fail("device.endstop_stiffness_n_per_m",
-                      f"{ks:g} N/m is unstable at period {dt:g} s with mass {mass:g} kg (at most {k_max:.4g})")
-    par[P_KS] = ks
-    par[P_BS] = ck.num("device.endstop_damping_n_s_per_m", get("endstop_damping_n_s_per_m"), lo=0.0, hi=1e6)
-    values.update(endstop_stiffness_n_per_m=ks, endstop_damping_n_s_per_m=par[P_BS])
+    if c.endstop_stiffness_n_per_m is None:
+        c.endstop_stiffness_n_per_m = min(ENDSTOP_STIFFNESS_N_PER_M, mass / dt ** 2)
+    if c.endstop_stiffness_n_per_m > k_max:
+        raise ck.fail("device.endstop_stiffness_n_per_m", f"{c.endstop_stiffness_n_per_m:g} N/m is unstable at "
+                      f"period {dt:g} s with mass {mass:g} kg (at most {k_max:.4g})")
+    par[P_KS] = c.endstop_stiffness_n_per_m
+    par[P_BS] = c.endstop_damping_n_s_per_m
     if kind != "1dof":
         kr_max = ENDSTOP_STABILITY * i_min / dt ** 2
-        ksr = ck.num("device.endstop_rot_stiffness_n_m_per_rad",
-                     config.get("endstop_rot_stiffness_n_m_per_rad",
-                                min(ENDSTOP_ROT_STIFFNESS_N_M_PER_RAD, i_min / dt ** 2)), lo=0.0)
-        if ksr > kr_max:
+        if c.endstop_rot_stiffness_n_m_per_rad is None:
+            c.endstop_rot_stiffness_n_m_per_rad = min(ENDSTOP_ROT_STIFFNESS_N_M_PER_RAD, i_min / dt ** 2)
+        if c.endstop_rot_stiffness_n_m_per_rad > kr_max:
             raise ck.fail("device.endstop_rot_stiffness_n_m_per_rad",
-                          f"{ksr:g} N m/rad is unstable at period {dt:g} s with inertia {i_min:g} kg m^2 "
-                          f"(at most {kr_max:.4g})")
-        par[P_KSR] = ksr
-        par[P_BSR] = ck.num("device.endstop_rot_damping_n_m_s_per_rad", get("endstop_rot_damping_n_m_s_per_rad"),
-                            lo=0.0, hi=1e4)
-        values.update(endstop_rot_stiffness_n_m_per_rad=ksr, endstop_rot_damping_n_m_s_per_rad=par[P_BSR])
+                          f"{c.endstop_rot_stiffness_n_m_per_rad:g} N m/rad is unstable at period {dt:g} s with "
+                          f"inertia {i_min:g} kg m^2 (at most {kr_max:.4g})")
+        par[P_KSR] = c.endstop_rot_stiffness_n_m_per_rad
+        par[P_BSR] = c.endstop_rot_damping_n_m_s_per_rad
 
     # limits
-    fmax = ck.num("device.max_force_n", get("max_force_n"), lo=0.0, lo_open=True, hi=1e4)
-    tmax = 0.0
-    if kind != "1dof":
-        tmax = ck.num("device.max_torque_n_m", get("max_torque_n_m"), lo=0.0, lo_open=True, hi=1e3)
-    vmax = ck.num("device.max_speed_m_per_s", get("max_speed_m_per_s"), lo=0.0, lo_open=True, hi=1e3)
-    wmax = math.inf  # a 1dof device cannot turn: no angular-speed limit applies
-    if kind != "1dof":
-        wmax = ck.num("device.max_angular_speed_rad_per_s", get("max_angular_speed_rad_per_s"),
-                      lo=0.0, lo_open=True, hi=1e4)
-    wd = ck.num("device.watchdog_s", get("watchdog_s"), lo=0.0, hi=10.0)
-    if 0.0 < wd < dt:
-        raise ck.fail("device.watchdog_s", f"{wd:g} s is shorter than one period ({dt:g} s); 0 disables it")
-    par[P_FMAX], par[P_TMAX], par[P_VMAX] = fmax, tmax, vmax
-    par[P_WMAX] = wmax
-    values.update(max_force_n=fmax, max_speed_m_per_s=vmax, watchdog_s=wd)
-    if kind != "1dof":
-        values.update(max_torque_n_m=tmax, max_angular_speed_rad_per_s=wmax)
-    limits = DeviceLimits(max_force_n=fmax, max_torque_n_m=tmax, max_speed_m_per_s=vmax,
-                          max_angular_speed_rad_per_s=wmax, workspace_min_m=tuple(lo.tolist()),
-                          workspace_max_m=tuple(hi.tolist()), watchdog_s=wd)
+    if 0.0 < c.watchdog_s < dt:
+        raise ck.fail("device.watchdog_s", f"{c.watchdog_s:g} s is shorter than one period ({dt:g} s); 0 disables it")
+    limits = limits_of(c, lo, hi)
+    par[P_FMAX], par[P_TMAX] = limits.max_force_n, limits.max_torque_n_m
+    par[P_VMAX], par[P_WMAX] = limits.max_speed_m_per_s, limits.max_angular_speed_rad_per_s
 
     # initial state
     r = ck.REDUCED_DIMS[kind]
     centre = 0.5 * (lo + hi)
-    if kind == "1dof":
-        default_pose = [0.0]
-    elif kind == "planar":
-        default_pose = [centre[0], centre[1], 0.0]
-    else:
-        default_pose = [*centre.tolist(), 0.0, 0.0, 0.0]
-    pose_in = config.get("initial_pose", default_pose)
-    lens_p = (r, 7) if kind == "spatial" else (r,)
-    pose_arr = ck.numbers("device.initial_pose", pose_in, lens_p)
+    if c.initial_pose is None:
+        c.initial_pose = [0.0] if kind == "1dof" else (
+            [centre[0], centre[1], 0.0] if kind == "planar" else [*centre.tolist(), 0.0, 0.0, 0.0])
+    pose_arr = ck.numbers("device.initial_pose", c.initial_pose, (r, 7) if kind == "spatial" else (r,))
     pose6 = ck.pose6("device.initial_pose", pose_arr, kind, axis, origin)
     if kind == "1dof":
         s0 = float(pose_arr[0])
@@ -326,15 +368,24 @@ def parse_sim_config(config: dict, *, period_s: float) -> SimSpec:
         ang = abs(pose6[5]) if kind == "planar" else float(np.linalg.norm(pose6[3:]))
         if par[P_ROTLIM] > 0 and ang > par[P_ROTLIM]:
             raise ck.fail("device.initial_pose", f"rotation {ang:g} rad is beyond rotation_limit_rad")
-    values["initial_pose"] = pose_arr.tolist()
-    vel_arr = ck.numbers("device.initial_velocity", config.get("initial_velocity", [0.0] * r), (r,))
+    c.initial_pose = pose_arr.tolist()
+    if c.initial_velocity is None:
+        c.initial_velocity = [0.0] * r
+    vel_arr = ck.numbers("device.initial_velocity", c.initial_velocity, (r,))
     twist6 = ck.vector6("device.initial_velocity", vel_arr, kind, axis)
-    values["initial_velocity"] = vel_arr.tolist()
+    c.initial_velocity = vel_arr.tolist()
 
-    hand = _hands.parse_hand(config.get("hand", {"type": "none"}), kind=kind, axis=axis, origin=origin,
-                             rest_pose6=pose6)
-    values["hand"] = hand.config or {"type": "none"}
+    hand = _hands.parse_hand(c.hand, kind=kind, axis=axis, origin=origin, rest_pose6=pose6,
+                             rest_reduced=c.initial_pose)
+    c.hand = hand.config
+    values = ck.table(c)
     return SimSpec(kind, dt, par, limits, pose6, twist6, hand, values)
+
+
+def effective_config(config: dict, *, period_s: float) -> dict:
+    """The ``[device]`` table with every key of its kind, defaults filled in (``--print-config``);
+    loading it again gives the same device. Raises ``ValueError("device.<key>: ...")``."""
+    return parse_sim_config(config, period_s=period_s).values
 
 
 class SimDevice(DeviceDriver):
@@ -491,6 +542,10 @@ class SimDevice(DeviceDriver):
 def make_sim_device(config: dict, *, period_s: float, clock_ns=None) -> SimDevice:
     """Entry point ``sim``: build a simulated device from the ``[device]`` table."""
     return SimDevice(parse_sim_config(config, period_s=period_s), clock_ns=clock_ns)
+
+
+#: the config loader asks the driver for its effective table (``server/config.py``)
+make_sim_device.effective_config = effective_config
 
 
 _WARM = False

@@ -327,6 +327,9 @@ def test_a_tool_the_model_refuses_is_rejected_in_the_handshake_and_the_loop_keep
     # the paper's peg (0.25 kg) with 50000 N/m and 375 N s/m at 256 Hz: b dt / m = 5.9 > 2
     settings = cfgmod.load({"loop": {"rate_hz": 256.0}, "transport": {"url": "mem://extremes-refused"},
                             "model": {"stiffness_n_per_m": 5e4, "damping_n_s_per_m": 375.0},
+                            # outside the stable region at 256 Hz: the config refuses it unless told
+                            # to, and the handshake must refuse the tool on its own
+                            "safety": {"allow_outside_stable_region": True},
                             "device": {"driver": "sim", "kind": "planar"}, "telemetry": {"ring_s": 1.0}})
     clock = SimClock(start_ns=10**9)
     loop = HapticLoop.build(settings, clock=clock)

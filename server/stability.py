@@ -1,0 +1,175 @@
+"""The stable region of the local contact model, as measured, and the bound the server keeps.
+
+``hapticproxy experiment tradeoff`` (its stable-region part, ``experiments/tradeoff.py``
+``stable_region``) sweeps, per controller and haptic rate, the contact stiffness from 1 kN/m to
+1 MN/m with the paper's damping per stiffness (b = 7.5 ms x k), on the planar testbed with the
+paper's 0.25 kg peg: a stiffness is stable when neither the wall push nor 6 s of Fig. 16's
+shaking is unstable on any of three engine seeds. :data:`MEASURED` is its result (the
+``largest_stable_stiffness_n_per_m`` of ``docs/experiments/tradeoff.json``; a test keeps the two
+equal, so re-running the sweep and forgetting this table fails).
+
+The rule (:func:`stable_contact_limits`):
+
+- the row: the configured controller's (``four_channel``, ``coupler``, ``direct``), measured
+  with the deformation policy; a policy without proxy deformation (``rigid``, ``lm0``, ``lm``)
+  takes the smaller of that row and the IR row (direct, rigid: the only measured row without
+  deformation, whose band does not grow with the rate);
+- the rate: at a measured rate, its value; between two measured rates, the smaller of the two
+  (the grid's largest stable stiffness is a lower bound of the true limit at that rate, so the
+  smaller neighbour is a lower bound between them whenever the limit is monotone between grid
+  points, rising or falling: no direction is assumed); below the lowest measured rate (256 Hz)
+  the 256 Hz value scaled by (rate / 256)^2 (the explicit step's limit, k dt^2 / m bounded);
+  above the highest (8 kHz), the 8 kHz value (never extrapolated upwards);
+- damping: the rows were measured with b = 7.5 ms x k (``b_rule``), so the largest damping
+  measured stable is ``b_rule x k_max``; more damping than that is outside the region too (the
+  explicit step's other limit, b dt / m bounded).
+
+The four-channel controller was also swept with b fixed at 30 N s/m
+(:data:`MEASURED_FIXED_DAMPING`), stable to higher stiffness at 512 Hz and from 2 kHz up:
+:func:`outside_stable_region` accepts k up to that row when b <= 30 N s/m.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+#: b = DAMPING_PER_STIFFNESS_S x k: the damping the rows were measured with (the paper's 30 N s/m
+#: at 4000 N/m); ``experiments/tradeoff.py`` DAMPING_PER_STIFFNESS_S.
+DAMPING_PER_STIFFNESS_S = 0.0075
+#: Haptic rates of the sweep [Hz].
+RATES_HZ = (256.0, 512.0, 1000.0, 2000.0, 4000.0, 8000.0)
+#: Largest stable contact stiffness [N/m] per row and rate (``RATES_HZ``), b = 7.5 ms x k.
+MEASURED: dict[str, tuple[float, ...]] = {
+    "four_channel": (4000.0, 10000.0, 50000.0, 100000.0, 200000.0, 500000.0),
+    "coupler": (4000.0, 10000.0, 50000.0, 100000.0, 200000.0, 500000.0),
+    "direct": (10000.0, 20000.0, 50000.0, 100000.0, 200000.0, 500000.0),
+    "IR (direct, rigid, eps 0, eq. 1)": (10000.0, 20000.0, 10000.0, 10000.0, 10000.0, 10000.0),
+}
+#: The same sweep's row names in ``tradeoff.json`` for the fixed-damping family.
+FIXED_DAMPING_ROW = "four_channel, b = 30 N s/m"
+FIXED_DAMPING_N_S_PER_M = 30.0
+#: Largest stable stiffness [N/m] of the four-channel controller with b = 30 N s/m.
+MEASURED_FIXED_DAMPING: tuple[float, ...] = (4000.0, 20000.0, 50000.0, 200000.0, 1000000.0, 1000000.0)
+IR_ROW = "IR (direct, rigid, eps 0, eq. 1)"
+CONTROLLERS = ("four_channel", "coupler", "direct")
+POLICIES = ("rigid", "lm0", "lm", "deformation")
+#: One haptic step's force change at most this unless overridden (``safety.force_rate_n_per_s``).
+MAX_FORCE_STEP_N = 1.0
+
+
+class StableContactLimits(NamedTuple):
+    """``k_max_n_per_m``: the largest contact stiffness inside the measured region;
+    ``b_rule_s``: the damping per stiffness it was measured with (b = b_rule_s x k)."""
+
+    k_max_n_per_m: float
+    b_rule_s: float
+
+    @property
+    def b_max_n_s_per_m(self) -> float:
+        """The largest damping measured stable at this rate: b_rule x k_max."""
+        return self.b_rule_s * self.k_max_n_per_m
+
+
+def _at_rate(row: tuple[float, ...], rate_hz: float) -> float:
+    lo_r = RATES_HZ[0]
+    if rate_hz <= lo_r:
+        return row[0] * (rate_hz / lo_r) ** 2
+    if rate_hz >= RATES_HZ[-1]:
+        return row[-1]
+    for i, r in enumerate(RATES_HZ):
+        if rate_hz == r:
+            return row[i]
+        if rate_hz < r:
+            return min(row[i - 1], row[i])
+    raise AssertionError("unreachable")
+
+
+def _check(rate_hz: float, controller: str, policy: str) -> None:
+    if not (isinstance(rate_hz, (int, float)) and rate_hz > 0 and rate_hz < float("inf")):
+        raise ValueError(f"rate_hz: expected a positive finite rate, got {rate_hz!r}")
+    if controller not in CONTROLLERS:
+        raise ValueError(f"controller: expected one of {', '.join(CONTROLLERS)}; got {controller!r}")
+    if policy not in POLICIES:
+        raise ValueError(f"policy: expected one of {', '.join(POLICIES)}; got {policy!r}")
+
+
+def stable_contact_limits(rate_hz: float, controller: str, policy: str = "deformation") -> StableContactLimits:
+    """The measured stable region's bound for a haptic rate, controller and update policy:
+    ``(k_max, b_rule)`` with b = b_rule x k the damping rule it holds for (module docstring)."""
+    _check(rate_hz, controller, policy)
+    k = _at_rate(MEASURED[controller], float(rate_hz))
+    if policy != "deformation":
+        k = min(k, _at_rate(MEASURED[IR_ROW], float(rate_hz)))
+    return StableContactLimits(k, DAMPING_PER_STIFFNESS_S)
+
+
+def fixed_damping_k_max(rate_hz: float, controller: str, policy: str = "deformation") -> float | None:
+    """k_max of the fixed-damping family (b <= 30 N s/m), where it was measured (four-channel,
+    deformation policy); None elsewhere."""
+    _check(rate_hz, controller, policy)
+    if controller != "four_channel" or policy != "deformation":
+        return None
+    return _at_rate(MEASURED_FIXED_DAMPING, float(rate_hz))
+
+
+def max_force_rate_n_per_s(rate_hz: float) -> float:
+    """The force-rate limit at which one haptic step changes the force by at most 1 N."""
+    return MAX_FORCE_STEP_N * float(rate_hz)
+
+
+#: k dt^2 / m at most this for a spring acting on the device's own mass, explicitly integrated at
+#: the haptic rate (the simulated device keeps its end-stops to the same rule: ``sim.ENDSTOP_STABILITY``)
+DEVICE_SPRING_STABILITY = 2.0
+
+
+def device_spring_limit_n_per_m(mass_kg: float, rate_hz: float) -> float:
+    """The stiffest spring the device's own mass takes at this rate: 2 m rate^2."""
+    return DEVICE_SPRING_STABILITY * float(mass_kg) * float(rate_hz) ** 2
+
+
+def above_device_limits(*, rate_hz: float, controller: str, device_mass_kg: float | None, stiffness_n_per_m: float,
+                        coupling_stiffness_n_per_m: float) -> list[tuple[str, str]]:
+    """Springs stiffer than the device's mass takes at this rate (the device's own limit): the
+    coupling spring of the four-channel and coupler controllers, or, with direct coupling (the
+    device is the tool), the contact stiffness. ``device_mass_kg`` None: the driver does not say."""
+    if device_mass_kg is None:
+        return []
+    k_dev = device_spring_limit_n_per_m(device_mass_kg, rate_hz)
+    key, k = (("model.stiffness_n_per_m", stiffness_n_per_m) if controller == "direct"
+              else ("controller.stiffness_n_per_m", coupling_stiffness_n_per_m))
+    if k <= k_dev:
+        return []
+    return [(key, f"{k:g} N/m on the device's {device_mass_kg:g} kg at {rate_hz:g} Hz is beyond what the haptic step "
+                  f"integrates stably (k dt^2 / m <= {DEVICE_SPRING_STABILITY:g}, the device's own limit); "
+                  f"nearest safe value {k_dev:.6g}")]
+
+
+def outside_stable_region(*, rate_hz: float, controller: str, policy: str, stiffness_n_per_m: float,
+                          damping_n_s_per_m: float, force_rate_n_per_s: float) -> list[tuple[str, str]]:
+    """Every setting outside the measured region, as ``(key, reason with the nearest safe value)``."""
+    out: list[tuple[str, str]] = []
+    lim = stable_contact_limits(rate_hz, controller, policy)
+    k_fixed = fixed_damping_k_max(rate_hz, controller, policy)
+    where = f"{controller} controller, {policy} policy, at {rate_hz:g} Hz"
+    src = "(hapticproxy experiment tradeoff, EXPERIMENTS.md 'The stable region')"
+    k, b = stiffness_n_per_m, damping_n_s_per_m
+    k_ok = lim.k_max_n_per_m
+    if k_fixed is not None and b <= FIXED_DAMPING_N_S_PER_M:
+        k_ok = max(k_ok, k_fixed)
+    if k > k_ok:
+        fam = (f"with b <= {FIXED_DAMPING_N_S_PER_M:g} N s/m" if k_ok != lim.k_max_n_per_m
+               else f"with b = {lim.b_rule_s * 1e3:g} ms x k")
+        out.append(("model.stiffness_n_per_m",
+                    f"{k:g} N/m is outside the stable region measured for the {where}: stable up to "
+                    f"{k_ok:g} N/m {fam} {src}; nearest safe value {k_ok:g}"))
+    b_max = lim.b_max_n_s_per_m
+    if b > b_max:
+        out.append(("model.damping_n_s_per_m",
+                    f"{b:g} N s/m is more damping than the stable region measured for the {where} "
+                    f"(b = {lim.b_rule_s * 1e3:g} ms x k up to k = {lim.k_max_n_per_m:g} N/m) {src}; "
+                    f"nearest safe value {b_max:g}"))
+    f_max = max_force_rate_n_per_s(rate_hz)
+    if force_rate_n_per_s > f_max:
+        out.append(("safety.force_rate_n_per_s",
+                    f"{force_rate_n_per_s:g} N/s lets one step at {rate_hz:g} Hz change the force by "
+                    f"{force_rate_n_per_s / rate_hz:.4g} N (at most {MAX_FORCE_STEP_N:g} N); nearest safe value {f_max:g}"))
+    return out
