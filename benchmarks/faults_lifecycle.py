@@ -39,9 +39,10 @@ KICK_MARGIN_N = 1.0
 AFTER_ENGAGE_S = 2.0     # the window of the no-kick promise
 STEADY_S = 0.5           # the force at rest: the mean over the last half second
 HAND = {
-    "force": {"type": "constant", "wrench": [0.0, PUSH_N, 0.0]},
+    # both from the server's start: the hand is already pushing when the first client engages
+    "force": {"type": "constant", "start": "server", "wrench": [0.0, PUSH_N, 0.0]},
     # a soft arm gripping the handle and pulling it 5 cm down: about the same push, damped
-    "grip": {"type": "impedance", "stiffness_n_per_m": 10.0, "damping_n_s_per_m": 5.0,
+    "grip": {"type": "impedance", "start": "server", "stiffness_n_per_m": 10.0, "damping_n_s_per_m": 5.0,
              "target": {"type": "constant", "pose": [0.0, 0.05, 0.0]}},
 }
 

@@ -96,14 +96,16 @@ class Hand:
         cols = {"planar": 3, "1dof": 1}.get(device_kind)
         if cols is None:
             raise ValueError(f"device_kind: expected planar or 1dof, got {device_kind!r}")
+        # the experiments time the hand from the server's start (start_s is in that time base)
         if self.kind == "constant":
-            return {"type": "steps", "steps": [[0.0, [0.0] * cols], [float(self.start_s), list(self.wrench)[:cols]]]}
+            return {"type": "steps", "start": "server",
+                    "steps": [[0.0, [0.0] * cols], [float(self.start_s), list(self.wrench)[:cols]]]}
         if self.kind != "sinusoid":
             raise ValueError(f"hand.kind: expected constant or sinusoid, got {self.kind!r}")
         t = np.arange(0.0, self.start_s + seconds + 1.0, 1e-3)
         path = Path(folder) / f"hand-{abs(hash(self)) & 0xFFFFFFFF:08x}.npz"
         np.savez(path, t_s=t, wrench=self.value(t)[:, :cols])
-        return {"type": "replay", "mode": "wrench", "file": str(path)}
+        return {"type": "replay", "mode": "wrench", "file": str(path), "start": "server"}
 
 
 @dataclass(frozen=True)

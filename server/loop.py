@@ -690,6 +690,7 @@ class HapticLoop:
         self.session_id = upd.session_id
         self.com_m = np.asarray(hello.com_m, dtype=float)
         self._tool_axis = tool.axis
+        self.device.on_engage()  # a simulated hand's script starts with the session
         self._reindex()
         c = self.ctrl
         c.cs[ctl.CS_PREV:ctl.CS_PREV + 6] = c.cmd  # rate limit continues from the last output

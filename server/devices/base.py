@@ -120,6 +120,10 @@ class DeviceDriver(abc.ABC):
     def write(self, wrench: np.ndarray) -> int:
         """Command ``wrench`` (float64[6], N and N m, world frame at the handle); return status."""
 
+    def on_engage(self) -> None:
+        """A new session engaged the loop (called once per engagement, outside the hot path).
+        Real hardware ignores it; a simulated hand starts its script here."""
+
     def close(self) -> None:
         """Release the hardware (output zeroed first)."""
         self.disable()

@@ -87,7 +87,9 @@ HP_AMP = 10       # 10..15
 HP_FREQ = 16      # 16..21 [Hz]
 HP_PHASE = 22     # 22..27 [rad]
 HP_OFF = 28       # 28..33 constant value / sinusoid offset / value before the first step
-NHP = 34
+HP_T0 = 34        # device time [s] at which the script started (its t = 0)
+HP_WAIT = 35      # 1: the script waits for the first engagement (the handle is free until then)
+NHP = 36
 
 MODE_NONE = 0
 MODE_WRENCH = 1
@@ -120,8 +122,9 @@ def _row_at(tab, n, t):
 
 @njit(**_JIT)
 def hand_eval(hp, tab, st, hout):
-    """What the hand wants at the device time ``st[ST_TIME]``: fills ``hout`` (layout ``HO_*``)."""
-    t = st[ST_TIME]
+    """What the hand wants at the device time ``st[ST_TIME]``: fills ``hout`` (layout ``HO_*``).
+    The script's time is counted from ``hp[HP_T0]``; while ``hp[HP_WAIT]`` the handle is free."""
+    t = st[ST_TIME] - hp[HP_T0]
     mode = int(hp[HP_MODE])
     prof = int(hp[HP_PROF])
     period = hp[HP_PERIOD]
@@ -129,7 +132,7 @@ def hand_eval(hp, tab, st, hout):
         t = t - period * math.floor(t / period)
     for i in range(NHO):
         hout[i] = 0.0
-    if mode == MODE_NONE:
+    if mode == MODE_NONE or hp[HP_WAIT] != 0.0:
         return
     # value -> hout[base], rate -> hout[rbase] (rate only meaningful for impedance targets)
     base = HO_W if mode == MODE_WRENCH else HO_XT
@@ -192,6 +195,10 @@ Rows = list[list[Any]]
 
 class _HandTable(Struct, forbid_unknown_fields=True, kw_only=True):
     type: str = "none"
+    #: when the script's clock starts: at each new session's engagement (the hand waits, the
+    #: handle free, until a client engages, so a client attached later finds the script at its
+    #: start), or when the server starts
+    start: Literal["engagement", "server"] = "engagement"
 
 
 class HandNone(_HandTable):
@@ -473,6 +480,9 @@ def parse_hand(cfg, *, kind: str, axis, origin, rest_pose6, prefix: str = "devic
     tab = np.zeros((1, NTAB))
     geo = dict(kind=kind, axis=axis, origin=origin)
     eff: dict = {"type": htype}
+    if htype != "none":
+        eff["start"] = c.start
+        hp[HP_WAIT] = 1.0 if c.start == "engagement" else 0.0
     if htype == "none":
         hp[HP_MODE] = MODE_NONE
     elif htype == "constant":

@@ -31,7 +31,9 @@ COMMAND (server -> device, 96 bytes) ::
     8       u64      device_session: the device this command is for (from its STATE)
     16      u64      server_session: the server driver's boot epoch (ns since 1970 at start)
     24      u32      epoch: +1 at every enable() of the server driver
-    28      u32      reserved (zero)
+    28      u32      engagements: the server's count of sessions engaged so far; each rise
+                     starts the device program's scripted hand (a simulated hand's script
+                     starts at engagement, as with the in-process ``sim`` device)
     32      u64      seq: command sequence number, +1 per datagram from 1
     40      u64      state_seq: the newest state seq the server holds
     48      6 f64    wrench fx fy fz tx ty tz [N, N m], world, at the handle
@@ -221,6 +223,7 @@ class RemoteDevice(DeviceDriver):
         self._enabled = False
         self._fault = DEV_FAULT_LINK
         self._epoch = 0
+        self._engagements = 0
         self._seq = 0
         self._dev_session = 0
         self._dev_addr = self._pinned
@@ -243,6 +246,10 @@ class RemoteDevice(DeviceDriver):
     @property
     def fault(self) -> int:
         return self._fault
+
+    def on_engage(self) -> None:
+        """A new session engaged: told to the device program in every later command."""
+        self._engagements = (self._engagements + 1) & 0xFFFFFFFF
 
     def enable(self) -> None:
         """Arm: a new epoch (the device re-arms on its first command). A latched link or
@@ -359,7 +366,8 @@ class RemoteDevice(DeviceDriver):
             return
         self._seq += 1
         COMMAND_HDR.pack_into(self._tx, 0, MAGIC, VERSION, T_COMMAND, 0 if wrench is None else F_ENABLE,
-                              self._dev_session, self.session, self._epoch, 0, self._seq, self._state_seq)
+                              self._dev_session, self.session, self._epoch, self._engagements, self._seq,
+                              self._state_seq)
         if wrench is None:
             self._tx_wrench[:] = 0.0
         else:
@@ -546,6 +554,7 @@ class DeviceProgram:
         self._cmd = np.zeros(6)
         self._zero = np.zeros(6)
         self._key = (0, 0)
+        self._engaged = (0, 0)  # (server session, its engagement count) last seen
         self._cmd_seq = 0
         self._seq = 0
         self._armed = False
@@ -664,7 +673,7 @@ class DeviceProgram:
         if n != COMMAND_SIZE:
             cnt["malformed"] += 1
             return
-        magic, version, ptype, flags, dev_session, srv_session, epoch, _res, seq, _sseq = \
+        magic, version, ptype, flags, dev_session, srv_session, epoch, engagements, seq, _sseq = \
             COMMAND_HDR.unpack_from(self._rx, 0)
         if magic != MAGIC or version != VERSION or ptype != T_COMMAND:
             cnt["malformed"] += 1
@@ -676,6 +685,10 @@ class DeviceProgram:
         if key < self._key:
             cnt["old_key"] += 1
             return
+        if srv_session != self._engaged[0] or engagements > self._engaged[1]:
+            if engagements > (self._engaged[1] if srv_session == self._engaged[0] else 0):
+                self.driver.on_engage()  # a new session engaged the server: the hand's script starts
+            self._engaged = (srv_session, engagements)
         enable = bool(flags & F_ENABLE)
         w = self._rx_wrench
         finite = (math.isfinite(w[0]) and math.isfinite(w[1]) and math.isfinite(w[2])

@@ -93,7 +93,7 @@ from .layout import (
     C_ENABLED, C_FAULT, C_LAST_NS, C_WD_NS, COUNTER_NAMES, KIND_IDS, NCNT, NCTL, NHO, NPAR, NST,
     P_AXIS, P_B, P_BR, P_BS, P_BSR, P_DT, P_FMAX, P_HI, P_IB, P_IZZ, P_KIND, P_KS, P_KSR, P_LO,
     P_MASS, P_ORIGIN, P_ROTLIM, P_SHI, P_SLO, P_TMAX, P_VMAX, P_WMAX,
-    ST_CMD, ST_POSE, ST_S, ST_SD, ST_STOP, ST_TH, ST_TWIST,
+    ST_CMD, ST_POSE, ST_S, ST_SD, ST_STOP, ST_TH, ST_TIME, ST_TWIST,
 )
 
 ENDSTOP_STIFFNESS_N_PER_M = 20000.0
@@ -453,6 +453,14 @@ class SimDevice(DeviceDriver):
         """Compile / load the kernels (done at construction already; cheap to repeat)."""
         warm_up()
 
+    def on_engage(self) -> None:
+        """A new session engaged: a hand whose script starts at engagement starts it now."""
+        if self.spec.hand.config.get("start") == "engagement":
+            self._hp[_hands.HP_T0] = self._st[ST_TIME]
+            self._hp[_hands.HP_WAIT] = 0.0
+            _hands.hand_eval(self._hp, self._tab, self._st, self._hout)
+            _dyn.sim_hand_now(self._par, self._st, self._hout)  # the sensor reads the hand at once
+
     def _copy_command(self, wrench) -> None:
         a = np.asarray(wrench, dtype=np.float64)
         if a.shape != (6,):
@@ -480,6 +488,8 @@ class SimDevice(DeviceDriver):
         st = self._st
         st[:] = 0.0
         self._cnt[:] = 0
+        self._hp[_hands.HP_T0] = 0.0
+        self._hp[_hands.HP_WAIT] = spec.hand.hp[_hands.HP_WAIT]  # a waiting script waits again
         if self.kind == "1dof":
             st[ST_S] = s0
             st[ST_SD] = float(np.dot(twist6[:3], axis))

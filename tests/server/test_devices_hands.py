@@ -25,6 +25,7 @@ def make(kind, hand, **cfg):
     dev = make_sim_device({"kind": kind, "hand": hand, **cfg}, period_s=DT, clock_ns=clock)
     dev.clock = clock
     dev.enable()
+    dev.on_engage()  # a session engages at t = 0: the script starts
     return dev
 
 
@@ -196,3 +197,31 @@ def test_replay_file_errors_name_the_key(tmp_path):
     with pytest.raises(ValueError, match=r"^device\.hand\.damping_n_s_per_m: only used"):
         make_sim_device({"kind": "1dof", "hand": {"type": "replay", "file": str(cols), "mode": "wrench",
                                                   "damping_n_s_per_m": 1.0}}, period_s=DT)
+
+
+@pytest.mark.parametrize("hand", [{"type": "constant", "wrench": [0.5]},
+                                  {"type": "steps", "steps": [[0.0, [0.5]], [0.1005, [0.2]]]},
+                                  {"type": "impedance", "target": {"type": "constant", "pose": [0.05]}}])
+def test_a_script_waits_for_the_engagement_and_restarts_with_each_session(hand):
+    clock = FakeClock()
+    dev = make_sim_device({"kind": "1dof", "hand": hand}, period_s=DT, clock_ns=clock)
+    dev.clock = clock
+    dev.enable()
+    before = steps(dev, 300)                            # no client yet: the handle stays free
+    assert np.all(before[:, 13] == 0.0) and np.all(before[:, 0] == 0.0)
+    dev.on_engage()
+    a = steps(dev, 200)
+    assert np.any(a[:, 13] != 0.0)
+    dev.on_engage()                                     # the next session: from the start again
+    b = steps(dev, 200)
+    if hand["type"] == "steps":
+        np.testing.assert_allclose(a[:, 13], b[:, 13])  # the same profile, from its t = 0
+
+
+def test_a_script_may_start_with_the_server():
+    clock = FakeClock()
+    dev = make_sim_device({"kind": "1dof", "hand": {"type": "constant", "wrench": [0.5], "start": "server"}},
+                          period_s=DT, clock_ns=clock)
+    dev.clock = clock
+    dev.enable()
+    assert np.all(steps(dev, 10)[:, 13] == 0.5)

@@ -405,7 +405,7 @@ def test_device_cli_runs_from_a_server_config_file(tmp_path, capsys):
     cfg = tmp_path / "scene.toml"
     cfg.write_text('[device]\ndriver = "remote"\nkind = "spatial"\nlisten = "127.0.0.1:%d"\n'
                    'link_timeout_s = 0.2\nmax_force_n = 4.0\n\n[device.hand]\ntype = "constant"\n'
-                   'wrench = [0.1, 0, 0, 0, 0, 0]\n' % port)
+                   'wrench = [0.1, 0, 0, 0, 0, 0]\nstart = "server"\n' % port)  # no server engages here
     try:
         rc = remote.main(["--config", str(cfg), "--server", f"127.0.0.1:{port}", "--rate", "200",
                           "--duration", "0.1"])

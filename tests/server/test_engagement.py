@@ -22,10 +22,11 @@ MARGIN_N = 1.0
 
 HANDS = {
     # reduced coordinates of each kind; the floor's normal is +y (1dof: the device moves along y)
-    "force": lambda kind: {"type": "constant", "wrench": {"1dof": [-PUSH_N], "planar": [0.0, -PUSH_N, 0.0],
+    # start = "server": the hand pushes from the server's start, before any client (the worst case)
+    "force": lambda kind: {"type": "constant", "start": "server", "wrench": {"1dof": [-PUSH_N], "planar": [0.0, -PUSH_N, 0.0],
                                                           "spatial": [0.0, -PUSH_N, 0.0, 0.0, 0.0, 0.0]}[kind]},
     # a soft arm gripping the handle and pulling it 5 cm further down: about the same push
-    "grip": lambda kind: {"type": "impedance", "stiffness_n_per_m": 10.0, "damping_n_s_per_m": 5.0,
+    "grip": lambda kind: {"type": "impedance", "start": "server", "stiffness_n_per_m": 10.0, "damping_n_s_per_m": 5.0,
                           "target": {"type": "constant", "pose": {"1dof": [-0.05], "planar": [0.0, -0.05, 0.0],
                                                                   "spatial": [0.0, -0.05, 0.0, 0.0, 0.0, 0.0]}[kind]}},
 }
