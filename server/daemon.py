@@ -159,6 +159,7 @@ class Supervisor:
         self._nonces: dict[str, float] = {}
         self.auth_refused = 0
         self.exit_code = 0
+        self._closed_shared = False
         # the loop's clock is CLOCK_MONOTONIC; recordings carry Unix time
         self._epoch_offset_ns = time.time_ns() - time.monotonic_ns()
 
@@ -419,15 +420,19 @@ class Supervisor:
             if self.proc.is_alive():
                 self.proc.terminate()
                 self.proc.join(2)
-        if self.writer is not None:
+        if self.writer is not None and self._closed_shared is False:
             self.writer.drain(self.shared)
+        if self.writer is not None:
             self.writer.close()
         if self.live is not None:
             self.live.close()
             self.live = None
         if self.sock is not None:
             self.sock.close()
-        self.shared.close(unlink=True)
+            self.sock = None
+        if not self._closed_shared:
+            self.shared.close(unlink=True)
+            self._closed_shared = True
 
 
 def _check_writable(path: str, what: str, raise_: bool = True) -> str:

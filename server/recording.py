@@ -41,6 +41,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import struct
 import time
 import typing
 from dataclasses import dataclass, field
@@ -521,8 +522,8 @@ def read(path: str | Path) -> Recording:
                     chunks += 1  # a chunk's messages are yielded after it was read whole
                     last_msg_at = at
                 good = size if isinstance(rec, Footer) else at  # the closing magic follows the footer
-        except (McapError, EOFError, ValueError, OSError, msgspec.DecodeError):
-            pass
+        except (McapError, EOFError, ValueError, OSError, struct.error, msgspec.DecodeError):
+            pass  # a torn tail: everything before it was read
     tel = _rows_from(msgs)
     contacts = [{"t_s": c.t_s, "env_time_s": c.env_time_s, "update": c.update, "count": c.count,
                  "min_separation_m": c.min_separation_m,

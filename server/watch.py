@@ -9,6 +9,7 @@ Nothing here touches the loop: the supervisor answers from shared memory.
 from __future__ import annotations
 
 import math
+import os
 from typing import Callable
 
 from rich.table import Table
@@ -152,6 +153,7 @@ class WatchApp(App):
         self.interval_s = interval_s
         self.address = address
         self.last: dict | None = None
+        self.panels: dict = {}  # panel id -> the rich renderable it shows now
         self.polls = 0
         self.misses = 0
 
@@ -189,11 +191,18 @@ class WatchApp(App):
             return
         self.last = s
         self.query_one("#conn", Static).update(Text(f"{s.get('url', '')}  {s.get('live', '')}", style="dim"))
-        self.query_one("#state", Static).update(state_panel(s))
-        self.query_one("#timing", Static).update(timing_panel(s))
-        self.query_one("#pose", Static).update(pose_panel(s))
-        self.query_one("#force", Static).update(force_panel(s))
-        self.query_one("#contacts", Static).update(contact_panel(s))
+        for wid, make in (("state", state_panel), ("timing", timing_panel), ("pose", pose_panel),
+                          ("force", force_panel), ("contacts", contact_panel)):
+            self.panels[wid] = make(s)
+            self.query_one(f"#{wid}", Static).update(self.panels[wid])
+
+    def panel_text(self, wid: str, width: int = 100) -> str:
+        """What panel ``wid`` shows, as plain text (tests, logs)."""
+        from rich.console import Console
+
+        con = Console(width=width, record=True, file=open(os.devnull, "w"))
+        con.print(self.panels.get(wid, ""))
+        return con.export_text()
 
     def _send(self, cmd: str) -> None:
         if self.send is None:

@@ -207,7 +207,7 @@ def test_plot_writes_pngs(tmp_path):
     w.add(rows)
     w.close()
     out = plot_recording(p, tmp_path / "png")
-    assert len(out) == 3 and all(q.stat().st_size > 1000 for q in out)
+    assert len(out) == 4 and all(q.stat().st_size > 1000 for q in out)
 
 
 def test_the_loop_stops_when_its_supervisor_dies(server):
