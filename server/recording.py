@@ -353,7 +353,8 @@ class McapRecorder:
         self.transitions_written = 0
         self.chunks = 0
         self._pending = 0
-        self._read = 0          # telemetry ring rows consumed (absolute count)
+        self._read = self.start_row = 0          # telemetry ring rows consumed (absolute count)
+        self.start_contact = 0
         self._contact_seq = 0   # contact ring rows consumed
         self._trans_seq = 0     # transitions consumed
         self.t_start_ns = 0     # the loop's monotonic start (status t_start_ns), for transition times
@@ -366,8 +367,8 @@ class McapRecorder:
     def start_at(self, head: int, contact_seq: int = 0, transition_seq: int = 0) -> None:
         """Record from ring row ``head`` (contact row ``contact_seq``, transition ``transition_seq``)
         on; what came before is not part of this recording."""
-        self._read = int(head)
-        self._contact_seq = int(contact_seq)
+        self._read = self.start_row = int(head)
+        self._contact_seq = self.start_contact = int(contact_seq)
         self._trans_seq = int(transition_seq)
 
     def _log_ns(self, t_s: float) -> int:
