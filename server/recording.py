@@ -332,9 +332,11 @@ class McapRecorder:
         self.t0_epoch_ns = int(t0_epoch_ns)
         self._f = open(self.path, "wb")  # the caller made sure of the directory: nothing is created here
         self._ctx = foxglove.Context()
-        # chunks close only when this writer says (every flush_rows rows), each then fsync'ed
+        # chunks close only when this writer says (every flush_rows rows), each then fsync'ed; with
+        # seeking off the SDK keeps the chunk in progress in memory and writes it whole: a crash
+        # leaves no half chunk in the file
         self._w = foxglove.open_mcap(self._f, context=self._ctx,
-                                     writer_options=MCAPWriteOptions(chunk_size=None, profile=""))
+                                     writer_options=MCAPWriteOptions(chunk_size=None, profile="", disable_seeking=True))
         info = {"format": FORMAT, "rate_hz": repr(float(rate_hz)), "t0_epoch_ns": str(self.t0_epoch_ns),
                 "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.t0_epoch_ns * 1e-9 or None)),
                 "config": json.dumps(config or {}, sort_keys=True)}

@@ -8,7 +8,7 @@ import numpy as np
 from server_harness import PointDevice, WallEnv
 
 from hapticproxy.server.config import FIRST_COMMAND_MAX_N
-from hapticproxy.server.shm import TEL
+from hapticproxy.server.shm import ST, TEL
 
 PUSH = lambda t: (0.0, -0.5, 0.0)  # noqa: E731 - the paper's static-contact push, N
 
