@@ -334,7 +334,7 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
     relay = proxy = client = dev_proc = None
     sup = None
     dev_rec = None
-    rec_path = Path(tmp.name) / "run.hpt"
+    rec_path = Path(tmp.name) / "run.mcap"
     crash_info: dict = {}
     extra: dict = {}
     loop_pid = 0

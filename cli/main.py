@@ -21,6 +21,7 @@ BENCH_TARGETS = {
     "loop": "hapticproxy.benchmarks.bench_loop",
     "clients": "hapticproxy.benchmarks.bench_clients",
     "faults": "hapticproxy.benchmarks.bench_faults",
+    "recorder": "hapticproxy.benchmarks.bench_recorder",
 }
 
 COMMANDS = {
@@ -28,7 +29,8 @@ COMMANDS = {
     "protocol": ("hapticproxy.protocol.conformance", "protocol conformance kit: check-client, check-server"),
     "serve": ("hapticproxy.server.daemon", "run the haptics server daemon (--config FILE)"),
     "status": ("hapticproxy.server.status", "ask a running server for its live figures (--json)"),
-    "plot": ("hapticproxy.server.plot", "write PNG plots from a telemetry recording"),
+    "plot": ("hapticproxy.server.plot", "write PNG plots from a recording (.mcap or .hpt)"),
+    "convert": ("hapticproxy.server.convert", "convert a recording (.hpt, or a torn .mcap) to a complete MCAP file"),
     "client": ("hapticproxy.clients.cli", "run an environment client: pymunk | pybullet | stub"),
     "device": ("hapticproxy.server.devices.remote", "run a device program that streams to a server over UDP"),
     "experiment": ("hapticproxy.experiments.cli", "reproduce the paper's figures; the speed/accuracy trade-off"),

@@ -27,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     from .static_contact import PUSH_N, plot_static_contact, run_static_contact
 
     os.makedirs(args.out, exist_ok=True)
-    rec = os.path.join(args.out, "static_contact.hpt")
+    rec = os.path.join(args.out, "static_contact.mcap")
     t0 = time.perf_counter()
     try:
         res = run_static_contact(seconds=args.seconds, rate_hz=args.rate, engine=args.engine, record=rec,

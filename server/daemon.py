@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import argparse
 import gc
+import hmac
 import json
 import logging
+import math
 import multiprocessing as mp
 import os
 import select
@@ -27,8 +29,10 @@ import socket
 import sys
 import time
 
+import numpy as np
+
 from . import config as cfgmod
-from .lifecycle import LOOP_STATES, describe
+from .lifecycle import LOOP_STATES, Reason, describe
 from .shm import SharedState
 
 log = logging.getLogger("hapticproxy.serve")
@@ -123,10 +127,16 @@ def _die_with_parent() -> None:
 
 # ------------------------------------------------------------------------------ supervisor
 class Supervisor:
-    """Starts the loop process and serves status; ``run()`` until the loop stops."""
+    """Starts the loop process and serves status; ``run()`` until the loop stops.
+
+    Everything slow happens here, never in the loop: draining the rings of shared memory to the
+    recording (``record``: an MCAP file, ``recording``), feeding the live view (``live``:
+    ``HOST:PORT`` of a Foxglove WebSocket server, ``live``), answering ``hapticproxy status``.
+    With ``transport.hmac_key_file`` set, every status request must carry its HMAC (``status``:
+    stop and re-arm move a haptic device)."""
 
     def __init__(self, settings: cfgmod.Settings, *, record: str = "", duration_s: float | None = None,
-                 ready_timeout_s: float = 120.0, naive: bool = False) -> None:
+                 ready_timeout_s: float = 120.0, naive: bool = False, live: str = "") -> None:
         self.settings = settings
         self.naive = naive
         self.duration_s = duration_s
@@ -135,12 +145,23 @@ class Supervisor:
         self.ring_rows = rows
         self.shared = SharedState.create(rows)
         self.record = record or settings["telemetry"]["record"]
+        self.live_address = live
+        self.live = None
         self.writer = None
         self.proc = None
         self.sock = None
         self._stop_requested = False
         self._trans_seq = 0
+        self._contact_seq = 0
+        self._last_contacts = None  # the newest contact-ring row read: (header, key, pos, normal, sep)
+        self._last_transition = None
+        self._key = self._hmac_key()
+        self._nonces: dict[str, float] = {}
+        self.auth_refused = 0
         self.exit_code = 0
+        self._closed_shared = False
+        # the loop's clock is CLOCK_MONOTONIC; recordings carry Unix time
+        self._epoch_offset_ns = time.time_ns() - time.monotonic_ns()
 
     def _hmac_key(self):
         path = self.settings["transport"]["hmac_key_file"]
@@ -158,9 +179,12 @@ class Supervisor:
         except OSError as exc:
             raise RuntimeError(f"status.address {host}:{port}: cannot bind ({exc.strerror})") from None
         self.sock.setblocking(False)
+        if self.record:
+            _check_writable(self.record, "--record")
+            from . import recording  # noqa: F401 - imported now, so the recording starts with the loop
         ctx = mp.get_context("spawn")
         self.proc = ctx.Process(target=loop_process_main, name="hapticproxy-loop",
-                                args=(self.settings.as_dict(), self.shared.name, self.ring_rows, self._hmac_key(), self.naive),
+                                args=(self.settings.as_dict(), self.shared.name, self.ring_rows, self._key, self.naive),
                                 daemon=False)
         self.proc.start()
         t_end = time.monotonic() + self.ready_timeout_s
@@ -171,14 +195,39 @@ class Supervisor:
                 raise RuntimeError("the loop process did not become ready in time")
             self._serve_status(0.02)
         if self.record:
-            from .telemetry import TelemetryWriter
+            self.start_recording(self.record)
+        if self.live_address:
+            from .live import LiveView
 
-            self.writer = TelemetryWriter(self.record, rate_hz=self.settings.rate_hz, config=self.settings.as_dict(),
-                                          flush_rows=self.settings["telemetry"]["flush_rows"])
-            self.writer.start_at(int(self.shared.head[0]))
-        log.info("serving: %s at %.0f Hz, status on %s (rt scheduling: %s)", self.settings["transport"]["url"],
+            self.live = LiveView(self.live_address, self.settings, self.t0_epoch_ns)
+        log.info("serving: %s at %.0f Hz, status on %s (rt scheduling: %s)%s%s", self.settings["transport"]["url"],
                  self.settings.rate_hz, self.settings["status"]["address"],
-                 "yes" if self.shared.status[self._st("rt_scheduling")] else "no")
+                 "yes" if self.shared.status[self._st("rt_scheduling")] else "no",
+                 f", recording to {self.record}" if self.record else "",
+                 f", live view on ws://{self.live.address}" if self.live else "")
+
+    @property
+    def t0_epoch_ns(self) -> int:
+        """Unix time of the loop's start (its telemetry's ``t_s = 0``)."""
+        return int(self.shared.status[self._st("t_start_ns")]) + self._epoch_offset_ns
+
+    def _recording_meta(self) -> dict:
+        st = self.shared.status
+        return {"device_kind": self.settings["device"]["kind"], "tool_kind": self.settings.tool_kind,
+                "force_cap_n": float(st[self._st("force_cap_n")]),
+                "torque_cap_n_m": float(st[self._st("torque_cap_n_m")]),
+                "rate_limit_n_per_step": float(st[self._st("rate_limit_n_per_step")])}
+
+    def start_recording(self, path: str) -> None:
+        """Record from now on (the ring's rows from the current head) to the MCAP file ``path``."""
+        head, chead = int(self.shared.head[0]), int(self.shared.contact_head[0])  # before the file opens
+        from .recording import McapRecorder
+
+        self.writer = McapRecorder(path, rate_hz=self.settings.rate_hz, config=self.settings.as_dict(),
+                                   t0_epoch_ns=self.t0_epoch_ns, flush_rows=self.settings["telemetry"]["flush_rows"],
+                                   meta=self._recording_meta())
+        self.writer.start_at(head, chead, 0)
+        self.record = str(path)
 
     @staticmethod
     def _st(name: str) -> int:
@@ -194,14 +243,13 @@ class Supervisor:
     def run(self) -> int:
         t_end = None if self.duration_s is None else time.monotonic() + self.duration_s
         while self.proc.is_alive():
-            self._serve_status(0.05)
-            if self.writer is not None:
-                self.writer.drain(self.shared)
-            self._log_changes()
+            self._serve_status(0.05 if self.live is None else self.live.period_s)
+            self.service()
             if t_end is not None and time.monotonic() >= t_end:
                 self.request_stop()
                 t_end = None
         self.proc.join(5)
+        self.service()
         code = int(self.shared.status[self._st("exit_code")])
         if self.proc.exitcode not in (0, None) and code == 0:
             code = 1
@@ -209,13 +257,33 @@ class Supervisor:
         self.exit_code = code
         return code
 
+    def service(self) -> None:
+        """What the supervisor does between status requests: drain the recording, log the
+        transitions, read the newest contacts, feed the live view."""
+        if self.writer is not None:
+            self.writer.drain(self.shared)
+        self._log_changes()
+        items, self._contact_seq = self.shared.contact_rows_since(self._contact_seq)
+        if items:
+            self._last_contacts = items[-1]
+        if self.live is not None:
+            self.live.publish(self.shared, self._last_contacts, self._last_transition)
+
     def _log_changes(self) -> None:
         """Log every transition the loop wrote since the last call, with its reason."""
-        for seq, _t_ns, frm, to, reason, detail in self.shared.transitions_since(self._trans_seq):
+        for seq, t_ns, frm, to, reason, detail in self.shared.transitions_since(self._trans_seq):
             self._trans_seq = seq
             name = (lambda i: LOOP_STATES[i] if 0 <= i < len(LOOP_STATES) else str(i))
             level = logging.ERROR if name(to) == "fault" else logging.INFO
-            log.log(level, "loop %s -> %s: %s", name(frm), name(to), describe(reason, detail))
+            text = describe(reason, detail)
+            log.log(level, "loop %s -> %s: %s", name(frm), name(to), text)
+            try:
+                why = Reason(int(reason)).name.lower()
+            except ValueError:
+                why = str(reason)
+            t0 = self.shared.status[self._st("t_start_ns")]
+            self._last_transition = {"seq": seq, "t_s": (t_ns - t0) * 1e-9 if t0 else None, "from": name(frm),
+                                     "to": name(to), "reason": why, "detail": detail, "text": text}
 
     def _serve_status(self, timeout_s: float) -> None:
         r, _, _ = select.select([self.sock], [], [], timeout_s)
@@ -223,7 +291,7 @@ class Supervisor:
             return
         for _ in range(64):
             try:
-                data, addr = self.sock.recvfrom(2048)
+                data, addr = self.sock.recvfrom(4096)
             except BlockingIOError:
                 return
             try:
@@ -233,26 +301,95 @@ class Supervisor:
             except ValueError:
                 self._reply({"error": "request must be a JSON object"}, addr)
                 continue
-            self._reply(self.handle(req), addr)
+            why = self._authenticate(req)
+            if why:
+                self.auth_refused += 1
+                self._reply({"error": why}, addr)
+                continue
+            try:
+                reply = self.handle(req)
+            except Exception as exc:  # noqa: BLE001 - a bad request never takes the supervisor down
+                log.exception("status request %r failed", req.get("cmd"))
+                reply = {"error": f"{type(exc).__name__}: {exc}"}
+            self._reply(reply, addr)
+
+    def _authenticate(self, req: dict) -> str:
+        """"" if the request may be served; why not otherwise. Without a key every request is."""
+        if self._key is None:
+            return ""
+        from .status import AUTH_WINDOW_S, request_mac
+
+        mac = req.get("mac")
+        if not isinstance(mac, str):
+            return "unauthenticated: this server wants requests signed with its HMAC key (status --config/--key-file)"
+        if not hmac.compare_digest(mac, request_mac(self._key, req)):
+            return "unauthenticated: bad MAC"
+        now = time.time()
+        ts = req.get("ts")
+        if not isinstance(ts, (int, float)) or abs(now - ts) > AUTH_WINDOW_S:
+            return "unauthenticated: request time outside the window (clocks apart, or replayed)"
+        nonce = req.get("nonce")
+        if not isinstance(nonce, str) or nonce in self._nonces:
+            return "unauthenticated: nonce missing or replayed"
+        for k in [k for k, t in self._nonces.items() if now - t > 2 * AUTH_WINDOW_S]:
+            del self._nonces[k]
+        self._nonces[nonce] = now
+        return ""
 
     def _reply(self, obj: dict, addr) -> None:
         try:
-            self.sock.sendto(json.dumps(obj).encode()[:65000], addr)
+            self.sock.sendto(json.dumps(jsonable(obj), allow_nan=False).encode()[:65000], addr)
         except OSError:
             pass
+
+    def status(self) -> dict:
+        """The status reply: the loop's figures, the newest pose, command and contacts, the last
+        transition, the recording and the live view."""
+        from .lifecycle import Fault
+
+        snap = self.shared.snapshot()
+        snap["telemetry_file"] = str(self.record) if self.record else ""
+        snap["telemetry_rows_written"] = self.writer.rows_written if self.writer else 0
+        snap["telemetry_rows_lost"] = self.writer.rows_lost if self.writer else 0
+        snap["config_source"] = self.settings.source
+        snap["url"] = self.settings["transport"]["url"]
+        snap["outside_stable_region"] = [f"{k}: {why}" for k, why in self.settings.outside_stable_region]
+        snap["device_kind"] = self.settings["device"]["kind"]
+        snap["tool_kind"] = self.settings.tool_kind
+        snap["live"] = f"ws://{self.live.address}" if self.live else ""
+        snap["authenticated"] = self._key is not None
+        span = ((snap["t_last_ns"] or 0) - (snap["t_start_ns"] or 0)) * 1e-9
+        snap["achieved_rate_hz"] = (snap["steps"] - 1) / span if span > 0 and snap["steps"] > 1 else 0.0
+        try:
+            snap["fault_name"] = Fault(snap["fault"]).name.lower()
+        except ValueError:
+            snap["fault_name"] = str(snap["fault"])
+        from .devices.base import DEV_FAULT_NAMES
+
+        snap["device_fault_name"] = DEV_FAULT_NAMES.get(snap["device_fault"], str(snap["device_fault"]))
+        snap["last_transition"] = self._last_transition
+        row = self.shared.latest_row()
+        if row is not None:
+            snap["latest"] = {"t_s": float(row["t_s"]), "device_pose": row["dev"][:7].tolist(),
+                              "device_twist": row["dev"][7:].tolist(), "proxy_pose": row["proxy"][:7].tolist(),
+                              "proxy_twist": row["proxy"][7:].tolist(), "command": row["cmd"].tolist(),
+                              "environment_wrench": row["env"].tolist()}
+        else:
+            snap["latest"] = None
+        c = self._last_contacts
+        if c is not None:
+            hdr, _key, _pos, _nrm, sep = c
+            snap["last_update"] = {"t_s": float(hdr["t_s"]), "count": int(hdr["count"]),
+                                   "min_separation_m": float(sep.min()) if len(sep) else None,
+                                   "penetration_m": max(0.0, -float(sep.min())) if len(sep) else 0.0}
+        else:
+            snap["last_update"] = None
+        return snap
 
     def handle(self, req: dict) -> dict:
         cmd = req.get("cmd", "status")
         if cmd == "status":
-            snap = self.shared.snapshot()
-            snap["telemetry_file"] = str(self.record) if self.record else ""
-            snap["telemetry_rows_written"] = self.writer.rows_written if self.writer else 0
-            snap["config_source"] = self.settings.source
-            snap["url"] = self.settings["transport"]["url"]
-            snap["outside_stable_region"] = [f"{k}: {why}" for k, why in self.settings.outside_stable_region]
-            span = (snap["t_last_ns"] - snap["t_start_ns"]) * 1e-9
-            snap["achieved_rate_hz"] = (snap["steps"] - 1) / span if span > 0 and snap["steps"] > 1 else 0.0
-            return snap
+            return self.status()
         if cmd == "rearm":
             return {"ok": True, "rearm": self.shared.request("rearm")}
         if cmd == "stop":
@@ -261,13 +398,17 @@ class Supervisor:
         if cmd == "reset_stats":
             return {"ok": True, "reset": self.shared.request("reset_stats")}
         if cmd == "dump":
-            from .telemetry import dump_ring
+            from .recording import dump_ring
 
             path = req.get("path")
             if not isinstance(path, str) or not path:
                 return {"error": "dump needs a path"}
+            why = _check_writable(path, "dump", raise_=False)
+            if why:
+                return {"error": why}
             try:
-                n = dump_ring(self.shared, path, rate_hz=self.settings.rate_hz, config=self.settings.as_dict())
+                n = dump_ring(self.shared, path, rate_hz=self.settings.rate_hz, config=self.settings.as_dict(),
+                              t0_epoch_ns=self.t0_epoch_ns, meta=self._recording_meta())
             except OSError as exc:
                 return {"error": f"cannot write {path}: {exc.strerror}"}
             return {"ok": True, "rows": n, "path": path}
@@ -280,12 +421,53 @@ class Supervisor:
             if self.proc.is_alive():
                 self.proc.terminate()
                 self.proc.join(2)
-        if self.writer is not None:
+        if self.writer is not None and self._closed_shared is False:
             self.writer.drain(self.shared)
+        if self.writer is not None:
             self.writer.close()
+        if self.live is not None:
+            self.live.close()
+            self.live = None
         if self.sock is not None:
             self.sock.close()
-        self.shared.close(unlink=True)
+            self.sock = None
+        if not self._closed_shared:
+            self.shared.close(unlink=True)
+            self._closed_shared = True
+
+
+def _check_writable(path: str, what: str, raise_: bool = True) -> str:
+    """A recording's path must be absolute (it is resolved by whoever names it: the server's own
+    working directory means nothing to a caller) in a directory that exists: the server never
+    creates directories. Returns (or raises as RuntimeError) why not; "" when it is fine."""
+    why = ""
+    p = os.fspath(path)
+    if not os.path.isabs(p) and what == "dump":
+        why = f"{what}: {p!r} is not an absolute path (`hapticproxy status --dump` sends one)"
+    elif os.path.isdir(p):
+        why = f"{what}: {p!r} is a directory"
+    elif not os.path.isdir(os.path.dirname(os.path.abspath(p))):
+        why = f"{what}: the directory of {p!r} does not exist (the server creates none)"
+    if why and raise_:
+        raise RuntimeError(why)
+    return why
+
+
+def jsonable(obj):
+    """``obj`` with every non-finite float as None and numpy scalars as Python numbers (strict
+    JSON: ``json.dumps(..., allow_nan=False)`` never fails on it)."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    return obj
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -297,7 +479,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--url", help="transport URL clients connect to (overrides transport.url)")
     p.add_argument("--status", help="status address HOST:PORT (overrides status.address)")
     p.add_argument("--rate", type=float, help="haptic rate in Hz (overrides loop.rate_hz)")
-    p.add_argument("--record", default="", help="record telemetry to this file")
+    p.add_argument("--record", default="", metavar="FILE.mcap",
+                   help="record telemetry, contacts and transitions to this MCAP file (Foxglove, PlotJuggler)")
+    p.add_argument("--live", nargs="?", const="127.0.0.1:8765", default="", metavar="HOST:PORT",
+                   help="serve a live view (Foxglove WebSocket protocol; default 127.0.0.1:8765)")
     p.add_argument("--duration", type=float, help="stop cleanly after this many seconds")
     p.add_argument("--print-config", action="store_true",
                    help="print every key in effect (the device's and the hand's too) as TOML and exit")
@@ -327,7 +512,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"hapticproxy serve: {exc}", file=sys.stderr)
         return 2
     warn_outside_stable_region(settings)
-    sup = Supervisor(settings, record=args.record, duration_s=args.duration)
+    record = os.path.abspath(args.record) if args.record else ""
+    sup = Supervisor(settings, record=record, duration_s=args.duration, live=args.live)
 
     def on_signal(signum, frame):  # noqa: ARG001
         sup.request_stop()

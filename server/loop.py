@@ -35,7 +35,6 @@ import os
 import time
 
 import numpy as np
-from numba import njit
 
 from hapticproxy.protocol.messages import ToolKind
 from hapticproxy.protocol.session import ServerConfig, ServerEndpoint
@@ -46,7 +45,8 @@ from .devices.base import (
 )
 from .lifecycle import LOOP_STATES, LS, SERVER_STATE_BY_CODE, TRANSITIONS, Fault, Reason
 from .model.model import ContactParams, LinkSpec, LocalModel, ToolSpec, warm_up as model_warm_up
-from .shm import CT, HBINS, ST, SharedState
+from .rings import account, record_contacts
+from .shm import CT, ST, SharedState
 
 _KIND_TO_TOOLKIND = {"1dof": ToolKind.ONE_DOF, "planar": ToolKind.PLANAR, "spatial": ToolKind.SPATIAL,
                      "linkage": ToolKind.LINKAGE}
@@ -63,44 +63,6 @@ WD_OK = 0
 WD_SILENT = 1
 WD_SESSION_ENDED = 2
 
-
-
-@njit(cache=True, nogil=True)
-def _account(ring, head, hist_late, hist_step, status, period_ns, late_ns, comp_ns, t_s, state, gain,
-             contacts, updates, cs, dev, cmd):
-    """Histograms, maxima and one telemetry row; no allocation."""
-    lu = late_ns / 1000.0
-    cu = comp_ns / 1000.0
-    bl = int(lu) if lu > 0.0 else 0
-    bc = int(cu) if cu > 0.0 else 0
-    hist_late[bl if bl < HBINS - 1 else HBINS - 1] += 1
-    hist_step[bc if bc < HBINS - 1 else HBINS - 1] += 1
-    status[1] += 1.0  # steps
-    if lu > status[7]:
-        status[7] = lu
-    if cu > status[8]:
-        status[8] = cu
-    if late_ns + comp_ns > period_ns:
-        status[9] += 1.0  # overruns: the step finished after the next deadline
-    rows = ring.shape[0]
-    i = head[0] % rows
-    r = ring[i]
-    r[0] = t_s
-    r[1] = lu
-    r[2] = cu
-    r[3] = state
-    r[4] = gain
-    r[5] = contacts
-    r[6] = updates
-    for j in range(13):
-        r[7 + j] = cs[ctl.CS_DPOSE + j]
-        r[20 + j] = cs[ctl.CS_PPOSE + j]
-    for j in range(6):
-        r[33 + j] = cmd[j]
-        r[39 + j] = cs[ctl.CS_ENV + j]
-        r[45 + j] = dev[13 + j]
-        r[51 + j] = cs[ctl.CS_FC + j]
-    head[0] += 1
 
 
 def tool_from_hello(hello, planar: bool | None = None) -> ToolSpec:
@@ -433,11 +395,11 @@ class HapticLoop:
                 ctl.haptic_step_linkage(c.cp, c.cs, c.cc, dev, c.cmd, par_, *lm.linkage_args()[:3], st_, C_, CI_,
                                         cnt_, wk_, lm.linkage_args()[3], c.hand)
         ctl.fade_only(c.cp, c.cs, c.cc, c.cmd)
-        ring = np.zeros((4, self.shared.ring.shape[1]))
-        head = np.zeros(1, dtype=np.int64)
-        hist = np.zeros(HBINS, dtype=np.int64)
-        status = np.zeros_like(self.shared.status)
-        self._account_step(ring, head, hist, hist.copy(), status, 1, 1, 0, c.cs, dev, c.cmd)
+        scratch = SharedState.local(4)  # the same views (so the same kernel types) as the shared block's
+        self._account_step(scratch.tel, scratch.head, scratch.hist_late, scratch.hist_step, scratch.stat, 1, 1, 0,
+                           c.cs, dev, c.cmd)
+        record_contacts(scratch.contacts, 0.0, 0.0, 1, 1, np.zeros((4, 3), dtype=np.int64), np.zeros((4, 3)),
+                        np.zeros((4, 3)), np.zeros(4))
         ctl.proxy_hand_state(tmp.kind, tmp.kernel_args()[1], tmp.kernel_args()[2], c.R, c.c, self._scratch_pose, 0)
         warm = getattr(self.device, "warm_up", None)
         if callable(warm):
@@ -536,7 +498,7 @@ class HapticLoop:
         end = clock.now_ns()
         self._last_write_ns = end
         sh = self.shared
-        self._account_step(sh.ring, sh.head, sh.hist_late, sh.hist_step, sh.status, late, end - wake, wake - self._t0,
+        self._account_step(sh.tel, sh.head, sh.hist_late, sh.hist_step, sh.stat, late, end - wake, wake - self._t0,
                            c.cs, dev, c.cmd)
         self._hk_count += 1
         if self._hk_count >= self._hk_every:
@@ -544,10 +506,10 @@ class HapticLoop:
             self._housekeeping(end)
         return not self.stopped
 
-    def _account_step(self, ring, head, hist_late, hist_step, status, late_ns, comp_ns, since_start_ns, cs, dev,
+    def _account_step(self, tel, head, hist_late, hist_step, stat, late_ns, comp_ns, since_start_ns, cs, dev,
                       cmd) -> None:
         # every scalar converted here, so the kernel always sees the one signature warm_up compiled
-        _account(ring, head, hist_late, hist_step, status, self.period_ns, int(late_ns), int(comp_ns),
+        account(tel, head, hist_late, hist_step, stat, self.period_ns, int(late_ns), int(comp_ns),
                  since_start_ns * 1e-9, float(self.state), float(cs[ctl.CS_GAIN]), self._contacts(),
                  float(self.updates), cs, dev, cmd)
 
@@ -584,6 +546,8 @@ class HapticLoop:
                 return
         self._track_env(upd, now)
         self.updates += 1
+        record_contacts(self.shared.contacts, (now - self._t0) * 1e-9, float(upd.env_time_s), self.updates,
+                        upd.keys.shape[0], self._kbuf, self._pbuf, self._nbuf, self._sbuf)
         if self.state == LS["fading"] and self.watchdog == WD_SILENT:
             self.transition("engaged", Reason.RESUMED)
         self._ack(now)
@@ -915,6 +879,7 @@ class HapticLoop:
         st[ST["poll_budget_cuts"]] = self.poll_cut
         st[ST["stall_trips"]] = self.stall_trips
         st[ST["stall_recoveries"]] = self.stall_recoveries
+        st[ST["torque_cap_n_m"]] = self.ctrl.cp[ctl.CP_TMAX]
 
     # ---------------------------------------------------------------------------- running
     def run(self, *, max_steps: int | None = None, duration_s: float | None = None) -> None:

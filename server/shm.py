@@ -1,24 +1,37 @@
 """Shared memory between the haptic-loop process and its supervisor.
 
-One ``multiprocessing.shared_memory`` block holds, as numpy views:
+One ``multiprocessing.shared_memory`` block holds, as numpy views, every part declared once as a
+numpy (structured) dtype, so a field is named where it is written and where it is read and a
+misspelt one fails (numba refuses an unknown record field when it compiles):
 
-- ``status`` (float64[NSTAT]): live figures the loop publishes (steps, lateness, overruns, ...);
+- ``stat`` (:data:`STATUS_DTYPE`, one record) with ``status``, the same memory as float64[NSTAT]
+  (``status[ST[name]]``): live figures the loop publishes (steps, lateness, overruns, ...);
 - ``hist_late`` / ``hist_step`` (int64[HBINS]): histograms of wake-up lateness and step compute
   time in 1 us bins (the last bin counts everything >= HBINS-1 us), from which percentiles are
   computed without the loop ever sorting anything;
 - ``control`` (int64[NCTL]): requests from the supervisor (stop, re-arm, reset statistics), each
   a counter the supervisor increments and the loop acknowledges by copying it;
-- ``ring`` (float64[rows, NTEL]) with ``head`` (rows ever written): the telemetry ring the
-  supervisor drains to a file, so a crash of the loop process loses nothing already in it;
+- ``tel`` (:data:`TEL_DTYPE`[rows]) with ``ring``, the same memory as float64[rows, NTEL]
+  (``ring[:, TEL[name]]``), and ``head`` (rows ever written): the telemetry ring, one row per
+  haptic step, that the supervisor drains to a recording, so a crash of the loop process loses
+  nothing already in it;
+- the contact ring, one row per applied model update (30-60 Hz, not per haptic step):
+  ``contact_hdr`` (:data:`CONTACT_HDR_DTYPE`[CONTACT_ROWS]: time, count, ...) and the update's
+  contacts ``contact_key`` (int64[CONTACT_ROWS, MAX_CONTACTS, 3]), ``contact_position_m``,
+  ``contact_normal`` (float64[..., 3]), ``contact_separation_m`` (float64[CONTACT_ROWS,
+  MAX_CONTACTS]), with ``contact_head`` (rows ever written); a row's ``seq`` is -1 while the loop
+  writes it, so a reader that copied it while it changed sees a different ``seq`` and drops it;
 - ``translog`` (:data:`TRANSITION_DTYPE`[TLOG_ROWS]): the loop's last state transitions with
   their reasons (``lifecycle``), row ``seq % TLOG_ROWS``; the supervisor logs each one once.
 
 The loop writes, the supervisor reads (except ``control``). Every field is a float64/int64 that
 is written whole, so a reader sees either the old or the new value of each; percentiles read
-while the loop runs are consistent to within one step.
+while the loop runs are consistent to within one step. The kernels that write the rings are in
+``rings`` (this module imports no numba: ``hapticproxy status`` reads these names too).
 """
 from __future__ import annotations
 
+import math
 from multiprocessing import shared_memory
 
 import numpy as np
@@ -32,40 +45,94 @@ TLOG_ROWS = 64
 TRANSITION_DTYPE = np.dtype([("seq", np.int64), ("t_ns", np.int64), ("from_state", np.int64),
                              ("to_state", np.int64), ("reason", np.int64), ("detail", np.float64)])
 
-STATUS_FIELDS = (
-    "pid", "steps", "rate_hz", "period_ns", "t_start_ns", "t_last_ns", "rt_scheduling",
-    "lateness_max_us", "compute_max_us", "overruns", "missed_deadlines", "updates", "acks_sent",
-    "stale_or_duplicate", "decode_errors", "dropped_packets", "contacts", "session_id", "sessions_opened",
-    "loop_state", "watchdog", "gain", "fault", "device_fault", "model_nonfinite", "saturated", "rate_limited",
-    "speed_trips", "spin_ns", "env_silence_ms", "env_rate_hz", "ready", "exit_code", "timer_slack",
-    "force_cap_n", "rate_limit_n_per_step", "engagements", "faults_total", "telemetry_overwritten",
+# ---------------------------------------------------------------------------- status block
+#: (name, kind): every field is stored as float64 (written whole by the loop); "i" fields are
+#: counts, codes or flags and are reported as JSON integers, "f" fields as numbers.
+STATUS_LAYOUT = (
+    ("pid", "i"), ("steps", "i"), ("rate_hz", "f"), ("period_ns", "i"), ("t_start_ns", "i"), ("t_last_ns", "i"),
+    ("rt_scheduling", "i"), ("lateness_max_us", "f"), ("compute_max_us", "f"), ("overruns", "i"),
+    ("missed_deadlines", "i"), ("updates", "i"), ("acks_sent", "i"), ("stale_or_duplicate", "i"),
+    ("decode_errors", "i"), ("dropped_packets", "i"), ("contacts", "i"), ("session_id", "i"),
+    ("sessions_opened", "i"), ("loop_state", "i"), ("watchdog", "i"), ("gain", "f"), ("fault", "i"),
+    ("device_fault", "i"), ("model_nonfinite", "i"), ("saturated", "i"), ("rate_limited", "i"),
+    ("speed_trips", "i"), ("spin_ns", "i"), ("env_silence_ms", "f"), ("env_rate_hz", "f"), ("ready", "i"),
+    ("exit_code", "i"), ("timer_slack", "i"), ("force_cap_n", "f"), ("rate_limit_n_per_step", "f"),
+    ("engagements", "i"), ("faults_total", "i"), ("telemetry_overwritten", "i"),
     # what the session layer refused, by reason (stale_or_duplicate and decode_errors above)
-    "datagrams_received", "bad_token", "wrong_peer", "unknown_session", "bad_mac", "unexpected",
-    "wrong_version", "rejects_sent", "dropped_empty", "poll_budget_cuts",
+    ("datagrams_received", "i"), ("bad_token", "i"), ("wrong_peer", "i"), ("unknown_session", "i"),
+    ("bad_mac", "i"), ("unexpected", "i"), ("wrong_version", "i"), ("rejects_sent", "i"), ("dropped_empty", "i"),
+    ("poll_budget_cuts", "i"),
     # lifecycle: transitions written to the log, stall trips (device watchdog cut by a late
     # loop), recoveries from them, kernels compiled after the loop was armed (must stay 0)
-    "transitions", "stall_trips", "stall_recoveries", "late_compiles",
+    ("transitions", "i"), ("stall_trips", "i"), ("stall_recoveries", "i"), ("late_compiles", "i"),
+    # the torque cap per axis (the force cap is above), N m
+    ("torque_cap_n_m", "f"),
 )
-ST = {name: i for i, name in enumerate(STATUS_FIELDS)}
+STATUS_DTYPE = np.dtype([(name, np.float64) for name, _ in STATUS_LAYOUT])
+STATUS_FIELDS = STATUS_DTYPE.names
+#: status field -> index into the float64 view ``SharedState.status``
+ST = {name: STATUS_DTYPE.fields[name][1] // 8 for name in STATUS_FIELDS}
 NSTAT = len(STATUS_FIELDS)
+STATUS_INT_FIELDS = frozenset(name for name, kind in STATUS_LAYOUT if kind == "i")
 
 CONTROL_FIELDS = ("stop", "stop_ack", "rearm", "rearm_ack", "reset_stats", "reset_ack")
 CT = {name: i for i, name in enumerate(CONTROL_FIELDS)}
 NCTL = len(CONTROL_FIELDS)
 
-
+# ---------------------------------------------------------------------------- telemetry row
 _AX6 = ("fx", "fy", "fz", "tx", "ty", "tz")
-TEL_FIELDS = (
-    ("t_s", "lateness_us", "compute_us", "loop_state", "gain", "contacts", "updates")
-    + tuple(f"dev_{a}" for a in ("x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "wx", "wy", "wz"))
-    + tuple(f"proxy_{a}" for a in ("x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "wx", "wy", "wz"))
-    + tuple(f"cmd_{a}" for a in _AX6)      # command written to the device, device frame
-    + tuple(f"env_{a}" for a in _AX6)      # environment wrench at the hand point, world
-    + tuple(f"hand_{a}" for a in _AX6)     # measured hand wrench, device frame (NaN: no sensor)
-    + tuple(f"couple_{a}" for a in _AX6)   # position-channel wrench on the proxy, world
+_POSE13 = ("x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "wx", "wy", "wz")
+#: Scalar columns of a telemetry row, then its vectors with their components' names. The flat
+#: names (``dev_x``, ``cmd_fy``, ...) index the float64 view: ``ring[:, TEL["cmd_fy"]]``.
+TEL_SCALARS = ("t_s", "lateness_us", "compute_us", "loop_state", "gain", "contacts", "updates")
+TEL_VECTORS = (
+    ("dev", _POSE13),     # device handle pose (x y z qw qx qy qz) and twist, world
+    ("proxy", _POSE13),   # proxy hand-point pose and twist, world, after the step
+    ("cmd", _AX6),        # command written to the device, device frame
+    ("env", _AX6),        # environment wrench at the hand point, world
+    ("hand", _AX6),       # measured hand wrench, device frame (NaN: no sensor)
+    ("couple", _AX6),     # position-channel wrench on the proxy, world
 )
+TEL_DTYPE = np.dtype([(n, np.float64) for n in TEL_SCALARS] + [(n, np.float64, (len(c),)) for n, c in TEL_VECTORS])
+TEL_FIELDS = TEL_SCALARS + tuple(f"{n}_{c}" for n, comps in TEL_VECTORS for c in comps)
 TEL = {name: i for i, name in enumerate(TEL_FIELDS)}
 NTEL = len(TEL_FIELDS)
+assert TEL_DTYPE.itemsize == 8 * NTEL
+assert all(TEL_DTYPE.fields[n][1] // 8 == TEL[f"{n}_{c[0]}"] for n, c in TEL_VECTORS)
+
+# ---------------------------------------------------------------------------- contact ring
+#: Contacts kept per contact-ring row: the config's largest ``model.capacity``; an update with
+#: more (never granted by the handshake) keeps its first MAX_CONTACTS and its true ``count``.
+MAX_CONTACTS = 64
+#: Rows of the contact ring: 8.5 s of updates at 60 Hz; the supervisor reads it every 50 ms.
+CONTACT_ROWS = 512
+CONTACT_HDR_DTYPE = np.dtype([
+    ("seq", np.int64),          # update number this row holds (-1 while the loop writes it)
+    ("t_s", np.float64),        # loop time of the step that applied it (the telemetry rows' t_s)
+    ("env_time_s", np.float64),  # the engine's simulation time of the update
+    ("update", np.int64),       # the loop's update counter after it (telemetry ``updates``)
+    ("count", np.int64),        # contacts in the update
+])
+
+
+def _align(n: int) -> int:
+    return (n + 63) // 64 * 64
+
+
+def _layout(ring_rows: int) -> tuple[list[tuple[str, int]], int]:
+    parts = [
+        ("stat", STATUS_DTYPE.itemsize), ("hist", 2 * HBINS * 8), ("control", NCTL * 8), ("head", 8),
+        ("translog", TLOG_ROWS * TRANSITION_DTYPE.itemsize), ("contact_head", 8),
+        ("contact_hdr", CONTACT_ROWS * CONTACT_HDR_DTYPE.itemsize),
+        ("contact_key", CONTACT_ROWS * MAX_CONTACTS * 3 * 8), ("contact_position_m", CONTACT_ROWS * MAX_CONTACTS * 3 * 8),
+        ("contact_normal", CONTACT_ROWS * MAX_CONTACTS * 3 * 8), ("contact_separation_m", CONTACT_ROWS * MAX_CONTACTS * 8),
+        ("tel", int(ring_rows) * TEL_DTYPE.itemsize),
+    ]
+    out, off = [], 0
+    for name, size in parts:
+        out.append((name, off))
+        off = _align(off + size)
+    return out, off
 
 
 class SharedState:
@@ -77,35 +144,43 @@ class SharedState:
     def __init__(self, ring_rows: int, shm: shared_memory.SharedMemory | None) -> None:
         self.ring_rows = int(ring_rows)
         self._shm = shm
-        sizes = [NSTAT * 8, 2 * HBINS * 8, NCTL * 8, 8, TLOG_ROWS * TRANSITION_DTYPE.itemsize,
-                 self.ring_rows * NTEL * 8]
-        total = sum(sizes)
+        offs, total = _layout(self.ring_rows)
         buf = shm.buf if shm is not None else memoryview(bytearray(total))
         self._buf = buf
-        off = 0
-        self.status = np.ndarray((NSTAT,), np.float64, buf, off); off += sizes[0]
-        hist = np.ndarray((2, HBINS), np.int64, buf, off); off += sizes[1]
+        o = dict(offs)
+        self.stat = np.ndarray((1,), STATUS_DTYPE, buf, o["stat"])
+        self.status = np.ndarray((NSTAT,), np.float64, buf, o["stat"])
+        hist = np.ndarray((2, HBINS), np.int64, buf, o["hist"])
         self.hist_late = hist[0]
         self.hist_step = hist[1]
-        self.control = np.ndarray((NCTL,), np.int64, buf, off); off += sizes[2]
-        self.head = np.ndarray((1,), np.int64, buf, off); off += sizes[3]
-        self.translog = np.ndarray((TLOG_ROWS,), TRANSITION_DTYPE, buf, off); off += sizes[4]
-        self.ring = np.ndarray((self.ring_rows, NTEL), np.float64, buf, off)
+        self.control = np.ndarray((NCTL,), np.int64, buf, o["control"])
+        self.head = np.ndarray((1,), np.int64, buf, o["head"])
+        self.translog = np.ndarray((TLOG_ROWS,), TRANSITION_DTYPE, buf, o["translog"])
+        self.contact_head = np.ndarray((1,), np.int64, buf, o["contact_head"])
+        self.contact_hdr = np.ndarray((CONTACT_ROWS,), CONTACT_HDR_DTYPE, buf, o["contact_hdr"])
+        self.contact_key = np.ndarray((CONTACT_ROWS, MAX_CONTACTS, 3), np.int64, buf, o["contact_key"])
+        self.contact_position_m = np.ndarray((CONTACT_ROWS, MAX_CONTACTS, 3), np.float64, buf, o["contact_position_m"])
+        self.contact_normal = np.ndarray((CONTACT_ROWS, MAX_CONTACTS, 3), np.float64, buf, o["contact_normal"])
+        self.contact_separation_m = np.ndarray((CONTACT_ROWS, MAX_CONTACTS), np.float64, buf, o["contact_separation_m"])
+        self.tel = np.ndarray((self.ring_rows,), TEL_DTYPE, buf, o["tel"])
+        self.ring = np.ndarray((self.ring_rows, NTEL), np.float64, buf, o["tel"])
+
+    @property
+    def contacts(self) -> tuple:
+        """The contact ring as the tuple ``rings.record_contacts`` writes."""
+        return (self.contact_hdr, self.contact_key, self.contact_position_m, self.contact_normal,
+                self.contact_separation_m, self.contact_head)
 
     @staticmethod
     def nbytes(ring_rows: int) -> int:
-        return NSTAT * 8 + 2 * HBINS * 8 + NCTL * 8 + 8 + TLOG_ROWS * TRANSITION_DTYPE.itemsize + int(ring_rows) * NTEL * 8
+        return _layout(ring_rows)[1]
 
     @classmethod
     def create(cls, ring_rows: int) -> "SharedState":
         shm = shared_memory.SharedMemory(create=True, size=cls.nbytes(ring_rows))
         s = cls(ring_rows, shm)
-        s.status[:] = 0.0
-        s.hist_late[:] = 0
-        s.hist_step[:] = 0
-        s.control[:] = 0
-        s.head[0] = 0
-        s.translog[:] = np.zeros(TLOG_ROWS, TRANSITION_DTYPE)
+        s._buf[:] = b"\0" * len(s._buf)  # zero every part (a fresh mapping is, but say so)
+        s.contact_hdr["seq"] = -1
         return s
 
     @classmethod
@@ -117,7 +192,9 @@ class SharedState:
 
     @classmethod
     def local(cls, ring_rows: int) -> "SharedState":
-        return cls(ring_rows, None)
+        s = cls(ring_rows, None)
+        s.contact_hdr["seq"] = -1
+        return s
 
     @property
     def name(self) -> str | None:
@@ -127,7 +204,10 @@ class SharedState:
         if self._shm is None:
             return
         # drop the views before closing the mapping
-        self.status = self.hist_late = self.hist_step = self.control = self.head = self.ring = self.translog = None
+        for attr in ("stat", "status", "hist_late", "hist_step", "control", "head", "translog", "contact_head",
+                     "contact_hdr", "contact_key", "contact_position_m", "contact_normal", "contact_separation_m",
+                     "tel", "ring"):
+            setattr(self, attr, None)
         self._buf = None
         try:
             self._shm.close()
@@ -145,24 +225,75 @@ class SharedState:
         return float(self.status[ST[name]])
 
     def snapshot(self) -> dict:
-        """Status as a dict, with lateness/compute percentiles from the histograms."""
-        out = {name: float(self.status[i]) for i, name in enumerate(STATUS_FIELDS)}
+        """Status as a dict of JSON-ready values: counts as ints, figures as floats, a value that
+        is not known (NaN, the silence before any update) as ``None``; lateness/compute
+        percentiles from the histograms; the state by name."""
+        out: dict = {}
+        for i, name in enumerate(STATUS_FIELDS):
+            v = float(self.status[i])
+            if not math.isfinite(v):
+                out[name] = None
+            elif name in STATUS_INT_FIELDS:
+                out[name] = int(v)
+            else:
+                out[name] = v
+        if out.get("env_silence_ms") is not None and out["env_silence_ms"] < 0:
+            out["env_silence_ms"] = None  # no update yet
         for key, hist in (("lateness_us", self.hist_late), ("compute_us", self.hist_step)):
             out[key] = percentiles(hist)
-        out["loop_state"] = LOOP_STATES[int(out["loop_state"])] if 0 <= out["loop_state"] < len(LOOP_STATES) else "?"
+        code = out["loop_state"]
+        out["loop_state"] = LOOP_STATES[code] if code is not None and 0 <= code < len(LOOP_STATES) else "?"
         return out
+
+    def latest_row(self) -> np.ndarray | None:
+        """The newest telemetry row (a copy of the structured record), or None before the first."""
+        head = int(self.head[0])
+        if head <= 0:
+            return None
+        return self.tel[(head - 1) % self.ring_rows].copy()
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        """Telemetry rows ``start..stop-1`` (absolute numbers, as ``head`` counts; both within the
+        last ``ring_rows``), oldest first, as a structured copy."""
+        rows = self.ring_rows
+        i0, n = start % rows, stop - start
+        if n <= 0:
+            return np.zeros(0, TEL_DTYPE)
+        if i0 + n <= rows:
+            return self.tel[i0:i0 + n].copy()
+        return np.concatenate([self.tel[i0:], self.tel[: i0 + n - rows]])
+
+    def contact_rows_since(self, seq: int) -> tuple[list[tuple[np.void, np.ndarray, np.ndarray, np.ndarray, np.ndarray]], int]:
+        """Contact-ring rows written after update row ``seq`` (oldest first): a list of ``(header,
+        key[n, 3], position_m[n, 3], normal[n, 3], separation_m[n])`` copies and the new ``seq``.
+        Rows overwritten before they were read, or being written, are skipped."""
+        head = int(self.contact_head[0])
+        first = max(seq, head - CONTACT_ROWS + 1)
+        out = []
+        for k in range(first, head):
+            i = k % CONTACT_ROWS
+            h = self.contact_hdr[i].copy()
+            if int(h["seq"]) != k:
+                continue
+            n = min(int(h["count"]), MAX_CONTACTS)
+            item = (h, self.contact_key[i, :n].copy(), self.contact_position_m[i, :n].copy(),
+                    self.contact_normal[i, :n].copy(), self.contact_separation_m[i, :n].copy())
+            if int(self.contact_hdr[i]["seq"]) == k:  # not rewritten while copied
+                out.append(item)
+        return out, head
 
     def log_transition(self, t_ns: int, from_state: float, to_state: float, reason: int, detail: float) -> None:
         """Append one transition (the loop; the supervisor reads them with ``transitions_since``).
         The row is written before ``status.transitions`` counts it, so a reader never sees a
         counted row half written."""
-        seq = int(self.status[ST["transitions"]]) + 1
+        st = self.stat[0]
+        seq = int(st["transitions"]) + 1
         self.translog[seq % TLOG_ROWS] = (seq, t_ns, int(from_state), int(to_state), int(reason), float(detail))
-        self.status[ST["transitions"]] = seq
+        st["transitions"] = seq
 
     def transitions_since(self, seq: int) -> list[tuple]:
         """Transitions logged after ``seq`` (oldest first; at most the last TLOG_ROWS)."""
-        last = int(self.status[ST["transitions"]])
+        last = int(self.stat[0]["transitions"])
         first = max(seq + 1, last - TLOG_ROWS + 1)
         out = []
         for k in range(first, last + 1):
@@ -175,6 +306,11 @@ class SharedState:
     def request(self, name: str) -> int:
         self.control[CT[name]] += 1
         return int(self.control[CT[name]])
+
+
+def flat_rows(rows: np.ndarray) -> np.ndarray:
+    """Structured telemetry rows as float64[n, NTEL] (columns ``TEL``)."""
+    return np.ascontiguousarray(rows).view(np.float64).reshape(len(rows), NTEL)
 
 
 def percentiles(hist: np.ndarray, qs=(0.5, 0.99, 0.999)) -> dict:

@@ -2,24 +2,57 @@
 
 The supervisor answers JSON requests on its status address (UDP, default 127.0.0.1:9871):
 ``{"cmd": "status"}`` (default), ``"rearm"``, ``"stop"``, ``"reset_stats"``, ``{"cmd": "dump",
-"path": FILE}`` (write the telemetry ring to FILE).
+"path": FILE}`` (write the rings to the MCAP file FILE, an absolute path: it is resolved here,
+on the caller's side; the server creates no directory). ``--watch``: a live terminal view.
+
+With an HMAC key configured (``transport.hmac_key_file``; give the same config with
+``--config`` or the key file with ``--key-file``) every request carries ``ts``, a ``nonce`` and
+``mac`` = HMAC-SHA256 over the request's canonical JSON without ``mac``; the server refuses
+unsigned, wrongly signed, stale (over ``AUTH_WINDOW_S``) or replayed requests. Replies are strict
+JSON: integers as integers, a value not known as ``null``.
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
+import hmac
 import json
+import os
+import secrets
 import socket
 import sys
+import time
 
 DEFAULT_ADDRESS = "127.0.0.1:9871"
+#: A signed request older (or newer) than this is refused; its nonce is remembered twice as long.
+AUTH_WINDOW_S = 30.0
 
 
-def query(address: str = DEFAULT_ADDRESS, request: dict | None = None, timeout_s: float = 1.0) -> dict:
-    """Send one request; return the reply. Raises ``TimeoutError`` when nothing answers."""
+def canonical(req: dict) -> bytes:
+    return json.dumps({k: v for k, v in req.items() if k != "mac"}, sort_keys=True, separators=(",", ":"),
+                      allow_nan=False).encode()
+
+
+def request_mac(key: bytes, req: dict) -> str:
+    return hmac.new(key, canonical(req), hashlib.sha256).hexdigest()
+
+
+def sign(req: dict, key: bytes | None) -> dict:
+    if key is None:
+        return req
+    req = dict(req, ts=time.time(), nonce=secrets.token_hex(12))
+    req["mac"] = request_mac(key, req)
+    return req
+
+
+def query(address: str = DEFAULT_ADDRESS, request: dict | None = None, timeout_s: float = 1.0,
+          key: bytes | None = None) -> dict:
+    """Send one request (signed with ``key`` when given); return the reply. Raises
+    ``TimeoutError`` when nothing answers."""
     host, _, port = address.rpartition(":")
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.settimeout(timeout_s)
-        s.sendto(json.dumps(request or {"cmd": "status"}).encode(), (host, int(port)))
+        s.sendto(json.dumps(sign(request or {"cmd": "status"}, key)).encode(), (host, int(port)))
         try:
             data, _ = s.recvfrom(65536)
         except (socket.timeout, ConnectionRefusedError):
@@ -31,7 +64,7 @@ def _fault_name(code) -> str:
     from .lifecycle import FAULT_TEXT, Fault
 
     try:
-        f = Fault(int(code))
+        f = Fault(int(code or 0))
     except ValueError:
         return str(code)
     return "none" if f == Fault.NONE else f"{f.name.lower()}: {FAULT_TEXT[f]}"
@@ -40,47 +73,89 @@ def _fault_name(code) -> str:
 def _device_fault_name(code) -> str:
     from .devices.base import DEV_FAULT_NAMES
 
-    return DEV_FAULT_NAMES.get(int(code), str(code))
+    return DEV_FAULT_NAMES.get(int(code or 0), str(code))
+
+
+def _f(v, fmt: str = ".1f", none: str = "-") -> str:
+    return none if v is None else format(v, fmt)
 
 
 def format_status(s: dict) -> str:
-    lat = s.get("lateness_us", {})
-    comp = s.get("compute_us", {})
-    period_us = s.get("period_ns", 0) / 1000 or float("nan")
-    rate = 1e6 / period_us if period_us == period_us else float("nan")
+    lat = s.get("lateness_us") or {}
+    comp = s.get("compute_us") or {}
+    rate = s.get("rate_hz") or 0
+    wd = s.get("watchdog") or 0
+    silence = s.get("env_silence_ms")
     lines = [
         f"state        {s.get('loop_state')}  (fault: {_fault_name(s.get('fault', 0))}, device fault: "
-        f"{_device_fault_name(s.get('device_fault', 0))}; stall trips {int(s.get('stall_trips', 0))}, "
-        f"recovered {int(s.get('stall_recoveries', 0))})",
-        f"rate         {rate:.0f} Hz, {int(s.get('steps', 0))} steps, overruns {int(s.get('overruns', 0))}, "
-        f"missed deadlines {int(s.get('missed_deadlines', 0))}",
+        f"{_device_fault_name(s.get('device_fault', 0))}; stall trips {s.get('stall_trips', 0)}, "
+        f"recovered {s.get('stall_recoveries', 0)})",
+        f"rate         {rate:.0f} Hz, {s.get('steps', 0)} steps, overruns {s.get('overruns', 0)}, "
+        f"missed deadlines {s.get('missed_deadlines', 0)}",
         f"lateness us  p50 {lat.get('p50')}  p99 {lat.get('p99')}  p99.9 {lat.get('p999')}  "
-        f"max {s.get('lateness_max_us', 0):.1f}",
-        f"compute us   p50 {comp.get('p50')}  p99 {comp.get('p99')}  max {s.get('compute_max_us', 0):.1f}",
-        f"rt sched     {'yes' if s.get('rt_scheduling') else 'no'}  (spin {s.get('spin_ns', 0) / 1000:.0f} us)",
-        f"session      {int(s.get('session_id', 0))}  updates {int(s.get('updates', 0))}  acks {int(s.get('acks_sent', 0))}  "
-        f"env rate {s.get('env_rate_hz', 0):.1f} Hz  silence {s.get('env_silence_ms', -1):.0f} ms",
-        f"contacts     {int(s.get('contacts', 0))}  dropped packets {int(s.get('dropped_packets', 0))}  "
-        f"stale/duplicate {int(s.get('stale_or_duplicate', 0))}",
-        f"watchdog     {('ok', 'environment silent: fading', 'session ended: fading')[int(s.get('watchdog', 0))]}"
-        f"  gain {s.get('gain', 0):.3f}  saturated {int(s.get('saturated', 0))}  rate-limited {int(s.get('rate_limited', 0))}",
+        f"max {_f(s.get('lateness_max_us'))}",
+        f"compute us   p50 {comp.get('p50')}  p99 {comp.get('p99')}  max {_f(s.get('compute_max_us'))}",
+        f"rt sched     {'yes' if s.get('rt_scheduling') else 'no'}  (spin {(s.get('spin_ns') or 0) / 1000:.0f} us)",
+        f"session      {s.get('session_id', 0)}  updates {s.get('updates', 0)}  acks {s.get('acks_sent', 0)}  "
+        f"env rate {_f(s.get('env_rate_hz'))} Hz  silence "
+        f"{'no update yet' if silence is None else f'{silence:.0f} ms'}",
+        f"contacts     {s.get('contacts', 0)}  dropped packets {s.get('dropped_packets', 0)}  "
+        f"stale/duplicate {s.get('stale_or_duplicate', 0)}",
+        f"watchdog     {('ok', 'environment silent: fading', 'session ended: fading')[wd] if 0 <= wd < 3 else wd}"
+        f"  gain {_f(s.get('gain'), '.3f')}  saturated {s.get('saturated', 0)}  rate-limited {s.get('rate_limited', 0)}",
     ]
     for why in s.get("outside_stable_region") or ():
         lines.append(f"WARNING      outside the stable region (safety.allow_outside_stable_region): {why}")
+    tr = s.get("last_transition")
+    if tr:
+        lines.append(f"last change  {tr.get('from')} -> {tr.get('to')}: {tr.get('text')}")
+    if s.get("telemetry_file"):
+        lines.append(f"recording    {s['telemetry_file']} ({s.get('telemetry_rows_written', 0)} rows on disk)")
+    if s.get("live"):
+        lines.append(f"live view    {s['live']}")
     return "\n".join(lines)
+
+
+def load_key(config: str | None, key_file: str | None) -> tuple[bytes | None, str | None]:
+    """(HMAC key, status address from the config) for the command line's options; the
+    environment (``HAPTICPROXY_HMAC_KEY_FILE`` / ``HAPTICPROXY_HMAC_KEY``) when neither names one."""
+    from hapticproxy.protocol.session import load_hmac_key
+
+    address = None
+    if config:
+        from . import config as cfgmod
+
+        settings = cfgmod.load(config)
+        address = settings["status"]["address"]
+        key_file = key_file or settings["transport"]["hmac_key_file"] or None
+    return load_hmac_key(key_file), address
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="hapticproxy status", description=__doc__.splitlines()[0])
-    p.add_argument("--address", default=DEFAULT_ADDRESS, help="the server's status address HOST:PORT")
+    p.add_argument("--address", help=f"the server's status address HOST:PORT (default: the config's, or {DEFAULT_ADDRESS})")
+    p.add_argument("--config", help="the server's config file: its status address and HMAC key file")
+    p.add_argument("--key-file", help="the HMAC key file (hex) of a server that authenticates requests")
     p.add_argument("--json", action="store_true", help="print the raw JSON")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--rearm", action="store_true", help="clear a fault: forces ramp back in")
     g.add_argument("--stop", action="store_true", help="stop the server cleanly")
     g.add_argument("--reset-stats", action="store_true", help="reset the timing histograms")
-    g.add_argument("--dump", metavar="FILE", help="write the telemetry ring to FILE")
+    g.add_argument("--dump", metavar="FILE", help="write the telemetry and contact rings to the MCAP file FILE")
+    g.add_argument("--watch", action="store_true", help="a live terminal view (q quits)")
+    p.add_argument("--interval", type=float, default=0.2, help="--watch: seconds between updates")
     p.add_argument("--timeout", type=float, default=1.0)
     args = p.parse_args(argv)
+    try:
+        key, cfg_address = load_key(args.config, args.key_file)
+    except (OSError, ValueError) as exc:
+        print(f"hapticproxy status: {exc}", file=sys.stderr)
+        return 2
+    address = args.address or cfg_address or DEFAULT_ADDRESS
+    if args.watch:
+        from .watch import run_watch
+
+        return run_watch(address, key=key, interval_s=args.interval, timeout_s=args.timeout)
     req = {"cmd": "status"}
     if args.rearm:
         req = {"cmd": "rearm"}
@@ -89,17 +164,23 @@ def main(argv: list[str] | None = None) -> int:
     elif args.reset_stats:
         req = {"cmd": "reset_stats"}
     elif args.dump:
-        req = {"cmd": "dump", "path": args.dump}
+        req = {"cmd": "dump", "path": os.path.abspath(args.dump)}  # the caller's path, resolved here
     try:
-        reply = query(args.address, req, args.timeout)
+        reply = query(address, req, args.timeout, key=key)
     except (TimeoutError, OSError, ValueError) as exc:
         print(f"hapticproxy status: {exc}", file=sys.stderr)
         return 1
     if "error" in reply:
         print(f"hapticproxy status: {reply['error']}", file=sys.stderr)
         return 1
-    if args.json or req["cmd"] != "status":
-        print(json.dumps(reply, indent=None if not args.json else 1, sort_keys=True))
-    else:
-        print(format_status(reply))
+    try:
+        if args.json or req["cmd"] != "status":
+            print(json.dumps(reply, indent=None if not args.json else 1, sort_keys=True, allow_nan=False))
+        else:
+            print(format_status(reply))
+        sys.stdout.flush()
+    except BrokenPipeError:
+        # `status | head`: the reader left; nothing more to say, and no traceback at exit
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
     return 0

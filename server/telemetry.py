@@ -1,6 +1,10 @@
-"""Telemetry recordings: the loop's shared ring drained to a crash-safe file by the supervisor.
+"""The legacy ``.hpt`` telemetry recordings, and ``read`` for any recording.
 
-File format (``.hpt``), little-endian:
+Recordings are written in MCAP now (``recording``: what ``serve --record`` and ``status --dump``
+write); ``read(path)`` reads either kind as ``(meta, rows)``, rows float64[n, NTEL] in the
+``shm.TEL`` columns, and ``hapticproxy convert IN.hpt OUT.mcap`` turns an old file into MCAP.
+
+``.hpt`` file format, little-endian:
 
 - header: the line ``HPTEL1\\n``, then one JSON line (``fields``, ``rate_hz``, ``started_utc``,
   ``config``) ending in ``\\n``;
@@ -109,7 +113,18 @@ class TelemetryWriter:
 
 
 def read(path: str | Path) -> tuple[dict, np.ndarray]:
-    """``(meta, rows)`` of a recording: every complete block; a torn tail is ignored."""
+    """``(meta, rows)`` of a recording, MCAP or ``.hpt``: every complete chunk or block; a torn
+    tail is ignored (``meta["torn_bytes"]``). An ``.hpt`` file's rows keep its own columns
+    (``meta["fields"]``); an MCAP file's are ``shm.TEL_FIELDS``."""
+    from . import recording
+
+    if recording.is_mcap(path):
+        return recording.read_rows(path)
+    return read_hpt(path)
+
+
+def read_hpt(path: str | Path) -> tuple[dict, np.ndarray]:
+    """``(meta, rows)`` of an ``.hpt`` recording: every complete block; a torn tail is ignored."""
     data = Path(path).read_bytes()
     if not data.startswith(MAGIC):
         raise ValueError(f"{path}: not a hapticproxy telemetry file")
@@ -133,14 +148,3 @@ def read(path: str | Path) -> tuple[dict, np.ndarray]:
     meta["blocks"] = len(blocks)
     meta["torn_bytes"] = len(data) - off
     return meta, rows
-
-
-def dump_ring(shared: SharedState, path: str | Path, *, rate_hz: float, config: dict | None = None) -> int:
-    """Write what the ring holds now (oldest first) as a recording; returns the row count."""
-    head = int(shared.head[0])
-    n = min(head, shared.ring_rows)
-    w = TelemetryWriter(path, rate_hz=rate_hz, config=config, flush_rows=max(16, n))
-    w.start_at(head - n)
-    w.drain(shared)
-    w.close()
-    return n

@@ -26,6 +26,7 @@ SERVER_KERNEL_MODULES = (
     "hapticproxy.server.model.linkage",
     "hapticproxy.server.control",
     "hapticproxy.server.loop",
+    "hapticproxy.server.rings",
     "hapticproxy.server.devices.dynamics",
     "hapticproxy.server.devices.hands",
 )

@@ -48,7 +48,7 @@ def test_demo_runs_server_and_pymunk_client_and_feels_the_wall(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     from hapticproxy.server.telemetry import read
 
-    meta, rows = read(tmp_path / "demo" / "static_contact.hpt")
+    meta, rows = read(tmp_path / "demo" / "static_contact.mcap")
     assert len(rows) > 512
 
 

@@ -92,7 +92,7 @@ def _drive(env: WallEnv, seconds: float) -> None:
 
 
 def test_real_time_run_with_a_client_completes_without_a_fault(server, tmp_path):
-    rec = tmp_path / "run.hpt"
+    rec = tmp_path / "run.mcap"
     proc, url, status = server(args=["--record", str(rec)])
     env = WallEnv(url, MonotonicClock(), rate_hz=60.0)
     try:
@@ -167,7 +167,7 @@ def test_bad_device_table_is_refused_before_start(tmp_path):
 
 
 def test_telemetry_survives_a_crash_of_the_loop_process(server, tmp_path):
-    rec = tmp_path / "crash.hpt"
+    rec = tmp_path / "crash.mcap"
     proc, url, status = server(extra="[telemetry]\nflush_rows = 64", args=["--record", str(rec)])
     time.sleep(1.0)
     s = query(status)
@@ -207,7 +207,7 @@ def test_plot_writes_pngs(tmp_path):
     w.add(rows)
     w.close()
     out = plot_recording(p, tmp_path / "png")
-    assert len(out) == 3 and all(q.stat().st_size > 1000 for q in out)
+    assert len(out) == 4 and all(q.stat().st_size > 1000 for q in out)
 
 
 def test_the_loop_stops_when_its_supervisor_dies(server):

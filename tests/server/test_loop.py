@@ -9,7 +9,7 @@ import pytest
 from server_harness import PointDevice, make_settings
 
 from hapticproxy.server.clock import SimClock
-from hapticproxy.server.shm import LS, TEL
+from hapticproxy.server.shm import LS, ST, TEL
 
 PUSH = lambda t: (0.0, -0.5, 0.0)  # noqa: E731 - the paper's static-contact push, N
 
@@ -25,7 +25,7 @@ def test_rate_and_deadlines_in_simulated_time(rig_factory):
     t = rows[:, TEL["t_s"]]
     np.testing.assert_allclose(np.diff(t), 1e-3, atol=1e-12)  # absolute deadlines, one period apart
     assert np.all(rows[:, TEL["lateness_us"]] == 0.0)
-    assert r.loop.shared.status[9] == 0  # overruns
+    assert r.loop.shared.status[ST["overruns"]] == 0
 
 
 @pytest.mark.parametrize("rate", [512.0, 1000.0, 4000.0])
@@ -41,7 +41,7 @@ def test_a_stall_is_counted_and_skipped_not_burst(rig_factory):
     r.run(0.1)
     r.clock.stall(10_500_000)  # the process stopped for 10.5 ms
     rows = r.run(0.05)
-    assert r.loop.shared.status[10] == 10  # missed deadlines
+    assert r.loop.shared.status[ST["missed_deadlines"]] == 10
     late = rows[:, TEL["lateness_us"]]
     assert late[0] == pytest.approx(10_500.0)
     assert np.all(late[1:] == 0.0)  # back on the grid: no burst of catch-up steps

@@ -1,0 +1,76 @@
+"""The numba kernels that write the shared rings of ``shm``: one telemetry row per haptic step
+(with the timing histograms and maxima), one contact row per applied model update. Both write
+named fields of the structured dtypes declared in ``shm``, allocate nothing and are called with
+one signature each (``HapticLoop.warm_up`` compiles it)."""
+from __future__ import annotations
+
+from numba import njit
+
+from .control import CS_DPOSE, CS_ENV, CS_FC, CS_PPOSE
+from .devices.base import DS_HAND
+from .shm import HBINS
+
+
+@njit(cache=True, nogil=True)
+def account(tel, head, hist_late, hist_step, stat, period_ns, late_ns, comp_ns, t_s, state, gain, contacts,
+            updates, cs, dev, cmd):
+    """Histograms, maxima, counters and one telemetry row (``shm.TEL_DTYPE``) for a step."""
+    lu = late_ns / 1000.0
+    cu = comp_ns / 1000.0
+    bl = int(lu) if lu > 0.0 else 0
+    bc = int(cu) if cu > 0.0 else 0
+    hist_late[bl if bl < HBINS - 1 else HBINS - 1] += 1
+    hist_step[bc if bc < HBINS - 1 else HBINS - 1] += 1
+    st = stat[0]
+    st.steps += 1.0
+    if lu > st.lateness_max_us:
+        st.lateness_max_us = lu
+    if cu > st.compute_max_us:
+        st.compute_max_us = cu
+    if late_ns + comp_ns > period_ns:
+        st.overruns += 1.0  # the step finished after the next deadline
+    r = tel[head[0] % tel.shape[0]]
+    r.t_s = t_s
+    r.lateness_us = lu
+    r.compute_us = cu
+    r.loop_state = state
+    r.gain = gain
+    r.contacts = contacts
+    r.updates = updates
+    for j in range(13):  # pose (7) and twist (6)
+        r.dev[j] = cs[CS_DPOSE + j]
+        r.proxy[j] = cs[CS_PPOSE + j]
+    for j in range(6):
+        r.cmd[j] = cmd[j]
+        r.env[j] = cs[CS_ENV + j]
+        r.hand[j] = dev[DS_HAND + j]
+        r.couple[j] = cs[CS_FC + j]
+    head[0] += 1
+
+
+@njit(cache=True, nogil=True)
+def record_contacts(ring, t_s, env_time_s, update, n, kbuf, pbuf, nbuf, sbuf):
+    """One contact-ring row (``shm.SharedState.contacts``) for an applied model update: its time,
+    count and first ``MAX_CONTACTS`` contacts (key, position, normal, separation)."""
+    hdr, key, pos, nrm, sep, chead = ring
+    seq = chead[0]
+    i = seq % hdr.shape[0]
+    h = hdr[i]
+    h.seq = -1  # being written: a reader copying it now drops it
+    m = n
+    if m > key.shape[1]:
+        m = key.shape[1]
+    if m > kbuf.shape[0]:
+        m = kbuf.shape[0]
+    for j in range(m):
+        for a in range(3):
+            key[i, j, a] = kbuf[j, a]
+            pos[i, j, a] = pbuf[j, a]
+            nrm[i, j, a] = nbuf[j, a]
+        sep[i, j] = sbuf[j]
+    h.t_s = t_s
+    h.env_time_s = env_time_s
+    h.update = update
+    h.count = n
+    h.seq = seq
+    chead[0] = seq + 1
