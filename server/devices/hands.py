@@ -479,9 +479,8 @@ def parse_hand(cfg, *, kind: str, axis, origin, rest_pose6, prefix: str = "devic
     hp = np.zeros(NHP)
     tab = np.zeros((1, NTAB))
     geo = dict(kind=kind, axis=axis, origin=origin)
-    eff: dict = {"type": htype}
+    eff: dict = {"type": htype, "start": c.start}
     if htype != "none":
-        eff["start"] = c.start
         hp[HP_WAIT] = 1.0 if c.start == "engagement" else 0.0
     if htype == "none":
         hp[HP_MODE] = MODE_NONE
