@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from enum import IntEnum
 from pathlib import Path
 
 import msgpack
@@ -28,7 +29,7 @@ from .messages import (
     TOOL_KIND_NAMES,
     UNIT_TOLERANCE,
     ErrorCode,
-    FieldSpec,
+    FieldDoc,
     JointType,
     ServerState,
     ToolKind,
@@ -57,11 +58,13 @@ def _table(head: list[str], rows: list[list[object]]) -> str:
     return "\n".join(out)
 
 
-def _field_rows(fields: tuple[FieldSpec, ...], first_index: int) -> list[list[object]]:
+def _field_rows(fields: tuple[FieldDoc, ...], first_index: int) -> list[list[object]]:
     rows = []
     for i, f in enumerate(fields):
         rule = {"pos": "> 0", "nonneg": ">= 0", "unit": "unit", "enum": "enum"}.get(f.check, "")
-        default = "required" if f.default is REQUIRED else repr(f.default)
+        d = f.default
+        default = ("required" if d is REQUIRED else str(int(d)) if isinstance(d, IntEnum)
+                   else f"{d:g}" if isinstance(d, float) else repr(d))
         rows.append([first_index + i, f"`{f.name}`", f"`{f.type}`", f.unit, f.frame, f.sign or " ", rule or " ",
                      f"{PROTOCOL_MAJOR}.{f.since_minor}", default, f.doc])
     return rows
@@ -164,6 +167,9 @@ _CODE_DOCS = {
     ErrorCode.STALE: "seq older than the newest accepted in its stream (dropped, counted)",
     ErrorCode.DUPLICATE: "seq equal to the newest accepted (dropped, counted)",
     ErrorCode.UNEXPECTED: "message not valid in this direction or state",
+    ErrorCode.OUT_OF_BOUNDS: "a value outside the scene bounds granted in Welcome (workspace, constraint speed, separation)",
+    ErrorCode.UNUSABLE: "a contact the session's tool cannot have: a z normal on a planar tool, a tool link other than 0 on a rigid tool or beyond the linkage, joint positions for a rigid tool or of the wrong count",
+    ErrorCode.SEQ_JUMP: "seq more than max_seq_jump ahead of the newest accepted (refused, so one bad seq cannot make every later packet stale)",
     ErrorCode.UNSUPPORTED_VERSION: "Reject: no common major version",
     ErrorCode.UNSUPPORTED_TOOL: "Reject: the server cannot simulate this tool kind",
     ErrorCode.UNSUPPORTED_UNITS: "Reject: units is not \"SI\"",
