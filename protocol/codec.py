@@ -687,13 +687,12 @@ class Codec:
                     err.version_min, err.version_max = tuple(f[1]), tuple(f[2])
         raise err
 
-    def _decode_message(self, decode, cls, data):
-        try:
-            return decode(data)
-        except msgspec.ValidationError as exc:
-            raise _from_msgspec(exc, cls, data) from None
-        except Exception as exc:  # noqa: BLE001 - truncated, trailing bytes, bad UTF-8, ...
-            raise _bad(ErrorCode.MALFORMED, "", f"{type(exc).__name__}: {exc}") from None
+    @staticmethod
+    def _refused(exc: Exception, cls: type, data) -> ProtocolError:
+        if isinstance(exc, msgspec.ValidationError):
+            return _from_msgspec(exc, cls, data)
+        # truncated, trailing bytes, bad UTF-8, ...
+        return _bad(ErrorCode.MALFORMED, "", f"{type(exc).__name__}: {exc}")
 
     def _known_fields(self, lay: _Layout, count: int) -> int:
         """Check the field count against the declaration; returns the unknown trailing ones."""
@@ -710,7 +709,10 @@ class Codec:
 
     def _decode_generic(self, lay: _Layout, data, count: int) -> Message:
         extra = self._known_fields(lay, count)
-        msg = self._decode_message(lay.decoder.decode, lay.cls, data)
+        try:
+            msg = lay.decoder.decode(data)
+        except Exception as exc:  # noqa: BLE001 - mapped to the code and field it names
+            raise self._refused(exc, lay.cls, data) from None
         if extra:
             msg.unknown_fields = extra
         if lay.post is not None:
@@ -725,7 +727,10 @@ class Codec:
             extra = self._known_fields(self._layouts[4], count)
         else:
             extra = 0
-        msg = self._decode_message(self._cu_decode, ContactUpdate, data)
+        try:
+            msg = self._cu_decode(data)
+        except Exception as exc:  # noqa: BLE001 - mapped to the code and field it names
+            raise self._refused(exc, ContactUpdate, data) from None
         jb = msg.tool_joint_position
         msg.tool_joint_position = _check_bin_f64("tool_joint_position", jb, self._max_links) if jb else _EMPTY
         pose_b = msg.tool_pose
@@ -838,7 +843,10 @@ class Codec:
     def _decode_proxy_state(self, data, count: int) -> ProxyState:
         # The six float bins are validated as one array, then handed out as views of it.
         extra = self._known_fields(self._layouts[5], count)
-        msg = self._decode_message(self._ps_decode, ProxyState, data)
+        try:
+            msg = self._ps_decode(data)
+        except Exception as exc:  # noqa: BLE001 - mapped to the code and field it names
+            raise self._refused(exc, ProxyState, data) from None
         jq_b, jv_b, je_b = msg.joint_position, msg.joint_velocity, msg.joint_effort
         nj = len(jq_b)
         for name, v in (("joint_position", jq_b), ("joint_velocity", jv_b), ("joint_effort", je_b)):
