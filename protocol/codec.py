@@ -34,7 +34,6 @@ import msgpack
 import msgspec
 import numpy as np
 
-from . import messages as _m
 from .messages import (
     CONTACT_FLOATS,
     HEADER_LEN,
@@ -187,20 +186,18 @@ def _bad(code: ErrorCode, field: str, detail: str) -> ProtocolError:
 # ------------------------------------------------------------- msgspec errors -> ErrorCode
 _PATH = re.compile(r"^(.*?)(?: - at `\$((?:\[\d+\])*)`)?$", re.S)
 _INDEX = re.compile(r"\[(\d+)\]")
-_CLASSES = tuple(MESSAGE_CLASSES.values())
 
 
-def _field_path(cls: type, indices: list[int]) -> tuple[str, Any, list[str], str]:
-    """The field name a msgspec error path names, the wire type of the innermost declared field
-    reached, and the names along the way."""
+def _field_path(cls: type, indices: list[int]) -> tuple[str, str]:
+    """The field name a msgspec error path names (``links[1].com_m[2]``) and the wire type of
+    the innermost declared field reached (``"header"`` for the 5 header integers)."""
     name, wire, tp = "", "", cls
-    docs = fields_of(cls) if isinstance(tp, type) else ()
     first = True
     for i in indices:
         if isinstance(tp, type) and issubclass(tp, msgspec.Struct):
             if issubclass(tp, Message) and first:
                 if i < HEADER_LEN:
-                    return "", "header", [], ""
+                    return "", "header"
                 i -= HEADER_LEN
             docs = fields_of(tp)
             if i >= len(docs):
@@ -216,7 +213,7 @@ def _field_path(cls: type, indices: list[int]) -> tuple[str, Any, list[str], str
             name = f"{name}[{i}]"
             wire = "element"
         first = False
-    return name, wire, [], ""
+    return name, wire
 
 
 def _value_at(obj, indices: list[int]):
@@ -234,7 +231,7 @@ def _from_msgspec(exc: Exception, cls: type, data) -> ProtocolError:
     indices = [int(x) for x in _INDEX.findall(path)]
     if indices and indices[0] < HEADER_LEN:
         return _bad(ErrorCode.BAD_HEADER, "", "header must be [major u16, minor u16, type_id u8, session_id u32, token u64]")
-    name, wire, _, _ = _field_path(cls, indices)
+    name, wire = _field_path(cls, indices)
     if what.startswith("Expected `array` of at least length"):
         # a short nested record: name the first missing field
         got = int(what.rsplit(" ", 1)[-1])

@@ -12,7 +12,7 @@ Server loop, once per haptic step (the paper's section V)::
     for data, peer in transport.drain():
         update = server.receive(data, peer, now_ns)      # ContactUpdate | None
         if update is not None:
-            model.apply(update)                          # newest-wins already enforced
+            model.update(update.keys, ...)               # newest-wins and the bounds already enforced
             server.send_proxy_state(update.session_id, now_ns, pose, twist, wrench)
     server.poll(now_ns)                                  # heartbeats, silence timeouts
     fade = server.sessions[sid].silence_ns(now_ns)       # how long the environment is silent
@@ -26,7 +26,6 @@ Environment client, once per simulation step::
 """
 from __future__ import annotations
 
-import hashlib
 import hmac
 import os
 import secrets
@@ -44,7 +43,6 @@ from .codec import (
     Heartbeat,
     Hello,
     Limits,
-    Message,
     ProtocolError,
     ProxyState,
     Reject,
