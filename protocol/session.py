@@ -68,6 +68,8 @@ __all__ = [
 
 Peer = Hashable
 _NS = 1_000_000_000
+_NO_JOINTS = np.zeros(0)
+_NO_JOINTS.flags.writeable = False
 
 # ------------------------------------------------------------------------ shared secret
 #: Bytes of HMAC-SHA256 appended to every datagram in shared-secret mode (truncated tag, 128 bit).
@@ -257,8 +259,8 @@ def _now(now_ns: int | None) -> int:
 
 
 # ------------------------------------------------------------------------------- server
-#: (column blocks, n) float64 views of contact_data, per contact count (built once)
-_COLS = [np.dtype((np.float64, (n,))) for n in range(257)]
+_max_reduce = np.maximum.reduce
+_abs = np.abs
 
 
 @dataclass(frozen=True)
@@ -341,9 +343,10 @@ class ServerSession:
 
     def check_update(self, msg: ContactUpdate) -> tuple[str, str, str] | None:
         """Why the model could not take this update: ``(counter, field, detail)``, or ``None``.
-        Vectorised over the contacts: a fixed handful of numpy calls whatever n is."""
+        A fixed handful of ufunc reductions whatever n is (each column block's extremes; the
+        tool links'; a planar tool's normal z)."""
         extent, speed, sep = self.bounds
-        x, y, z = msg.tool_pose[:3].tolist()
+        x, y, z = msg.tool_pose.tolist()[:3]
         if not (-extent <= x <= extent and -extent <= y <= extent and -extent <= z <= extent):
             return "oob_workspace", "tool_pose", f"position ({x:g}, {y:g}, {z:g}) m outside +-{extent:g} m"
         joints = msg.tool_joint_position.shape[0]
@@ -353,25 +356,31 @@ class ServerSession:
         n = msg.contact_count
         if not n:
             return None
-        cols = np.frombuffer(msg.contact_data, _COLS[n] if n < len(_COLS) else np.dtype((np.float64, (n,))))
-        top = np.abs(cols[:8]).max(axis=1).tolist()  # per column block: max |value|
-        if max(top[:3]) > extent:
-            return "oob_workspace", "contact_data.position_m", f"|component| {max(top[:3]):g} m > {extent:g} m"
+        # the decoder's (column blocks, n) view of contact_data: rows 0-2 hold the 3n position
+        # values, 3-5 the normals, 6 separation, 7 v_constr (then any blocks of a later minor)
+        cols = msg.separation_m.base
+        if cols.shape[0] != 8:
+            cols = cols[:8]
+        top = _max_reduce(_abs(cols), 1).tolist()  # per block: the largest magnitude
+        worst = max(top[0], top[1], top[2])
+        if worst > extent:
+            return "oob_workspace", "contact_data.position_m", f"|component| {worst:g} m > {extent:g} m"
         if top[7] > speed:
             return ("oob_speed", "contact_data.v_constr_m_per_s",
                     f"|v_constr| {top[7]:g} m/s > max_constraint_speed_m_per_s {speed:g}")
         if top[6] > sep:
             return "oob_separation", "contact_data.separation_m", f"|separation| {top[6]:g} m > max_separation_m {sep:g}"
+        # one reduction: as uint64 a negative link is huge, so max < n_links checks both ends
         links = msg.keys[:, 0]
-        if links.min() < 0 or links.max() >= self.n_links:
+        if int(_max_reduce(links.view(np.uint64))) >= self.n_links:
+            bad = int(links[(links < 0) | (links >= self.n_links)][0])
             return ("unusable_tool_link", "contact_keys.tool_link",
-                    f"tool_link must be in 0..{self.n_links - 1} for this tool, got {int(links.max())}"
-                    if links.min() >= 0 else f"tool_link must be >= 0, got {int(links.min())}")
+                    f"tool_link must be in 0..{self.n_links - 1} for this tool, got {bad}")
         if self.planar:
-            nz = np.abs(msg.normal[:, 2]).max()
-            if nz > UNIT_TOLERANCE:
+            worst = float(_max_reduce(_abs(msg.normal[:, 2])))
+            if worst > UNIT_TOLERANCE:
                 return ("unusable_normal_z", "contact_data.normal",
-                        f"a planar tool's normals lie in the x-y plane, got |n_z| = {float(nz):g}")
+                        f"a planar tool's normals lie in the x-y plane, got |n_z| = {worst:g}")
         return None
 
     @property
@@ -428,16 +437,15 @@ class ServerEndpoint:
             return False
         now = _now(now_ns)
         s.proxy_seq += 1
-        empty = np.zeros(0)
-        msg = ProxyState(
-            seq=s.proxy_seq, ack_seq=s.contact_seq.newest,
-            server_time_s=(now - s.opened_ns) / _NS if server_time_s is None else server_time_s,
-            proxy_pose=proxy_pose, proxy_twist=proxy_twist, wrench=wrench,
-            joint_position=empty if joint_position is None else joint_position,
-            joint_velocity=empty if joint_velocity is None else joint_velocity,
-            joint_effort=empty if joint_effort is None else joint_effort,
-            server_state=server_state, session_id=s.session_id, token=s.token)
-        self._emit(self.codec.encode(msg), s.peer)
+        empty = _NO_JOINTS
+        packet = self.codec.encode_proxy_state(
+            s.session_id, s.token, s.proxy_seq, s.contact_seq.newest,
+            (now - s.opened_ns) / _NS if server_time_s is None else server_time_s,
+            proxy_pose, proxy_twist, wrench,
+            empty if joint_position is None else joint_position,
+            empty if joint_velocity is None else joint_velocity,
+            empty if joint_effort is None else joint_effort, server_state)
+        self._emit(packet, s.peer)
         s.last_tx_ns = now
         return True
 

@@ -132,6 +132,10 @@ def render_tables() -> str:
         ["heartbeat_interval_s", scfg.heartbeat_interval_s, "server default, granted in Welcome"],
         ["silence_timeout_s", scfg.silence_timeout_s, "server default, granted in Welcome"],
         ["error_rate_per_s", scfg.error_rate_per_s, "Error replies per session (token bucket, same burst)"],
+        ["workspace_extent_m", scfg.workspace_extent_m, "server default scene bound, granted in Welcome (1.2)"],
+        ["max_constraint_speed_m_per_s", scfg.max_constraint_speed_m_per_s, "server default scene bound, granted in Welcome (1.2)"],
+        ["max_separation_m", scfg.max_separation_m, "server default scene bound, granted in Welcome (1.2)"],
+        ["max_seq_jump", scfg.max_seq_jump, "largest forward jump of a seq the server accepts (else Error SEQ_JUMP)"],
         ["hello_retry_s", ccfg.hello_retry_s, "client resends Hello this often while handshaking"],
     ]))
     return "\n".join(parts)
