@@ -47,6 +47,7 @@ import sys
 import time
 
 import msgpack
+import msgspec
 import numpy as np
 
 from hapticproxy.protocol import messages as M
@@ -255,6 +256,8 @@ def _floats_ok(v) -> bool:
         return all(_floats_ok(x) for x in v)
     if isinstance(v, dict):
         return all(_floats_ok(x) for x in v.values())
+    if isinstance(v, msgspec.Struct):  # e.g. a Hello's Link records
+        return all(_floats_ok(getattr(v, f)) for f in v.__struct_fields__)
     return all(_floats_ok(x) for x in vars(v).values()) if hasattr(v, "__dict__") else True
 
 

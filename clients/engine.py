@@ -17,7 +17,7 @@ import numpy as np
 
 
 #: Joint types of a linkage link (the protocol's JointType values).
-JOINT_TYPES = {"root": 0, "revolute": 1, "prismatic": 2}
+from hapticproxy.protocol.vocab import JOINT_TYPES_BY_NAME as JOINT_TYPES  # noqa: E402
 
 
 @dataclass(frozen=True)

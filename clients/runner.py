@@ -47,7 +47,8 @@ from collections.abc import Callable
 import numpy as np
 
 from hapticproxy.protocol.codec import Hello, Limits
-from hapticproxy.protocol.messages import ErrorCode, ToolKind
+from hapticproxy.protocol.messages import ErrorCode
+from hapticproxy.protocol.vocab import TOOL_KINDS_BY_NAME
 from hapticproxy.protocol.session import ClientConfig, ClientEndpoint, ClientState
 from hapticproxy.protocol.transport import TransportError, open_transport, parse_transport_url
 
@@ -56,8 +57,7 @@ from .engine import ContactBuffer, Engine, SceneInfo
 __all__ = ["ClientError", "ClientRunner", "TOOL_KINDS"]
 
 _NS = 1_000_000_000
-TOOL_KINDS = {"1dof": ToolKind.ONE_DOF, "planar": ToolKind.PLANAR, "spatial": ToolKind.SPATIAL,
-              "linkage": ToolKind.LINKAGE}
+TOOL_KINDS = TOOL_KINDS_BY_NAME
 _RTT_RING = 4096
 #: a realtime loop this far behind its schedule restarts the schedule instead of catching up
 _RESYNC_NS = 250_000_000

@@ -1,65 +1,61 @@
-"""Protocol v1 codec: msgpack envelope, packed contact arrays, bounded and validating decoder.
+"""Protocol v1 codec: msgspec decoding of the Struct declarations plus a vectorised numpy pass.
 
-Compiled at import from the declarations in :mod:`hapticproxy.protocol.messages`; see SPEC.md
-for the wire format. Public surface:
+See SPEC.md for the wire format and :mod:`hapticproxy.protocol.messages` for the declarations.
+Public surface:
 
 - message classes :class:`Hello`, :class:`Welcome`, :class:`Reject`, :class:`ContactUpdate`,
-  :class:`ProxyState`, :class:`Heartbeat`, :class:`Bye`, :class:`Error` (generated from the
-  declarations; keyword constructors; ``session_id``/``token`` header attributes default to 0);
+  :class:`ProxyState`, :class:`Heartbeat`, :class:`Bye`, :class:`Error` (msgspec Structs; keyword
+  constructors; ``session_id``/``token`` header attributes default to 0);
 - :class:`Codec` (limits + counters): ``encode(msg) -> bytes``,
-  ``encode_contact_update(...) -> bytes`` (fast path from arrays), ``decode(data) -> Message``
-  (raises :class:`ProtocolError`), ``try_decode(data) -> Message | ProtocolError`` (never raises,
-  counts every rejection);
+  ``encode_contact_update(...)`` / ``encode_proxy_state(...)`` (fast paths from arrays),
+  ``decode(data) -> Message`` (raises :class:`ProtocolError`), ``try_decode(data) -> Message |
+  ProtocolError`` (never raises, counts every rejection);
 - module-level ``encode`` / ``decode`` / ``try_decode`` on a default :class:`Codec`.
 
-Hot-path design (why it looks the way it does): a ContactUpdate is one msgpack array whose
-contact vectors travel as two packed little-endian ``bin`` blobs, so decoding is one
-``msgpack.unpackb`` (with every Unpacker limit set, after a length check), read-only
-``np.frombuffer`` views shaped by per-count subarray dtypes (no copy beyond msgpack's), and a
-fixed handful of vectorised checks regardless of the number of contacts: one ``vdot`` for
-finite and bounded values, a square and two gemvs for unit normals, one set of n 24-byte
-strings for unique keys. With numpy, each call costs a few hundred ns whatever n is, so the
-design counts calls (``hapticproxy bench codec``).
+Decoding: the datagram length is checked first; the array header and the first three header
+integers are read from the first bytes to pick the message's msgspec decoder, which checks every
+type, range, enum and fixed length the declaration states in one C pass. What msgspec cannot
+express runs after it, vectorised: finite-and-bounded float bins (one ``vdot``), unit normals
+(a square and two gemvs), unique contact keys (one set of n 24-byte strings), quaternions,
+inertia, linkage trees and the :class:`Limits`. A msgspec error is mapped to the
+:class:`ErrorCode` and the field it names (the error path re-reads the packet to tell a
+non-finite value from an out-of-range one).
 """
 from __future__ import annotations
 
 import math
+import re
 import struct
 import threading
 from dataclasses import dataclass
 from typing import Any
 
 import msgpack
+import msgspec
 import numpy as np
 
 from .messages import (
-    BYE,
-    CONTACT_COLUMNS,
     CONTACT_FLOATS,
-    CONTACT_UPDATE,
-    ERROR,
     HEADER_LEN,
-    HEARTBEAT,
-    HELLO,
     KEY_INTS,
-    LINK_FIELDS,
     MAX_ABS_FLOAT,
-    MESSAGES,
+    MESSAGE_CLASSES,
     PROTOCOL_MAJOR,
     PROTOCOL_MINOR,
-    PROXY_STATE,
-    REJECT,
-    REQUIRED,
     UNIT_TOLERANCE,
-    WELCOME,
-    ErrorCode,
-    FieldSpec,
-    JointType,
-    MessageSpec,
-    MessageType,
-    ServerState,
-    ToolKind,
+    Bye,
+    ContactUpdate,
+    Error,
+    Heartbeat,
+    Hello,
+    Link,
+    Message,
+    ProxyState,
+    Reject,
+    Welcome,
+    fields_of,
 )
+from .vocab import ErrorCode, JointType, MessageType, ServerState, ToolKind
 
 __all__ = [
     "Bye",
@@ -70,6 +66,7 @@ __all__ = [
     "Heartbeat",
     "Hello",
     "Limits",
+    "Link",
     "Message",
     "MESSAGE_CLASSES",
     "ProtocolError",
@@ -84,17 +81,13 @@ __all__ = [
 _F8 = np.dtype("<f8")
 _I8 = np.dtype("<i8")
 _U64_MAX = (1 << 64) - 1
-_INT_RANGES = {
-    "u8": (0, 0xFF),
-    "u16": (0, 0xFFFF),
-    "u32": (0, 0xFFFF_FFFF),
-    "u64": (0, _U64_MAX),
-    "i32": (-(1 << 31), (1 << 31) - 1),
-}
 # |n|^2 bounds equivalent to | |n| - 1 | <= UNIT_TOLERANCE, so no sqrt on the hot path.
 _UNIT_SQ_LO = (1.0 - UNIT_TOLERANCE) ** 2
 _UNIT_SQ_HI = (1.0 + UNIT_TOLERANCE) ** 2
+# tol on |n|^2 - 1, the tighter of the two sides of the |n| window, squared.
+_UNIT_SQ_DEV2 = min(1.0 - _UNIT_SQ_LO, _UNIT_SQ_HI - 1.0) ** 2
 _MAX_ABS = MAX_ABS_FLOAT
+_MAX_ABS_SQ = MAX_ABS_FLOAT * MAX_ABS_FLOAT
 _POSE = struct.Struct("<7d")
 _QUAT = struct.Struct("<4d")
 
@@ -102,12 +95,10 @@ _QUAT = struct.Struct("<4d")
 # ------------------------------------------------------------------------------- limits
 @dataclass(frozen=True)
 class Limits:
-    """Decoder bounds, all checked before or while unpacking (never after building big objects).
-
-    ``max_packet_bytes`` is compared with ``len(data)`` before anything is unpacked; the others
-    become msgpack ``Unpacker`` limits (``max_bin_len``, ``max_array_len``, ``max_str_len``,
-    ``max_map_len = 0``, ``max_ext_len = 0``) so an oversize element aborts the unpacking itself.
-    """
+    """Decoder bounds. ``max_packet_bytes`` is compared with ``len(data)`` before anything is
+    decoded; strings, contact counts, links and joint arrays are bounded by the others; a
+    top-level array longer than ``max_array_len`` or a contact bin longer than ``max_bin_bytes``
+    is refused as ``MALFORMED``; maps and ext types are never valid."""
 
     max_packet_bytes: int = 8192
     max_contacts: int = 64
@@ -141,7 +132,8 @@ class ProtocolError(ValueError):
 
     Header values are filled in when the header could be read (``type_id``, ``session_id``,
     ``token``; ``seq`` and ``client_nonce`` when the message has them and they were read), so
-    the session layer can attribute the error and answer with a rate-limited ``Error``.
+    the session layer can attribute the error and answer with a rate-limited ``Error`` (or a
+    ``Reject`` for a Hello whose nonce could be read, even a truncated one).
     """
 
     def __init__(self, code: ErrorCode, field: str, detail: str) -> None:
@@ -191,274 +183,129 @@ def _bad(code: ErrorCode, field: str, detail: str) -> ProtocolError:
     return ProtocolError(code, field, detail)
 
 
-# ------------------------------------------------------------------------ message classes
-class Message:
-    """Base of the generated message classes. Header attributes: ``session_id``, ``token``,
-    ``minor`` (the sender's minor version), ``unknown_fields`` (trailing fields ignored)."""
-
-    __slots__ = ("session_id", "token", "minor", "unknown_fields")
-    SPEC: MessageSpec
-    TYPE_ID: int
-    _ATTRS: tuple[str, ...] = ()
-
-    def __eq__(self, other: object) -> bool:
-        if type(other) is not type(self):
-            return NotImplemented
-        for name in self._ATTRS + ("session_id", "token"):
-            a, b = getattr(self, name), getattr(other, name)
-            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-                if not np.array_equal(np.asarray(a), np.asarray(b)):
-                    return False
-            elif a != b:
-                return False
-        return True
-
-    __hash__ = None  # type: ignore[assignment]
-
-    def __repr__(self) -> str:
-        inner = ", ".join(f"{n}={getattr(self, n)!r}" for n in self._ATTRS)
-        return f"{type(self).__name__}({inner}, session_id={self.session_id}, token={self.token})"
+# ------------------------------------------------------------- msgspec errors -> ErrorCode
+_PATH = re.compile(r"^(.*?)(?: - at `\$((?:\[\d+\])*)`)?$", re.S)
+_INDEX = re.compile(r"\[(\d+)\]")
 
 
-def _attr_names(spec: MessageSpec) -> tuple[str, ...]:
-    if spec is CONTACT_UPDATE:
-        # The packed bins are exposed as their columns.
-        return ("seq", "env_time_s", "tool_pose", "keys") + tuple(c.name for c in CONTACT_COLUMNS) + (
-            "tool_joint_position",)
-    return tuple(f.name for f in spec.fields)
+def _field_path(cls: type, indices: list[int]) -> tuple[str, str]:
+    """The field name a msgspec error path names (``links[1].com_m[2]``) and the wire type of
+    the innermost declared field reached (``"header"`` for the 5 header integers)."""
+    name, wire, tp = "", "", cls
+    first = True
+    for i in indices:
+        if isinstance(tp, type) and issubclass(tp, msgspec.Struct):
+            if issubclass(tp, Message) and first:
+                if i < HEADER_LEN:
+                    return "", "header"
+                i -= HEADER_LEN
+            docs = fields_of(tp)
+            if i >= len(docs):
+                break
+            f = docs[i]
+            name = f.name if not name else f"{name}.{f.name}"
+            wire, tp = f.type, f.py_type
+        elif wire == "version":
+            break  # a version's parts are not named on their own
+        elif wire == "links":
+            name, tp, wire = f"{name}[{i}]", Link, "link"
+        else:
+            name = f"{name}[{i}]"
+            wire = "element"
+        first = False
+    return name, wire
 
 
-# Convenience defaults of the Python constructors (not wire defaults: every v1.0 field is
-# required on the wire). They make a rigid-tool Hello a short call.
-_PY_DEFAULTS: dict[str, dict[str, Any]] = {
-    "Hello": {
-        "version_min": (PROTOCOL_MAJOR, 0),
-        "version_max": (PROTOCOL_MAJOR, PROTOCOL_MINOR),
-        "units": "SI",
-        "com_m": (0.0, 0.0, 0.0),
-        "inertia_kg_m2": (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
-        "axis": (1.0, 0.0, 0.0),
-        "epsilon_m": 0.0,
-        "env_rate_hz": 60.0,
-        "links": (),
-        "held_link": 0,
-        "engine": "",
-    },
-    "Welcome": {"server_name": "hapticproxy"},
-    "Reject": {"version_min": (PROTOCOL_MAJOR, 0), "version_max": (PROTOCOL_MAJOR, PROTOCOL_MINOR)},
-    "ContactUpdate": {"tool_joint_position": np.zeros(0)},
-    "ProxyState": {
-        "joint_position": np.zeros(0),
-        "joint_velocity": np.zeros(0),
-        "joint_effort": np.zeros(0),
-    },
-    "Bye": {"reason": ""},
-    "Error": {"field": "", "detail": "", "ref_type": 0, "ref_seq": 0},
-}
+def _value_at(obj, indices: list[int]):
+    for i in indices:
+        if type(obj) is not list or i >= len(obj):
+            return None
+        obj = obj[i]
+    return obj
 
 
-def _make_class(spec: MessageSpec) -> type[Message]:
-    attrs = _attr_names(spec)
-    defaults = dict(_PY_DEFAULTS.get(spec.name, {}))
-    for f in spec.fields:
-        if f.default is not REQUIRED:
-            defaults.setdefault(f.name, f.default)
-    required = [a for a in attrs if a not in defaults]
-    optional = [a for a in attrs if a in defaults]
-    # Generated __init__ (like dataclasses do) keeps construction cheap on the decode path.
-    params = ", ".join(["self", "*"] + required + [f"{a}=_d_{a}" for a in optional]
-                       + ["session_id=0", "token=0", f"minor={PROTOCOL_MINOR}", "unknown_fields=0"])
-    body = "\n".join(f"    self.{a} = {a}" for a in attrs + ("session_id", "token", "minor", "unknown_fields"))
-    namespace = {f"_d_{a}": defaults[a] for a in optional}
-    exec(f"def __init__({params}):\n{body}\n", namespace)  # noqa: S102 - source built from declarations
-    doc = f"{spec.name} ({spec.direction}): {spec.doc}\n\nAttributes: " + ", ".join(attrs)
-    cls = type(spec.name, (Message,), {
-        "__slots__": attrs,
-        "__init__": namespace["__init__"],
-        "__doc__": doc,
-        "SPEC": spec,
-        "TYPE_ID": int(spec.type_id),
-        "_ATTRS": attrs,
-        "__module__": __name__,
-    })
-    return cls
+def _from_msgspec(exc: Exception, cls: type, data) -> ProtocolError:
+    text = str(exc)
+    m = _PATH.match(text)
+    what, path = (m.group(1), m.group(2) or "") if m else (text, "")
+    indices = [int(x) for x in _INDEX.findall(path)]
+    if indices and indices[0] < HEADER_LEN:
+        return _bad(ErrorCode.BAD_HEADER, "", "header must be [major u16, minor u16, type_id u8, session_id u32, token u64]")
+    name, wire = _field_path(cls, indices)
+    if what.startswith("Expected `array` of at least length"):
+        # a short nested record: name the first missing field
+        got = int(what.rsplit(" ", 1)[-1])
+        sub = fields_of(Link) if wire == "link" else ()
+        missing = sub[got].name if got < len(sub) else ""
+        return _bad(ErrorCode.MISSING_FIELD, f"{name}.{missing}" if missing else name, what)
+    if wire == "version":
+        if what.startswith("Expected `array`, got"):
+            return _bad(ErrorCode.WRONG_TYPE, name, "expected [major, minor]")
+        if what.startswith("Expected `array` of length"):
+            return _bad(ErrorCode.BAD_SHAPE, name, "expected [major, minor]")
+        return _bad(ErrorCode.OUT_OF_RANGE, name, f"version parts must be u16 ({what})")
+    if what.startswith(("Expected `array` of length", "Expected `bytes` of length", "Expected `str` of length")):
+        return _bad(ErrorCode.BAD_SHAPE, name, what)
+    if what.startswith("Expected `") and ", got `" in what:
+        got = what.rsplit("`", 2)[-2]
+        if got in ("object", "ext"):
+            return _bad(ErrorCode.MALFORMED, "", "maps and ext types are not allowed")
+        return _bad(ErrorCode.WRONG_TYPE, name, what)
+    if what.startswith("Expected `") or what.startswith("Invalid enum value"):
+        value = _value_at(_unpack_plain(data), indices)
+        if type(value) is float and not math.isfinite(value):
+            return _bad(ErrorCode.NON_FINITE, name, f"{value!r} is not finite")
+        return _bad(ErrorCode.OUT_OF_RANGE, name, what)
+    return _bad(ErrorCode.MALFORMED, "", what)
 
 
-Hello = _make_class(HELLO)
-Welcome = _make_class(WELCOME)
-Reject = _make_class(REJECT)
-ContactUpdate = _make_class(CONTACT_UPDATE)
-ProxyState = _make_class(PROXY_STATE)
-Heartbeat = _make_class(HEARTBEAT)
-Bye = _make_class(BYE)
-Error = _make_class(ERROR)
-ContactUpdate.n_contacts = property(lambda self: self.keys.shape[0])  # type: ignore[attr-defined]
-ContactUpdate.n_contacts.__doc__ = "number of contacts n (rows of keys)"
-
-MESSAGE_CLASSES: dict[int, type[Message]] = {
-    c.TYPE_ID: c for c in (Hello, Welcome, Reject, ContactUpdate, ProxyState, Heartbeat, Bye, Error)
-}
+def _unpack_plain(data):
+    try:
+        return msgpack.unpackb(data)
+    except Exception:  # noqa: BLE001
+        return None
 
 
-# ------------------------------------------------------------------ field validators (decode)
-# Each validator takes the unpacked msgpack value and returns the Python value for the message
-# attribute, or raises ProtocolError naming the field.
-
-def _v_int(f: FieldSpec, limits: Limits):
-    lo, hi = _INT_RANGES[f.type]
-    if f.check == "pos":
-        lo = max(lo, 1)
-    name, enum = f.name, f.enum
-
-    def check(v):
-        if type(v) is not int:
-            raise _bad(ErrorCode.WRONG_TYPE, name, f"expected an integer, got {type(v).__name__}")
-        if not lo <= v <= hi:
-            raise _bad(ErrorCode.OUT_OF_RANGE, name, f"{v} not in [{lo}, {hi}]")
-        if enum is not None:
-            try:
-                return enum(v)
-            except ValueError:
-                raise _bad(ErrorCode.OUT_OF_RANGE, name, f"{v} is not a {enum.__name__}") from None
-        return v
-
-    return check
+# ------------------------------------------------------------------ prefix reading
+def _read_int(data, p: int) -> tuple[int | None, int]:
+    """One msgpack integer at ``data[p]`` and the position after it (None if not an int)."""
+    if p >= len(data):
+        return None, p
+    b = data[p]
+    if b < 0x80:
+        return b, p + 1
+    if b >= 0xE0:
+        return b - 0x100, p + 1
+    width = {0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8, 0xD0: 1, 0xD1: 2, 0xD2: 4, 0xD3: 8}.get(b)
+    if width is None or p + 1 + width > len(data):
+        return None, p
+    return int.from_bytes(data[p + 1:p + 1 + width], "big", signed=b >= 0xD0), p + 1 + width
 
 
-def _float_value(name: str, v: Any) -> float:
-    t = type(v)
-    if t is float:
-        if -_MAX_ABS <= v <= _MAX_ABS:
-            return v
-        if v != v or v in (math.inf, -math.inf):
-            raise _bad(ErrorCode.NON_FINITE, name, f"{v!r} is not finite")
-        raise _bad(ErrorCode.OUT_OF_RANGE, name, f"|{v!r}| > {_MAX_ABS:g}")
-    if t is int:  # some encoders (JavaScript) pack integral doubles as ints
-        if -_MAX_ABS <= v <= _MAX_ABS:
-            return float(v)
-        raise _bad(ErrorCode.OUT_OF_RANGE, name, f"|{v}| > {_MAX_ABS:g}")
-    raise _bad(ErrorCode.WRONG_TYPE, name, f"expected a number, got {t.__name__}")
+def _read_prefix(data, k: int) -> list[int]:
+    """The leading integers (at most k) of a packet whose first element is an array, as far as
+    they can be read; used to attribute a packet that does not decode (e.g. a truncated Hello)."""
+    if not len(data):
+        return []
+    b = data[0]
+    if 0x90 <= b <= 0x9F:
+        p = 1
+    elif b == 0xDC:
+        p = 3
+    elif b == 0xDD:
+        p = 5
+    else:
+        return []
+    out = []
+    while len(out) < k:
+        v, p = _read_int(data, p)
+        if v is None:
+            break
+        out.append(v)
+    return out
 
 
-def _v_float(f: FieldSpec, limits: Limits):
-    name, chk = f.name, f.check
-
-    def check(v):
-        x = _float_value(name, v)
-        if chk == "pos" and not x > 0.0:
-            raise _bad(ErrorCode.OUT_OF_RANGE, name, f"{x!r} must be > 0")
-        if chk == "nonneg" and not x >= 0.0:
-            raise _bad(ErrorCode.OUT_OF_RANGE, name, f"{x!r} must be >= 0")
-        return x
-
-    return check
-
-
-def _v_str(f: FieldSpec, limits: Limits):
-    name = f.name
-    max_bytes = limits.max_str_bytes
-
-    def check(v):
-        if type(v) is not str:
-            raise _bad(ErrorCode.WRONG_TYPE, name, f"expected a string, got {type(v).__name__}")
-        if len(v) * 4 > max_bytes and len(v.encode("utf-8", "surrogatepass")) > max_bytes:
-            raise _bad(ErrorCode.BAD_SHAPE, name, f"longer than max_str_bytes {max_bytes} (UTF-8)")
-        return v
-
-    return check
-
-
-def _float_list(name: str, v: Any, k: int) -> list[float]:
-    if type(v) is not list:
-        raise _bad(ErrorCode.WRONG_TYPE, name, f"expected an array of {k} numbers, got {type(v).__name__}")
-    if len(v) != k:
-        raise _bad(ErrorCode.BAD_SHAPE, name, f"expected {k} numbers, got {len(v)}")
-    return [_float_value(f"{name}[{i}]", x) for i, x in enumerate(v)]
-
-
-def _check_unit(name: str, xs) -> None:
-    norm = math.sqrt(math.fsum(x * x for x in xs))
-    if not abs(norm - 1.0) <= UNIT_TOLERANCE:
-        raise _bad(ErrorCode.NOT_UNIT, name, f"norm {norm!r} is not 1 within {UNIT_TOLERANCE:g}")
-
-
-def _check_inertia(name: str, xs) -> None:
-    ixx, iyy, izz, ixy, ixz, iyz = xs
-    if min(ixx, iyy, izz) < 0.0:
-        raise _bad(ErrorCode.OUT_OF_RANGE, name, f"negative moment of inertia in {xs}")
-    eig = np.linalg.eigvalsh(np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]]))
-    scale = max(1.0, abs(float(eig[-1])))
-    if eig[0] < -1e-9 * scale:
-        raise _bad(ErrorCode.OUT_OF_RANGE, name, f"inertia not positive semi-definite (eigenvalue {float(eig[0])!r})")
-    # No triangle-inequality check: planar and 1-DOF tools legitimately send only Izz or zeros.
-
-
-def _v_floats(f: FieldSpec, limits: Limits):
-    name = f.name
-    kind = f.type
-    k = {"pose": 7, "inertia": 6}.get(kind) or int(kind[kind.index("[") + 1:-1])
-    chk = f.check
-
-    def check(v):
-        xs = _float_list(name, v, k)
-        if kind == "pose":
-            _check_unit(name + ".quaternion", xs[3:])
-        elif kind == "inertia":
-            _check_inertia(name, xs)
-        elif chk == "unit":
-            _check_unit(name, xs)
-        return tuple(xs)
-
-    return check
-
-
-def _v_version(f: FieldSpec, limits: Limits):
-    name = f.name
-
-    def check(v):
-        if type(v) is not list or len(v) != 2:
-            raise _bad(ErrorCode.BAD_SHAPE if type(v) is list else ErrorCode.WRONG_TYPE, name,
-                       "expected [major, minor]")
-        for x in v:
-            if type(x) is not int or not 0 <= x <= 0xFFFF:
-                raise _bad(ErrorCode.OUT_OF_RANGE, name, f"version parts must be u16, got {v!r}")
-        return (v[0], v[1])
-
-    return check
-
-
-def _v_bin_f64(f: FieldSpec, limits: Limits):
-    name = f.name
-    kind = f.type
-    fixed = None if kind.endswith("[J]") else int(kind[kind.index("[") + 1:-1])
-    max_len = limits.max_links
-    is_pose = kind == "bin f64[7]"
-
-    def check(v):
-        if type(v) is not bytes:
-            raise _bad(ErrorCode.WRONG_TYPE, name, f"expected bin, got {type(v).__name__}")
-        nb = len(v)
-        if nb % 8:
-            raise _bad(ErrorCode.BAD_SHAPE, name, f"{nb} bytes is not a whole number of float64")
-        k = nb >> 3
-        if fixed is not None and k != fixed:
-            raise _bad(ErrorCode.BAD_SHAPE, name, f"expected {fixed} float64, got {k}")
-        if fixed is None and k > max_len:
-            raise _bad(ErrorCode.BAD_SHAPE, name, f"{k} values > max_links {max_len}")
-        a = _ndarray((k,), _F8, v)
-        if k and not _vdot(a, a) <= _MAX_ABS_SQ:  # sufficient test first, exact one on failure
-            _check_float_array(name, a)
-        if is_pose:
-            qw, qx, qy, qz = _QUAT.unpack_from(v, 24)
-            qn = qw * qw + qx * qx + qy * qy + qz * qz
-            if not _UNIT_SQ_LO <= qn <= _UNIT_SQ_HI:
-                raise _bad(ErrorCode.NOT_UNIT, name + ".quaternion",
-                           f"|q| = {math.sqrt(qn)!r} is not 1 within {UNIT_TOLERANCE:g}")
-        return a
-
-    return check
-
-
+# ------------------------------------------------------------------------- value checks
 def _check_float_array(name: str, a: np.ndarray) -> None:
     # Two NaN-propagating reductions decide finite-and-bounded for the whole array at once.
     lo = _minimum(a)
@@ -472,70 +319,86 @@ def _check_float_array(name: str, a: np.ndarray) -> None:
     raise _bad(ErrorCode.OUT_OF_RANGE, name, f"|value| > {_MAX_ABS:g} at flat index {i}")
 
 
-_unpackb = msgpack.unpackb
-_ndarray = np.ndarray
+def _check_unit(name: str, xs) -> None:
+    norm = math.sqrt(math.fsum(x * x for x in xs))
+    if not abs(norm - 1.0) <= UNIT_TOLERANCE:
+        raise _bad(ErrorCode.NOT_UNIT, name, f"norm {norm!r} is not 1 within {UNIT_TOLERANCE:g}")
+
+
+def _check_inertia(name: str, xs) -> None:
+    ixx, iyy, izz, ixy, ixz, iyz = xs
+    if min(ixx, iyy, izz) < 0.0:
+        raise _bad(ErrorCode.OUT_OF_RANGE, name, f"negative moment of inertia in {tuple(xs)}")
+    eig = np.linalg.eigvalsh(np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]]))
+    scale = max(1.0, abs(float(eig[-1])))
+    if eig[0] < -1e-9 * scale:
+        raise _bad(ErrorCode.OUT_OF_RANGE, name, f"inertia not positive semi-definite (eigenvalue {float(eig[0])!r})")
+    # No triangle-inequality check: planar and 1-DOF tools legitimately send only Izz or zeros.
+
+
+def _check_str(name: str, v: str, max_bytes: int) -> None:
+    if len(v) * 4 > max_bytes and len(v.encode("utf-8", "surrogatepass")) > max_bytes:
+        raise _bad(ErrorCode.BAD_SHAPE, name, f"longer than max_str_bytes {max_bytes} (UTF-8)")
+
+
+def _check_bin_f64(name: str, v: bytes, max_values: int) -> np.ndarray:
+    nb = len(v)
+    if nb % 8:
+        raise _bad(ErrorCode.BAD_SHAPE, name, f"{nb} bytes is not a whole number of float64")
+    if nb > 8 * max_values:
+        raise _bad(ErrorCode.BAD_SHAPE, name, f"{nb >> 3} values > max_links {max_values}")
+    a = _frombuffer(v) if nb else _EMPTY
+    if nb and not _vdot(a, a) <= _MAX_ABS_SQ:  # sufficient test first, exact one on failure
+        _check_float_array(name, a)
+    return a
+
+
 _frombuffer = np.frombuffer
+_ndarray = np.ndarray
 _KEY_DT = np.dtype((_I8, (KEY_INTS,)))
 _ONES3 = np.ones(3)
 _ONES3.flags.writeable = False
-_new = object.__new__
 _minimum = np.minimum.reduce
 _maximum = np.maximum.reduce
 _vdot = np.vdot
-_dot = np.dot
-_MAX_ABS_SQ = MAX_ABS_FLOAT * MAX_ABS_FLOAT
-# tol on |n|^2 - 1, the tighter of the two sides of the |n| window, squared.
-_UNIT_SQ_DEV2 = min(1.0 - (1.0 - UNIT_TOLERANCE) ** 2, (1.0 + UNIT_TOLERANCE) ** 2 - 1.0) ** 2
+_EMPTY = np.zeros(0)
+_EMPTY.flags.writeable = False
+_EMPTY_3 = np.zeros((0, 3))
+_EMPTY_3.flags.writeable = False
+_EMPTY_K = np.zeros((0, 3), dtype=np.int64)
+_EMPTY_K.flags.writeable = False
+_SERVER_STATES = frozenset(int(v) for v in ServerState)
 
 
-def _v_links(f: FieldSpec, limits: Limits):
-    name = f.name
-    max_links = limits.max_links
-    link_checks = [(lf.name, _validator(lf, limits)) for lf in LINK_FIELDS]
-    nlf = len(LINK_FIELDS)
-
-    def check(v):
-        if type(v) is not list:
-            raise _bad(ErrorCode.WRONG_TYPE, name, f"expected an array of links, got {type(v).__name__}")
-        if len(v) > max_links:
-            raise _bad(ErrorCode.BAD_SHAPE, name, f"{len(v)} links > max_links {max_links}")
-        out = []
-        for i, rec in enumerate(v):
-            if type(rec) is not list:
-                raise _bad(ErrorCode.WRONG_TYPE, f"{name}[{i}]", "expected a link record array")
-            if len(rec) < nlf:
-                raise _bad(ErrorCode.MISSING_FIELD, f"{name}[{i}].{LINK_FIELDS[len(rec)].name}", "missing")
-            link = {}
-            for j, (lname, lcheck) in enumerate(link_checks):
-                try:
-                    link[lname] = lcheck(rec[j])
-                except ProtocolError as exc:
-                    raise _bad(exc.code, f"{name}[{i}].{exc.field}", exc.detail) from None
-            out.append(link)
-        _check_tree(name, out)
-        return tuple(out)
-
-    return check
-
-
-def _check_tree(name: str, links: list[dict]) -> None:
-    for i, link in enumerate(links):
-        parent, jt = link["parent"], link["joint_type"]
-        if i == 0:
-            if parent != -1 or jt != JointType.ROOT:
-                raise _bad(ErrorCode.BAD_TREE, f"{name}[0]", "link 0 must be the root: parent -1, joint_type 0")
-        else:
-            if not 0 <= parent < i:
-                raise _bad(ErrorCode.BAD_TREE, f"{name}[{i}].parent",
-                           f"parent {parent} must be an earlier link (0 <= parent < {i})")
-            if jt == JointType.ROOT:
-                raise _bad(ErrorCode.BAD_TREE, f"{name}[{i}].joint_type", "only link 0 may be the root")
-
-
-def _check_hello(msg) -> None:
-    """Cross-field rules of Hello that no single field can check."""
-    kind = msg.tool_kind
+# ----------------------------------------------------------------- per-message post-passes
+# What msgspec cannot state: each takes (codec, decoded message) and raises ProtocolError.
+def _post_hello(codec: Codec, msg: Hello) -> None:
+    if msg.session_id or msg.token:
+        raise _bad(ErrorCode.BAD_HEADER, "session_id" if msg.session_id else "token",
+                   "a Hello carries session_id 0 and token 0")
+    lim = codec.limits
+    _check_str("engine", msg.engine, lim.max_str_bytes)
+    _check_str("units", msg.units, lim.max_str_bytes)
+    _check_inertia("inertia_kg_m2", msg.inertia_kg_m2)
+    _check_unit("axis", msg.axis)
     links = msg.links
+    if len(links) > lim.max_links:
+        raise _bad(ErrorCode.BAD_SHAPE, "links", f"{len(links)} links > max_links {lim.max_links}")
+    for i, ln in enumerate(links):
+        _check_inertia(f"links[{i}].inertia_kg_m2", ln.inertia_kg_m2)
+        _check_unit(f"links[{i}].joint_axis", ln.joint_axis)
+        _check_unit(f"links[{i}].joint_origin.quaternion", ln.joint_origin[3:])
+    for i, ln in enumerate(links):
+        if i == 0:
+            if ln.parent != -1 or ln.joint_type != JointType.ROOT:
+                raise _bad(ErrorCode.BAD_TREE, "links[0]", "link 0 must be the root: parent -1, joint_type 0")
+        else:
+            if not 0 <= ln.parent < i:
+                raise _bad(ErrorCode.BAD_TREE, f"links[{i}].parent",
+                           f"parent {ln.parent} must be an earlier link (0 <= parent < {i})")
+            if ln.joint_type == JointType.ROOT:
+                raise _bad(ErrorCode.BAD_TREE, f"links[{i}].joint_type", "only link 0 may be the root")
+    kind = msg.tool_kind
     ixx, iyy, izz = msg.inertia_kg_m2[:3]
     if kind == ToolKind.LINKAGE:
         if not links:
@@ -553,74 +416,88 @@ def _check_hello(msg) -> None:
             raise _bad(ErrorCode.OUT_OF_RANGE, "inertia_kg_m2", "a spatial tool needs Ixx, Iyy, Izz > 0")
 
 
-_POST_CHECKS = {"Hello": _check_hello}
+def _post_welcome(codec: Codec, msg: Welcome) -> None:
+    if not (msg.session_id and msg.token):
+        raise _bad(ErrorCode.BAD_HEADER, "session_id", "Welcome must carry a non-zero session_id and token")
+    _check_str("server_name", msg.server_name, codec.limits.max_str_bytes)
+    _check_str("note", msg.note, codec.limits.max_str_bytes)
 
 
-def _validator(f: FieldSpec, limits: Limits):
-    t = f.type
-    if t in _INT_RANGES:
-        return _v_int(f, limits)
-    if t == "f64":
-        return _v_float(f, limits)
-    if t == "str":
-        return _v_str(f, limits)
-    if t in ("pose", "inertia") or t.startswith("f64["):
-        return _v_floats(f, limits)
-    if t == "version":
-        return _v_version(f, limits)
-    if t.startswith("bin f64[") and t != "bin f64[n*8]":
-        return _v_bin_f64(f, limits)
-    if t == "links":
-        return _v_links(f, limits)
-    raise ValueError(f"no validator for wire type {t!r} ({f.name})")
+def _post_strings(*names: str):
+    def post(codec: Codec, msg) -> None:
+        for n in names:
+            _check_str(n, getattr(msg, n), codec.limits.max_str_bytes)
+    return post
 
 
-# ------------------------------------------------------------------ field encoders (encode)
-def _encoder(f: FieldSpec):
-    """Python attribute value -> msgpack-ready value (types coerced; shapes checked by the
-    validator that runs on the result)."""
-    t = f.type
-    name = f.name
-    if t in _INT_RANGES:
-        def enc(v):
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
-                raise ValueError(f"{name}: expected an integer, got {v!r}")
-            return int(v)
-        return enc
-    if t == "f64":
-        return float
-    if t == "str":
+_POST = {
+    Hello: _post_hello,
+    Welcome: _post_welcome,
+    Reject: _post_strings("reason"),
+    Bye: _post_strings("reason"),
+    Error: _post_strings("field", "detail"),
+}
+
+
+# ------------------------------------------------------------------------ encoding helpers
+def _u(v: Any, name: str, hi: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= int(v) <= hi:
+        raise ValueError(f"{name} must be an integer in [0, {hi}], got {v!r}")
+    return int(v)
+
+
+def _describe(a: Any) -> str:
+    if isinstance(a, np.ndarray):
+        return f"{a.dtype} array of shape {a.shape}"
+    return type(a).__name__
+
+
+def _to_wire(wire: str, name: str):
+    """A converter from a Python attribute value to the value msgspec encodes (shape and range
+    are then checked by decoding the packet)."""
+    if wire.startswith("bin"):
+        def enc_bin(v):
+            if type(v) is bytes:
+                return v
+            if type(v) is np.ndarray and v.dtype == _F8:
+                return v.tobytes()  # C order, whatever the strides
+            return np.asarray(v, dtype=_F8).tobytes()
+        return enc_bin
+    if wire in ("pose", "inertia", "version") or wire.startswith("f64["):
+        conv = int if wire == "version" else float
+        return lambda v: [conv(x) for x in np.asarray(v).ravel().tolist()]
+    if wire == "links":
+        return lambda v: [ln if type(ln) is Link else Link(**ln) if isinstance(ln, dict) else Link(*ln) for ln in v]
+    if wire == "str":
         def enc_s(v):
             if not isinstance(v, str):
                 raise ValueError(f"{name}: expected a string, got {v!r}")
             return v
         return enc_s
-    if t in ("pose", "inertia", "version") or t.startswith("f64["):
-        conv = int if t == "version" else float
-        return lambda v: [conv(x) for x in np.asarray(v).ravel().tolist()]
-    if t.startswith("bin f64["):
-        def enc_bin(v):
-            if type(v) is np.ndarray and v.dtype == _F8:
-                return v.tobytes()  # C order, whatever the strides
-            return np.asarray(v, dtype=_F8).tobytes()
-        return enc_bin
-    if t == "links":
-        link_enc = [_encoder(lf) for lf in LINK_FIELDS]
+    if wire == "f64":
+        def enc_f(v):
+            if isinstance(v, (bool, str)) or not isinstance(v, (int, float, np.integer, np.floating)):
+                raise ValueError(f"{name}: expected a number, got {v!r}")
+            return float(v)
+        return enc_f
 
-        def enc_links(v):
-            out = []
-            for link in v:
-                if isinstance(link, dict):
-                    rec = [e(link[lf.name]) for e, lf in zip(link_enc, LINK_FIELDS)]
-                else:
-                    rec = [e(x) for e, x in zip(link_enc, link)]
-                out.append(rec)
-            return out
-        return enc_links
-    raise ValueError(f"no encoder for wire type {t!r} ({name})")
+    def enc_i(v):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+            raise ValueError(f"{name}: expected an integer, got {v!r}")
+        return int(v)
+    return enc_i
 
 
-# ------------------------------------------------------------------------------- the codec
+def _enc_hook(obj):
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.floating):
+        return float(obj)
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise NotImplementedError(f"cannot encode {type(obj).__name__}")
+
+
 class _DecodeScratch(threading.local):
     """One thread's ContactUpdate decode plans (``plans[n]``, see ``Codec._cu_plan``) and the
     (2, max_contacts) unit-normal scratch they view."""
@@ -630,68 +507,65 @@ class _DecodeScratch(threading.local):
         self.unit = np.ones((2, max_contacts))
 
 
-_EMPTY = np.zeros(0)
-_SERVER_STATES = frozenset(int(v) for v in ServerState)
-_EMPTY.flags.writeable = False
+class _Layout:
+    """How one message class is decoded and encoded by a codec."""
+
+    __slots__ = ("cls", "decoder", "names", "required", "known", "post", "encoders", "since")
+
+    def __init__(self, cls: type[Message]) -> None:
+        docs = fields_of(cls)
+        self.cls = cls
+        self.decoder = msgspec.msgpack.Decoder(cls)
+        self.names = tuple(f.name for f in docs)
+        self.required = sum(1 for f in docs if f.since_minor == 0)  # wire-required: every minor-0 field
+        self.known = len(docs)
+        self.since = tuple(f.since_minor for f in docs)
+        post = None
+        for base, fn in _POST.items():
+            if issubclass(cls, base):
+                post = fn
+        self.post = post
+        self.encoders = tuple((f.name, _to_wire(f.type, f.name)) for f in docs)
 
 
+# ------------------------------------------------------------------------------- the codec
 class Codec:
     """Encoder/decoder with its :class:`Limits` and :class:`CodecCounters`.
 
-    One per endpoint (not thread-safe: counters and the packer are per instance). ``specs``
-    defaults to the v1 declarations; tests pass modified declarations to exercise versioning.
+    One per endpoint (not thread-safe: counters are per instance; decode scratch is per
+    thread). ``messages`` defaults to the v1 declarations; tests pass extended Structs to
+    exercise versioning. ``minor`` is the minor version this side writes (header and layout).
     """
 
-    def __init__(self, limits: Limits | None = None, *, specs: tuple[MessageSpec, ...] = MESSAGES,
-                 minor: int = PROTOCOL_MINOR) -> None:
+    def __init__(self, limits: Limits | None = None, *, messages=None, minor: int = PROTOCOL_MINOR) -> None:
         self.limits = limits or Limits()
         self.counters = CodecCounters()
         self.minor = minor
-        self._packer = msgpack.Packer(use_bin_type=True, autoreset=True)
-        self._pack = self._packer.pack
-        lim = self.limits
-        self._specs = {int(s.type_id): s for s in specs}
-        self._classes = {}
-        self._decoders = {}
-        self._encoders = {}
-        for tid, spec in self._specs.items():
-            cls = MESSAGE_CLASSES[tid]
-            if tuple(f.name for f in spec.fields) != tuple(f.name for f in cls.SPEC.fields):
-                # A test declaration with extra fields: a class for it.
-                cls = _make_class(spec)
-            self._classes[tid] = cls
-            if spec is CONTACT_UPDATE:
-                self._decoders[tid] = self._decode_contact_update
-            elif spec is PROXY_STATE:
-                self._decoders[tid] = self._decode_proxy_state
-            elif spec.type_id in (MessageType.CONTACT_UPDATE, MessageType.PROXY_STATE):
-                raise ValueError(f"a modified {spec.name} declaration needs its own decoder")
-            else:
-                self._decoders[tid] = self._generic_decoder(spec, cls)
-            self._encoders[tid] = [(f.name, _encoder(f), _validator(f, lim)) for f in spec.fields] \
-                if spec.type_id != MessageType.CONTACT_UPDATE else None
-        self._empty_f = np.zeros((0, 3))
-        self._empty_f.flags.writeable = False
-        self._empty_1 = np.zeros(0)
-        self._empty_1.flags.writeable = False
-        self._empty_k = np.zeros((0, 3), dtype=np.int64)
-        self._empty_k.flags.writeable = False
+        self._encoder = msgspec.msgpack.Encoder(enc_hook=_enc_hook)
+        self._enc = self._encoder.encode
+        classes = dict(MESSAGE_CLASSES)
+        for cls in messages or ():
+            classes[int(cls.TYPE_ID)] = cls
+        self._layouts = {tid: _Layout(cls) for tid, cls in classes.items()}
+        for tid, lay in self._layouts.items():
+            if tid in (MessageType.CONTACT_UPDATE, MessageType.PROXY_STATE) and lay.cls is not MESSAGE_CLASSES[tid]:
+                raise ValueError(f"a modified {lay.cls.__name__} declaration needs its own decoder")
         lim = self.limits
         self._max_packet_bytes = lim.max_packet_bytes
         self._max_bin_len = lim.max_bin_bytes
-        self._max_str_len = lim.max_str_bytes
         self._max_array_len = lim.max_array_len
         self._max_contacts = lim.max_contacts
         self._max_links = lim.max_links
-        self._proxy_cls = ProxyState
+        cu = self._layouts[MessageType.CONTACT_UPDATE]
+        ps = self._layouts[MessageType.PROXY_STATE]
+        self._cu_decode = cu.decoder.decode
+        self._ps_decode = ps.decoder.decode
+        self._cu_minor_fields = sum(1 for s in cu.since if s <= minor)
+        self._ps_has_state = minor >= 2
         # Per-thread ContactUpdate decode plans, one per contact count n, built on first use
-        # (see _cu_plan; a Struct per n is O(n) to compile, so an eager table would cost
-        # O(max_contacts^2) at construction). Per thread because a plan holds a scratch row
-        # the validation writes: two threads sharing one codec (say the module-level one)
-        # must never validate against each other's numbers.
+        # (see _cu_plan). Per thread because a plan holds a scratch row the validation writes:
+        # two threads sharing one codec must never validate against each other's numbers.
         self._cu_local = _DecodeScratch(lim.max_contacts)
-        # The hand-written ContactUpdate decoder matches the v1 declaration only.
-        self._cu_fast = self._specs.get(int(MessageType.CONTACT_UPDATE)) is CONTACT_UPDATE
 
     # ------------------------------------------------------------------------ decoding
     def try_decode(self, data) -> Message | ProtocolError:
@@ -715,167 +589,166 @@ class Codec:
         return out
 
     def _decode(self, data) -> Message:
-        if len(data) > self._max_packet_bytes:
-            raise _bad(ErrorCode.OVERSIZE, "", f"{len(data)} bytes > max_packet_bytes {self._max_packet_bytes}")
+        n = len(data)
+        if n > self._max_packet_bytes:
+            raise _bad(ErrorCode.OVERSIZE, "", f"{n} bytes > max_packet_bytes {self._max_packet_bytes}")
+        # The array header and the first three header integers, read from the first bytes when
+        # they are the usual one-byte forms; anything else takes the general path.
+        b = data[0] if n else 0
+        if 0x95 <= b <= 0x9F and n > 3:
+            count, p = b - 0x90, 1
+        elif b == 0xDC and n > 5:
+            count, p = (data[1] << 8) | data[2], 3
+        else:
+            count = p = 0
+        if p and data[p] < 0x80 and data[p + 1] < 0x80 and data[p + 2] < 0x80:
+            major, type_id = data[p], data[p + 2]
+        else:
+            count, major, type_id = self._general_header(data)
+        if count > self._max_array_len:
+            raise _bad(ErrorCode.MALFORMED, "", f"array of {count} elements > max_array_len {self._max_array_len}")
         try:
-            # Explicit keywords: a **kwargs expansion costs more than the unpacking itself.
-            obj = _unpackb(data, max_bin_len=self._max_bin_len, max_str_len=self._max_str_len,
-                           max_array_len=self._max_array_len, max_map_len=0, max_ext_len=0)
+            if type_id == 4 and major == 1:
+                return self._decode_contact_update(data, count)
+            if type_id == 5 and major == 1:
+                return self._decode_proxy_state(data, count)
+            lay = self._layouts.get(type_id)
+            if lay is None:
+                raise _bad(ErrorCode.UNKNOWN_TYPE, "type_id", f"unknown message type id {type_id}")
+            if major != PROTOCOL_MAJOR and type_id != MessageType.REJECT:  # Reject's layout is frozen
+                self._foreign_major(data, major, type_id)
+            msg = self._decode_generic(lay, data, count)
+        except ProtocolError as exc:
+            if exc.code == ErrorCode.MALFORMED or (exc.code == ErrorCode.BAD_HEADER and not exc.field):
+                self._attribute_prefix(exc, data)  # not a readable packet: a Hello's nonce at most
+            else:
+                self._attribute(exc, data, type_id, major)
+            raise
+        self.counters.decoded += 1
+        return msg
+
+    def _general_header(self, data) -> tuple[int, int, int]:
+        """The header of a packet whose first bytes are not the common forms, with the checks
+        (and verdicts) of a full unpack: not one msgpack object -> MALFORMED, no 5-integer
+        header -> BAD_HEADER."""
+        try:
+            obj = msgpack.unpackb(data, max_bin_len=self._max_bin_len, max_str_len=self._max_packet_bytes,
+                                  max_array_len=self._max_array_len, max_map_len=0, max_ext_len=0)
         except Exception as exc:  # noqa: BLE001 - any msgpack failure, incl. limits and bad UTF-8
-            raise _bad(ErrorCode.MALFORMED, "", f"{type(exc).__name__}: {exc}") from None
+            err = _bad(ErrorCode.MALFORMED, "", f"{type(exc).__name__}: {exc}")
+            self._attribute_prefix(err, data)
+            raise err from None
         if type(obj) is not list or len(obj) < HEADER_LEN:
             raise _bad(ErrorCode.BAD_HEADER, "", "packet must be an array of at least 5 header integers")
-        major, minor, type_id, session_id, token = obj[0], obj[1], obj[2], obj[3], obj[4]
+        major, minor, type_id, session_id, token = obj[:HEADER_LEN]
         if not (type(major) is int and type(minor) is int and type(type_id) is int
                 and type(session_id) is int and type(token) is int
                 and 0 <= major <= 0xFFFF and 0 <= minor <= 0xFFFF and 0 <= type_id <= 0xFF
                 and 0 <= session_id <= 0xFFFF_FFFF and 0 <= token <= _U64_MAX):
             raise _bad(ErrorCode.BAD_HEADER, "", "header must be [major u16, minor u16, type_id u8, session_id u32, token u64]")
-        try:
-            if type_id == 4 and major == 1 and self._cu_fast:
-                msg = self._decode_contact_update(obj)
-                msg.minor = minor
-                msg.session_id = session_id
-                msg.token = token
-                self.counters.decoded += 1
-                return msg
-            else:
-                decoder = self._decoders.get(type_id)
-                if decoder is None:
-                    raise _bad(ErrorCode.UNKNOWN_TYPE, "type_id", f"unknown message type id {type_id}")
-                if major != PROTOCOL_MAJOR:
-                    self._foreign_major(obj, major, type_id)
-                if type_id == MessageType.WELCOME and not (session_id and token):
-                    raise _bad(ErrorCode.BAD_HEADER, "session_id", "Welcome must carry a non-zero session_id and token")
-                msg = decoder(obj)
-        except ProtocolError as exc:
-            exc.type_id, exc.major, exc.session_id, exc.token = type_id, major, session_id, token
-            first = obj[HEADER_LEN] if len(obj) > HEADER_LEN else None
-            if type(first) is int and 0 <= first <= _U64_MAX:
-                if exc.seq == 0 and type_id in (MessageType.CONTACT_UPDATE, MessageType.PROXY_STATE, MessageType.HEARTBEAT):
-                    exc.seq = first
-                elif exc.client_nonce == 0 and type_id == MessageType.HELLO:
-                    exc.client_nonce = first  # lets the server answer a bad Hello with Reject
-            raise
-        msg.minor = minor
-        msg.session_id = session_id
-        msg.token = token
-        self.counters.decoded += 1
-        return msg
+        return len(obj), major, type_id
 
-    def _foreign_major(self, obj: list, major: int, type_id: int) -> None:
-        if type_id == MessageType.REJECT:
-            return  # Reject's layout is frozen: readable whatever its major.
+    def _attribute(self, exc: ProtocolError, data, type_id: int, major: int) -> None:
+        """Fill in what the session layer needs to answer a rejected packet."""
+        ints = _read_prefix(data, HEADER_LEN + 1)
+        exc.type_id, exc.major = type_id, major
+        if len(ints) >= HEADER_LEN:
+            sid, tok = ints[3], ints[4]
+            if 0 <= sid <= 0xFFFF_FFFF and 0 <= tok <= _U64_MAX:
+                exc.session_id, exc.token = sid, tok
+        if len(ints) > HEADER_LEN and 0 <= ints[HEADER_LEN] <= _U64_MAX:
+            first = ints[HEADER_LEN]
+            if exc.seq == 0 and type_id in (MessageType.CONTACT_UPDATE, MessageType.PROXY_STATE, MessageType.HEARTBEAT):
+                exc.seq = first
+            elif exc.client_nonce == 0 and type_id == MessageType.HELLO:
+                exc.client_nonce = first  # lets the server answer a bad Hello with Reject
+
+    def _attribute_prefix(self, exc: ProtocolError, data) -> None:
+        # A packet that is not one msgpack object (e.g. a truncated datagram) is attributed
+        # only when it is a Hello whose nonce can be read: the server then answers with Reject.
+        ints = _read_prefix(data, HEADER_LEN + 1)
+        if len(ints) > HEADER_LEN and ints[2] == MessageType.HELLO and 0 < ints[HEADER_LEN] <= _U64_MAX:
+            exc.type_id, exc.major, exc.client_nonce = int(MessageType.HELLO), ints[0], ints[HEADER_LEN]
+
+    def _foreign_major(self, data, major: int, type_id: int) -> None:
         err = _bad(ErrorCode.UNKNOWN_MAJOR, "major", f"major version {major} not supported (this side speaks {PROTOCOL_MAJOR})")
         if type_id == MessageType.HELLO:
             # Hello's first three fields are frozen so the server can answer with Reject.
-            f = obj[HEADER_LEN:HEADER_LEN + 3]
+            obj = _unpack_plain(data)
+            f = obj[HEADER_LEN:HEADER_LEN + 3] if type(obj) is list else []
             if len(f) == 3 and type(f[0]) is int and 0 <= f[0] <= _U64_MAX:
                 err.client_nonce = f[0]
-                try:
-                    err.version_min = _v_version(HELLO.fields[1], self.limits)(f[1])
-                    err.version_max = _v_version(HELLO.fields[2], self.limits)(f[2])
-                except ProtocolError:
-                    pass
+                ok = all(type(v) is list and len(v) == 2 and all(type(x) is int and 0 <= x <= 0xFFFF for x in v)
+                         for v in f[1:])
+                if ok:
+                    err.version_min, err.version_max = tuple(f[1]), tuple(f[2])
         raise err
 
-    def _fields(self, obj: list, spec: MessageSpec) -> tuple[list, int]:
-        """The message's field values (defaults filled in) and the number of unknown trailing ones."""
-        values = obj[HEADER_LEN:]
-        n = len(values)
-        known = len(spec.fields)
-        if n < known:
-            missing = spec.fields[n]
-            if missing.default is REQUIRED:
-                raise _bad(ErrorCode.MISSING_FIELD, missing.name, f"{spec.name} needs {known} fields, got {n}")
-            values = values + [f.default for f in spec.fields[n:]]
-            return values, 0
-        extra = n - known
-        if extra:
+    @staticmethod
+    def _refused(exc: Exception, cls: type, data) -> ProtocolError:
+        if isinstance(exc, msgspec.ValidationError):
+            return _from_msgspec(exc, cls, data)
+        # truncated, trailing bytes, bad UTF-8, ...
+        return _bad(ErrorCode.MALFORMED, "", f"{type(exc).__name__}: {exc}")
+
+    def _known_fields(self, lay: _Layout, count: int) -> int:
+        """Check the field count against the declaration; returns the unknown trailing ones."""
+        nf = count - HEADER_LEN
+        if nf < lay.required:
+            raise _bad(ErrorCode.MISSING_FIELD, lay.names[nf] if nf >= 0 else "",
+                       f"{lay.cls.__name__} needs {lay.required} fields, got {nf}")
+        extra = nf - lay.known
+        if extra > 0:
             self.counters.unknown_trailing_fields += extra
             self.counters.packets_with_unknown_fields += 1
-        return values, extra
+            return extra
+        return 0
 
-    def _generic_decoder(self, spec: MessageSpec, cls: type[Message]):
-        checks = tuple((f, _validator(f, self.limits)) for f in spec.fields)
-        names = tuple(f.name for f in spec.fields)
-        fields = self._fields
-        post = _POST_CHECKS.get(spec.name)
-
-        def decode(obj: list) -> Message:
-            values, extra = fields(obj, spec)
-            kwargs = {}
-            for (f, check), v in zip(checks, values):
-                if f.since_minor and v is f.default:
-                    kwargs[f.name] = v  # defaults are trusted (declared here)
-                else:
-                    kwargs[f.name] = check(v)
-            msg = cls(**kwargs)
+    def _decode_generic(self, lay: _Layout, data, count: int) -> Message:
+        extra = self._known_fields(lay, count)
+        try:
+            msg = lay.decoder.decode(data)
+        except Exception as exc:  # noqa: BLE001 - mapped to the code and field it names
+            raise self._refused(exc, lay.cls, data) from None
+        if extra:
             msg.unknown_fields = extra
-            if post is not None:
-                post(msg)
-            return msg
+        if lay.post is not None:
+            lay.post(self, msg)
+        return msg
 
-        del names
-        return decode
-
-    def _decode_contact_update(self, obj: list) -> Message:
-        # Hand-specialised for speed (the server decodes one per environment step); field
-        # order is the declaration's (messages.CONTACT_UPDATE), checked at Codec construction.
-        nf = len(obj) - HEADER_LEN
-        joints = self._empty_1
+    def _decode_contact_update(self, data, count: int) -> ContactUpdate:
+        # The server decodes one per environment step: msgspec has checked the types, ranges and
+        # the pose's length; the rest is a fixed handful of vectorised checks whatever n is.
+        nf = count - HEADER_LEN
         if nf != 6:
-            if nf < 6:
-                raise _bad(ErrorCode.MISSING_FIELD, CONTACT_UPDATE.fields[nf].name, f"ContactUpdate needs 6 fields, got {nf}")
-            # 1.1: tool_joint_position (a linkage engine's joint positions), then any later fields
-            jb = obj[11]
-            if type(jb) is not bytes:
-                raise _bad(ErrorCode.WRONG_TYPE, "tool_joint_position", f"expected bin, got {type(jb).__name__}")
-            if len(jb) % 8 or len(jb) > 8 * self._max_links:
-                raise _bad(ErrorCode.BAD_SHAPE, "tool_joint_position",
-                           f"expected a multiple of 8 bytes, at most max_links float64, got {len(jb)} bytes")
-            if jb:
-                joints = _frombuffer(jb)
-                if not _vdot(joints, joints) <= _MAX_ABS_SQ:
-                    _check_float_array("tool_joint_position", joints)
-            extra = nf - 7
-            if extra:
-                self.counters.unknown_trailing_fields += extra
-                self.counters.packets_with_unknown_fields += 1
+            extra = self._known_fields(self._layouts[4], count)
         else:
             extra = 0
-        seq, t, pose_b, n, kb, db = obj[5:11]
-        if type(seq) is not int or not 0 < seq <= _U64_MAX:
-            if type(seq) is not int:
-                raise _bad(ErrorCode.WRONG_TYPE, "seq", f"expected an integer, got {type(seq).__name__}")
-            raise _bad(ErrorCode.OUT_OF_RANGE, "seq", f"{seq} not in [1, 2^64-1]")
-        if type(t) is not float or not -_MAX_ABS <= t <= _MAX_ABS:
-            t = _float_value("env_time_s", t)
-        if type(pose_b) is not bytes or len(pose_b) != 56:
-            if type(pose_b) is not bytes:
-                raise _bad(ErrorCode.WRONG_TYPE, "tool_pose", f"expected bin, got {type(pose_b).__name__}")
-            raise _bad(ErrorCode.BAD_SHAPE, "tool_pose", f"expected 56 bytes (7 float64), got {len(pose_b)}")
+        try:
+            msg = self._cu_decode(data)
+        except Exception as exc:  # noqa: BLE001 - mapped to the code and field it names
+            raise self._refused(exc, ContactUpdate, data) from None
+        jb = msg.tool_joint_position
+        msg.tool_joint_position = _check_bin_f64("tool_joint_position", jb, self._max_links) if jb else _EMPTY
+        pose_b = msg.tool_pose
         px, py, pz, qw, qx, qy, qz = _POSE.unpack(pose_b)
         qn = qw * qw + qx * qx + qy * qy + qz * qz
         if not (-_MAX_ABS <= px <= _MAX_ABS and -_MAX_ABS <= py <= _MAX_ABS and -_MAX_ABS <= pz <= _MAX_ABS
                 and _UNIT_SQ_LO <= qn <= _UNIT_SQ_HI):
             _check_float_array("tool_pose", _ndarray((7,), _F8, pose_b))
             raise _bad(ErrorCode.NOT_UNIT, "tool_pose.quaternion", f"|q| = {math.sqrt(qn)!r} is not 1 within {UNIT_TOLERANCE:g}")
-        if type(n) is not int or not 0 <= n <= self._max_contacts:
-            if type(n) is not int:
-                raise _bad(ErrorCode.WRONG_TYPE, "contact_count", f"expected an integer, got {type(n).__name__}")
-            if n < 0:
-                raise _bad(ErrorCode.OUT_OF_RANGE, "contact_count", f"{n} < 0")
+        n = msg.contact_count
+        if n > self._max_contacts:
             raise _bad(ErrorCode.TOO_MANY_CONTACTS, "contact_count", f"{n} > max_contacts {self._max_contacts}")
-        if type(kb) is not bytes or len(kb) != 24 * n:
-            if type(kb) is not bytes:
-                raise _bad(ErrorCode.WRONG_TYPE, "contact_keys", f"expected bin, got {type(kb).__name__}")
+        kb = msg.contact_keys
+        if len(kb) != 24 * n:
             raise _bad(ErrorCode.BAD_SHAPE, "contact_keys", f"expected {24 * n} bytes for {n} contacts, got {len(kb)}")
-        if type(db) is not bytes:
-            raise _bad(ErrorCode.WRONG_TYPE, "contact_data", f"expected bin, got {type(db).__name__}")
+        db = msg.contact_data
         nd = len(db)
         if nd != 64 * n:
             # A later minor may append whole column blocks (n float64 each) after the known ones.
+            if nd > self._max_bin_len:
+                raise _bad(ErrorCode.MALFORMED, "", f"bin of {nd} bytes > max_bin_len {self._max_bin_len}")
             if n == 0 or nd < 64 * n or nd % (8 * n):
                 raise _bad(ErrorCode.BAD_SHAPE, "contact_data",
                            f"expected {64 * n} bytes ({CONTACT_FLOATS} float64 per contact) for {n} contacts, got {nd}")
@@ -884,18 +757,16 @@ class Codec:
                 self.counters.packets_with_unknown_fields += 1
             extra += more
             self.counters.unknown_trailing_fields += more
-        msg = _new(ContactUpdate)
-        msg.seq = seq
-        msg.env_time_s = t
         msg.tool_pose = _frombuffer(pose_b)
-        msg.tool_joint_position = joints
-        msg.unknown_fields = extra
+        if extra:
+            msg.unknown_fields = extra
         if n == 0:
-            msg.keys = self._empty_k
-            msg.position_m = self._empty_f
-            msg.normal = self._empty_f
-            msg.separation_m = self._empty_1
-            msg.v_constr_m_per_s = self._empty_1
+            msg.keys = _EMPTY_K
+            msg.position_m = _EMPTY_3
+            msg.normal = _EMPTY_3
+            msg.separation_m = _EMPTY
+            msg.v_constr_m_per_s = _EMPTY
+            self.counters.decoded += 1
             return msg
         plan = self._cu_local.plans[n] or self._cu_plan(n)
         key_struct, col_dt, pn_dt, scratch, sq, unit_margin = plan
@@ -943,6 +814,7 @@ class Codec:
         msg.normal = normal
         msg.separation_m = cols[6]
         msg.v_constr_m_per_s = cols[7]
+        self.counters.decoded += 1
         return msg
 
     def _cu_plan(self, n: int) -> tuple:
@@ -965,45 +837,21 @@ class Codec:
         local.plans[n] = plan
         return plan
 
-    def _decode_proxy_state(self, obj: list) -> Message:
-        # Hand-specialised like ContactUpdate (field order of messages.PROXY_STATE): the six
-        # float bins are validated as one array, then handed out as views of it.
-        nf = len(obj) - HEADER_LEN
-        if nf < 9:
-            raise _bad(ErrorCode.MISSING_FIELD, PROXY_STATE.fields[nf].name, f"ProxyState needs 9 fields, got {nf}")
-        # 1.2: server_state, then any later fields
-        state = 0
-        if nf > 9:
-            state = obj[14]
-            if type(state) is not int:
-                raise _bad(ErrorCode.WRONG_TYPE, "server_state", f"expected an integer, got {type(state).__name__}")
-            if state not in _SERVER_STATES:
-                raise _bad(ErrorCode.OUT_OF_RANGE, "server_state", f"{state} is not a ServerState")
-        extra = nf - 10 if nf > 10 else 0
-        if extra:
-            self.counters.unknown_trailing_fields += extra
-            self.counters.packets_with_unknown_fields += 1
-        seq, ack, t, pose_b, tw_b, wr_b, jq_b, jv_b, je_b = obj[5:14]
-        for name, v, lo in (("seq", seq, 1), ("ack_seq", ack, 0)):
-            if type(v) is not int:
-                raise _bad(ErrorCode.WRONG_TYPE, name, f"expected an integer, got {type(v).__name__}")
-            if not lo <= v <= _U64_MAX:
-                raise _bad(ErrorCode.OUT_OF_RANGE, name, f"{v} not in [{lo}, 2^64-1]")
-        if type(t) is not float or not -_MAX_ABS <= t <= _MAX_ABS:
-            t = _float_value("server_time_s", t)
-        for name, v, nb in (("proxy_pose", pose_b, 56), ("proxy_twist", tw_b, 48), ("wrench", wr_b, 48)):
-            if type(v) is not bytes:
-                raise _bad(ErrorCode.WRONG_TYPE, name, f"expected bin, got {type(v).__name__}")
-            if len(v) != nb:
-                raise _bad(ErrorCode.BAD_SHAPE, name, f"expected {nb // 8} float64, got {len(v)} bytes")
-        nj = len(jq_b) if type(jq_b) is bytes else -1
+    def _decode_proxy_state(self, data, count: int) -> ProxyState:
+        # The six float bins are validated as one array, then handed out as views of it.
+        extra = self._known_fields(self._layouts[5], count)
+        try:
+            msg = self._ps_decode(data)
+        except Exception as exc:  # noqa: BLE001 - mapped to the code and field it names
+            raise self._refused(exc, ProxyState, data) from None
+        jq_b, jv_b, je_b = msg.joint_position, msg.joint_velocity, msg.joint_effort
+        nj = len(jq_b)
         for name, v in (("joint_position", jq_b), ("joint_velocity", jv_b), ("joint_effort", je_b)):
-            if type(v) is not bytes:
-                raise _bad(ErrorCode.WRONG_TYPE, name, f"expected bin, got {type(v).__name__}")
             if len(v) != nj or nj % 8 or nj > 8 * self._max_links:
                 raise _bad(ErrorCode.BAD_SHAPE, name,
                            f"joint arrays must hold the same number (<= max_links) of float64, got {len(v)} bytes")
-        allb = b"".join((pose_b, tw_b, wr_b, jq_b, jv_b, je_b))
+        pose_b = msg.proxy_pose
+        allb = b"".join((pose_b, msg.proxy_twist, msg.wrench, jq_b, jv_b, je_b))
         a = _ndarray((len(allb) >> 3,), _F8, allb)
         if not _vdot(a, a) <= _MAX_ABS_SQ:
             for name, lo, hi in (("proxy_pose", 0, 7), ("proxy_twist", 7, 13), ("wrench", 13, 19)):
@@ -1014,26 +862,27 @@ class Codec:
         if not _UNIT_SQ_LO <= qn <= _UNIT_SQ_HI:
             raise _bad(ErrorCode.NOT_UNIT, "proxy_pose.quaternion", f"|q| = {math.sqrt(qn)!r} is not 1 within {UNIT_TOLERANCE:g}")
         j = nj >> 3
-        msg = _new(self._proxy_cls)
-        msg.seq = seq
-        msg.ack_seq = ack
-        msg.server_time_s = t
         msg.proxy_pose = a[0:7]
         msg.proxy_twist = a[7:13]
         msg.wrench = a[13:19]
         msg.joint_position = a[19:19 + j]
         msg.joint_velocity = a[19 + j:19 + 2 * j]
         msg.joint_effort = a[19 + 2 * j:]
-        msg.server_state = state
-        msg.unknown_fields = extra
+        if extra:
+            msg.unknown_fields = extra
+        self.counters.decoded += 1
         return msg
 
     # ------------------------------------------------------------------------ encoding
     def encode(self, msg: Message) -> bytes:
-        """Encode any message (header from ``msg.session_id`` / ``msg.token``). Values are
-        validated with the decoder's own rules; a bad value raises ``ValueError`` naming it."""
+        """Encode any message (header from ``msg.session_id`` / ``msg.token``, this codec's
+        major and minor). Values are validated with the decoder's own rules; a bad value raises
+        ``ValueError`` naming the field."""
         tid = msg.TYPE_ID
         if tid == MessageType.CONTACT_UPDATE:
+            keys = getattr(msg, "keys", None)
+            if keys is None:  # built from its wire fields: decode the columns first
+                msg = self._self_check(self.encode_contact_update_bins(msg), "ContactUpdate")
             return self.encode_contact_update(
                 msg.session_id, msg.token, msg.seq, msg.env_time_s, msg.tool_pose, msg.keys,
                 msg.position_m, msg.normal, msg.separation_m, msg.v_constr_m_per_s, check=True,
@@ -1042,16 +891,39 @@ class Codec:
             return self.encode_proxy_state(
                 msg.session_id, msg.token, msg.seq, msg.ack_seq, msg.server_time_s, msg.proxy_pose, msg.proxy_twist,
                 msg.wrench, msg.joint_position, msg.joint_velocity, msg.joint_effort, msg.server_state)
-        encoders = self._encoders.get(tid)
-        if encoders is None:
+        lay = self._layouts.get(int(tid))
+        if lay is None or not isinstance(msg, lay.cls):
             raise ValueError(f"message type {type(msg).__name__} not declared in this codec")
-        out = [PROTOCOL_MAJOR, self.minor, tid, _u(msg.session_id, "session_id", 0xFFFF_FFFF), _u(msg.token, "token", _U64_MAX)]
-        for name, enc, check in encoders:
-            value = enc(getattr(msg, name))
-            check(value)  # raises ProtocolError (a ValueError) naming the field
-            out.append(value)
+        out = [PROTOCOL_MAJOR, self.minor, int(tid), _u(msg.session_id, "session_id", 0xFFFF_FFFF),
+               _u(msg.token, "token", _U64_MAX)]
+        for (name, enc), since in zip(lay.encoders, lay.since):
+            if since <= self.minor:
+                out.append(enc(getattr(msg, name)))
+        packet = self._enc(out)
+        self._self_check(packet, type(msg).__name__)
         self.counters.encoded += 1
-        return self._pack(out)
+        return packet
+
+    def _self_check(self, packet: bytes, name: str) -> Message:
+        saved = self.counters
+        self.counters = CodecCounters()  # a self-check must not count as traffic
+        try:
+            return self._decode(packet)
+        except ProtocolError as exc:
+            raise ValueError(f"{name}.{exc.field or 'packet'}: {exc.code.name}: {exc.detail}") from None
+        finally:
+            self.counters = saved
+
+    def encode_contact_update_bins(self, msg: ContactUpdate) -> bytes:
+        """The packet of a ContactUpdate built from its wire fields (``contact_keys`` /
+        ``contact_data`` bins), unchecked."""
+        fields = [PROTOCOL_MAJOR, self.minor, 4, _u(msg.session_id, "session_id", 0xFFFF_FFFF),
+                  _u(msg.token, "token", _U64_MAX), msg.seq, float(msg.env_time_s),
+                  np.asarray(msg.tool_pose, _F8).tobytes(), msg.contact_count, bytes(msg.contact_keys),
+                  bytes(msg.contact_data)]
+        if len(msg.tool_joint_position) and self._cu_minor_fields > 6:
+            fields.append(np.asarray(msg.tool_joint_position, _F8).tobytes())
+        return self._enc(fields)
 
     def encode_proxy_state(self, session_id: int, token: int, seq: int, ack_seq: int, server_time_s: float,
                            proxy_pose, proxy_twist, wrench, joint_position=_EMPTY, joint_velocity=_EMPTY,
@@ -1062,30 +934,39 @@ class Codec:
         for name, v, k in (("proxy_pose", proxy_pose, 7), ("proxy_twist", proxy_twist, 6), ("wrench", wrench, 6),
                            ("joint_position", joint_position, -1), ("joint_velocity", joint_velocity, -1),
                            ("joint_effort", joint_effort, -1)):
-            if type(v) is not np.ndarray or v.dtype != _F8:
+            if type(v) is bytes:
+                v = _frombuffer(v)
+            elif type(v) is not np.ndarray or v.dtype != _F8:
                 v = np.asarray(v, dtype=_F8)
             if v.ndim != 1 or (k > 0 and v.shape[0] != k):
                 raise ValueError(f"{name} must be {k if k > 0 else 'J'} float64 values, got shape {v.shape}")
             bins.append(v.tobytes())
-        packet = self._pack([PROTOCOL_MAJOR, self.minor, 5, _u(session_id, "session_id", 0xFFFF_FFFF),
-                             _u(token, "token", _U64_MAX), _u(seq, "seq", _U64_MAX), _u(ack_seq, "ack_seq", _U64_MAX),
-                             float(server_time_s)] + bins + ([int(server_state)] if self.minor >= 2 else []))
         # The decoder's value rules, on all six arrays at once.
         allb = b"".join(bins)
         a = _ndarray((len(allb) >> 3,), _F8, allb)
         if not _vdot(a, a) <= _MAX_ABS_SQ:
-            _check_float_array("ProxyState arrays", a)
+            try:
+                _check_float_array("ProxyState arrays", a)
+            except ProtocolError as exc:
+                raise ValueError(f"ProxyState arrays: {exc.detail}") from None
         qw, qx, qy, qz = _QUAT.unpack_from(allb, 24)
         if not _UNIT_SQ_LO <= qw * qw + qx * qx + qy * qy + qz * qz <= _UNIT_SQ_HI:
             raise ValueError("proxy_pose: quaternion is not unit within 1e-6")
         if not len(bins[3]) == len(bins[4]) == len(bins[5]) <= 8 * self._max_links:
             raise ValueError("joint_position, joint_velocity, joint_effort must have the same length <= max_links")
-        if not -_MAX_ABS <= float(server_time_s) <= _MAX_ABS:
+        t = float(server_time_s)
+        if not -_MAX_ABS <= t <= _MAX_ABS:
             raise ValueError(f"server_time_s must be finite, got {server_time_s!r}")
-        if seq < 1:
-            raise ValueError("seq must be >= 1")
-        if int(server_state) not in _SERVER_STATES:
+        if isinstance(seq, bool) or not isinstance(seq, (int, np.integer)) or not 1 <= seq <= _U64_MAX:
+            raise ValueError("seq must be an integer >= 1")
+        state = int(server_state)
+        if state not in _SERVER_STATES:
             raise ValueError(f"server_state must be a ServerState, got {server_state!r}")
+        fields = [PROTOCOL_MAJOR, self.minor, 5, _u(session_id, "session_id", 0xFFFF_FFFF), _u(token, "token", _U64_MAX),
+                  int(seq), _u(ack_seq, "ack_seq", _U64_MAX), t, *bins]
+        if self._ps_has_state:
+            fields.append(state)
+        packet = self._enc(fields)
         self.counters.encoded += 1
         return packet
 
@@ -1106,8 +987,8 @@ class Codec:
         n = keys.shape[0] if isinstance(keys, np.ndarray) else -1
         if n < 0 or keys.shape != (n, 3) or keys.dtype != _I8:
             raise ValueError(f"keys must be an int64 array of shape (n, 3), got {_describe(keys)}")
-        if n > self.limits.max_contacts:
-            raise ValueError(f"keys: {n} contacts > max_contacts {self.limits.max_contacts}")
+        if n > self._max_contacts:
+            raise ValueError(f"keys: {n} contacts > max_contacts {self._max_contacts}")
         for name, a, shape in (("position_m", position_m, (n, 3)), ("normal", normal, (n, 3)),
                                ("separation_m", separation_m, (n,)), ("v_constr_m_per_s", v_constr_m_per_s, (n,))):
             if not isinstance(a, np.ndarray) or a.shape != shape or a.dtype != _F8:
@@ -1122,36 +1003,20 @@ class Codec:
             pose_b = _POSE.pack(*tool_pose)
         data = b"".join((position_m.tobytes(), normal.tobytes(), separation_m.tobytes(), v_constr_m_per_s.tobytes()))
         fields = [PROTOCOL_MAJOR, self.minor, 4, session_id, token, seq, float(env_time_s), pose_b, n, keys.tobytes(), data]
-        if tool_joint_position is not None and len(tool_joint_position):
+        if tool_joint_position is not None and len(tool_joint_position) and self._cu_minor_fields > 6:
             jq = np.asarray(tool_joint_position, dtype=_F8)
-            if jq.ndim != 1 or jq.shape[0] > self.limits.max_links:
-                raise ValueError(f"tool_joint_position must be at most {self.limits.max_links} float64 values, "
+            if jq.ndim != 1 or jq.shape[0] > self._max_links:
+                raise ValueError(f"tool_joint_position must be at most {self._max_links} float64 values, "
                                  f"got shape {jq.shape}")
             fields.append(jq.tobytes())
-        packet = self._pack(fields)
+        try:
+            packet = self._enc(fields)
+        except (TypeError, OverflowError) as exc:
+            raise ValueError(f"ContactUpdate header or seq: {exc}") from None
         if check:
-            saved = self.counters
-            self.counters = CodecCounters()  # a self-check must not count as traffic
-            try:
-                self._decode(packet)
-            except ProtocolError as exc:
-                raise ValueError(f"ContactUpdate.{exc.field}: {exc.detail}") from None
-            finally:
-                self.counters = saved
+            self._self_check(packet, "ContactUpdate")
         self.counters.encoded += 1
         return packet
-
-
-def _u(v: Any, name: str, hi: int) -> int:
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= int(v) <= hi:
-        raise ValueError(f"{name} must be an integer in [0, {hi}], got {v!r}")
-    return int(v)
-
-
-def _describe(a: Any) -> str:
-    if isinstance(a, np.ndarray):
-        return f"{a.dtype} array of shape {a.shape}"
-    return type(a).__name__
 
 
 _DEFAULT = Codec()

@@ -1,9 +1,13 @@
-"""Protocol v1 message declarations: the single source of truth.
+"""Protocol v1 message declarations: the single source of truth, as msgspec Structs.
 
-Every message is declared here exactly once, as data (:class:`MessageSpec` holding ordered
-:class:`FieldSpec` rows). The codec (:mod:`hapticproxy.protocol.codec`) compiles its encoders,
-decoders and validators from these declarations, and :mod:`hapticproxy.protocol.spec` renders the
-message tables of ``SPEC.md`` from them; a test checks that the two agree byte for byte.
+Every message is one :class:`msgspec.Struct` with ``array_like=True``: a packet is the msgpack
+array of its fields in declaration order, the 5 header integers (:class:`Message`) first. Each
+field's annotation carries its wire rule (msgspec ``Meta`` constraints: integer ranges, the float
+bound, fixed bin lengths, enums) and its documentation (``Meta.extra``: wire type, unit, frame,
+sign, rule, the minor version that added it). The codec (:mod:`hapticproxy.protocol.codec`)
+decodes with msgspec and adds a vectorised numpy pass for what msgspec cannot express (unit
+normals and quaternions, unique contact keys, linkage trees, packed bins, the codec's limits);
+:mod:`hapticproxy.protocol.spec` renders SPEC.md's tables from these declarations.
 
 Conventions fixed here (and in SPEC.md):
 
@@ -19,124 +23,52 @@ Conventions fixed here (and in SPEC.md):
   ``d = s_eps + epsilon``. ``v_constr = n . v(c_p)`` in m/s.
 - Contact key: (tool link, environment body, feature), three int64, stable across steps.
 
-Minor-version rule: a later minor may only append fields at the end of a message, each with a
-default (``FieldSpec.since_minor > 0`` requires ``default is not REQUIRED``).
-"""
-from __future__ import annotations
+Minor-version rule (msgspec's own schema-evolution rule): a later minor only appends fields at
+the end of a message, each with a default. Fields of minor 0 are required on the wire even where
+the Python constructor offers a convenience default (``Hello(units="SI")``); a field with
+``since > 0`` takes its default when a packet of an older minor lacks it.
 
-from dataclasses import dataclass, field
-from enum import IntEnum
-from typing import Any
+Decoded values: ``bin f64[...]`` fields hold read-only float64 numpy views of the packet;
+``ContactUpdate`` also exposes its packed columns (``keys``, ``position_m``, ``normal``,
+``separation_m``, ``v_constr_m_per_s``); ``unknown_fields`` counts trailing fields of a newer
+minor that were ignored. Construct with keywords; the header defaults to 0 / this version.
+"""
+from dataclasses import dataclass
+from typing import Annotated, Any, ClassVar
+
+import msgspec
+import numpy as np
+from msgspec import Meta, Struct
+
+from .vocab import (
+    JOINT_TYPE_NAMES,
+    JOINT_TYPES_BY_NAME,
+    SERVER_STATE_NAMES,
+    TOOL_KIND_NAMES,
+    TOOL_KINDS_BY_NAME,
+    ErrorCode,
+    JointType,
+    MessageType,
+    ServerState,
+    ToolKind,
+)
+
+__all__ = [
+    "Bye", "CONTACT_COLUMNS", "CONTACT_FLOATS", "ContactUpdate", "Error", "ErrorCode", "FieldDoc", "HEADER",
+    "HEADER_LEN", "Heartbeat", "Hello", "JointType", "KEY_COLUMNS", "KEY_INTS", "LINK_FIELDS", "Link",
+    "MAX_ABS_FLOAT", "MESSAGES", "MESSAGES_BY_ID", "MESSAGE_CLASSES", "Message", "MessageDoc", "MessageType",
+    "PROTOCOL_MAJOR", "PROTOCOL_MINOR", "ProxyState", "REQUIRED", "Reject", "ServerState", "ToolKind",
+    "UNIT_TOLERANCE", "Welcome", "check_declarations", "fields_of",
+    "TOOL_KIND_NAMES", "TOOL_KINDS_BY_NAME", "JOINT_TYPE_NAMES", "JOINT_TYPES_BY_NAME", "SERVER_STATE_NAMES",
+]
 
 #: Major version this code speaks. A different major fails closed in the handshake.
 PROTOCOL_MAJOR = 1
 #: Highest minor version of :data:`PROTOCOL_MAJOR` this code speaks. 1.1 appended
 #: ``ContactUpdate.tool_joint_position`` (a linkage engine's joint positions); 1.2 appended
-#: ``ProxyState.server_state`` (whether the proxy is being rendered).
+#: ``ProxyState.server_state`` (whether the proxy is being rendered) and the scene bounds and
+#: ``note`` of ``Welcome``.
 PROTOCOL_MINOR = 2
-
-
-class _Required:
-    """Sentinel: the field has no default (present since minor 0)."""
-
-    def __repr__(self) -> str:  # shows up in SPEC.md tables
-        return "required"
-
-
-REQUIRED: Any = _Required()
-
-
-class MessageType(IntEnum):
-    """Wire type ids (the third header element)."""
-
-    HELLO = 1
-    WELCOME = 2
-    REJECT = 3
-    CONTACT_UPDATE = 4
-    PROXY_STATE = 5
-    HEARTBEAT = 6
-    BYE = 7
-    ERROR = 8
-
-
-class ToolKind(IntEnum):
-    """``Hello.tool_kind``: how the proxy may move."""
-
-    ONE_DOF = 1  # "1dof": translation along Hello.axis only
-    PLANAR = 2  # "planar": translation in world x-y, rotation about +z
-    SPATIAL = 3  # "spatial": free rigid body, 6 DOF
-    LINKAGE = 4  # "linkage": kinematic tree in Hello.links, the hand holds Hello.held_link
-
-
-#: Short names used in docs and configs.
-TOOL_KIND_NAMES = {
-    ToolKind.ONE_DOF: "1dof",
-    ToolKind.PLANAR: "planar",
-    ToolKind.SPATIAL: "spatial",
-    ToolKind.LINKAGE: "linkage",
-}
-
-
-class ServerState(IntEnum):
-    """``ProxyState.server_state``: what the server does with the proxy it reports.
-
-    An engine follows the proxy while it is ``ENGAGED``; in every other state the proxy is held
-    where it is (not driven by the device), so an engine may keep its tool still.
-    """
-
-    UNKNOWN = 0  # not reported (a 1.0 / 1.1 server): assume engaged
-    IDLE = 1  # no session drives the model; nothing is rendered
-    ENGAGED = 2  # the proxy is rendered to the device (also while the force ramps in)
-    FADING = 3  # the force fades to zero (environment silent, session ended, stopping); proxy held
-    FAULT = 4  # output off after a fault; proxy held; it recovers by itself or by a re-arm
-
-
-class JointType(IntEnum):
-    """Joint of a linkage link to its parent (``Hello.links[i].joint_type``)."""
-
-    ROOT = 0  # link 0 only: no joint, the floating base whose pose is the tool pose
-    REVOLUTE = 1  # rotation by q rad about joint_axis
-    PRISMATIC = 2  # translation by q m along joint_axis
-
-
-class ErrorCode(IntEnum):
-    """Codes carried by ``Error``, ``Reject`` and ``Bye``, and by :class:`ProtocolError`.
-
-    1-19: the packet itself is bad (decoder); 20-39: the packet does not fit the session;
-    40-59: handshake refusals (``Reject``); 60-79: reasons for ``Bye``.
-    """
-
-    OVERSIZE = 1  # packet longer than max_packet_bytes (checked before unpacking)
-    MALFORMED = 2  # not one complete msgpack object, or a msgpack limit was exceeded
-    BAD_HEADER = 3  # not an array starting with the 5 header integers
-    UNKNOWN_MAJOR = 4  # header major version not spoken here
-    UNKNOWN_TYPE = 5  # header type id not declared
-    MISSING_FIELD = 6  # fewer fields than the message requires
-    WRONG_TYPE = 7  # a field has the wrong msgpack type
-    NON_FINITE = 8  # NaN or infinity in a float field
-    OUT_OF_RANGE = 9  # a number outside its declared range (incl. negative mass/inertia)
-    NOT_UNIT = 10  # normal / axis / quaternion not unit within UNIT_TOLERANCE
-    BAD_SHAPE = 11  # array or bin of the wrong length
-    TOO_MANY_CONTACTS = 12  # more contacts than max_contacts (codec) or the granted capacity
-    DUPLICATE_KEY = 13  # the same contact key twice in one ContactUpdate
-    BAD_TREE = 14  # linkage tree inconsistent (parents, held link, joint types)
-    BAD_MAC = 15  # shared-secret mode: tag missing or wrong
-    UNKNOWN_SESSION = 20  # header session id not known to the receiver
-    BAD_TOKEN = 21  # header token does not match the session
-    WRONG_PEER = 22  # packet for a session from a peer other than the one that did the handshake
-    STALE = 23  # sequence number older than the newest accepted
-    DUPLICATE = 24  # sequence number equal to the newest accepted
-    UNEXPECTED = 25  # message type not valid in this direction or session state
-    UNSUPPORTED_VERSION = 40  # no common major version
-    UNSUPPORTED_TOOL = 41  # tool kind the server cannot simulate
-    UNSUPPORTED_UNITS = 42  # Hello.units is not "SI"
-    SERVER_FULL = 43  # no free session slot
-    INVALID_HELLO = 44  # Hello decoded but its content is refused
-    BYE_NORMAL = 60  # orderly shutdown requested by the sender
-    BYE_TIMEOUT = 61  # the sender heard nothing within silence_timeout_s
-    BYE_SHUTDOWN = 62  # the sender's process is stopping
-
-
 #: Tolerance on unit vectors and quaternions: | |x| - 1 | <= UNIT_TOLERANCE.
 UNIT_TOLERANCE = 1e-6
 #: Bound on the magnitude of every float (after the finite check). Generous for metres, newtons
@@ -144,29 +76,406 @@ UNIT_TOLERANCE = 1e-6
 MAX_ABS_FLOAT = 1e9
 
 
-@dataclass(frozen=True)
-class FieldSpec:
-    """One field of a message, in wire order.
+class _Required:
+    """Marker of a wire-required field (SPEC tables print it as ``required``)."""
 
-    ``type`` is one of the wire types of SPEC.md ("Wire types"): ``u8 u16 u32 u64 i32 f64 str``;
-    ``f64[k]`` (msgpack array of k numbers); ``pose``, ``inertia``, ``version``, ``links``;
-    ``bin f64[k]`` / ``bin f64[J]`` / ``bin f64[n*8]`` / ``bin i64[n*3]`` (packed little-endian).
-    ``check`` names an extra validation: ``unit`` (vector of norm 1), ``pos`` (> 0), ``nonneg``
-    (>= 0), ``enum`` (value in ``enum``), ``psd`` (inertia), ``contact_count`` etc.
-    """
+    def __repr__(self) -> str:
+        return "required"
+
+
+REQUIRED: Any = _Required()
+
+
+# ------------------------------------------------------------------------- field annotations
+def _doc(wire: str, doc: str, unit: str = "-", frame: str = "-", sign: str = "", rule: str = "",
+         since: int = 0, **constraints) -> Meta:
+    return Meta(description=doc, extra={"wire": wire, "unit": unit, "frame": frame, "sign": sign, "rule": rule,
+                                        "since": since}, **constraints)
+
+
+_F64 = Annotated[float, Meta(ge=-MAX_ABS_FLOAT, le=MAX_ABS_FLOAT)]
+_U16 = Annotated[int, Meta(ge=0, le=0xFFFF)]
+_INT_RANGES = {"u8": (0, 0xFF), "u16": (0, 0xFFFF), "u32": (0, 0xFFFF_FFFF), "u64": (0, None),
+               "i32": (-(1 << 31), (1 << 31) - 1)}
+
+
+def uint(wire: str, doc: str, *, rule: str = "", since: int = 0, unit: str = "-"):
+    """An integer of wire type u8/u16/u32/u64/i32 (``rule="pos"``: >= 1)."""
+    lo, hi = _INT_RANGES[wire]
+    if rule == "pos":
+        lo = 1
+    # u64's upper bound is msgpack's own (msgspec cannot state bounds beyond int64)
+    return Annotated[int, _doc(wire, doc, unit, rule=rule, since=since, ge=lo, **({} if hi is None else {"le": hi}))]
+
+
+def f64(doc: str, unit: str = "-", frame: str = "-", sign: str = "", *, rule: str = "", since: int = 0):
+    """A float64 (an integer is accepted), finite and within :data:`MAX_ABS_FLOAT`; ``rule``
+    ``"pos"`` (> 0) or ``"nonneg"`` (>= 0)."""
+    bounds = {"pos": {"gt": 0.0}, "nonneg": {"ge": 0.0}}.get(rule, {"ge": -MAX_ABS_FLOAT})
+    return Annotated[float, _doc("f64", doc, unit, frame, sign, rule, since, le=MAX_ABS_FLOAT, **bounds)]
+
+
+def text(doc: str, *, since: int = 0):
+    """A UTF-8 string of at most ``Limits.max_str_bytes`` bytes (checked by the codec)."""
+    return Annotated[str, _doc("str", doc, since=since)]
+
+
+def enum(kind, doc: str, *, wire: str = "u8", since: int = 0):
+    return Annotated[kind, _doc(wire, doc, rule="enum", since=since)]
+
+
+def floats(k: int, wire: str, doc: str, unit: str = "-", frame: str = "-", sign: str = "", *, rule: str = ""):
+    """A msgpack array of k numbers (``f64[k]``, ``pose``, ``inertia``)."""
+    return Annotated[tuple.__class_getitem__((_F64,) * k), _doc(wire, doc, unit, frame, sign, rule)]
+
+
+def version(doc: str):
+    return Annotated[tuple[_U16, _U16], _doc("version", doc)]
+
+
+def f64_bin(k: int | str, doc: str, unit: str = "-", frame: str = "-", sign: str = "", *, since: int = 0):
+    """A msgpack bin of packed little-endian float64: ``k`` values, or ``"J"`` (joint count,
+    <= ``Limits.max_links``). Decoded to a read-only numpy view of the packet."""
+    length = {} if isinstance(k, str) else {"min_length": 8 * k, "max_length": 8 * k}
+    return Annotated[bytes, _doc(f"bin f64[{k}]", doc, unit, frame, sign, since=since, **length)]
+
+
+def packed(wire: str, doc: str, unit: str = "-", frame: str = "-"):
+    """A bin whose length follows ``contact_count`` (checked by the codec)."""
+    return Annotated[bytes, _doc(wire, doc, unit, frame)]
+
+
+_VERSION_DOC = "[major, minor]"
+
+
+# --------------------------------------------------------------------------- linkage records
+class Link(Struct, array_like=True):
+    """One link of a ``linkage`` tool (one element of ``Hello.links``): a msgpack array of these
+    fields, in order. Links are listed parents first (``parent < own index``); link 0 is the root
+    (floating base, ``parent = -1``, ``joint_type = 0``); every other link hangs from its parent
+    by one joint. ``link["mass_kg"]`` reads a field by name as well."""
+
+    mass_kg: f64("link mass, > 0", "kg", rule="pos")
+    com_m: floats(3, "f64[3]", "centre of mass in the link frame", "m", "link")
+    inertia_kg_m2: floats(6, "inertia", "[Ixx, Iyy, Izz, Ixy, Ixz, Iyz], symmetric positive semi-definite",
+                          "kg m^2", "link, about the com")
+    parent: uint("i32", "index of the parent link, -1 for link 0 only, else 0 <= parent < own index")
+    joint_type: enum(JointType, "0 root (link 0 only), 1 revolute, 2 prismatic")
+    joint_axis: floats(3, "f64[3]", "unit joint axis in this link's frame (ignored for the root)", "-", "link",
+                       "positive q: right-handed rotation about / translation along +axis", rule="unit")
+    joint_origin: floats(7, "pose", "pose of this link's frame in the parent's frame at q = 0 (root: identity)",
+                         "m, quaternion", "parent link")
+
+    def __getitem__(self, name: str):
+        return getattr(self, name)
+
+
+# ----------------------------------------------------------------------------------- header
+class Message(Struct, array_like=True, kw_only=True, dict=True, eq=False):
+    """The 5 header integers every packet starts with; every message adds its fields after them."""
+
+    TYPE_ID: ClassVar[int] = 0
+    DIRECTION: ClassVar[str] = ""
+    REALTIME: ClassVar[bool] = False  # carries a per-type sequence number (newest wins)
+    FROZEN_PREFIX: ClassVar[int] = 0  # fields readable whatever the major (handshake)
+    unknown_fields: ClassVar[int] = 0  # set on a decoded message: trailing fields ignored
+
+    major: uint("u16", "protocol major version of this packet's layout") = PROTOCOL_MAJOR
+    minor: uint("u16", "protocol minor version the sender speaks (informative)") = PROTOCOL_MINOR
+    type_id: uint("u8", "message type id (table above)") = 0
+    session_id: uint("u32", "session id granted by Welcome; 0 in Hello and Reject") = 0
+    token: uint("u64", "session token granted by Welcome (random, secret to the session); 0 in Hello and Reject") = 0
+
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        for name in self.__struct_fields__[3:]:  # minor and the constants are not content
+            if not _same(getattr(self, name), getattr(other, name)):
+                return False
+        return True
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, (np.ndarray, bytes)) or isinstance(b, (np.ndarray, bytes)):
+        if isinstance(a, bytes) and isinstance(b, bytes):
+            return a == b
+        a = np.frombuffer(a, "<f8") if isinstance(a, bytes) else np.asarray(a)
+        b = np.frombuffer(b, "<f8") if isinstance(b, bytes) else np.asarray(b)
+        return a.shape == b.shape and bool(np.array_equal(a, b))
+    if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return a == b
+
+
+# ------------------------------------------------------------------------------ messages
+class Hello(Message, kw_only=True):
+    """Opens a session. Resent by the client every hello_retry_s until Welcome or Reject arrives.
+    The header and the first three fields are frozen across majors so any server can answer."""
+
+    TYPE_ID = MessageType.HELLO
+    DIRECTION = "client -> server"
+    FROZEN_PREFIX = 3
+    type_id: uint("u8", "") = MessageType.HELLO
+
+    client_nonce: uint("u64", "random, non-zero; echoed in Welcome/Reject to match the reply", rule="pos")
+    version_min: version(_VERSION_DOC + " lowest version the client speaks") = (PROTOCOL_MAJOR, 0)
+    version_max: version(_VERSION_DOC + " highest version the client speaks; header major/minor = the layout "
+                         "this Hello is written in") = (PROTOCOL_MAJOR, PROTOCOL_MINOR)
+    engine: text("engine name and version, free text (<= max_str_bytes bytes)") = ""
+    units: text('must be "SI"') = "SI"
+    tool_kind: enum(ToolKind, "1 = 1dof, 2 = planar, 3 = spatial, 4 = linkage")
+    mass_kg: f64("rigid tool mass, > 0 (linkage: total, informative)", "kg", rule="pos")
+    com_m: floats(3, "f64[3]", "centre of mass in the tool frame", "m", "tool") = (0.0, 0.0, 0.0)
+    inertia_kg_m2: floats(6, "inertia", "[Ixx, Iyy, Izz, Ixy, Ixz, Iyz], symmetric PSD; 1dof may send zeros",
+                          "kg m^2", "tool, about the com") = (0.0,) * 6
+    axis: floats(3, "f64[3]", "1dof translation axis, unit; others send [1, 0, 0]", "-", "world",
+                 "positive motion along +axis", rule="unit") = (1.0, 0.0, 0.0)
+    epsilon_m: f64("requested epsilon of active geometry, >= 0", "m", rule="nonneg") = 0.0
+    max_contacts: uint("u16", "requested contact capacity per ContactUpdate, >= 1", rule="pos")
+    env_rate_hz: f64("nominal simulation step rate (informative, > 0)", "Hz", rule="pos") = 60.0
+    links: Annotated[tuple[Link, ...], _doc("links", "linkage: link records (table Link), 1..max_links; "
+                                                     "other kinds: []")] = ()
+    held_link: uint("u16", "linkage: index of the link the hand holds; other kinds: 0") = 0
+
+    def __post_init__(self) -> None:
+        links = self.links
+        if links and not all(type(ln) is Link for ln in links):
+            # dict records (an engine's LinkDescription.record()) or plain sequences
+            self.links = tuple(ln if type(ln) is Link else Link(**ln) if isinstance(ln, dict) else Link(*ln)
+                               for ln in links)
+        elif type(links) is not tuple:
+            self.links = tuple(links)
+
+
+class Welcome(Message, kw_only=True):
+    """Accepts a Hello. Its header carries the new session's session_id and token (both non-zero;
+    the only handshake message with non-zero ones): the client puts them in the header of every
+    later packet. Repeated (same content) if the same Hello arrives again."""
+
+    TYPE_ID = MessageType.WELCOME
+    DIRECTION = "server -> client"
+    type_id: uint("u8", "") = MessageType.WELCOME
+
+    client_nonce: uint("u64", "the Hello's client_nonce")
+    version: version(_VERSION_DOC + " chosen version, used by both sides from now on")
+    haptic_rate_hz: f64("server haptic step rate", "Hz", rule="pos")
+    epsilon_m: f64("granted epsilon: the engine inflates the tool by this", "m", rule="nonneg")
+    max_contacts: uint("u16", "granted capacity; a ContactUpdate with more is rejected", rule="pos")
+    heartbeat_interval_s: f64("send a Heartbeat when nothing else was sent for this long", "s", rule="pos")
+    silence_timeout_s: f64("a side that hears nothing valid for this long ends the session (Bye 61)", "s", rule="pos")
+    server_name: text("free text") = "hapticproxy"
+    workspace_extent_m: f64("scene bound: every contact position and the tool pose's position lie within "
+                            "+-this of the origin on each axis (else Error OUT_OF_BOUNDS)", "m", "world",
+                            rule="pos", since=2) = MAX_ABS_FLOAT
+    max_constraint_speed_m_per_s: f64("scene bound: |v_constr| of every contact <= this", "m/s", rule="pos",
+                                      since=2) = MAX_ABS_FLOAT
+    max_separation_m: f64("scene bound: |separation| of every contact <= this", "m", rule="pos",
+                          since=2) = MAX_ABS_FLOAT
+    note: text("why a granted value differs from the request (e.g. epsilon capped), '' if none",
+               since=2) = ""
+
+
+class Reject(Message, kw_only=True):
+    """Refuses a Hello. Layout frozen across majors."""
+
+    TYPE_ID = MessageType.REJECT
+    DIRECTION = "server -> client"
+    FROZEN_PREFIX = 5
+    type_id: uint("u8", "") = MessageType.REJECT
+
+    client_nonce: uint("u64", "the Hello's client_nonce (0 if it could not be read)")
+    code: uint("u16", "ErrorCode, 40-59")
+    reason: text("human-readable reason")
+    version_min: version(_VERSION_DOC + " lowest version the server speaks") = (PROTOCOL_MAJOR, 0)
+    version_max: version(_VERSION_DOC + " highest version the server speaks") = (PROTOCOL_MAJOR, PROTOCOL_MINOR)
+
+
+class ContactUpdate(Message, kw_only=True):
+    """All current contacts, sent after every simulation step. A contact absent from the update
+    leaves the server's local model. n = 0 is valid (no contact)."""
+
+    TYPE_ID = MessageType.CONTACT_UPDATE
+    DIRECTION = "client -> server"
+    REALTIME = True
+    type_id: uint("u8", "") = MessageType.CONTACT_UPDATE
+
+    seq: uint("u64", "1, 2, 3, ... per session; newest wins", rule="pos")
+    env_time_s: f64("simulation time of this step (engine clock)", "s")
+    tool_pose: f64_bin(7, "engine's (virtual) tool pose at env_time_s: x y z qw qx qy qz; the pose the contacts "
+                          "were computed at (the server locates the reported features on the tool with it)",
+                       "m, quaternion", "world")
+    contact_count: uint("u16", "n, 0 <= n <= granted max_contacts")
+    contact_keys: packed("bin i64[n*3]", "n keys, row-major: (tool_link, env_body, feature) per contact; unique")
+    contact_data: packed("bin f64[n*8]", "structure of arrays: position n*3, normal n*3, separation n, v_constr n",
+                         "see Contact columns", "world")
+    tool_joint_position: f64_bin("J", "linkage: the engine's joint positions at env_time_s (links 1..L-1 in link "
+                                      "order; with tool_pose, the root's: the configuration the contacts were "
+                                      "computed at); others: empty or absent", "rad or m", since=1) = b""
+
+    @property
+    def n_contacts(self) -> int:
+        """number of contacts n (rows of keys)"""
+        return self.contact_count
+
+    @classmethod
+    def from_arrays(cls, *, seq: int, env_time_s: float, tool_pose, keys, position_m, normal, separation_m,
+                    v_constr_m_per_s, tool_joint_position=b"", session_id: int = 0, token: int = 0) -> "ContactUpdate":
+        """A ContactUpdate from its columns (``keys`` int64 (n, 3), ``position_m`` / ``normal``
+        float64 (n, 3), ``separation_m`` / ``v_constr_m_per_s`` float64 (n,)), packed as on the wire."""
+        keys = np.ascontiguousarray(keys, dtype="<i8").reshape(-1, 3)
+        cols = [np.ascontiguousarray(a, dtype="<f8") for a in (position_m, normal, separation_m, v_constr_m_per_s)]
+        msg = cls(seq=seq, env_time_s=env_time_s, tool_pose=np.asarray(tool_pose, "<f8"), contact_count=keys.shape[0],
+                  contact_keys=keys.tobytes(), contact_data=b"".join(a.tobytes() for a in cols),
+                  tool_joint_position=np.asarray(tool_joint_position if len(tool_joint_position) else (), "<f8"),
+                  session_id=session_id, token=token)
+        msg.keys, msg.position_m, msg.normal, msg.separation_m, msg.v_constr_m_per_s = (keys, *cols)
+        return msg
+
+
+class ProxyState(Message, kw_only=True):
+    """Acknowledges a ContactUpdate with the proxy state, sent in the haptic step that applied it
+    (at most one per accepted ContactUpdate)."""
+
+    TYPE_ID = MessageType.PROXY_STATE
+    DIRECTION = "server -> client"
+    REALTIME = True
+    type_id: uint("u8", "") = MessageType.PROXY_STATE
+
+    seq: uint("u64", "server's own sequence, 1, 2, 3, ...; newest wins", rule="pos")
+    ack_seq: uint("u64", "seq of the newest ContactUpdate applied, 0 if none yet")
+    server_time_s: f64("server clock at the haptic step, since the session began", "s")
+    proxy_pose: f64_bin(7, "proxy tool-frame pose", "m, quaternion", "world")
+    proxy_twist: f64_bin(6, "velocity of the tool-frame origin (3), angular velocity (3)", "m/s, rad/s", "world")
+    wrench: f64_bin(6, "force (3) at the tool-frame origin, torque (3) about it, that the environment may apply "
+                       "to its tool", "N, N m", "world", "acts on the tool")
+    joint_position: f64_bin("J", "linkage: q of links 1..L-1 in link order; others: empty", "rad or m") = b""
+    joint_velocity: f64_bin("J", "linkage: dq/dt, same order; others: empty", "rad/s or m/s") = b""
+    joint_effort: f64_bin("J", "linkage: joint effort the environment may apply; others: empty", "N m or N",
+                          sign="positive along +q") = b""
+    server_state: enum(ServerState, "ServerState: 1 idle, 2 engaged, 3 fading, 4 fault (0: not reported); follow "
+                                    "the proxy only while engaged: otherwise it is held and not rendered",
+                       since=2) = ServerState.UNKNOWN
+
+
+class Heartbeat(Message, kw_only=True):
+    """Keeps a quiet session alive: sent when nothing else was sent for heartbeat_interval_s."""
+
+    TYPE_ID = MessageType.HEARTBEAT
+    DIRECTION = "both"
+    REALTIME = True
+    type_id: uint("u8", "") = MessageType.HEARTBEAT
+
+    seq: uint("u64", "per sender, 1, 2, 3, ...; its own sequence", rule="pos")
+    time_s: f64("sender's clock (informative)", "s")
+
+
+class Bye(Message, kw_only=True):
+    """Ends the session. Sent 3 times in a row (one may be lost); the receiver ends the session
+    at the first and counts the repeats as unknown-session packets."""
+
+    TYPE_ID = MessageType.BYE
+    DIRECTION = "both"
+    type_id: uint("u8", "") = MessageType.BYE
+
+    code: uint("u16", "ErrorCode 60-79")
+    reason: text("human-readable reason") = ""
+
+
+class Error(Message, kw_only=True):
+    """Reports a packet the sender received and dropped. Rate-limited (at most error_rate_per_s per
+    session); never answered with another Error."""
+
+    TYPE_ID = MessageType.ERROR
+    DIRECTION = "both"
+    type_id: uint("u8", "") = MessageType.ERROR
+
+    code: uint("u16", "ErrorCode 1-39")
+    field: text("name of the offending field, '' if none") = ""
+    detail: text("human-readable detail") = ""
+    ref_type: uint("u8", "type id of the dropped packet, 0 if unknown") = 0
+    ref_seq: uint("u64", "its seq if it had one, else 0") = 0
+
+
+#: Every message class by type id.
+MESSAGE_CLASSES: dict[int, type[Message]] = {
+    int(c.TYPE_ID): c for c in (Hello, Welcome, Reject, ContactUpdate, ProxyState, Heartbeat, Bye, Error)}
+
+
+# ------------------------------------------------------------------ derived descriptions
+@dataclass(frozen=True)
+class FieldDoc:
+    """One field as SPEC.md documents it, read from its Struct annotation."""
 
     name: str
-    type: str
-    unit: str = "-"
-    frame: str = "-"
-    sign: str = ""
-    doc: str = ""
-    default: Any = REQUIRED
-    since_minor: int = 0
-    check: str = ""
-    enum: type[IntEnum] | None = None
+    type: str  # wire type (SPEC "Wire types")
+    unit: str
+    frame: str
+    sign: str
+    doc: str
+    default: Any  # REQUIRED for fields of minor 0
+    since_minor: int
+    check: str  # "pos", "nonneg", "unit", "enum" or ""
+    py_type: Any
 
 
+@dataclass(frozen=True)
+class MessageDoc:
+    """One message as SPEC.md documents it (derived from its Struct)."""
+
+    name: str
+    type_id: MessageType
+    direction: str
+    realtime: bool
+    doc: str
+    fields: tuple[FieldDoc, ...]
+    frozen_prefix: int
+    cls: type
+
+    def field_index(self, name: str) -> int:
+        for i, f in enumerate(self.fields):
+            if f.name == name:
+                return i
+        raise KeyError(f"{self.name} has no field {name!r}")
+
+
+def _meta_of(tp) -> tuple[Any, Meta | None]:
+    if getattr(tp, "__metadata__", None):
+        metas = [m for m in tp.__metadata__ if isinstance(m, Meta) and m.extra]
+        return tp.__origin__, (metas[-1] if metas else None)
+    return tp, None
+
+
+def fields_of(cls: type[Struct]) -> tuple[FieldDoc, ...]:
+    """The documented fields of a Struct, in wire order (a message's exclude the header)."""
+    out = []
+    for info in msgspec.structs.fields(cls):
+        tp, meta = _meta_of(info.type)
+        extra = meta.extra if meta is not None else {}
+        since = extra.get("since", 0)
+        out.append(FieldDoc(info.name, extra.get("wire", "?"), extra.get("unit", "-"), extra.get("frame", "-"),
+                            extra.get("sign", ""), meta.description if meta is not None else "",
+                            REQUIRED if since == 0 else info.default, since, extra.get("rule", ""), tp))
+    return tuple(out[HEADER_LEN:] if issubclass(cls, Message) and cls is not Message else out)
+
+
+def _message_doc(cls: type[Message]) -> MessageDoc:
+    return MessageDoc(cls.__name__, MessageType(cls.TYPE_ID), cls.DIRECTION, cls.REALTIME,
+                      " ".join(cls.__doc__.split()), fields_of(cls), cls.FROZEN_PREFIX, cls)
+
+
+HEADER_LEN = 5
+#: The header rows (major, minor, type_id, session_id, token).
+HEADER: tuple[FieldDoc, ...] = tuple(
+    FieldDoc(f.name, f.type, f.unit, f.frame, f.sign, f.doc, REQUIRED, 0, "", f.py_type) for f in fields_of(Message))
+LINK_FIELDS: tuple[FieldDoc, ...] = fields_of(Link)
+MESSAGES: tuple[MessageDoc, ...] = tuple(_message_doc(c) for c in MESSAGE_CLASSES.values())
+MESSAGES_BY_ID: dict[int, MessageDoc] = {int(m.type_id): m for m in MESSAGES}
+HELLO, WELCOME, REJECT, CONTACT_UPDATE, PROXY_STATE, HEARTBEAT, BYE, ERROR = MESSAGES
+
+
+# ------------------------------------------------------------------------ contact columns
 @dataclass(frozen=True)
 class ColumnSpec:
     """One column of a packed contact array (see ``ContactUpdate.contact_data``)."""
@@ -179,55 +488,6 @@ class ColumnSpec:
     doc: str
 
 
-@dataclass(frozen=True)
-class MessageSpec:
-    name: str
-    type_id: MessageType
-    direction: str  # "client -> server", "server -> client", "both"
-    realtime: bool  # carries a per-type sequence number (newest wins)
-    doc: str
-    fields: tuple[FieldSpec, ...]
-    #: Messages whose layout is frozen across majors so any version can read them (handshake).
-    frozen_prefix: int = 0
-
-    def field_index(self, name: str) -> int:
-        for i, f in enumerate(self.fields):
-            if f.name == name:
-                return i
-        raise KeyError(f"{self.name} has no field {name!r}")
-
-
-# ----------------------------------------------------------------------------------- header
-#: Every packet is a msgpack array: these 5 header integers, then the message's fields in order.
-HEADER: tuple[FieldSpec, ...] = (
-    FieldSpec("major", "u16", doc="protocol major version of this packet's layout"),
-    FieldSpec("minor", "u16", doc="protocol minor version the sender speaks (informative)"),
-    FieldSpec("type_id", "u8", doc="message type id (table above)"),
-    FieldSpec("session_id", "u32", doc="session id granted by Welcome; 0 in Hello and Reject"),
-    FieldSpec("token", "u64", doc="session token granted by Welcome (random, secret to the session); 0 in Hello and Reject"),
-)
-HEADER_LEN = len(HEADER)
-
-# ------------------------------------------------------------------------- linkage records
-#: One link of a ``linkage`` tool: a msgpack array of these fields, in order. Links are listed
-#: parents first (``parent < own index``); link 0 is the root (floating base, ``parent = -1``,
-#: ``joint_type = 0``); every other link hangs from its parent by one joint.
-LINK_FIELDS: tuple[FieldSpec, ...] = (
-    FieldSpec("mass_kg", "f64", "kg", check="pos", doc="link mass, > 0"),
-    FieldSpec("com_m", "f64[3]", "m", "link", doc="centre of mass in the link frame"),
-    FieldSpec("inertia_kg_m2", "inertia", "kg m^2", "link, about the com",
-              doc="[Ixx, Iyy, Izz, Ixy, Ixz, Iyz], symmetric positive semi-definite"),
-    FieldSpec("parent", "i32", doc="index of the parent link, -1 for link 0 only, else 0 <= parent < own index"),
-    FieldSpec("joint_type", "u8", check="enum", enum=JointType,
-              doc="0 root (link 0 only), 1 revolute, 2 prismatic"),
-    FieldSpec("joint_axis", "f64[3]", "-", "link", check="unit",
-              sign="positive q: right-handed rotation about / translation along +axis",
-              doc="unit joint axis in this link's frame (ignored for the root)"),
-    FieldSpec("joint_origin", "pose", "m, quaternion", "parent link",
-              doc="pose of this link's frame in the parent's frame at q = 0 (root: identity)"),
-)
-
-# ------------------------------------------------------------------------ contact columns
 #: Columns of ``ContactUpdate.contact_keys`` (int64, per contact, row-major n x 3).
 KEY_COLUMNS: tuple[ColumnSpec, ...] = (
     ColumnSpec("tool_link", 1, "-", "-", "", "index of the tool link touching (0 for rigid tools)"),
@@ -254,166 +514,25 @@ CONTACT_COLUMNS: tuple[ColumnSpec, ...] = (
 CONTACT_FLOATS = sum(c.width for c in CONTACT_COLUMNS)
 KEY_INTS = len(KEY_COLUMNS)
 
-_VERSION_DOC = "[major, minor]"
 
-# ------------------------------------------------------------------------------ messages
-HELLO = MessageSpec(
-    "Hello", MessageType.HELLO, "client -> server", False,
-    "Opens a session. Resent by the client every hello_retry_s until Welcome or Reject arrives. "
-    "The header and the first three fields are frozen across majors so any server can answer.",
-    (
-        FieldSpec("client_nonce", "u64", doc="random, non-zero; echoed in Welcome/Reject to match the reply"),
-        FieldSpec("version_min", "version", doc=_VERSION_DOC + " lowest version the client speaks"),
-        FieldSpec("version_max", "version", doc=_VERSION_DOC + " highest version the client speaks; header major/minor = this"),
-        FieldSpec("engine", "str", doc="engine name and version, free text (<= max_str_len bytes)"),
-        FieldSpec("units", "str", doc='must be "SI"'),
-        FieldSpec("tool_kind", "u8", check="enum", enum=ToolKind,
-                  doc="1 = 1dof, 2 = planar, 3 = spatial, 4 = linkage"),
-        FieldSpec("mass_kg", "f64", "kg", check="pos", doc="rigid tool mass, > 0 (linkage: total, informative)"),
-        FieldSpec("com_m", "f64[3]", "m", "tool", doc="centre of mass in the tool frame"),
-        FieldSpec("inertia_kg_m2", "inertia", "kg m^2", "tool, about the com",
-                  doc="[Ixx, Iyy, Izz, Ixy, Ixz, Iyz], symmetric PSD; 1dof may send zeros"),
-        FieldSpec("axis", "f64[3]", "-", "world", check="unit",
-                  sign="positive motion along +axis", doc="1dof translation axis, unit; others send [1, 0, 0]"),
-        FieldSpec("epsilon_m", "f64", "m", check="nonneg", doc="requested epsilon of active geometry, >= 0"),
-        FieldSpec("max_contacts", "u16", check="pos", doc="requested contact capacity per ContactUpdate, >= 1"),
-        FieldSpec("env_rate_hz", "f64", "Hz", check="pos", doc="nominal simulation step rate (informative, > 0)"),
-        FieldSpec("links", "links", "-", "-", doc="linkage: link records (table Link), 1..max_links; other kinds: []"),
-        FieldSpec("held_link", "u16", doc="linkage: index of the link the hand holds; other kinds: 0"),
-    ),
-    frozen_prefix=3,
-)
-
-WELCOME = MessageSpec(
-    "Welcome", MessageType.WELCOME, "server -> client", False,
-    "Accepts a Hello. Its header carries the new session's session_id and token (both non-zero; "
-    "the only handshake message with non-zero ones): the client puts them in the header of every "
-    "later packet. Repeated (same content) if the same Hello arrives again.",
-    (
-        FieldSpec("client_nonce", "u64", doc="the Hello's client_nonce"),
-        FieldSpec("version", "version", doc=_VERSION_DOC + " chosen version, used by both sides from now on"),
-        FieldSpec("haptic_rate_hz", "f64", "Hz", check="pos", doc="server haptic step rate"),
-        FieldSpec("epsilon_m", "f64", "m", check="nonneg", doc="granted epsilon: the engine inflates the tool by this"),
-        FieldSpec("max_contacts", "u16", check="pos", doc="granted capacity; a ContactUpdate with more is rejected"),
-        FieldSpec("heartbeat_interval_s", "f64", "s", check="pos",
-                  doc="send a Heartbeat when nothing else was sent for this long"),
-        FieldSpec("silence_timeout_s", "f64", "s", check="pos",
-                  doc="a side that hears nothing valid for this long ends the session (Bye 61)"),
-        FieldSpec("server_name", "str", doc="free text"),
-    ),
-)
-
-REJECT = MessageSpec(
-    "Reject", MessageType.REJECT, "server -> client", False,
-    "Refuses a Hello. Layout frozen across majors.",
-    (
-        FieldSpec("client_nonce", "u64", doc="the Hello's client_nonce (0 if it could not be read)"),
-        FieldSpec("code", "u16", doc="ErrorCode, 40-59"),
-        FieldSpec("reason", "str", doc="human-readable reason"),
-        FieldSpec("version_min", "version", doc=_VERSION_DOC + " lowest version the server speaks"),
-        FieldSpec("version_max", "version", doc=_VERSION_DOC + " highest version the server speaks"),
-    ),
-    frozen_prefix=5,
-)
-
-CONTACT_UPDATE = MessageSpec(
-    "ContactUpdate", MessageType.CONTACT_UPDATE, "client -> server", True,
-    "All current contacts, sent after every simulation step. A contact absent from the update "
-    "leaves the server's local model. n = 0 is valid (no contact).",
-    (
-        FieldSpec("seq", "u64", check="pos", doc="1, 2, 3, ... per session; newest wins"),
-        FieldSpec("env_time_s", "f64", "s", doc="simulation time of this step (engine clock)"),
-        FieldSpec("tool_pose", "bin f64[7]", "m, quaternion", "world",
-                  doc="engine's (virtual) tool pose at env_time_s: x y z qw qx qy qz; the pose the contacts "
-                      "were computed at (the server locates the reported features on the tool with it)"),
-        FieldSpec("contact_count", "u16", doc="n, 0 <= n <= granted max_contacts"),
-        FieldSpec("contact_keys", "bin i64[n*3]", "-", "-",
-                  doc="n keys, row-major: (tool_link, env_body, feature) per contact; unique"),
-        FieldSpec("contact_data", "bin f64[n*8]", "see Contact columns", "world",
-                  doc="structure of arrays: position n*3, normal n*3, separation n, v_constr n"),
-        FieldSpec("tool_joint_position", "bin f64[J]", "rad or m", "-", default=b"", since_minor=1,
-                  doc="linkage: the engine's joint positions at env_time_s (links 1..L-1 in link order; with "
-                      "tool_pose, the root's: the configuration the contacts were computed at); others: empty "
-                      "or absent"),
-    ),
-)
-
-PROXY_STATE = MessageSpec(
-    "ProxyState", MessageType.PROXY_STATE, "server -> client", True,
-    "Acknowledges a ContactUpdate with the proxy state, sent in the haptic step that applied it "
-    "(at most one per accepted ContactUpdate).",
-    (
-        FieldSpec("seq", "u64", check="pos", doc="server's own sequence, 1, 2, 3, ...; newest wins"),
-        FieldSpec("ack_seq", "u64", doc="seq of the newest ContactUpdate applied, 0 if none yet"),
-        FieldSpec("server_time_s", "f64", "s", doc="server clock at the haptic step, since the session began"),
-        FieldSpec("proxy_pose", "bin f64[7]", "m, quaternion", "world", doc="proxy tool-frame pose"),
-        FieldSpec("proxy_twist", "bin f64[6]", "m/s, rad/s", "world",
-                  doc="velocity of the tool-frame origin (3), angular velocity (3)"),
-        FieldSpec("wrench", "bin f64[6]", "N, N m", "world",
-                  sign="acts on the tool", doc="force (3) at the tool-frame origin, torque (3) about it, that the environment may apply to its tool"),
-        FieldSpec("joint_position", "bin f64[J]", "rad or m", "-",
-                  doc="linkage: q of links 1..L-1 in link order; others: empty"),
-        FieldSpec("joint_velocity", "bin f64[J]", "rad/s or m/s", "-", doc="linkage: dq/dt, same order; others: empty"),
-        FieldSpec("joint_effort", "bin f64[J]", "N m or N", "-", sign="positive along +q",
-                  doc="linkage: joint effort the environment may apply; others: empty"),
-        FieldSpec("server_state", "u8", check="enum", enum=ServerState, default=0, since_minor=2,
-                  doc="ServerState: 1 idle, 2 engaged, 3 fading, 4 fault (0: not reported); follow the proxy "
-                      "only while engaged: otherwise it is held and not rendered"),
-    ),
-)
-
-HEARTBEAT = MessageSpec(
-    "Heartbeat", MessageType.HEARTBEAT, "both", True,
-    "Keeps a quiet session alive: sent when nothing else was sent for heartbeat_interval_s.",
-    (
-        FieldSpec("seq", "u64", check="pos", doc="per sender, 1, 2, 3, ...; its own sequence"),
-        FieldSpec("time_s", "f64", "s", doc="sender's clock (informative)"),
-    ),
-)
-
-BYE = MessageSpec(
-    "Bye", MessageType.BYE, "both", False,
-    "Ends the session. Sent 3 times in a row (one may be lost); the receiver ends the session "
-    "at the first and counts the repeats as unknown-session packets.",
-    (
-        FieldSpec("code", "u16", doc="ErrorCode 60-79"),
-        FieldSpec("reason", "str", doc="human-readable reason"),
-    ),
-)
-
-ERROR = MessageSpec(
-    "Error", MessageType.ERROR, "both", False,
-    "Reports a packet the sender received and dropped. Rate-limited (at most error_rate_per_s per "
-    "session); never answered with another Error.",
-    (
-        FieldSpec("code", "u16", doc="ErrorCode 1-39"),
-        FieldSpec("field", "str", doc="name of the offending field, '' if none"),
-        FieldSpec("detail", "str", doc="human-readable detail"),
-        FieldSpec("ref_type", "u8", doc="type id of the dropped packet, 0 if unknown"),
-        FieldSpec("ref_seq", "u64", doc="its seq if it had one, else 0"),
-    ),
-)
-
-MESSAGES: tuple[MessageSpec, ...] = (HELLO, WELCOME, REJECT, CONTACT_UPDATE, PROXY_STATE, HEARTBEAT, BYE, ERROR)
-MESSAGES_BY_ID: dict[int, MessageSpec] = {int(m.type_id): m for m in MESSAGES}
-
-
-def check_declarations(messages: tuple[MessageSpec, ...] = MESSAGES) -> None:
+def check_declarations(classes=tuple(MESSAGE_CLASSES.values())) -> None:
     """Raise ``ValueError`` if a declaration breaks the versioning rules (run by the tests)."""
     ids = set()
-    for m in messages:
-        if m.type_id in ids:
-            raise ValueError(f"{m.name}: duplicate type id {int(m.type_id)}")
-        ids.add(m.type_id)
-        names = [f.name for f in m.fields]
-        if len(names) != len(set(names)):
-            raise ValueError(f"{m.name}: duplicate field names")
+    for cls in classes:
+        if cls.TYPE_ID in ids:
+            raise ValueError(f"{cls.__name__}: duplicate type id {int(cls.TYPE_ID)}")
+        ids.add(cls.TYPE_ID)
+        names = msgspec.structs.fields(cls)
+        if [f.name for f in names[:HEADER_LEN]] != [f.name for f in msgspec.structs.fields(Message)]:
+            raise ValueError(f"{cls.__name__}: must start with the 5 header fields")
+        if names[2].default != cls.TYPE_ID:
+            raise ValueError(f"{cls.__name__}: type_id default must be its TYPE_ID")
         last_minor = 0
-        for f in m.fields:
+        for f, info in zip(fields_of(cls), names[HEADER_LEN:]):
             if f.since_minor < last_minor:
-                raise ValueError(f"{m.name}.{f.name}: fields must be in order of since_minor (append only)")
+                raise ValueError(f"{cls.__name__}.{f.name}: fields must be in order of since (append only)")
             last_minor = f.since_minor
-            if f.since_minor > 0 and f.default is REQUIRED:
-                raise ValueError(f"{m.name}.{f.name}: a field added in minor {f.since_minor} needs a default")
-            if f.check == "enum" and f.enum is None:
-                raise ValueError(f"{m.name}.{f.name}: check 'enum' needs enum")
+            if f.since_minor > 0 and info.required:
+                raise ValueError(f"{cls.__name__}.{f.name}: a field added in minor {f.since_minor} needs a default")
+            if f.type == "?":
+                raise ValueError(f"{cls.__name__}.{f.name}: no wire type declared")

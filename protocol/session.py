@@ -12,7 +12,7 @@ Server loop, once per haptic step (the paper's section V)::
     for data, peer in transport.drain():
         update = server.receive(data, peer, now_ns)      # ContactUpdate | None
         if update is not None:
-            model.apply(update)                          # newest-wins already enforced
+            model.update(update.keys, ...)               # newest-wins and the bounds already enforced
             server.send_proxy_state(update.session_id, now_ns, pose, twist, wrench)
     server.poll(now_ns)                                  # heartbeats, silence timeouts
     fade = server.sessions[sid].silence_ns(now_ns)       # how long the environment is silent
@@ -26,7 +26,6 @@ Environment client, once per simulation step::
 """
 from __future__ import annotations
 
-import hashlib
 import hmac
 import os
 import secrets
@@ -44,13 +43,13 @@ from .codec import (
     Heartbeat,
     Hello,
     Limits,
-    Message,
     ProtocolError,
     ProxyState,
     Reject,
     Welcome,
 )
-from .messages import PROTOCOL_MAJOR, PROTOCOL_MINOR, ErrorCode, MessageType, ToolKind
+from .messages import MAX_ABS_FLOAT, PROTOCOL_MAJOR, PROTOCOL_MINOR, UNIT_TOLERANCE
+from .vocab import TOOL_KIND_NAMES, ErrorCode, MessageType, ToolKind
 
 __all__ = [
     "ClientConfig",
@@ -69,6 +68,8 @@ __all__ = [
 
 Peer = Hashable
 _NS = 1_000_000_000
+_NO_JOINTS = np.zeros(0)
+_NO_JOINTS.flags.writeable = False
 
 # ------------------------------------------------------------------------ shared secret
 #: Bytes of HMAC-SHA256 appended to every datagram in shared-secret mode (truncated tag, 128 bit).
@@ -167,6 +168,12 @@ class SessionCounters:
     Drops: ``decode_errors`` (see codec counters for the code), ``bad_mac``, ``oversize``,
     ``unknown_session``, ``bad_token``, ``wrong_peer``, ``stale``, ``duplicate``, ``unexpected``
     (type not valid for this side or state), ``capacity_exceeded`` (more contacts than granted).
+    ``seq_jump``: a seq more than ``max_seq_jump`` ahead of the newest accepted (refused with
+    ``Error`` SEQ_JUMP naming ``seq``). ContactUpdates refused before they reach the model:
+    ``out_of_bounds`` (outside the scene bounds granted in Welcome; by reason
+    ``oob_workspace``, ``oob_speed``, ``oob_separation``) and ``unusable`` (contacts the session's
+    tool cannot have; by reason ``unusable_normal_z``, ``unusable_tool_link``,
+    ``unusable_joints``), each answered with ``Error`` naming the field.
     ``lost``: sequence numbers skipped (gaps; informative, those packets may still arrive late
     and are then counted stale). Sent: ``sent``, ``errors_sent``, ``errors_suppressed`` (over the
     Error rate limit), ``welcomes_sent``, ``rejects_sent``, ``byes_sent``, ``heartbeats_sent``,
@@ -176,7 +183,9 @@ class SessionCounters:
 
     __slots__ = (
         "received", "accepted", "decode_errors", "bad_mac", "oversize", "unknown_session", "bad_token",
-        "wrong_peer", "stale", "duplicate", "lost", "unexpected", "capacity_exceeded", "sent", "errors_sent",
+        "wrong_peer", "stale", "duplicate", "lost", "unexpected", "capacity_exceeded", "seq_jump",
+        "out_of_bounds", "oob_workspace", "oob_speed", "oob_separation",
+        "unusable", "unusable_normal_z", "unusable_tool_link", "unusable_joints", "sent", "errors_sent",
         "errors_suppressed", "welcomes_sent", "rejects_sent", "byes_sent", "heartbeats_sent", "hellos_sent",
         "hello_repeats", "sessions_opened", "sessions_closed", "timeouts", "byes_received", "errors_received",
     )
@@ -192,7 +201,8 @@ class SessionCounters:
     def dropped(self) -> int:
         """All datagrams dropped for any reason."""
         return (self.decode_errors + self.bad_mac + self.oversize + self.unknown_session + self.bad_token
-                + self.wrong_peer + self.stale + self.duplicate + self.unexpected + self.capacity_exceeded)
+                + self.wrong_peer + self.stale + self.duplicate + self.unexpected + self.capacity_exceeded
+                + self.seq_jump + self.out_of_bounds + self.unusable)
 
     def __repr__(self) -> str:
         return "SessionCounters(" + ", ".join(f"{k}={v}" for k, v in self.as_dict().items() if v) + ")"
@@ -226,6 +236,11 @@ class _SeqWindow:
     def __init__(self) -> None:
         self.newest = 0
 
+    def jumps(self, seq: int, max_jump: int) -> bool:
+        """Whether ``seq`` lies more than ``max_jump`` ahead of the newest accepted: refused, so
+        one bad seq (say 2^64-1) cannot make every later packet of the session stale."""
+        return seq - self.newest > max_jump
+
     def accept(self, seq: int, counters: SessionCounters) -> bool:
         newest = self.newest
         if seq > newest:
@@ -244,6 +259,10 @@ def _now(now_ns: int | None) -> int:
 
 
 # ------------------------------------------------------------------------------- server
+_max_reduce = np.maximum.reduce
+_abs = np.abs
+
+
 @dataclass(frozen=True)
 class ServerConfig:
     """What the server grants and how it polices sessions."""
@@ -261,9 +280,20 @@ class ServerConfig:
     #: The server's own check of a decoded Hello's content (e.g. a linkage its model cannot
     #: hold): returns "" to accept, or the reason to refuse it with Reject INVALID_HELLO.
     hello_check: Callable[[Hello], str] | None = None
+    #: Scene bounds, told to the client in Welcome (1.2) and enforced on every ContactUpdate
+    #: before it reaches the model (Error OUT_OF_BOUNDS naming the field): every contact
+    #: position and the tool pose's position within +-workspace_extent_m of the origin on each
+    #: axis, |v_constr| <= max_constraint_speed_m_per_s, |separation| <= max_separation_m.
+    workspace_extent_m: float = 10.0
+    max_constraint_speed_m_per_s: float = 10.0
+    max_separation_m: float = 1.0
+    #: Largest forward jump of a sequence number (a gap of lost packets); a larger one is
+    #: refused with Error SEQ_JUMP naming seq.
+    max_seq_jump: int = 1 << 16
 
     def __post_init__(self) -> None:
-        for name in ("haptic_rate_hz", "heartbeat_interval_s", "silence_timeout_s", "error_rate_per_s"):
+        for name in ("haptic_rate_hz", "heartbeat_interval_s", "silence_timeout_s", "error_rate_per_s",
+                     "workspace_extent_m", "max_constraint_speed_m_per_s", "max_separation_m"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 raise ValueError(f"ServerConfig.{name} must be a finite number > 0, got {v!r}")
@@ -271,6 +301,11 @@ class ServerConfig:
             raise ValueError(f"ServerConfig.max_epsilon_m must be in [0, 1) m, got {self.max_epsilon_m!r}")
         if not (isinstance(self.max_contacts, int) and 1 <= self.max_contacts <= self.limits.max_contacts):
             raise ValueError(f"ServerConfig.max_contacts must be in [1, limits.max_contacts={self.limits.max_contacts}]")
+        for name in ("workspace_extent_m", "max_constraint_speed_m_per_s", "max_separation_m"):
+            if getattr(self, name) > MAX_ABS_FLOAT:
+                raise ValueError(f"ServerConfig.{name} must be <= {MAX_ABS_FLOAT:g}, got {getattr(self, name)!r}")
+        if not (isinstance(self.max_seq_jump, int) and self.max_seq_jump >= 1):
+            raise ValueError(f"ServerConfig.max_seq_jump must be an int >= 1, got {self.max_seq_jump!r}")
         if not (isinstance(self.max_sessions, int) and self.max_sessions >= 1):
             raise ValueError(f"ServerConfig.max_sessions must be an int >= 1, got {self.max_sessions!r}")
         if self.silence_timeout_s <= self.heartbeat_interval_s:
@@ -299,6 +334,54 @@ class ServerSession:
         self.proxy_seq = 0  # last ProxyState seq sent
         self.heartbeat_tx_seq = 0
         self.errors = _RateLimit(error_rate_per_s, error_rate_per_s, now_ns)
+        kind = hello.tool_kind
+        self.planar = kind == ToolKind.PLANAR
+        #: links a contact may name (tool_link < this) and joint positions an update may carry
+        self.n_links = len(hello.links) if kind == ToolKind.LINKAGE else 1
+        self.n_joints = max(0, self.n_links - 1)
+        self.bounds = (welcome.workspace_extent_m, welcome.max_constraint_speed_m_per_s, welcome.max_separation_m)
+
+    def check_update(self, msg: ContactUpdate) -> tuple[str, str, str] | None:
+        """Why the model could not take this update: ``(counter, field, detail)``, or ``None``.
+        A fixed handful of ufunc reductions whatever n is (each column block's extremes; the
+        tool links'; a planar tool's normal z)."""
+        extent, speed, sep = self.bounds
+        x, y, z = msg.tool_pose.tolist()[:3]
+        if not (-extent <= x <= extent and -extent <= y <= extent and -extent <= z <= extent):
+            return "oob_workspace", "tool_pose", f"position ({x:g}, {y:g}, {z:g}) m outside +-{extent:g} m"
+        joints = msg.tool_joint_position.shape[0]
+        if joints and joints != self.n_joints:
+            return ("unusable_joints", "tool_joint_position",
+                    f"{joints} joint positions for a tool with {self.n_joints} joints")
+        n = msg.contact_count
+        if not n:
+            return None
+        # the decoder's (column blocks, n) view of contact_data: rows 0-2 hold the 3n position
+        # values, 3-5 the normals, 6 separation, 7 v_constr (then any blocks of a later minor)
+        cols = msg.separation_m.base
+        if cols.shape[0] != 8:
+            cols = cols[:8]
+        top = _max_reduce(_abs(cols), 1).tolist()  # per block: the largest magnitude
+        worst = max(top[0], top[1], top[2])
+        if worst > extent:
+            return "oob_workspace", "contact_data.position_m", f"|component| {worst:g} m > {extent:g} m"
+        if top[7] > speed:
+            return ("oob_speed", "contact_data.v_constr_m_per_s",
+                    f"|v_constr| {top[7]:g} m/s > max_constraint_speed_m_per_s {speed:g}")
+        if top[6] > sep:
+            return "oob_separation", "contact_data.separation_m", f"|separation| {top[6]:g} m > max_separation_m {sep:g}"
+        # one reduction: as uint64 a negative link is huge, so max < n_links checks both ends
+        links = msg.keys[:, 0]
+        if int(_max_reduce(links.view(np.uint64))) >= self.n_links:
+            bad = int(links[(links < 0) | (links >= self.n_links)][0])
+            return ("unusable_tool_link", "contact_keys.tool_link",
+                    f"tool_link must be in 0..{self.n_links - 1} for this tool, got {bad}")
+        if self.planar:
+            worst = float(_max_reduce(_abs(msg.normal[:, 2])))
+            if worst > UNIT_TOLERANCE:
+                return ("unusable_normal_z", "contact_data.normal",
+                        f"a planar tool's normals lie in the x-y plane, got |n_z| = {worst:g}")
+        return None
 
     @property
     def acked_seq(self) -> int:
@@ -331,6 +414,7 @@ class ServerEndpoint:
         self._max_datagram = self.codec.limits.max_packet_bytes + (HMAC_TAG_BYTES if self._mac else 0)
         self._hb_ns = int(self.config.heartbeat_interval_s * _NS)
         self._timeout_ns = int(self.config.silence_timeout_s * _NS)
+        self._rx_len = 0  # length of the datagram being handled (a Reject never exceeds it)
 
     # -------------------------------------------------------------------------- sending
     def _emit(self, packet: bytes, peer: Peer) -> None:
@@ -353,16 +437,15 @@ class ServerEndpoint:
             return False
         now = _now(now_ns)
         s.proxy_seq += 1
-        empty = np.zeros(0)
-        msg = ProxyState(
-            seq=s.proxy_seq, ack_seq=s.contact_seq.newest,
-            server_time_s=(now - s.opened_ns) / _NS if server_time_s is None else server_time_s,
-            proxy_pose=proxy_pose, proxy_twist=proxy_twist, wrench=wrench,
-            joint_position=empty if joint_position is None else joint_position,
-            joint_velocity=empty if joint_velocity is None else joint_velocity,
-            joint_effort=empty if joint_effort is None else joint_effort,
-            server_state=server_state, session_id=s.session_id, token=s.token)
-        self._emit(self.codec.encode(msg), s.peer)
+        empty = _NO_JOINTS
+        packet = self.codec.encode_proxy_state(
+            s.session_id, s.token, s.proxy_seq, s.contact_seq.newest,
+            (now - s.opened_ns) / _NS if server_time_s is None else server_time_s,
+            proxy_pose, proxy_twist, wrench,
+            empty if joint_position is None else joint_position,
+            empty if joint_velocity is None else joint_velocity,
+            empty if joint_effort is None else joint_effort, server_state)
+        self._emit(packet, s.peer)
         s.last_tx_ns = now
         return True
 
@@ -411,6 +494,7 @@ class ServerEndpoint:
 
     def _receive(self, data, peer: Peer, now: int) -> ContactUpdate | None:
         c = self.counters
+        self._rx_len = len(data)
         msg = _unwrap(self, data)
         if msg is None:
             return None
@@ -437,12 +521,31 @@ class ServerEndpoint:
                 self._error(s, now, ErrorCode.TOO_MANY_CONTACTS, "contact_count",
                             f"{msg.keys.shape[0]} contacts > granted max_contacts {s.max_contacts}", tid, msg.seq)
                 return None
+            if s.contact_seq.jumps(msg.seq, self.config.max_seq_jump):
+                c.seq_jump += 1
+                self._error(s, now, ErrorCode.SEQ_JUMP, "seq", f"{msg.seq} is more than {self.config.max_seq_jump} "
+                            f"ahead of the newest accepted {s.contact_seq.newest}", tid, msg.seq)
+                return None
+            why = s.check_update(msg)
+            if why is not None:
+                counter, field_name, detail = why
+                group = "out_of_bounds" if counter.startswith("oob") else "unusable"
+                setattr(c, counter, getattr(c, counter) + 1)
+                setattr(c, group, getattr(c, group) + 1)
+                self._error(s, now, ErrorCode.OUT_OF_BOUNDS if group == "out_of_bounds" else ErrorCode.UNUSABLE,
+                            field_name, detail, tid, msg.seq)
+                return None
             if not s.contact_seq.accept(msg.seq, c):
                 return None
             s.last_rx_ns = now
             c.accepted += 1
             return msg
         if tid == MessageType.HEARTBEAT:
+            if s.heartbeat_seq.jumps(msg.seq, self.config.max_seq_jump):
+                c.seq_jump += 1
+                self._error(s, now, ErrorCode.SEQ_JUMP, "seq", f"{msg.seq} is more than {self.config.max_seq_jump} "
+                            f"ahead of the newest accepted {s.heartbeat_seq.newest}", tid, msg.seq)
+                return None
             if s.heartbeat_seq.accept(msg.seq, c):
                 s.last_rx_ns = now
                 c.accepted += 1
@@ -476,7 +579,7 @@ class ServerEndpoint:
         s.last_tx_ns = now
 
     def _on_decode_error(self, err: ProtocolError, peer: Peer, now: int) -> None:
-        if err.type_id == MessageType.HELLO and err.client_nonce:
+        if err.type_id == MessageType.HELLO and (err.client_nonce or err.field == "client_nonce"):
             code = ErrorCode.UNSUPPORTED_VERSION if err.code == ErrorCode.UNKNOWN_MAJOR else ErrorCode.INVALID_HELLO
             self._reject(peer, err.client_nonce, code, str(err))
             return
@@ -486,8 +589,20 @@ class ServerEndpoint:
             self._error(s, now, err.code, err.field, err.detail, err.type_id, err.seq)
 
     def _reject(self, peer: Peer, nonce: int, code: ErrorCode, reason: str) -> None:
-        # Reject (< 100 bytes) is never larger than the Hello it answers: no amplification.
-        self._emit(self.codec.encode(Reject(client_nonce=nonce, code=code, reason=reason[:120])), peer)
+        # A Reject is never larger than the datagram it answers (no amplification, even for a
+        # truncated Hello): the reason is shortened to fit, and without room for the rest no
+        # Reject is sent (counted in errors_suppressed).
+        room = self._rx_len
+        reason = reason[:120]
+        packet = self.codec.encode(Reject(client_nonce=nonce, code=code, reason=reason))
+        if len(packet) > room:
+            cut = max(0, len(reason.encode("utf-8")) - (len(packet) - room))
+            reason = reason.encode("utf-8")[:cut].decode("utf-8", "ignore")
+            packet = self.codec.encode(Reject(client_nonce=nonce, code=code, reason=reason))
+            if len(packet) > room:
+                self.counters.errors_suppressed += 1
+                return
+        self._emit(packet, peer)
         self.counters.rejects_sent += 1
 
     def _on_hello(self, hello: Hello, peer: Peer, now: int) -> None:
@@ -508,14 +623,16 @@ class ServerEndpoint:
         vmin, vmax = hello.version_min, hello.version_max
         if not (vmin[0] <= PROTOCOL_MAJOR <= vmax[0]) or vmin > vmax:
             self._reject(peer, hello.client_nonce, ErrorCode.UNSUPPORTED_VERSION,
-                         f"server speaks {PROTOCOL_MAJOR}.0-{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}, client {vmin}-{vmax}")
+                         f"server speaks {PROTOCOL_MAJOR}.0-{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}, "
+                         f"client {vmin[0]}.{vmin[1]}-{vmax[0]}.{vmax[1]}")
             return
         if hello.units != "SI":
             self._reject(peer, hello.client_nonce, ErrorCode.UNSUPPORTED_UNITS, f"units must be 'SI', got {hello.units!r}")
             return
         if hello.tool_kind not in cfg.supported_tools:
             self._reject(peer, hello.client_nonce, ErrorCode.UNSUPPORTED_TOOL,
-                         f"tool kind {hello.tool_kind.name} not supported by this server")
+                         f"tool kind {TOOL_KIND_NAMES[hello.tool_kind]} not supported by this server "
+                         f"(it simulates {', '.join(TOOL_KIND_NAMES[k] for k in sorted(cfg.supported_tools))})")
             return
         # the cheap refusal first: a flood of Hellos at a full server must not cost a check each
         if len(self.sessions) >= cfg.max_sessions:
@@ -533,12 +650,20 @@ class ServerEndpoint:
         token = 0
         while token == 0:
             token = secrets.randbits(64)
+        epsilon = float(min(hello.epsilon_m, cfg.max_epsilon_m))
+        max_contacts = min(hello.max_contacts, cfg.max_contacts, self.codec.limits.max_contacts)
+        notes = []
+        if epsilon < hello.epsilon_m:
+            notes.append(f"epsilon_m capped at {epsilon:g} m (requested {hello.epsilon_m:g} m)")
+        if max_contacts < hello.max_contacts:
+            notes.append(f"max_contacts capped at {max_contacts} (requested {hello.max_contacts})")
         welcome = Welcome(
             client_nonce=hello.client_nonce, version=(PROTOCOL_MAJOR, minor), haptic_rate_hz=float(cfg.haptic_rate_hz),
-            epsilon_m=float(min(hello.epsilon_m, cfg.max_epsilon_m)),
-            max_contacts=min(hello.max_contacts, cfg.max_contacts, self.codec.limits.max_contacts),
+            epsilon_m=epsilon, max_contacts=max_contacts,
             heartbeat_interval_s=float(cfg.heartbeat_interval_s), silence_timeout_s=float(cfg.silence_timeout_s),
-            server_name=cfg.server_name, session_id=session_id, token=token)
+            server_name=cfg.server_name, workspace_extent_m=float(cfg.workspace_extent_m),
+            max_constraint_speed_m_per_s=float(cfg.max_constraint_speed_m_per_s),
+            max_separation_m=float(cfg.max_separation_m), note="; ".join(notes), session_id=session_id, token=token)
         packet = self.codec.encode(welcome)
         self.sessions[session_id] = ServerSession(session_id, token, peer, hello, welcome, packet, now,
                                                   cfg.error_rate_per_s)

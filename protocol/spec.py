@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from enum import IntEnum
 from pathlib import Path
 
 import msgpack
@@ -28,7 +29,7 @@ from .messages import (
     TOOL_KIND_NAMES,
     UNIT_TOLERANCE,
     ErrorCode,
-    FieldSpec,
+    FieldDoc,
     JointType,
     ServerState,
     ToolKind,
@@ -57,11 +58,13 @@ def _table(head: list[str], rows: list[list[object]]) -> str:
     return "\n".join(out)
 
 
-def _field_rows(fields: tuple[FieldSpec, ...], first_index: int) -> list[list[object]]:
+def _field_rows(fields: tuple[FieldDoc, ...], first_index: int) -> list[list[object]]:
     rows = []
     for i, f in enumerate(fields):
         rule = {"pos": "> 0", "nonneg": ">= 0", "unit": "unit", "enum": "enum"}.get(f.check, "")
-        default = "required" if f.default is REQUIRED else repr(f.default)
+        d = f.default
+        default = ("required" if d is REQUIRED else str(int(d)) if isinstance(d, IntEnum)
+                   else f"{d:g}" if isinstance(d, float) else repr(d))
         rows.append([first_index + i, f"`{f.name}`", f"`{f.type}`", f.unit, f.frame, f.sign or " ", rule or " ",
                      f"{PROTOCOL_MAJOR}.{f.since_minor}", default, f.doc])
     return rows
@@ -129,6 +132,10 @@ def render_tables() -> str:
         ["heartbeat_interval_s", scfg.heartbeat_interval_s, "server default, granted in Welcome"],
         ["silence_timeout_s", scfg.silence_timeout_s, "server default, granted in Welcome"],
         ["error_rate_per_s", scfg.error_rate_per_s, "Error replies per session (token bucket, same burst)"],
+        ["workspace_extent_m", scfg.workspace_extent_m, "server default scene bound, granted in Welcome (1.2)"],
+        ["max_constraint_speed_m_per_s", scfg.max_constraint_speed_m_per_s, "server default scene bound, granted in Welcome (1.2)"],
+        ["max_separation_m", scfg.max_separation_m, "server default scene bound, granted in Welcome (1.2)"],
+        ["max_seq_jump", scfg.max_seq_jump, "largest forward jump of a seq the server accepts (else Error SEQ_JUMP)"],
         ["hello_retry_s", ccfg.hello_retry_s, "client resends Hello this often while handshaking"],
     ]))
     return "\n".join(parts)
@@ -164,6 +171,9 @@ _CODE_DOCS = {
     ErrorCode.STALE: "seq older than the newest accepted in its stream (dropped, counted)",
     ErrorCode.DUPLICATE: "seq equal to the newest accepted (dropped, counted)",
     ErrorCode.UNEXPECTED: "message not valid in this direction or state",
+    ErrorCode.OUT_OF_BOUNDS: "a value outside the scene bounds granted in Welcome (workspace, constraint speed, separation)",
+    ErrorCode.UNUSABLE: "a contact the session's tool cannot have: a z normal on a planar tool, a tool link other than 0 on a rigid tool or beyond the linkage, joint positions for a rigid tool or of the wrong count",
+    ErrorCode.SEQ_JUMP: "seq more than max_seq_jump ahead of the newest accepted (refused, so one bad seq cannot make every later packet stale)",
     ErrorCode.UNSUPPORTED_VERSION: "Reject: no common major version",
     ErrorCode.UNSUPPORTED_TOOL: "Reject: the server cannot simulate this tool kind",
     ErrorCode.UNSUPPORTED_UNITS: "Reject: units is not \"SI\"",

@@ -1,4 +1,4 @@
-"""Dependency direction: protocol imports only the standard library, numpy and msgpack; server
+"""Dependency direction: protocol imports only the standard library, numpy, msgpack and msgspec; server
 and clients import protocol and never each other."""
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ def violations(folder: str, files: dict[str, str]) -> list[str]:
         for name in sorted(imports_of(source, module, is_package)):
             top = name.split(".")[0]
             if folder == "protocol":
-                if top in STDLIB or top in ("numpy", "msgpack") or name.startswith("hapticproxy.protocol"):
+                if top in STDLIB or top in ("numpy", "msgpack", "msgspec") or name.startswith("hapticproxy.protocol"):
                     continue
                 if top in PROTOCOL_EXTRA and PROTOCOL_EXTRA[top] in rel:
                     continue

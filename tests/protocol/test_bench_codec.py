@@ -1,5 +1,6 @@
-"""``hapticproxy bench codec --json`` runs and prints the promised rows (figures are not judged
-against wall-clock thresholds here; only the same-run ratio to the naive codec)."""
+"""``hapticproxy bench codec --json`` runs and prints the promised rows and keys. Figures are
+not judged here at all (no wall-clock thresholds or timing ratios: issue 14 item 9); the
+benchmark is the command that prints them."""
 from __future__ import annotations
 
 import json
@@ -8,7 +9,7 @@ from hapticproxy.benchmarks import bench_codec
 from hapticproxy.cli.main import main as cli_main
 
 KEYS = {"message", "contacts", "encode_median_us", "decode_median_us", "bytes", "naive_encode_median_us",
-        "naive_decode_median_us"}
+        "naive_decode_median_us", "encode_speedup", "decode_speedup"}
 
 
 def test_bench_codec_json_rows(capsys):
@@ -22,9 +23,7 @@ def test_bench_codec_json_rows(capsys):
     # Packed layout: 88 bytes per contact plus a fixed envelope.
     # (bins over 255 bytes take a 2-byte length instead of 1, hence the tolerance)
     assert all(abs(r["bytes"] - cu[0]["bytes"] - 88 * r["contacts"]) <= 2 for r in cu)
-    big = next(r for r in cu if r["contacts"] == 32)
-    assert big["naive_decode_median_us"] > 1.5 * big["decode_median_us"]
-    assert big["naive_encode_median_us"] > 1.5 * big["encode_median_us"]
+    assert [r["message"] for r in rows] == ["ContactUpdate"] * 4 + ["ProxyState"]
 
 
 def test_naive_codec_decodes_what_it_encodes():
@@ -35,4 +34,7 @@ def test_naive_codec_decodes_what_it_encodes():
 
 def test_table_output(capsys):
     assert bench_codec.main(["--batch", "5", "--repeats", "3"]) == 0
-    assert "ContactUpdate" in capsys.readouterr().out
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split() == ["message", "contacts", "bytes", "encode_median_us", "decode_median_us",
+                                "naive_encode_median_us", "naive_decode_median_us", "encode_speedup", "decode_speedup"]
+    assert [ln.split()[0] for ln in lines[1:]] == ["ContactUpdate"] * 4 + ["ProxyState"]

@@ -1,7 +1,6 @@
 """Codec: round trips, decoded layout, every bad-input class, versioning, counters."""
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import msgpack
@@ -81,7 +80,7 @@ def all_messages():
         Bye(code=ErrorCode.BYE_NORMAL, reason="done", session_id=7, token=99),
         Error(code=ErrorCode.NON_FINITE, field="contact_data", detail="nan", ref_type=4, ref_seq=9,
               session_id=7, token=99),
-        ContactUpdate(seq=1, env_time_s=0.0, tool_pose=np.array(IDENTITY), keys=np.zeros((0, 3), np.int64),
+        ContactUpdate.from_arrays(seq=1, env_time_s=0.0, tool_pose=np.array(IDENTITY), keys=np.zeros((0, 3), np.int64),
                       position_m=np.zeros((0, 3)), normal=np.zeros((0, 3)), separation_m=np.zeros(0),
                       v_constr_m_per_s=np.zeros(0), session_id=7, token=99),
     ]
@@ -103,9 +102,19 @@ def test_every_declared_message_is_covered_by_the_round_trip():
 
 def test_declarations_follow_the_versioning_rules():
     M.check_declarations()
-    bad = dataclasses.replace(M.HEARTBEAT, fields=M.HEARTBEAT.fields + (M.FieldSpec("x", "f64", since_minor=1),))
+
+    class Bad(Heartbeat, kw_only=True):
+        x: M.f64("test-only field", since=1)
+
     with pytest.raises(ValueError, match="needs a default"):
-        M.check_declarations((bad,))
+        M.check_declarations((Bad,))
+
+    class Unordered(Heartbeat, kw_only=True):
+        x: M.f64("test-only field", since=2) = 0.0
+        y: M.f64("test-only field", since=1) = 0.0
+
+    with pytest.raises(ValueError, match="append only"):
+        M.check_declarations((Unordered,))
 
 
 @pytest.mark.parametrize("n", [0, 1, 8, 32, 64])
@@ -135,7 +144,7 @@ def test_contact_update_round_trip_and_layout(n):
 def test_encode_via_message_object_equals_fast_path():
     codec = Codec()
     keys, pos, nor, d, v = contacts(5)
-    msg = ContactUpdate(seq=2, env_time_s=0.5, tool_pose=np.array(IDENTITY), keys=keys, position_m=pos, normal=nor,
+    msg = ContactUpdate.from_arrays(seq=2, env_time_s=0.5, tool_pose=np.array(IDENTITY), keys=keys, position_m=pos, normal=nor,
                         separation_m=d, v_constr_m_per_s=v, session_id=1, token=2)
     assert codec.encode(msg) == codec.encode_contact_update(1, 2, 2, 0.5, IDENTITY, keys, pos, nor, d, v)
 
@@ -181,8 +190,38 @@ def test_malformed_msgpack():
     expect(codec, b"", ErrorCode.MALFORMED)
     expect(codec, pack({"a": 1}), ErrorCode.MALFORMED)  # maps are refused by the unpacker
     expect(codec, pack(msgpack.ExtType(1, b"x")), ErrorCode.MALFORMED)
-    expect(codec, pack([1, 0, 8, 1, 1, 9, "x" * 1000, ""]), ErrorCode.MALFORMED)  # str over max_str_bytes
     expect(codec, b"\xa2\xff\xfe", ErrorCode.MALFORMED)  # invalid UTF-8
+
+
+def test_strings_over_max_str_bytes_name_their_field():
+    # (not MALFORMED: the packet is readable, so a Hello's nonce is known and it can be answered)
+    codec = Codec()
+    expect(codec, pack([1, 0, 8, 1, 1, 9, "x" * 1000, "", 0, 0]), ErrorCode.BAD_SHAPE, "field")
+    err = expect(codec, hello_raw(engine="e" * 257), ErrorCode.BAD_SHAPE, "engine")
+    assert err.client_nonce == 5 and err.type_id == 1
+    assert not isinstance(codec.try_decode(hello_raw(engine="e" * 256)), ProtocolError)
+    assert isinstance(codec.try_decode(hello_raw(engine="\u00e9" * 129)), ProtocolError)  # 258 bytes UTF-8
+
+
+def test_a_hello_is_refused_with_nonce_0_or_a_session_header():
+    codec = Codec()
+    expect(codec, hello_raw(client_nonce=0), ErrorCode.OUT_OF_RANGE, "client_nonce")
+    obj = raw(hello_raw())
+    obj[3] = 5
+    err = expect(codec, pack(obj), ErrorCode.BAD_HEADER, "session_id")
+    assert err.client_nonce == 5  # answerable with Reject
+    obj[3], obj[4] = 0, 9
+    expect(codec, pack(obj), ErrorCode.BAD_HEADER, "token")
+
+
+def test_a_truncated_hello_is_malformed_but_its_nonce_is_read():
+    codec = Codec()
+    pkt = hello_raw()
+    for cut in (20, 40, len(pkt) - 1):
+        err = expect(codec, pkt[:cut], ErrorCode.MALFORMED)
+        assert (err.type_id, err.client_nonce) == (1, 5)
+    err = expect(codec, cu_packet(codec)[:-5], ErrorCode.MALFORMED)
+    assert (err.type_id, err.session_id, err.seq) == (0, 0, 0)  # only a Hello is attributed
 
 
 def test_oversize_checked_before_unpacking():
@@ -453,17 +492,17 @@ def test_newer_minor_extra_contact_column_is_ignored_and_counted():
 
 def test_older_minor_missing_defaulted_fields_get_defaults():
     # A v1.1 declaration appends a defaulted field; the v1.1 codec reads v1.0 packets and vice versa.
-    extra = M.FieldSpec("battery", "f64", "-", since_minor=2, default=1.0, doc="test-only field")
-    hb11 = dataclasses.replace(M.HEARTBEAT, fields=M.HEARTBEAT.fields + (extra,))
-    specs11 = tuple(hb11 if s is M.HEARTBEAT else s for s in M.MESSAGES)
-    M.check_declarations(specs11)
-    new, old = Codec(specs=specs11, minor=2), Codec(minor=1)
+    class Heartbeat13(Heartbeat, kw_only=True):
+        battery: M.f64("test-only field", since=3) = 1.0
+
+    M.check_declarations(tuple(Heartbeat13 if c is Heartbeat else c for c in M.MESSAGE_CLASSES.values()))
+    new, old = Codec(messages=[Heartbeat13], minor=3), Codec(minor=2)
     from_old = new.decode(old.encode(Heartbeat(seq=1, time_s=0.0, session_id=1, token=1)))
-    assert from_old.battery == 1.0 and from_old.minor == 1
+    assert from_old.battery == 1.0 and from_old.minor == 2
     cls11 = type(from_old)
     pkt11 = new.encode(cls11(seq=2, time_s=0.5, battery=0.3, session_id=1, token=1))
     from_new = old.decode(pkt11)
-    assert from_new.seq == 2 and from_new.minor == 2 and from_new.unknown_fields == 1
+    assert from_new.seq == 2 and from_new.minor == 3 and from_new.unknown_fields == 1
     assert old.counters.unknown_trailing_fields == 1
 
 
