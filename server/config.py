@@ -132,6 +132,13 @@ class ModelConfig(_Table):
     linkage_dynamics: _doc(Literal["full", "paper"],
                            "linkage proxy: full = with the Coriolis/centripetal terms (energy-consistent); "
                            "paper = neglected, the paper's eq. 7 as written") = "full"
+    workspace_extent_m: _num(0.01, 1e4, doc="the scene's extent: contact positions and the engine's tool pose "
+                             "within +- this of the origin on each axis, or the update is refused with an Error "
+                             "naming the field (told to clients in Welcome) [m]") = 10.0
+    max_constraint_speed_m_per_s: _num(0.001, 1e3, doc="largest |v_constr| an engine may report; faster is "
+                                       "refused (told in Welcome) [m/s]") = 10.0
+    max_separation_m: _num(0.001, 1e3, doc="largest |separation| an engine may report; more is refused "
+                           "(told in Welcome) [m]") = 1.0
 
 
 class ControllerConfig(_Table):

@@ -255,6 +255,9 @@ class HapticLoop:
             max_sessions=tcfg["max_sessions"],
             supported_tools=frozenset({_KIND_TO_TOOLKIND[self.kind]}),
             hello_check=self._check_hello,
+            workspace_extent_m=mcfg["workspace_extent_m"],
+            max_constraint_speed_m_per_s=mcfg["max_constraint_speed_m_per_s"],
+            max_separation_m=mcfg["max_separation_m"],
         )
         self.endpoint = endpoint or ServerEndpoint(self.transport.send, self.server_config, hmac_key=hmac_key)
         self.ctrl = controller or ctl.Controller(settings, self.device.kind, self.device.limits)
@@ -877,6 +880,9 @@ class HapticLoop:
         st[ST["rejects_sent"]] = ec.rejects_sent
         st[ST["dropped_empty"]] = getattr(tc, "dropped_empty", 0)
         st[ST["poll_budget_cuts"]] = self.poll_cut
+        st[ST["refused_out_of_bounds"]] = ec.out_of_bounds
+        st[ST["refused_unusable"]] = ec.unusable
+        st[ST["refused_seq_jump"]] = ec.seq_jump
         st[ST["stall_trips"]] = self.stall_trips
         st[ST["stall_recoveries"]] = self.stall_recoveries
         st[ST["torque_cap_n_m"]] = self.ctrl.cp[ctl.CP_TMAX]

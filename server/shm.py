@@ -67,6 +67,9 @@ STATUS_LAYOUT = (
     ("transitions", "i"), ("stall_trips", "i"), ("stall_recoveries", "i"), ("late_compiles", "i"),
     # the torque cap per axis (the force cap is above), N m
     ("torque_cap_n_m", "f"),
+    # ContactUpdates refused before the model (answered with an Error naming the field): outside
+    # the scene's bounds (Welcome), contacts the tool cannot use, a sequence number jumping ahead
+    ("refused_out_of_bounds", "i"), ("refused_unusable", "i"), ("refused_seq_jump", "i"),
 )
 STATUS_DTYPE = np.dtype([(name, np.float64) for name, _ in STATUS_LAYOUT])
 STATUS_FIELDS = STATUS_DTYPE.names

@@ -101,6 +101,8 @@ def format_status(s: dict) -> str:
         f"{'no update yet' if silence is None else f'{silence:.0f} ms'}",
         f"contacts     {s.get('contacts', 0)}  dropped packets {s.get('dropped_packets', 0)}  "
         f"stale/duplicate {s.get('stale_or_duplicate', 0)}",
+        f"refused      out of the scene's bounds {s.get('refused_out_of_bounds', 0)}  unusable contacts "
+        f"{s.get('refused_unusable', 0)}  sequence jumps {s.get('refused_seq_jump', 0)}",
         f"watchdog     {('ok', 'environment silent: fading', 'session ended: fading')[wd] if 0 <= wd < 3 else wd}"
         f"  gain {_f(s.get('gain'), '.3f')}  saturated {s.get('saturated', 0)}  rate-limited {s.get('rate_limited', 0)}",
     ]

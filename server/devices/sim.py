@@ -10,7 +10,8 @@ The paper's planar device (a planar 3-DOF twin-pantograph impedance display; its
 inertia are not given in the paper) is simulated with values chosen as plausible for a
 direct-drive twin pantograph, as seen at the handle: **mass 0.4 kg, I_zz 1.0e-3 kg m^2** (a
 0.4 kg body with a 5 cm radius of gyration), viscous damping 2 N s/m and 2e-3 N m s/rad,
-workspace +-6 cm in x and y, rotation +-1 rad, 10 N and 0.5 N m peak.
+workspace +-25 cm in x and y (the shipped planar scenes fit in it), rotation +-1 rad, 10 N and 0.5 N m
+peak.
 
 Config keys (``[device]``; every key optional; defaults per kind written ``1dof / planar /
 spatial``, ``-`` where the key does not apply to the kind and is an error if given):
@@ -32,7 +33,7 @@ spatial``, ``-`` where the key does not apply to the kind and is an error if giv
     1dof: the unit direction of travel, world.
 ``origin_m`` = [0, 0, 0] / - / -
     1dof: the handle position at s = 0, world [m].
-``workspace_min_m``, ``workspace_max_m`` = +-0.1 on x y z / +-0.06 on x y / +-0.1 on x y z
+``workspace_min_m``, ``workspace_max_m`` = +-0.1 on x y z / +-0.25 on x y / +-0.1 on x y z
     The workspace box, world [m] (planar: ``[x, y]``, a z entry is ignored). A 1dof device
     travels where the line through ``origin_m`` along ``axis`` is inside the box.
 ``rotation_limit_rad`` = - / 1.0 / 1.0
@@ -130,8 +131,9 @@ class LimitsPlanar(_Limits):
     max_force_n: Annotated[float, Meta(gt=0.0, le=1e4)] = 10.0
     max_torque_n_m: Annotated[float, Meta(gt=0.0, le=1e3)] = 0.5
     max_angular_speed_rad_per_s: Annotated[float, Meta(gt=0.0, le=1e4)] = 20.0
-    workspace_min_m: list[float] = msgspec.field(default_factory=lambda: [-0.06, -0.06])
-    workspace_max_m: list[float] = msgspec.field(default_factory=lambda: [0.06, 0.06])
+    # +-25 cm: the shipped planar scenes fit (the pymunk testbed's peg travels 124 mm to its wall)
+    workspace_min_m: list[float] = msgspec.field(default_factory=lambda: [-0.25, -0.25])
+    workspace_max_m: list[float] = msgspec.field(default_factory=lambda: [0.25, 0.25])
 
 
 class LimitsSpatial(_Limits):

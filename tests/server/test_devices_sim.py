@@ -373,7 +373,7 @@ def test_defaults_work_for_every_kind_and_the_planar_device_is_the_documented_on
     dev = make_sim_device({}, period_s=DT)
     assert dev.kind == "planar"
     assert dev.spec.values["mass_kg"] == 0.4 and dev.spec.values["inertia_kg_m2"] == 1.0e-3
-    assert dev.limits.workspace_min_m == (-0.06, -0.06, 0.0) and dev.limits.max_torque_n_m == 0.5
+    assert dev.limits.workspace_min_m == (-0.25, -0.25, 0.0) and dev.limits.max_torque_n_m == 0.5
     s = row(dev)
     assert s[3] == 1.0 and np.all(s[13:19] == 0.0)      # ideal sensor: zero, not NaN
     one = make_sim_device({"kind": "1dof"}, period_s=DT).limits
