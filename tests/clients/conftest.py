@@ -194,6 +194,42 @@ class RecordingEngine(Engine):
         return self._t
 
 
+LAB_MODULE = '''"""A lab's own engine, from its own package (a test fixture)."""
+from hapticproxy.clients.stub_engine import StubEngine
+
+
+class LabEngine(StubEngine):
+    name = "lab-engine 0.1"
+'''
+
+
+def make_lab_package(root, entries=(("lab", "labengine:LabEngine"),)) -> None:
+    """An installed third-party package in ``root`` (put it on sys.path): ``labengine.py`` and its
+    ``.dist-info`` registering ``entries`` in the ``hapticproxy.engines`` group."""
+    from pathlib import Path
+
+    root = Path(root)
+    (root / "labengine.py").write_text(LAB_MODULE)
+    info = root / "labengine-0.1.dist-info"
+    info.mkdir(exist_ok=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: labengine\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[hapticproxy.engines]\n" + "".join(f"{n} = {t}\n" for n, t in entries))
+
+
+@pytest.fixture
+def make_lab():
+    return make_lab_package
+
+
+@pytest.fixture
+def lab_package(tmp_path, monkeypatch):
+    """The lab's package installed (on sys.path) for this test: engine ``lab``, and a second entry
+    that tries to take the built-in name ``stub``."""
+    make_lab_package(tmp_path, (("lab", "labengine:LabEngine"), ("stub", "labengine:LabEngine")))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    return tmp_path
+
+
 @pytest.fixture
 def server_thread():
     started = []
