@@ -40,6 +40,10 @@ for ``v_constr``), and the other link's query reports the mirror contact, so eac
 arrives as two contacts, one on each link. Links do not collide with each other in the engine
 (one group): the proxy keeps them apart and the drive makes the engine follow. The ContactUpdate
 carries the engine's joint positions (``joint_positions``).
+
+**GUI** (``gui=True``, needs pygame): :class:`.gui.PymunkWindow` opens with the scene; the runner
+draws the session into it (``window.update(runner)``: the proxy's ghost, the force on the hand,
+the epsilon band, the contacts, the server state).
 """
 from __future__ import annotations
 
@@ -48,9 +52,9 @@ import math
 import numpy as np
 import pymunk
 
-from .contacts import (FACE_FACE, FACE_VERTEX, VERTEX_FACE, VERTEX_VERTEX, feature_id, fill_planar, planar_angle,
-                       planar_pose, reduce_contacts)
+from .contacts import FACE_FACE, FACE_VERTEX, VERTEX_FACE, VERTEX_VERTEX, feature_id, fill_planar, reduce_contacts
 from .engine import ContactBuffer, Engine, LinkDescription, SceneInfo, ToolDescription
+from .geometry import planar_chain, planar_pose, planar_state, wrap_angle
 from .scenes import (LINK_COUNT, LINK_IZZ_KG_M2, LINK_LENGTH_M, LINK_MASS_KG, LINK_WIDTH_M, TOOL_IZZ_KG_M2,
                      TOOL_LENGTH_M, TOOL_MASS_KG, TOOL_WIDTH_M, Box, HalfPlane, scene)
 
@@ -116,6 +120,10 @@ class PymunkEngine(Engine):
     """pymunk 7 world with the peg as the tool (see the module docstring)."""
 
     name = f"pymunk {pymunk.version}"
+    #: Chipmunk steps the same calls to the same results
+    deterministic = True
+    #: what ``--gui`` needs (the CLI checks before it starts)
+    gui_packages = ("pygame",)
 
     def __init__(self, rate_hz: float = 60.0, *, substeps: int = 2, max_speed_m_per_s: float = 0.3,
                  max_force_n: float = 40.0, max_torque_n_m: float = 1.0, max_spin_rad_per_s: float = 6.0,
@@ -287,16 +295,7 @@ class PymunkEngine(Engine):
     def link_targets(self) -> list[tuple[float, float, float, float, float, float]]:
         """(x, y, angle, vx, vy, w) of every link's frame at the proxy's state (the last ProxyState):
         the planar chain's forward kinematics from the root and the joints."""
-        x, y, th, vx, vy, w = self._target
-        out = [(x, y, th, vx, vy, w)]
-        for k in range(1, LINK_COUNT):
-            # the next pivot is at (L, 0) of this link: its velocity adds w x r
-            rx, ry = LINK_LENGTH_M * math.cos(th), LINK_LENGTH_M * math.sin(th)
-            x, y, vx, vy = x + rx, y + ry, vx - w * ry, vy + w * rx
-            th += float(self._joint_target[k - 1])
-            w += float(self._joint_rate_target[k - 1])
-            out.append((x, y, th, vx, vy, w))
-        return out
+        return planar_chain(self._target, self._joint_target, self._joint_rate_target, LINK_LENGTH_M)
 
     def drive_joints(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray) -> None:
         if not self._linkage:
@@ -314,7 +313,7 @@ class PymunkEngine(Engine):
         # in (-pi, pi]: the drive keeps each body's angle continuous with its own past, so two
         # neighbours' raw angles may be a turn apart (the chain's pose is the same)
         for k in range(1, LINK_COUNT):
-            out[k - 1] = _wrap(self.links[k].angle - self.links[k - 1].angle)
+            out[k - 1] = wrap_angle(self.links[k].angle - self.links[k - 1].angle)
         return out
 
     def set_epsilon(self, epsilon_m: float) -> None:
@@ -336,8 +335,7 @@ class PymunkEngine(Engine):
             self._query = q
 
     def drive_tool(self, proxy_pose: np.ndarray, proxy_twist: np.ndarray, wrench: np.ndarray) -> None:
-        self._target = (float(proxy_pose[0]), float(proxy_pose[1]), planar_angle(proxy_pose),
-                        float(proxy_twist[0]), float(proxy_twist[1]), float(proxy_twist[5]))
+        self._target = planar_state(proxy_pose, proxy_twist)
         self._wrench = (float(wrench[0]), float(wrench[1]), float(wrench[5]))
 
     def tool_pose(self, out: np.ndarray) -> np.ndarray:
@@ -361,7 +359,7 @@ class PymunkEngine(Engine):
                 vx, vy = vx * self.max_speed_m_per_s / speed, vy * self.max_speed_m_per_s / speed
             w = max(-self.max_spin_rad_per_s, min(self.max_spin_rad_per_s, w))
             # Keep the control angle continuous with the body's (the gear joint sees raw angles).
-            th = body.angle + _wrap(th - body.angle)
+            th = body.angle + wrap_angle(th - body.angle)
             # (a link's control body sits at the link frame's origin, the drive's anchors at its COM)
             c.position = (x, y)
             c.angle = th
@@ -376,8 +374,6 @@ class PymunkEngine(Engine):
             self.space.step(h)
         self._t += dt_s
         self.steps += 1
-        if self.window is not None:
-            self.window.draw()
 
     def contacts(self, buf: ContactBuffer, max_contacts: int) -> int:
         rows = []
@@ -392,9 +388,6 @@ class PymunkEngine(Engine):
         else:
             fill_planar(self._raw, rows)
             out = reduce_contacts(self._raw, buf, max_contacts)
-        if self.window is not None:
-            self.window.last_contacts = (buf.position_m[:out].copy(), buf.normal[:out].copy(),
-                                         buf.separation_m[:out].copy())
         return out
 
     def _query_rows(self, rows: list, link: int, tool: pymunk.Body, query: pymunk.Poly) -> None:
@@ -448,10 +441,6 @@ class PymunkEngine(Engine):
         if self.window is not None:
             self.window.close()
             self.window = None
-
-
-def _wrap(a: float) -> float:
-    return math.atan2(math.sin(a), math.cos(a))
 
 
 def _world_geometry_of(body: pymunk.Body, local: list) -> tuple:
