@@ -1,6 +1,7 @@
 """Linkage clients against the real server (supervisor + loop process) over UDP: the pymunk
 testbed's 3-bar linkage pushed onto the bottom wall settles with the force balancing the push;
-the pybullet URDF chain engages a spatial device. Counts and positions, never timings."""
+the pybullet URDF chain engages a spatial device. Counts, positions and the engine's simulated
+time, never timings."""
 from __future__ import annotations
 
 import socket
@@ -43,7 +44,7 @@ def _settings(url: str, device: dict) -> cfgmod.Settings:
 class Client:
     def __init__(self, engine, url, scene):
         self.engine = engine
-        self.runner = ClientRunner(engine, url, scene=scene, epsilon_m=0.005, max_contacts=32, connect_timeout_s=30.0)
+        self.runner = ClientRunner(engine, url, scene=scene, epsilon_m=0.005, max_contacts=32, connect_timeout_s=_WAIT_S)
         self.stop = threading.Event()
         self.error = None
         self.thread = threading.Thread(target=self._run, daemon=True)
@@ -64,7 +65,12 @@ class Client:
         self.engine.close()
 
 
-def _run(settings, engine, scene, seconds):
+#: generous bound of a wait [s] (a cold numba cache costs the loop a minute first)
+_WAIT_S = 180.0
+
+
+def _run(settings, engine, scene, sim_seconds):
+    """Serve until the client's engine has run ``sim_seconds`` of its own (simulated) time."""
     url = settings["transport"]["url"]
     sup = Supervisor(settings)
     client = None
@@ -72,7 +78,9 @@ def _run(settings, engine, scene, seconds):
         sup.start()
         client = Client(engine, url, scene).start()
         t0 = time.monotonic()
-        while time.monotonic() - t0 < seconds:
+        while client.runner.stats()["env_time_s"] < sim_seconds:
+            if time.monotonic() - t0 > _WAIT_S:
+                raise AssertionError(f"gave up waiting for {sim_seconds} s of engine time")
             sup._serve_status(0.05)
         snap = sup.shared.snapshot()
         head = int(sup.shared.head[0])

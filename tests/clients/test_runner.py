@@ -452,3 +452,19 @@ def test_a_linkage_is_held_with_its_joints(helpers):
     assert len(engine.joint_calls) == st["proxy_applied"] + 1
     np.testing.assert_array_equal(engine.joint_calls[-1], engine.joint_calls[-2])
     assert engine.joints[0] < 1.0 + 0.2 + 0.011
+
+
+def test_start_up_time_does_not_count_against_the_connect_timeout(helpers):
+    """An engine whose warm-up (compilation, a GUI coming up) takes 30 s of the runner's clock still
+    gets its 5 s to connect: the timeout counts from the first attempt."""
+    clock = SimClock()
+    srv = _scripted(clock)
+
+    class SlowStart(helpers.RecordingEngine):
+        def warm_up(self):
+            clock.advance(30.0)
+
+    runner = ClientRunner(SlowStart(rate_hz=100.0), srv.url, scene="floor", connect_timeout_s=5.0, clock_ns=clock,
+                          sleep=srv.sleep)
+    st = runner.run(duration_s=0.2)
+    assert st["error"] is None and st["sessions"] == 1 and st["steps"] >= 15
