@@ -48,6 +48,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -314,7 +315,7 @@ class EngineContract:
 
     def _probe(self, subject: _Subject, scene: str, fresh: bool = False, legs_run: int | None = None):
         """The probe's run of ``scene`` (cached per engine and scene unless ``fresh``; ``legs_run``:
-        only that many legs): (runner, server, legs)."""
+        only that many legs): (the grants, the server and its record, the legs)."""
         key = (type(self), subject.name, repr(sorted(subject.kwargs.items())), scene)
         if not fresh and key in _PROBES:
             return _PROBES[key]
@@ -327,7 +328,10 @@ class EngineContract:
 
         runner, server = simulate(subject.make(), scene, None, 0.0, config=self._config(self.grant_contacts),
                                   epsilon_m=self.epsilon_m, prepare=prepare)
-        out = (runner, server, legs)
+        # what the checks read, without the engine (closed at the test's end, kept no longer)
+        grants = SimpleNamespace(granted_epsilon_m=runner.granted_epsilon_m,
+                                 granted_max_contacts=runner.granted_max_contacts)
+        out = (grants, server, legs)
         if not fresh:
             _PROBES[key] = out
         return out

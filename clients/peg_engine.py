@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from .engine import ContactBuffer, Engine, SceneInfo, ToolDescription
+from .engine import ContactBuffer, Engine, SceneInfo, ToolDescription, checked_epsilon, checked_step
 from .geometry import axis_coordinate, axis_pose
 
 #: the paper's Fig. 6 peg
@@ -71,10 +71,7 @@ class PegEngine(Engine):
                                 "description": SCENES[name]})
 
     def set_epsilon(self, epsilon_m: float) -> None:
-        epsilon_m = float(epsilon_m)
-        if not (math.isfinite(epsilon_m) and epsilon_m >= 0):
-            raise ValueError(f"epsilon_m: must be a finite number >= 0, got {epsilon_m!r}")
-        self._eps = epsilon_m
+        self._eps = checked_epsilon(epsilon_m)
 
     def drive_tool(self, proxy_pose: np.ndarray, proxy_twist: np.ndarray, wrench: np.ndarray) -> None:
         x = axis_coordinate(proxy_pose, _AXIS)
@@ -89,9 +86,7 @@ class PegEngine(Engine):
         return self._t
 
     def step(self, dt_s: float) -> None:
-        dt_s = float(dt_s)
-        if not (math.isfinite(dt_s) and dt_s > 0):
-            raise ValueError(f"dt_s: must be a finite number > 0, got {dt_s!r}")
+        dt_s = checked_step(dt_s)
         if not self._loaded:
             raise RuntimeError("load_scene first")
         self._x = self._target

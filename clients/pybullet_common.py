@@ -21,11 +21,12 @@ import math
 import numpy as np
 import pybullet as p
 
+from .engine import Engine, checked_epsilon
 from .geometry import quat_angle, slerp, wxyz_from_xyzw, xyzw_from_wxyz
-from .narrowphase import E_ANG, E_HALF, E_LIN, E_POS, E_QUAT
+from .narrowphase import E_ANG, E_HALF, E_LIN, E_POS, E_QUAT, warm_up_kernels
 
-__all__ = ["PYBULLET_VERSION", "GRAVITY_M_PER_S2", "connect", "base_pose", "fill_env_row", "make_box", "make_sphere",
-           "PoseDrive"]
+__all__ = ["PYBULLET_VERSION", "GRAVITY_M_PER_S2", "connect", "reset_world", "show_world", "close_world", "base_pose",
+           "fill_env_row", "make_box", "make_sphere", "PoseDrive", "PybulletBase"]
 
 PYBULLET_VERSION = importlib.metadata.version("pybullet")
 GRAVITY_M_PER_S2 = 9.81
@@ -37,6 +38,31 @@ def connect(gui: bool) -> int:
     if cid < 0:
         raise RuntimeError("pybullet: could not connect a physics server" + (" (GUI: is there a display?)" if gui else ""))
     return cid
+
+
+def reset_world(cid: int, dt_s: float, solver_iterations: int, erp: float, gui: bool) -> None:
+    """An empty world: gravity -z, the step, the solver's iterations and its global ``erp`` (used
+    by the drive's constraint only: the scenes have no joints, contacts use their own
+    ``contactERP``); a GUI stops rendering while the scene is built (:func:`show_world`)."""
+    p.resetSimulation(physicsClientId=cid)
+    p.setGravity(0.0, 0.0, -GRAVITY_M_PER_S2, physicsClientId=cid)
+    p.setTimeStep(dt_s, physicsClientId=cid)
+    p.setPhysicsEngineParameter(numSolverIterations=solver_iterations, erp=erp, physicsClientId=cid)
+    if gui:
+        p.configureDebugVisualizer(p.COV_ENABLE_RENDERING, 0, physicsClientId=cid)
+
+
+def show_world(cid: int) -> None:
+    p.configureDebugVisualizer(p.COV_ENABLE_RENDERING, 1, physicsClientId=cid)
+
+
+def close_world(cid: int, window=None) -> int:
+    """Close the window (if any) and the physics server (if still connected); returns -1."""
+    if window is not None:
+        window.close()
+    if cid >= 0:
+        p.disconnect(physicsClientId=cid)
+    return -1
 
 
 def base_pose(cid: int, body: int) -> tuple[tuple, tuple]:
@@ -77,6 +103,52 @@ def make_sphere(cid: int, radius: float, pos, mass: float = 0.0, rgba=None, *, v
         vis = p.createVisualShape(p.GEOM_SPHERE, radius=radius, rgbaColor=list(rgba or (0.6, 0.6, 0.6, 1.0)),
                                   physicsClientId=cid)
     return p.createMultiBody(mass, shape, vis, list(pos), useMaximalCoordinates=True, physicsClientId=cid)
+
+
+class PybulletBase(Engine):
+    """What the pybullet engines share: their own physics client (``_cid``), scene names
+    (``_SCENES``), the epsilon, the narrow phase's warm-up, closing (the window too)."""
+
+    #: Bullet in DIRECT mode steps the same calls to the same results (the contract suite checks it)
+    deterministic = True
+    _SCENES: tuple[str, ...] = ()
+    _cid = -1
+    _tool = -1
+    _epsilon = 0.0
+    _scene = None
+    #: the GUI's view (``gui=True``, after ``load_scene``): ``window.update(runner)`` draws
+    window = None
+
+    @classmethod
+    def scenes(cls) -> tuple[str, ...]:
+        return cls._SCENES
+
+    @property
+    def client_id(self) -> int:
+        """pybullet physics client id (pass it as ``physicsClientId``)."""
+        return self._cid
+
+    @property
+    def tool_id(self) -> int:
+        """pybullet body id of the tool (-1 before ``load_scene``)."""
+        return self._tool
+
+    @property
+    def epsilon_m(self) -> float:
+        """The epsilon the tool is inflated by [m]."""
+        return self._epsilon
+
+    def set_epsilon(self, epsilon_m: float) -> None:
+        self._epsilon = checked_epsilon(epsilon_m)
+
+    def warm_up(self) -> None:
+        """Compile the narrow phase's kernels now (cached on disk after the first process)."""
+        warm_up_kernels()
+
+    def close(self) -> None:
+        self._cid = close_world(self._cid, self.window)
+        self.window = None
+        self._scene = None
 
 
 class PoseDrive:

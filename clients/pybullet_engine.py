@@ -72,16 +72,16 @@ import numpy as np
 import pybullet as p
 
 from .contacts import EDGE_EDGE, NORMAL_WEIGHT_M
-from .engine import ContactBuffer, Engine, SceneInfo, ToolDescription
+from .engine import ContactBuffer, SceneInfo, ToolDescription, checked_positive, checked_step
 from .geometry import box_inertia, check_pose, quat_to_matrix, wxyz_from_xyzw, xyzw_from_wxyz
-from .narrowphase import E_HALF, KIND_BOX, KIND_SPHERE, BoxNarrowPhase, env_table, warm_up_kernels
-from .pybullet_common import (GRAVITY_M_PER_S2, PYBULLET_VERSION, PoseDrive, connect, fill_env_row, make_box,
-                              make_sphere)
+from .narrowphase import E_HALF, KIND_BOX, KIND_SPHERE, BoxNarrowPhase, env_table
+from .pybullet_common import (GRAVITY_M_PER_S2, PYBULLET_VERSION, PoseDrive, PybulletBase, connect, fill_env_row,
+                              make_box, make_sphere, reset_world, show_world)
 
 __all__ = ["PybulletEngine", "EDGE_EDGE"]
 
 
-class PybulletEngine(Engine):
+class PybulletEngine(PybulletBase):
     """pybullet with one box tool in one scene (see the module docstring for the method).
 
     Args:
@@ -100,8 +100,6 @@ class PybulletEngine(Engine):
     """
 
     name = f"pybullet {PYBULLET_VERSION}"
-    #: Bullet in DIRECT mode is deterministic for the same calls (the contract suite checks it)
-    deterministic = True
 
     _SCENES = ("peg", "loose")
 
@@ -109,12 +107,9 @@ class PybulletEngine(Engine):
                  max_drive_force_n: float = 50.0, drive_erp: float = 0.8,
                  max_speed_m_per_s: float = 0.5, max_angular_speed_rad_per_s: float = 5.0,
                  solver_iterations: int = 20, cluster_normal_weight_m: float = NORMAL_WEIGHT_M) -> None:
-        for field, value in (("rate_hz", rate_hz), ("max_drive_force_n", max_drive_force_n),
-                             ("max_speed_m_per_s", max_speed_m_per_s),
-                             ("max_angular_speed_rad_per_s", max_angular_speed_rad_per_s),
-                             ("cluster_normal_weight_m", cluster_normal_weight_m)):
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0.0):
-                raise ValueError(f"{field}: must be finite and > 0, got {value!r}")
+        checked_positive(rate_hz=rate_hz, max_drive_force_n=max_drive_force_n, max_speed_m_per_s=max_speed_m_per_s,
+                         max_angular_speed_rad_per_s=max_angular_speed_rad_per_s,
+                         cluster_normal_weight_m=cluster_normal_weight_m)
         if not (isinstance(drive_erp, (int, float)) and math.isfinite(drive_erp)
                 and 0.0 < drive_erp <= 1.0):
             raise ValueError(f"drive_erp: must be in (0, 1], got {drive_erp!r}")
@@ -131,8 +126,6 @@ class PybulletEngine(Engine):
         self._cid = connect(self.gui)
         self._epsilon = 0.0
         self._scene: SceneInfo | None = None
-        #: the GUI's view (``gui=True``, after ``load_scene``): ``window.update(runner)`` draws
-        self.window = None
         #: the last ProxyState wrench (kept, not applied: see the module docstring)
         self.last_wrench = np.zeros(6)
         #: last ``contacts`` call: epsilon-active contacts before clustering, and all contacts
@@ -163,21 +156,6 @@ class PybulletEngine(Engine):
         self._tool_half = (0.0, 0.0, 0.0)
 
     @property
-    def client_id(self) -> int:
-        """pybullet physics client id (pass it as ``physicsClientId``)."""
-        return self._cid
-
-    @property
-    def tool_id(self) -> int:
-        """pybullet body id of the tool (-1 before ``load_scene``)."""
-        return self._tool
-
-    @property
-    def epsilon_m(self) -> float:
-        """The epsilon the tool is inflated by [m]."""
-        return self._epsilon
-
-    @property
     def scene_info(self) -> SceneInfo | None:
         """What the last ``load_scene`` returned (None before)."""
         return self._scene
@@ -187,10 +165,6 @@ class PybulletEngine(Engine):
             raise RuntimeError("load_scene first")
 
     # ------------------------------------------------------------------ Engine
-    @classmethod
-    def scenes(cls) -> tuple[str, ...]:
-        return cls._SCENES
-
     def load_scene(self, name: str) -> SceneInfo:
         if name not in self._SCENES:
             raise ValueError(f"scene: unknown scene {name!r}; choices: {', '.join(self._SCENES)}")
@@ -200,15 +174,9 @@ class PybulletEngine(Engine):
         if self.window is not None:
             self.window.close()
             self.window = None
-        p.resetSimulation(physicsClientId=cid)
         self._scene = None
         self._reset_state()
-        p.setGravity(0.0, 0.0, -GRAVITY_M_PER_S2, physicsClientId=cid)
-        p.setTimeStep(self._dt, physicsClientId=cid)
-        p.setPhysicsEngineParameter(numSolverIterations=self.solver_iterations, erp=self.drive_erp,
-                                    physicsClientId=cid)
-        if self.gui:
-            p.configureDebugVisualizer(p.COV_ENABLE_RENDERING, 0, physicsClientId=cid)
+        reset_world(cid, self._dt, self.solver_iterations, self.drive_erp, self.gui)
         gui = self.gui
         env = []  # (body, kind, half extents or (radius, 0, 0), dynamic)
         floor_half = (0.5, 0.5, 0.025)
@@ -294,20 +262,12 @@ class PybulletEngine(Engine):
 
             self.window = PybulletView(cid, [b for n, b in bodies.items() if n != "floor"] + [tool],
                                        ghost_boxes=[tool_half])
-            p.configureDebugVisualizer(p.COV_ENABLE_RENDERING, 1, physicsClientId=cid)
+            show_world(cid)
         return self._scene
-
-    def set_epsilon(self, epsilon_m: float) -> None:
-        eps = float(epsilon_m)
-        if not (math.isfinite(eps) and eps >= 0.0):
-            raise ValueError(f"epsilon_m: must be finite and >= 0, got {epsilon_m!r}")
-        self._epsilon = eps
 
     def step(self, dt_s: float) -> None:
         self._require_scene()
-        dt = float(dt_s)
-        if not (math.isfinite(dt) and dt > 0.0):
-            raise ValueError(f"dt_s: must be finite and > 0, got {dt_s!r}")
+        dt = checked_step(dt_s)
         cid = self._cid
         force = False
         if dt != self._dt:
@@ -400,22 +360,7 @@ class PybulletEngine(Engine):
     def time_s(self) -> float:
         return self._time
 
-    def close(self) -> None:
-        if self.window is not None:
-            self.window.close()
-            self.window = None
-        if self._cid >= 0:
-            try:
-                p.disconnect(physicsClientId=self._cid)
-            finally:
-                self._cid = -1
-                self._scene = None
-
     # ------------------------------------------------------------------ extras (not in Engine)
-    def warm_up(self) -> None:
-        """Compile the numba kernels now (cached on disk after the first process)."""
-        warm_up_kernels()
-
     def reset_tool_pose(self, pose: np.ndarray) -> None:
         """Teleport the tool (x y z qw qx qy qz) at rest and make that pose the drive's target.
         For setting up experiments and tests; never call it while the tool is in use."""

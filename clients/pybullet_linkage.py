@@ -36,17 +36,17 @@ ghost copy of the URDF at the ProxyState's root pose and joints, and the contact
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 import pybullet as p
 
 from .contacts import reduce_contacts
-from .engine import ContactBuffer, Engine, LinkDescription, SceneInfo, ToolDescription
+from .engine import ContactBuffer, LinkDescription, SceneInfo, ToolDescription, checked_positive, checked_step
 from .geometry import IDENTITY_WXYZ, compose, inverse, quat_to_matrix, wxyz_from_xyzw
-from .narrowphase import E_HALF, KIND_BOX, RAW_CAPACITY, BoxNarrowPhase, env_table, warm_up_kernels
-from .pybullet_common import GRAVITY_M_PER_S2, PYBULLET_VERSION, PoseDrive, connect, fill_env_row, make_box
+from .narrowphase import E_HALF, KIND_BOX, RAW_CAPACITY, BoxNarrowPhase, env_table
+from .pybullet_common import (GRAVITY_M_PER_S2, PYBULLET_VERSION, PoseDrive, PybulletBase, connect, fill_env_row,
+                              make_box, reset_world, show_world)
 
 __all__ = ["PybulletLinkageEngine", "links_from_body", "DEFAULT_URDF", "SELF_BODY_BASE"]
 
@@ -87,7 +87,7 @@ def links_from_body(body: int, client_id: int) -> list[LinkDescription]:
     return out
 
 
-class PybulletLinkageEngine(Engine):
+class PybulletLinkageEngine(PybulletBase):
     """pybullet with a URDF chain as the tool (see the module docstring).
 
     Args:
@@ -101,18 +101,14 @@ class PybulletLinkageEngine(Engine):
     """
 
     name = f"pybullet {PYBULLET_VERSION} (linkage)"
-    deterministic = True
     _SCENES = ("chain",)
 
     def __init__(self, *, gui: bool = False, rate_hz: float = 500.0, urdf: str | Path = DEFAULT_URDF,
                  held_link: int | None = None, max_drive_force_n: float = 50.0, max_joint_effort: float = 2.0,
                  max_speed_m_per_s: float = 0.5, max_angular_speed_rad_per_s: float = 5.0,
                  drive_erp: float = 0.8, solver_iterations: int = 20) -> None:
-        for field, value in (("rate_hz", rate_hz), ("max_drive_force_n", max_drive_force_n),
-                             ("max_joint_effort", max_joint_effort), ("max_speed_m_per_s", max_speed_m_per_s),
-                             ("max_angular_speed_rad_per_s", max_angular_speed_rad_per_s)):
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0.0):
-                raise ValueError(f"{field}: must be finite and > 0, got {value!r}")
+        checked_positive(rate_hz=rate_hz, max_drive_force_n=max_drive_force_n, max_joint_effort=max_joint_effort,
+                         max_speed_m_per_s=max_speed_m_per_s, max_angular_speed_rad_per_s=max_angular_speed_rad_per_s)
         if not Path(urdf).is_file():
             raise ValueError(f"urdf: no such file: {urdf}")
         self.gui = bool(gui)
@@ -126,28 +122,13 @@ class PybulletLinkageEngine(Engine):
         self.solver_iterations = int(solver_iterations)
         self._dt = 1.0 / float(rate_hz)
         self._cid = connect(self.gui)
-        self._eps = 0.0
         self._time = 0.0
         self._scene: SceneInfo | None = None
-        self._tool = -1
-        self.window = None
         self.contacts_found = 0
         self._raw = ContactBuffer(RAW_CAPACITY)
         self._nph = BoxNarrowPhase()
 
     # ------------------------------------------------------------------ Engine
-    @classmethod
-    def scenes(cls) -> tuple[str, ...]:
-        return cls._SCENES
-
-    @property
-    def client_id(self) -> int:
-        return self._cid
-
-    @property
-    def tool_id(self) -> int:
-        return self._tool
-
     def load_scene(self, name: str) -> SceneInfo:
         if name not in self._SCENES:
             raise ValueError(f"scene: unknown scene {name!r}; choices: {', '.join(self._SCENES)}")
@@ -155,13 +136,7 @@ class PybulletLinkageEngine(Engine):
         if self.window is not None:
             self.window.close()
             self.window = None
-        p.resetSimulation(physicsClientId=cid)
-        p.setGravity(0.0, 0.0, -GRAVITY_M_PER_S2, physicsClientId=cid)
-        p.setTimeStep(self._dt, physicsClientId=cid)
-        p.setPhysicsEngineParameter(numSolverIterations=self.solver_iterations, erp=self.drive_erp,
-                                    physicsClientId=cid)
-        if self.gui:
-            p.configureDebugVisualizer(p.COV_ENABLE_RENDERING, 0, physicsClientId=cid)
+        reset_world(cid, self._dt, self.solver_iterations, self.drive_erp, self.gui)
         env = []  # (body, half extents), all static
         floor_half = (0.5, 0.5, 0.025)
         env.append((make_box(cid, floor_half, (0.0, 0.0, -0.025), visual=self.gui), floor_half))
@@ -224,14 +199,8 @@ class PybulletLinkageEngine(Engine):
             from .pybullet_gui import PybulletView
 
             self.window = PybulletView(cid, [env[1][0], tool], ghost_urdf=self.urdf, link_com=self._base_com)
-            p.configureDebugVisualizer(p.COV_ENABLE_RENDERING, 1, physicsClientId=cid)
+            show_world(cid)
         return self._scene
-
-    def set_epsilon(self, epsilon_m: float) -> None:
-        eps = float(epsilon_m)
-        if not (math.isfinite(eps) and eps >= 0.0):
-            raise ValueError(f"epsilon_m: must be finite and >= 0, got {epsilon_m!r}")
-        self._eps = eps
 
     def drive_joints(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray) -> None:
         if len(position) == 0:
@@ -267,9 +236,7 @@ class PybulletLinkageEngine(Engine):
         return self._time
 
     def step(self, dt_s: float) -> None:
-        dt = float(dt_s)
-        if not (math.isfinite(dt) and dt > 0.0):
-            raise ValueError(f"dt_s: must be finite and > 0, got {dt_s!r}")
+        dt = checked_step(dt_s)
         cid = self._cid
         if dt != self._dt:
             self._dt = dt
@@ -302,7 +269,7 @@ class PybulletLinkageEngine(Engine):
             fill_env_row(env, self._link_row0 + k, pos, orn, lin, ang)
         raw = self._raw
         n = 0
-        eps = self._eps
+        eps = self._epsilon
         nph = self._nph
         for k, (pos, orn, _lin, _ang) in enumerate(states):
             nph.set_tool(pos, wxyz_from_xyzw(orn), self._half[k])
@@ -345,15 +312,3 @@ class PybulletLinkageEngine(Engine):
             out.append((np.asarray(lp), np.asarray(lq)))
         return out
 
-    def warm_up(self) -> None:
-        warm_up_kernels()
-
-    def close(self) -> None:
-        if self.window is not None:
-            self.window.close()
-            self.window = None
-        if self._cid >= 0:
-            try:
-                p.disconnect(physicsClientId=self._cid)
-            finally:
-                self._cid = -1

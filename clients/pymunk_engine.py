@@ -53,7 +53,8 @@ import numpy as np
 import pymunk
 
 from .contacts import FACE_FACE, FACE_VERTEX, VERTEX_FACE, VERTEX_VERTEX, feature_id, fill_planar, reduce_contacts
-from .engine import ContactBuffer, Engine, LinkDescription, SceneInfo, ToolDescription
+from .engine import (ContactBuffer, Engine, LinkDescription, SceneInfo, ToolDescription, checked_epsilon,
+                     checked_positive, checked_step)
 from .geometry import planar_chain, planar_pose, planar_state, wrap_angle
 from .scenes import (LINK_COUNT, LINK_IZZ_KG_M2, LINK_LENGTH_M, LINK_MASS_KG, LINK_WIDTH_M, TOOL_IZZ_KG_M2,
                      TOOL_LENGTH_M, TOOL_MASS_KG, TOOL_WIDTH_M, Box, HalfPlane, scene)
@@ -128,10 +129,8 @@ class PymunkEngine(Engine):
     def __init__(self, rate_hz: float = 60.0, *, substeps: int = 2, max_speed_m_per_s: float = 0.3,
                  max_force_n: float = 40.0, max_torque_n_m: float = 1.0, max_spin_rad_per_s: float = 6.0,
                  use_wrench: bool = False, gui: bool = False) -> None:
-        for nm, v in (("rate_hz", rate_hz), ("max_speed_m_per_s", max_speed_m_per_s), ("max_force_n", max_force_n),
-                      ("max_torque_n_m", max_torque_n_m), ("max_spin_rad_per_s", max_spin_rad_per_s)):
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{nm}: must be a finite number > 0, got {v!r}")
+        checked_positive(rate_hz=rate_hz, max_speed_m_per_s=max_speed_m_per_s, max_force_n=max_force_n,
+                         max_torque_n_m=max_torque_n_m, max_spin_rad_per_s=max_spin_rad_per_s)
         if not (isinstance(substeps, int) and 1 <= substeps <= 100):
             raise ValueError(f"substeps: must be an int in 1..100, got {substeps!r}")
         self.rate_hz = float(rate_hz)
@@ -198,20 +197,15 @@ class PymunkEngine(Engine):
         tool_shape.friction = 0.5
         tool_shape.elasticity = 0.0
         tool_shape.filter = pymunk.ShapeFilter(group=_TOOL_GROUP)
-        control = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
-        control.position = (x, y)
-        control.angle = th
-        pivot = pymunk.PivotJoint(control, tool, (0.0, 0.0), (0.0, 0.0))
-        pivot.max_bias = self.max_speed_m_per_s
-        pivot.max_force = self.max_force_n
-        pivot.error_bias = (1.0 - 0.3) ** 60.0  # 30 % of the error per 1/60 s
-        gear = pymunk.GearJoint(control, tool, 0.0, 1.0)
-        gear.max_bias = self.max_spin_rad_per_s
-        gear.max_force = self.max_torque_n_m
-        gear.error_bias = (1.0 - 0.3) ** 60.0
-        space.add(tool, tool_shape, control, pivot, gear)
+        space.add(tool, tool_shape)
+        control = self._drive(space, tool, x, y, th)
         self.space, self.tool, self.tool_shape, self.control = space, tool, tool_shape, control
         self._target = (x, y, th, 0.0, 0.0, 0.0)
+        info_tool = ToolDescription("planar", TOOL_MASS_KG, (0.0, 0.0, 0.0), (0.0, 0.0, TOOL_IZZ_KG_M2, 0.0, 0.0, 0.0))
+        return self._loaded(name, sc, info_tool, "pivot+gear joints to a kinematic proxy body")
+
+    def _loaded(self, name: str, sc, tool: ToolDescription, coupling: str) -> SceneInfo:
+        """The end of every load: clocks reset, the query shapes, the window, the SceneInfo."""
         self._wrench = (0.0, 0.0, 0.0)
         self._t = 0.0
         self.steps = 0
@@ -221,12 +215,11 @@ class PymunkEngine(Engine):
             from .gui import PymunkWindow  # pygame is an optional extra
 
             self.window = PymunkWindow(self)
-        info_tool = ToolDescription("planar", TOOL_MASS_KG, (0.0, 0.0, 0.0), (0.0, 0.0, TOOL_IZZ_KG_M2, 0.0, 0.0, 0.0))
         facts = dict(sc.facts)
         facts["obstacles"] = [ob.name for ob in sc.obstacles]
-        facts["coupling"] = (f"pivot+gear joints to a kinematic proxy body: max_bias {self.max_speed_m_per_s} m/s, "
-                             f"max_force {self.max_force_n} N, {self.max_torque_n_m} N m")
-        return SceneInfo(name, info_tool, env_rate_hz=self.rate_hz, facts=facts)
+        facts["coupling"] = (f"{coupling}: max_bias {self.max_speed_m_per_s} m/s, max_force {self.max_force_n} N, "
+                             f"{self.max_torque_n_m} N m")
+        return SceneInfo(name, tool, env_rate_hz=self.rate_hz, facts=facts)
 
     def _drive(self, space, body: pymunk.Body, x: float, y: float, th: float) -> pymunk.Body:
         """A kinematic control body at (x, y, th) and the pivot + gear coupling of ``body`` to it."""
@@ -272,25 +265,12 @@ class PymunkEngine(Engine):
         self._target = (x, y, th, 0.0, 0.0, 0.0)
         self._joint_target = np.zeros(LINK_COUNT - 1)
         self._joint_rate_target = np.zeros(LINK_COUNT - 1)
-        self._wrench = (0.0, 0.0, 0.0)
-        self._t = 0.0
-        self.steps = 0
-        self._scene = sc
-        self.set_epsilon(self._eps)
-        if self._gui_wanted and self.window is None:
-            from .gui import PymunkWindow  # pygame is an optional extra
-
-            self.window = PymunkWindow(self)
         inertia = (LINK_MASS_KG * W * W / 12.0, LINK_MASS_KG * L * L / 12.0, LINK_IZZ_KG_M2, 0.0, 0.0, 0.0)
         links = [LinkDescription(LINK_MASS_KG, (L / 2, 0.0, 0.0), inertia)]
         links += [LinkDescription(LINK_MASS_KG, (L / 2, 0.0, 0.0), inertia, k - 1, "revolute", (0.0, 0.0, 1.0),
                                   (L, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)) for k in range(1, LINK_COUNT)]
         info_tool = ToolDescription("linkage", LINK_MASS_KG * LINK_COUNT, links=tuple(links), held_link=LINK_COUNT - 1)
-        facts = dict(sc.facts)
-        facts["obstacles"] = [ob.name for ob in sc.obstacles]
-        facts["coupling"] = (f"each link: pivot+gear joints to a kinematic proxy body: max_bias "
-                             f"{self.max_speed_m_per_s} m/s, max_force {self.max_force_n} N, {self.max_torque_n_m} N m")
-        return SceneInfo(name, info_tool, env_rate_hz=self.rate_hz, facts=facts)
+        return self._loaded(name, sc, info_tool, "each link: pivot+gear joints to a kinematic proxy body")
 
     def link_targets(self) -> list[tuple[float, float, float, float, float, float]]:
         """(x, y, angle, vx, vy, w) of every link's frame at the proxy's state (the last ProxyState):
@@ -317,10 +297,7 @@ class PymunkEngine(Engine):
         return out
 
     def set_epsilon(self, epsilon_m: float) -> None:
-        epsilon_m = float(epsilon_m)
-        if not (math.isfinite(epsilon_m) and epsilon_m >= 0):
-            raise ValueError(f"epsilon_m: must be a finite number >= 0, got {epsilon_m!r}")
-        self._eps = epsilon_m
+        self._eps = epsilon_m = checked_epsilon(epsilon_m)
         if self.space is not None and getattr(self, "_linkage", False):
             # one query shape per link; group 0 so the other links' shapes are found too
             self._queries = []
@@ -347,9 +324,7 @@ class PymunkEngine(Engine):
         return self._t
 
     def step(self, dt_s: float) -> None:
-        dt_s = float(dt_s)
-        if not (math.isfinite(dt_s) and dt_s > 0):
-            raise ValueError(f"dt_s: must be a finite number > 0, got {dt_s!r}")
+        dt_s = checked_step(dt_s)
         targets = self.link_targets() if self._linkage else [self._target]
         bodies = self.links if self._linkage else [self.tool]
         controls = self.controls if self._linkage else [self.control]

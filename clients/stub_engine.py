@@ -40,7 +40,7 @@ import random
 import numpy as np
 
 from .contacts import FACE_VERTEX, VERTEX_FACE, VERTEX_VERTEX, feature_id, fill_planar, reduce_contacts
-from .engine import ContactBuffer, Engine, SceneInfo, ToolDescription
+from .engine import ContactBuffer, Engine, SceneInfo, ToolDescription, checked_epsilon, checked_step
 from .geometry import planar_pose, planar_state, wrap_angle
 from .scenes import TOOL_IZZ_KG_M2, TOOL_LENGTH_M, TOOL_MASS_KG, TOOL_WIDTH_M, Box, HalfPlane, scene
 
@@ -228,10 +228,7 @@ class StubEngine(Engine):
         return SceneInfo(name, tool, env_rate_hz=self._rate_hz, facts=facts)
 
     def set_epsilon(self, epsilon_m: float) -> None:
-        epsilon_m = float(epsilon_m)
-        if not (math.isfinite(epsilon_m) and epsilon_m >= 0):
-            raise ValueError(f"epsilon_m: must be a finite number >= 0, got {epsilon_m!r}")
-        self._eps = epsilon_m
+        self._eps = checked_epsilon(epsilon_m)
 
     def next_step_s(self) -> float:
         lo, hi = self.rate_range_hz
@@ -253,9 +250,7 @@ class StubEngine(Engine):
         return self._t
 
     def step(self, dt_s: float) -> None:
-        dt_s = float(dt_s)
-        if not (math.isfinite(dt_s) and dt_s > 0):
-            raise ValueError(f"dt_s: must be a finite number > 0, got {dt_s!r}")
+        dt_s = checked_step(dt_s)
         q0, v0, t0 = list(self._q), list(self._v), self._t
         motion = self._substep(dt_s)
         n = 1

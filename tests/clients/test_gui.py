@@ -165,33 +165,15 @@ def test_the_window_follows_a_session_in_simulated_time(window_engine):
 
 
 # ------------------------------------------------------------------------------ pybullet GUI
-@pytest.fixture
-def bullet():
-    pytest.importorskip("pybullet")
-    from hapticproxy.clients.pybullet_engine import PybulletEngine
-
-    made = []
-
-    def make(scene):
-        e = PybulletEngine()
-        made.append(e)
-        e.load_scene(scene)
-        return e
-
-    yield make
-    for e in made:
-        e.close()
-
-
 @pytest.mark.parametrize("scene", ["peg", "loose"])
-def test_the_camera_frames_the_scene(bullet, scene):
+def test_the_camera_frames_the_scene(make_pybullet, scene):
     """Every corner of the scene's bodies (the floor aside) projects inside the view, and the
     scene fills a good part of it; pybullet's default camera (5 m away) showed a few pixels."""
     import pybullet as p
 
     from hapticproxy.clients.pybullet_gui import camera_matrices, frame_camera, project, scene_bounds
 
-    e = bullet(scene)
+    e = make_pybullet(scene)
     bodies = [b for n, b in e.scene_info.facts["body_ids"].items() if n != "floor"]
     lo, hi = scene_bounds(e.client_id, bodies)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
@@ -206,12 +188,12 @@ def test_the_camera_frames_the_scene(bullet, scene):
     assert p.isConnected(physicsClientId=e.client_id)
 
 
-def test_the_view_puts_the_ghost_at_the_proxy_and_draws_one_normal_per_contact(bullet):
+def test_the_view_puts_the_ghost_at_the_proxy_and_draws_one_normal_per_contact(make_pybullet):
     import pybullet as p
 
     from hapticproxy.clients.pybullet_gui import NORMAL_LENGTH_M, PybulletView
 
-    e = bullet("peg")
+    e = make_pybullet("peg")
     cid = e.client_id
     bodies = [b for n, b in e.scene_info.facts["body_ids"].items() if n != "floor"]
     view = PybulletView(cid, bodies, ghost_boxes=[(0.01, 0.01, 0.03)])
@@ -239,7 +221,6 @@ def test_the_view_puts_the_ghost_at_the_proxy_and_draws_one_normal_per_contact(b
     # the ghost never becomes a contact, even where it overlaps the tool and the block
     from hapticproxy.clients.engine import ContactBuffer
 
-    e.set_epsilon(EPS)
     e.reset_tool_pose(np.array([0.0, 0.0, 0.041 + 0.03, 1.0, 0.0, 0.0, 0.0]))  # 1 mm above the block
     vs.proxy_pose = e.tool_pose(np.zeros(7)).copy()
     vs.proxy_pose[2] -= 0.002

@@ -26,20 +26,8 @@ BLOCK_FACE_X = 0.05  # the block's +x outer face
 
 
 @pytest.fixture
-def make_engine():
-    made = []
-
-    def make(scene: str | None = None, epsilon_m: float = EPS, **kw) -> PybulletEngine:
-        e = PybulletEngine(**kw)
-        made.append(e)
-        if scene is not None:
-            e.load_scene(scene)
-            e.set_epsilon(epsilon_m)
-        return e
-
-    yield make
-    for e in made:
-        e.close()
+def make_engine(make_pybullet):
+    return make_pybullet
 
 
 def pose(x, y, z, q=(1.0, 0.0, 0.0, 0.0)):
