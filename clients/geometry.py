@@ -99,8 +99,8 @@ def quat_normalised(q) -> tuple[float, float, float, float]:
 
 def quat_angle(q0, q1) -> float:
     """Angle [rad, 0..pi] of the rotation from ``q0`` to ``q1`` (either sign of either)."""
-    dot = abs(sum(float(a) * float(b) for a, b in zip(q0, q1)))
-    return 2.0 * math.acos(min(1.0, dot))
+    dot = abs(q0[0] * q1[0] + q0[1] * q1[1] + q0[2] * q1[2] + q0[3] * q1[3])
+    return 2.0 * math.acos(min(1.0, float(dot)))
 
 
 def slerp(q0, q1, frac: float) -> tuple[float, float, float, float]:

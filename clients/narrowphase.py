@@ -613,6 +613,9 @@ class BoxNarrowPhase:
     def query_into(self, buf: ContactBuffer, env, env_int, rows, m, reach_m, epsilon_m, max_contacts,
                    normal_weight_m, start: int = 0) -> tuple[int, int, int, int]:
         """:meth:`query` writing into ``buf`` from row ``start`` (``buf.n`` is left to the caller)."""
+        if start == 0:
+            return self.query(env, env_int, rows, m, reach_m, epsilon_m, max_contacts, normal_weight_m, buf.keys,
+                              buf.position_m, buf.normal, buf.separation_m, buf.v_constr_m_per_s)
         return self.query(env, env_int, rows, m, reach_m, epsilon_m, max_contacts, normal_weight_m,
                           buf.keys[start:], buf.position_m[start:], buf.normal[start:], buf.separation_m[start:],
                           buf.v_constr_m_per_s[start:])

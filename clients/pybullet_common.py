@@ -75,7 +75,7 @@ def fill_env_row(env: np.ndarray, row: int, pos, orn_xyzw, lin=None, ang=None) -
     """Write a body's pose (pybullet's quaternion order, as pybullet returns it) and velocity
     into row ``row`` of the narrow phase's environment table (protocol order)."""
     env[row, E_POS:E_POS + 3] = pos
-    env[row, E_QUAT:E_QUAT + 4] = wxyz_from_xyzw(orn_xyzw)
+    env[row, E_QUAT:E_QUAT + 4] = (orn_xyzw[3], orn_xyzw[0], orn_xyzw[1], orn_xyzw[2])  # to w x y z
     if lin is not None:
         env[row, E_LIN:E_LIN + 3] = lin
         env[row, E_ANG:E_ANG + 3] = ang
