@@ -1,6 +1,7 @@
 """``hapticproxy bench clients``: environment-client tick cost and sustained update rate.
 
-For every engine and scene (default: every registered engine whose library imports, every scene):
+For every engine and scene (default: every registered engine, built-in or installed by another
+package, whose library imports; every scene):
 
 - **tick**: one engine step + contact extraction (with clustering to the requested capacity) +
   ``ContactUpdate`` encoding, timed with ``perf_counter_ns`` over ``--ticks`` ticks after
@@ -38,12 +39,14 @@ PERIOD_S = 4.0
 
 
 def _available_engines() -> dict:
-    from hapticproxy.clients.cli import ENGINES, load_engine_class
+    """Every registered engine (``hapticproxy.engines`` entry points) whose library imports."""
+    from hapticproxy.clients.registry import engines, load_engine_class
 
+    registry = engines()
     out = {}
-    for name in ENGINES:
+    for name in registry:
         try:
-            out[name] = load_engine_class(name)
+            out[name] = load_engine_class(name, registry)
         except ValueError:
             continue
     return out

@@ -6,11 +6,13 @@ Examples::
     hapticproxy client stub --scene wall --connect 10.0.0.5:9870 --seed 7
     hapticproxy client pymunk --scene push --connect zenoh://10.0.0.5:7447/lab --gui
     hapticproxy client pybullet --list-scenes
+    hapticproxy client --list                                       # the registered engines
     hapticproxy client pymunk --scene linkage                       # a linkage tool (server: model.tool = "linkage")
     hapticproxy client pybullet-linkage --scene chain               # the URDF chain (spatial device)
 
-Engines are found by name in :data:`ENGINES` (``"module:Class"``) and imported only when chosen,
-so an engine whose library is missing does not affect the others. Exit status: 0 after a normal
+Engines are found by name in the ``hapticproxy.engines`` entry-point group (:mod:`.registry`: the
+built-ins and any installed package's) and imported only when chosen, so an engine whose library
+is missing does not affect the others. Exit status: 0 after a normal
 stop (``--duration`` over, Ctrl-C / SIGTERM, or the session ended with ``--no-reconnect``), 1
 when the server refused the session or could not be reached within ``--connect-timeout``, 2 for
 bad arguments; every failure is one line on stderr, never a traceback.
@@ -18,7 +20,6 @@ bad arguments; every failure is one line on stderr, never a traceback.
 from __future__ import annotations
 
 import argparse
-import importlib
 import importlib.util
 import inspect
 import json
@@ -27,18 +28,10 @@ import signal
 import sys
 import threading
 
-__all__ = ["ENGINES", "load_engine_class", "main"]
+from .registry import availability, engines, load_engine_class
 
-#: engine name -> "module:Class" (modules relative to this package)
-ENGINES: dict[str, str] = {
-    "pymunk": "hapticproxy.clients.pymunk_engine:PymunkEngine",
-    "pybullet": "hapticproxy.clients.pybullet_engine:PybulletEngine",
-    "stub": "hapticproxy.clients.stub_engine:StubEngine",
-    "peg1d": "hapticproxy.clients.peg_engine:PegEngine",
-    "pybullet-linkage": "hapticproxy.clients.pybullet_linkage:PybulletLinkageEngine",
-}
-#: library each engine module needs (for a clear message when it is missing)
-_ENGINE_LIBRARIES = {"pymunk": "pymunk", "pybullet": "pybullet", "pybullet-linkage": "pybullet"}
+__all__ = ["load_engine_class", "main"]
+
 PROG = "hapticproxy client"
 
 
@@ -51,29 +44,11 @@ class _Parser(argparse.ArgumentParser):
         raise _UsageError(message)
 
 
-def load_engine_class(name: str):
-    """The engine class registered as ``name``; ``ValueError`` (one line) if unknown or unavailable."""
-    if name not in ENGINES:
-        raise ValueError(f"unknown engine {name!r}; choose one of: {', '.join(ENGINES)}")
-    module_name, _, cls_name = ENGINES[name].partition(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as exc:
-        missing = exc.name or ""
-        if module_name.startswith(missing) and missing:
-            raise ValueError(f"engine {name!r} is not available in this build ({module_name} is missing)") from None
-        lib = _ENGINE_LIBRARIES.get(name)
-        raise ValueError(f"engine {name!r} needs the {missing or lib!r} package, which is not installed") from None
-    cls = getattr(module, cls_name, None)
-    if cls is None:
-        raise ValueError(f"engine {name!r}: {module_name} has no class {cls_name}")
-    return cls
-
-
 def _parser() -> argparse.ArgumentParser:
     p = _Parser(prog=PROG, description="Run an environment client (physics engine) against a haptics server.",
                 epilog="Units are SI: --epsilon is in metres (0.005 = 5 mm).")
-    p.add_argument("engine", help="engine: " + ", ".join(ENGINES))
+    p.add_argument("engine", nargs="?", help="engine name (see --list)")
+    p.add_argument("--list", action="store_true", help="print the registered engines (built-in and installed) and exit")
     p.add_argument("--scene", default=None, help="scene name (see --list-scenes; default: the engine's first)")
     p.add_argument("--connect", "--server", dest="connect", default="udp://127.0.0.1:9870",
                    help="server transport URL (udp://HOST:PORT, zenoh://HOST:PORT/SESSION, mem://NAME) or HOST:PORT "
@@ -84,7 +59,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--max-contacts", type=int, default=16, help="contact capacity to request (default 16)")
     p.add_argument("--rate", type=float, default=None, help="fixed engine step rate [Hz] (engines with a fixed rate)")
     p.add_argument("--seed", type=int, default=None, help="random seed (stub: its variable step rate)")
-    p.add_argument("--gui", action="store_true", help="live window (pymunk; needs pygame: pip install 'hapticproxy[gui]')")
+    p.add_argument("--gui", action="store_true", help="live window (pymunk: pygame, pip install 'hapticproxy[gui]'; pybullet: its own)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: run until Ctrl-C)")
     p.add_argument("--connect-timeout", type=float, default=10.0,
                    help="give up if no session opens within this many seconds (default 10)")
@@ -141,6 +116,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except SystemExit as exc:  # --help
         return int(exc.code or 0)
+    if args.list:
+        return _list(args.json)
+    if args.engine is None:
+        print(f"{PROG}: the following arguments are required: engine (see --list)", file=sys.stderr)
+        return 2
     try:
         _check_numbers(args)
         cls = load_engine_class(args.engine)
@@ -157,8 +137,9 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"unknown scene {args.scene!r} for engine {args.engine}; choose one of: "
                              f"{', '.join(cls.scenes())}")
         kwargs = _engine_kwargs(cls, args)
-        if args.gui and importlib.util.find_spec("pygame") is None:
-            raise ValueError("--gui needs pygame, which is not installed (pip install 'hapticproxy[gui]')")
+        for package in getattr(cls, "gui_packages", ()) if args.gui else ():
+            if importlib.util.find_spec(package) is None:
+                raise ValueError(f"--gui needs {package}, which is not installed (pip install 'hapticproxy[gui]')")
         url = _url(args.connect, args.transport)
         from hapticproxy.protocol.session import load_hmac_key
 
@@ -170,6 +151,29 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
     return _run(cls, kwargs, url, key, args)
+
+
+def _list(as_json: bool) -> int:
+    """One line per registered engine: name, where it comes from, and whether it loads here."""
+    registry = engines()
+    rows = []
+    for name, entry in registry.items():
+        why = availability(name, registry)
+        scenes = [] if why else list(load_engine_class(name, registry).scenes())
+        rows.append({"name": name, "target": entry.target, "package": entry.package, "builtin": entry.builtin,
+                     "available": not why, "reason": why, "scenes": scenes, "ignored": list(entry.ignored)})
+    if as_json:
+        print(json.dumps(rows, sort_keys=True))
+        return 0
+    width = max((len(r["name"]) for r in rows), default=4)
+    for r in rows:
+        status = f"scenes: {', '.join(r['scenes'])}" if r["available"] else f"not available: {r['reason']}"
+        print(f"{r['name']:<{width}}  {r['target']}  ({r['package'] or 'unknown package'})  {status}")
+        for other in r["ignored"]:
+            print(f"{'':<{width}}  ignored, the name is taken: {other}")
+    if not rows:
+        print("no engines registered (is hapticproxy installed? pip install -e .)")
+    return 0
 
 
 def _run(cls, kwargs: dict, url: str, key, args) -> int:

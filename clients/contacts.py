@@ -1,4 +1,5 @@
-"""Shared contact helpers of the environment clients: feature keys, planar poses, clustering.
+"""Shared contact helpers of the environment clients: feature keys, clustering (poses and
+quaternions: :mod:`.geometry`).
 
 Feature ids (the third int64 of a contact key) name the *pair of features* in contact, so that a
 contact keeps its key across steps while the same two features touch::
@@ -21,8 +22,6 @@ contact of all is always kept and no synthetic contact is ever invented.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from .engine import ContactBuffer
@@ -32,8 +31,6 @@ FACE_VERTEX = 2
 VERTEX_VERTEX = 3
 FACE_FACE = 4
 EDGE_EDGE = 5  # 3-D engines (pybullet): a tool edge against an environment edge
-KIND_NAMES = {VERTEX_FACE: "vertex-face", FACE_VERTEX: "face-vertex", VERTEX_VERTEX: "vertex-vertex",
-              FACE_FACE: "face-face", EDGE_EDGE: "edge-edge"}
 
 
 def feature_id(kind: int, tool_feature: int, env_feature: int) -> int:
@@ -45,33 +42,6 @@ def split_feature(feature: int) -> tuple[int, int, int]:
     """Inverse of :func:`feature_id`: ``(kind, tool_feature, env_feature)``."""
     feature = int(feature)
     return feature >> 32, (feature >> 16) & 0xFFFF, feature & 0xFFFF
-
-
-# ------------------------------------------------------------------------- planar poses
-def planar_pose(x: float, y: float, angle_rad: float, out: np.ndarray) -> np.ndarray:
-    """Fill ``out`` (7,) with the pose of a planar tool: x y 0, rotation ``angle_rad`` about +z."""
-    half = 0.5 * angle_rad
-    out[0] = x
-    out[1] = y
-    out[2] = 0.0
-    out[3] = math.cos(half)
-    out[4] = 0.0
-    out[5] = 0.0
-    out[6] = math.sin(half)
-    return out
-
-
-def planar_angle(pose) -> float:
-    """Rotation about +z [rad] of a pose (x y z qw qx qy qz) of a planar tool, in (-pi, pi]."""
-    return wrap_angle(2.0 * math.atan2(float(pose[6]), float(pose[3])))
-
-
-def wrap_angle(a: float) -> float:
-    """``a`` wrapped into (-pi, pi]."""
-    a = math.fmod(a + math.pi, 2.0 * math.pi)
-    if a <= 0.0:
-        a += 2.0 * math.pi
-    return a - math.pi
 
 
 # ----------------------------------------------------------------------------- clustering

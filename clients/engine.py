@@ -11,6 +11,7 @@ tool; ``separation_m`` is the *real* tool's separation (``s_eps + epsilon``), po
 from __future__ import annotations
 
 import abc
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -18,6 +19,31 @@ import numpy as np
 
 #: Joint types of a linkage link (the protocol's JointType values).
 from hapticproxy.protocol.vocab import JOINT_TYPES_BY_NAME as JOINT_TYPES  # noqa: E402
+
+
+def checked_epsilon(epsilon_m) -> float:
+    """``epsilon_m`` [m] as a float; ``ValueError`` naming it unless finite and >= 0 (what every
+    ``Engine.set_epsilon`` accepts)."""
+    eps = float(epsilon_m)
+    if not (math.isfinite(eps) and eps >= 0.0):
+        raise ValueError(f"epsilon_m: must be a finite number >= 0, got {epsilon_m!r}")
+    return eps
+
+
+def checked_step(dt_s) -> float:
+    """``dt_s`` [s] as a float; ``ValueError`` naming it unless finite and > 0 (what every
+    ``Engine.step`` accepts)."""
+    dt = float(dt_s)
+    if not (math.isfinite(dt) and dt > 0.0):
+        raise ValueError(f"dt_s: must be a finite number > 0, got {dt_s!r}")
+    return dt
+
+
+def checked_positive(**values) -> None:
+    """``ValueError`` naming the first argument that is not a finite number > 0 (engines' settings)."""
+    for name, v in values.items():
+        if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
+            raise ValueError(f"{name}: must be a finite number > 0, got {v!r}")
 
 
 @dataclass(frozen=True)
@@ -96,6 +122,9 @@ class Engine(abc.ABC):
 
     #: engine name and version for Hello.engine, e.g. "pymunk 7.3.1"
     name: str = "engine"
+    #: the same constructor arguments (seed) and the same calls give bit-identical results (the
+    #: contract suite checks an engine that says so)
+    deterministic: bool = False
 
     @classmethod
     @abc.abstractmethod
@@ -108,7 +137,8 @@ class Engine(abc.ABC):
 
     @abc.abstractmethod
     def set_epsilon(self, epsilon_m: float) -> None:
-        """Inflate the tool by a sphere of this radius for contact queries (the granted epsilon)."""
+        """Inflate the tool by a sphere of this radius for contact queries (the granted epsilon);
+        ``ValueError`` for a negative or non-finite one (:func:`checked_epsilon`)."""
 
     def next_step_s(self) -> float | None:
         """Length [s] of the next step when the engine chooses it (variable-rate engines draw it
@@ -117,13 +147,15 @@ class Engine(abc.ABC):
 
     @abc.abstractmethod
     def step(self, dt_s: float) -> None:
-        """Advance the world by ``dt_s`` (the engine's own, possibly variable, step)."""
+        """Advance the world by ``dt_s`` (the engine's own, possibly variable, step; :func:`checked_step`)."""
 
     @abc.abstractmethod
     def drive_tool(self, proxy_pose: np.ndarray, proxy_twist: np.ndarray, wrench: np.ndarray) -> None:
         """Make the engine's tool follow the proxy (pose (7,), twist (6,), world frame) without
         tunnelling or injecting energy; ``wrench`` (6,) is what the server says acts on the tool.
-        A linkage: the root link's frame (``drive_joints`` came first with the joints)."""
+        A linkage: the root link's frame (``drive_joints`` came first with the joints). Driven to
+        its own ``tool_pose`` with zero twist, the tool stays where it is (the runner holds it so
+        while the server does not render the proxy)."""
 
     def drive_joints(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray) -> None:
         """A linkage engine: the proxy's joint positions, rates and efforts (links 1..L-1), given

@@ -22,12 +22,14 @@ import math
 
 import numpy as np
 
-from .engine import ContactBuffer, Engine, SceneInfo, ToolDescription
+from .engine import ContactBuffer, Engine, SceneInfo, ToolDescription, checked_epsilon, checked_step
+from .geometry import axis_coordinate, axis_pose
 
 #: the paper's Fig. 6 peg
 PEG_MASS_KG = 1.0
 #: half-width of the peg and the hole [m]
 PEG_HALF_WIDTH_M = 0.01
+_AXIS = (1.0, 0.0, 0.0)
 SCENES = {"peg1d": "a 1-DOF peg (1 kg) exactly fitting a hole: both walls touch it at x = 0 (the paper's Figs. 5, 6, 9)"}
 
 
@@ -35,6 +37,7 @@ class PegEngine(Engine):
     """The 1-DOF peg-in-hole environment (see the module docstring)."""
 
     name = "hapticproxy-peg1d 1"
+    deterministic = True
 
     def __init__(self, rate_hz: float = 50.0, *, mass_kg: float = PEG_MASS_KG) -> None:
         rate_hz = float(rate_hz)
@@ -62,36 +65,28 @@ class PegEngine(Engine):
         self._x = self._target = self._t = 0.0
         self.steps = 0
         self._loaded = True
-        tool = ToolDescription("1dof", self.mass_kg, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0, 0.0, 0.0), axis=(1.0, 0.0, 0.0))
+        tool = ToolDescription("1dof", self.mass_kg, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0, 0.0, 0.0), axis=_AXIS)
         return SceneInfo(name, tool, env_rate_hz=self.rate_hz,
                          facts={"half_width_m": PEG_HALF_WIDTH_M, "walls": "left x = -w (normal +x), right x = +w (normal -x)",
                                 "description": SCENES[name]})
 
     def set_epsilon(self, epsilon_m: float) -> None:
-        epsilon_m = float(epsilon_m)
-        if not (math.isfinite(epsilon_m) and epsilon_m >= 0):
-            raise ValueError(f"epsilon_m: must be a finite number >= 0, got {epsilon_m!r}")
-        self._eps = epsilon_m
+        self._eps = checked_epsilon(epsilon_m)
 
     def drive_tool(self, proxy_pose: np.ndarray, proxy_twist: np.ndarray, wrench: np.ndarray) -> None:
-        x = float(proxy_pose[0])
+        x = axis_coordinate(proxy_pose, _AXIS)
         if math.isfinite(x):  # a non-finite pose never reaches the geometry (the server never sends one)
             self._target = x
 
     def tool_pose(self, out: np.ndarray) -> np.ndarray:
-        out[:] = 0.0
-        out[0] = self._x
-        out[3] = 1.0
-        return out
+        return axis_pose(self._x, _AXIS, out)
 
     @property
     def time_s(self) -> float:
         return self._t
 
     def step(self, dt_s: float) -> None:
-        dt_s = float(dt_s)
-        if not (math.isfinite(dt_s) and dt_s > 0):
-            raise ValueError(f"dt_s: must be a finite number > 0, got {dt_s!r}")
+        dt_s = checked_step(dt_s)
         if not self._loaded:
             raise RuntimeError("load_scene first")
         self._x = self._target

@@ -16,33 +16,37 @@ ProxyState's ``proxy_pose`` are the root (base) link's frame; joint positions ar
 joint angles in link order. pybullet reports a base's pose at its centre of mass and a joint
 origin relative to the parent's centre-of-mass frame; both are converted here.
 
-Driving (like :mod:`.pybullet_engine`'s peg, per link): the base follows the proxy's root pose
-through a force-bounded ``JOINT_FIXED`` constraint whose set-point leads by at most one step at
-``max_speed_m_per_s`` / ``max_angular_speed_rad_per_s``; each joint follows the proxy's joint
+Driving (like :mod:`.pybullet_engine`'s peg): the base follows the proxy's root pose through
+:class:`.pybullet_common.PoseDrive` (a force-bounded ``JOINT_FIXED`` constraint whose set-point leads by at most one step at
+``max_speed_m_per_s`` / ``max_angular_speed_rad_per_s``); each joint follows the proxy's joint
 position and rate with a force-bounded position motor (``max_joint_effort``). The chain is
 weightless in the engine (``m g`` upwards at every link's COM): the haptic force comes from the
 server's model. No self-collision in the engine: the proxy keeps its links apart.
 
-Contacts: every link is a box, so :mod:`.pybullet_engine`'s exact kernel (vertex-face,
+Contacts: every link is a box, so :mod:`.narrowphase`'s exact kernel (vertex-face,
 face-vertex and edge-edge features within epsilon, the static-corner filter) runs once per link
 against the boxes and spheres near it; the other links of the chain, except its neighbours
 (which share a joint), are candidates too: a self-contact is found from both links, so it arrives
 as two contacts, one on each link, the other link as the environment body (id
 ``SELF_BODY_BASE + link``, its velocity for ``v_constr``). Keys are ``(link, body, feature)``.
 Above the granted count all links' contacts are clustered together (``contacts.reduce_contacts``).
+
+GUI (``gui=True``): :mod:`.pybullet_gui` frames the chain and the block, draws the proxy as a
+ghost copy of the URDF at the ProxyState's root pose and joints, and the contact normals.
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 import pybullet as p
 
 from .contacts import reduce_contacts
-from .engine import ContactBuffer, Engine, LinkDescription, SceneInfo, ToolDescription
-from .pybullet_engine import (_E_ANG, _E_COLS, _E_HALF, _E_LIN, _E_POS, _E_QUAT, _GRAVITY_M_PER_S2, _KIND_BOX,
-                              _PYBULLET_VERSION, _RAW_CAPACITY, _W_ROWS, _contacts_kernel, _slerp_xyzw)
+from .engine import ContactBuffer, LinkDescription, SceneInfo, ToolDescription, checked_positive, checked_step
+from .geometry import IDENTITY_WXYZ, compose, inverse, quat_to_matrix, wxyz_from_xyzw
+from .narrowphase import E_HALF, KIND_BOX, RAW_CAPACITY, BoxNarrowPhase, env_table
+from .pybullet_common import (GRAVITY_M_PER_S2, PYBULLET_VERSION, PoseDrive, PybulletBase, connect, fill_env_row,
+                              make_box, reset_world, show_world)
 
 __all__ = ["PybulletLinkageEngine", "links_from_body", "DEFAULT_URDF", "SELF_BODY_BASE"]
 
@@ -51,33 +55,6 @@ DEFAULT_URDF = Path(__file__).with_name("urdf") / "chain.urdf"
 #: env_body id of a tool link seen by another link's contact query: this + link index
 SELF_BODY_BASE = 1000
 _JOINT_NAMES = {p.JOINT_REVOLUTE: "revolute", p.JOINT_PRISMATIC: "prismatic"}
-
-
-def _qmul(a, b):
-    """Quaternion product (x, y, z, w order, pybullet's)."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return (aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz)
-
-
-def _qrot(q, v):
-    """Rotate v by the unit quaternion q (x, y, z, w)."""
-    x, y, z, w = q
-    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-    return R @ np.asarray(v, dtype=float)
-
-
-def _compose(pa, qa, pb, qb):
-    """(pa, qa) * (pb, qb): frame b given in frame a, returned in a's parent."""
-    return tuple(np.asarray(pa, dtype=float) + _qrot(qa, pb)), _qmul(qa, qb)
-
-
-def _inverse(pa, qa):
-    qi = (-qa[0], -qa[1], -qa[2], qa[3])
-    return tuple(-_qrot(qi, pa)), qi
 
 
 def links_from_body(body: int, client_id: int) -> list[LinkDescription]:
@@ -89,8 +66,8 @@ def links_from_body(body: int, client_id: int) -> list[LinkDescription]:
     joint other than revolute or prismatic (a fixed joint: merge the links in the URDF)."""
     def inertial(link):
         info = p.getDynamicsInfo(body, link, physicsClientId=client_id)
-        mass, diag, pos, orn = info[0], info[2], info[3], info[4]
-        R = np.array(p.getMatrixFromQuaternion(orn)).reshape(3, 3)
+        mass, diag, pos, orn = info[0], info[2], info[3], wxyz_from_xyzw(info[4])
+        R = quat_to_matrix(orn)
         I = R @ np.diag(diag) @ R.T
         return mass, tuple(pos), orn, (I[0, 0], I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2])
 
@@ -99,18 +76,18 @@ def links_from_body(body: int, client_id: int) -> list[LinkDescription]:
     out = [LinkDescription(mass, com, inertia)]
     for j in range(p.getNumJoints(body, physicsClientId=client_id)):
         info = p.getJointInfo(body, j, physicsClientId=client_id)
-        jtype, axis, ppos, porn, parent = info[2], info[13], info[14], info[15], info[16]
+        jtype, axis, ppos, porn, parent = info[2], info[13], info[14], wxyz_from_xyzw(info[15]), info[16]
         if jtype not in _JOINT_NAMES:
             raise ValueError(f"joint {info[1].decode()!r}: type {jtype} is not revolute or prismatic")
         mass, com, com_orn, inertia = inertial(j)
         frames[j] = (com, com_orn)
-        origin_p, origin_q = _compose(*frames[parent], ppos, porn)
+        origin_p, origin_q = compose(*frames[parent], ppos, porn)
         out.append(LinkDescription(mass, com, inertia, parent + 1, _JOINT_NAMES[jtype], tuple(axis),
-                                   tuple(origin_p) + (origin_q[3], origin_q[0], origin_q[1], origin_q[2])))
+                                   tuple(origin_p) + tuple(origin_q)))
     return out
 
 
-class PybulletLinkageEngine(Engine):
+class PybulletLinkageEngine(PybulletBase):
     """pybullet with a URDF chain as the tool (see the module docstring).
 
     Args:
@@ -123,18 +100,15 @@ class PybulletLinkageEngine(Engine):
         max_speed_m_per_s, max_angular_speed_rad_per_s: speed bounds of the base's drive.
     """
 
-    name = f"pybullet {_PYBULLET_VERSION} (linkage)"
+    name = f"pybullet {PYBULLET_VERSION} (linkage)"
     _SCENES = ("chain",)
 
     def __init__(self, *, gui: bool = False, rate_hz: float = 500.0, urdf: str | Path = DEFAULT_URDF,
                  held_link: int | None = None, max_drive_force_n: float = 50.0, max_joint_effort: float = 2.0,
                  max_speed_m_per_s: float = 0.5, max_angular_speed_rad_per_s: float = 5.0,
                  drive_erp: float = 0.8, solver_iterations: int = 20) -> None:
-        for field, value in (("rate_hz", rate_hz), ("max_drive_force_n", max_drive_force_n),
-                             ("max_joint_effort", max_joint_effort), ("max_speed_m_per_s", max_speed_m_per_s),
-                             ("max_angular_speed_rad_per_s", max_angular_speed_rad_per_s)):
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0.0):
-                raise ValueError(f"{field}: must be finite and > 0, got {value!r}")
+        checked_positive(rate_hz=rate_hz, max_drive_force_n=max_drive_force_n, max_joint_effort=max_joint_effort,
+                         max_speed_m_per_s=max_speed_m_per_s, max_angular_speed_rad_per_s=max_angular_speed_rad_per_s)
         if not Path(urdf).is_file():
             raise ValueError(f"urdf: no such file: {urdf}")
         self.gui = bool(gui)
@@ -147,49 +121,28 @@ class PybulletLinkageEngine(Engine):
         self.drive_erp = float(drive_erp)
         self.solver_iterations = int(solver_iterations)
         self._dt = 1.0 / float(rate_hz)
-        self._cid = p.connect(p.GUI if self.gui else p.DIRECT)
-        if self._cid < 0:
-            raise RuntimeError("pybullet: could not connect a physics server")
-        self._eps = 0.0
+        self._cid = connect(self.gui)
         self._time = 0.0
         self._scene: SceneInfo | None = None
         self.contacts_found = 0
-        self._raw = ContactBuffer(_RAW_CAPACITY)
-        self._raw_i = np.zeros((_RAW_CAPACITY, 2), dtype=np.int64)
-        self._raw_f = np.zeros((_RAW_CAPACITY, 8))
-        self._scratch_d = np.zeros(_RAW_CAPACITY)
-        self._scratch_i = np.zeros(4 * _RAW_CAPACITY, dtype=np.int64)
-        self._keep = np.zeros(_RAW_CAPACITY, dtype=np.int64)
-        self._work = np.zeros((_W_ROWS, 3))
-        self._tool_arr = np.zeros(10)
+        self._raw = ContactBuffer(RAW_CAPACITY)
+        self._nph = BoxNarrowPhase()
 
     # ------------------------------------------------------------------ Engine
-    @classmethod
-    def scenes(cls) -> tuple[str, ...]:
-        return cls._SCENES
-
-    @property
-    def client_id(self) -> int:
-        return self._cid
-
-    @property
-    def tool_id(self) -> int:
-        return self._tool
-
     def load_scene(self, name: str) -> SceneInfo:
         if name not in self._SCENES:
             raise ValueError(f"scene: unknown scene {name!r}; choices: {', '.join(self._SCENES)}")
         cid = self._cid
-        p.resetSimulation(physicsClientId=cid)
-        p.setGravity(0.0, 0.0, -_GRAVITY_M_PER_S2, physicsClientId=cid)
-        p.setTimeStep(self._dt, physicsClientId=cid)
-        p.setPhysicsEngineParameter(numSolverIterations=self.solver_iterations, erp=self.drive_erp,
-                                    physicsClientId=cid)
-        env = []  # (body, half extents, dynamic)
+        if self.window is not None:
+            self.window.close()
+            self.window = None
+        reset_world(cid, self._dt, self.solver_iterations, self.drive_erp, self.gui)
+        env = []  # (body, half extents), all static
         floor_half = (0.5, 0.5, 0.025)
-        env.append((self._box(floor_half, (0.0, 0.0, -0.025)), floor_half))
+        env.append((make_box(cid, floor_half, (0.0, 0.0, -0.025), visual=self.gui), floor_half))
         block_half = (0.05, 0.15, 0.03)
-        env.append((self._box(block_half, (0.30, 0.0, 0.03)), block_half))
+        env.append((make_box(cid, block_half, (0.30, 0.0, 0.03), rgba=(0.8, 0.5, 0.2, 1.0), visual=self.gui),
+                    block_half))
         start = (-0.05, 0.0, 0.05)
         tool = p.loadURDF(str(self.urdf), list(start), flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=cid)
         self._tool = tool
@@ -211,31 +164,30 @@ class PybulletLinkageEngine(Engine):
                 raise ValueError(f"urdf: link {k}'s collision box must be centred on its inertial frame")
             p.changeDynamics(tool, k - 1, linearDamping=0.0, angularDamping=0.0, physicsClientId=cid)
         # base COM frame in the base link frame (pybullet reports the base at its COM)
-        self._base_com = (links[0].com_m, p.getDynamicsInfo(tool, -1, physicsClientId=cid)[4])
-        self._constraint = p.createConstraint(tool, -1, -1, -1, p.JOINT_FIXED, [0, 0, 0], [0, 0, 0], list(start),
-                                              physicsClientId=cid)
+        self._base_com = (links[0].com_m, wxyz_from_xyzw(p.getDynamicsInfo(tool, -1, physicsClientId=cid)[4]))
         pos, orn = p.getBasePositionAndOrientation(tool, physicsClientId=cid)
-        self._target = (tuple(pos), tuple(orn))
+        self._drive = PoseDrive(cid, tool, (start, IDENTITY_WXYZ), max_force_n=self.max_drive_force_n,
+                                erp=self.drive_erp, max_speed_m_per_s=self.max_speed_m_per_s,
+                                max_angular_speed_rad_per_s=self.max_angular_speed_rad_per_s)
+        self._drive.target = (tuple(pos), wxyz_from_xyzw(orn))
+        self._drive.apply(self._drive.target)
         self._jq_target = np.zeros(self._nj)
         self._jqd_target = np.zeros(self._nj)
-        self._apply_base_setpoint(self._target)
-        # environment table (the pybullet engine's layout) plus one row per tool link
+        # the narrow phase's environment table: the static bodies, then one row per tool link
         k = len(env) + self._nl
-        self._env = np.zeros((k, _E_COLS))
-        self._env_int = np.zeros((k, 3), dtype=np.int64)
+        self._env, self._env_int = env_table(k)
         self._row_of = {}
         for row, (body, half) in enumerate(env):
             bpos, born = p.getBasePositionAndOrientation(body, physicsClientId=cid)
-            self._env[row, _E_POS:_E_POS + 3] = bpos
-            self._env[row, _E_QUAT:_E_QUAT + 4] = born
-            self._env[row, _E_HALF:_E_HALF + 3] = half
-            self._env_int[row] = (body, _KIND_BOX, 0)
+            fill_env_row(self._env, row, bpos, born)
+            self._env[row, E_HALF:E_HALF + 3] = half
+            self._env_int[row] = (body, KIND_BOX, 0)
             self._row_of[body] = row
         self._link_row0 = len(env)
         for j in range(self._nl):
             row = self._link_row0 + j
-            self._env[row, _E_HALF:_E_HALF + 3] = self._half[j]
-            self._env_int[row] = (SELF_BODY_BASE + j, _KIND_BOX, 1)
+            self._env[row, E_HALF:E_HALF + 3] = self._half[j]
+            self._env_int[row] = (SELF_BODY_BASE + j, KIND_BOX, 1)
         self._rows = np.zeros(k, dtype=np.int64)
         self._time = 0.0
         tool_desc = ToolDescription("linkage", float(self._masses.sum()), links=tuple(links), held_link=held)
@@ -243,18 +195,12 @@ class PybulletLinkageEngine(Engine):
                  "block_centre_m": [0.30, 0.0, 0.03], "block_size_m": [0.1, 0.3, 0.06], "tool_start_m": list(start),
                  "body_ids": {"floor": env[0][0], "block": env[1][0], "tool": tool}, "time_step_s": self._dt}
         self._scene = SceneInfo(name=name, tool=tool_desc, env_rate_hz=1.0 / self._dt, facts=facts)
+        if self.gui:
+            from .pybullet_gui import PybulletView
+
+            self.window = PybulletView(cid, [env[1][0], tool], ghost_urdf=self.urdf, link_com=self._base_com)
+            show_world(cid)
         return self._scene
-
-    def _box(self, half, pos) -> int:
-        cid = self._cid
-        shape = p.createCollisionShape(p.GEOM_BOX, halfExtents=list(half), physicsClientId=cid)
-        return p.createMultiBody(0.0, shape, -1, list(pos), useMaximalCoordinates=True, physicsClientId=cid)
-
-    def set_epsilon(self, epsilon_m: float) -> None:
-        eps = float(epsilon_m)
-        if not (math.isfinite(eps) and eps >= 0.0):
-            raise ValueError(f"epsilon_m: must be finite and >= 0, got {epsilon_m!r}")
-        self._eps = eps
 
     def drive_joints(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray) -> None:
         if len(position) == 0:
@@ -270,7 +216,7 @@ class PybulletLinkageEngine(Engine):
             raise ValueError(f"proxy_pose: must be 7 finite numbers, got shape {pose.shape}")
         q = pose[3:7] / np.linalg.norm(pose[3:7])
         # the root link frame -> the base's COM frame (what the constraint holds)
-        self._target = _compose(pose[:3], (q[1], q[2], q[3], q[0]), *self._base_com)
+        self._drive.target = compose(pose[:3], q, *self._base_com)
 
     def joint_positions(self, out: np.ndarray) -> np.ndarray:
         states = p.getJointStates(self._tool, range(self._nj), physicsClientId=self._cid)
@@ -280,10 +226,9 @@ class PybulletLinkageEngine(Engine):
 
     def tool_pose(self, out: np.ndarray) -> np.ndarray:
         pos, orn = p.getBasePositionAndOrientation(self._tool, physicsClientId=self._cid)
-        lp, lq = _compose(pos, orn, *_inverse(*self._base_com))
+        lp, lq = compose(pos, wxyz_from_xyzw(orn), *inverse(*self._base_com))
         out[0:3] = lp
-        out[3] = lq[3]
-        out[4:7] = lq[0:3]
+        out[3:7] = lq
         return out
 
     @property
@@ -291,41 +236,23 @@ class PybulletLinkageEngine(Engine):
         return self._time
 
     def step(self, dt_s: float) -> None:
-        dt = float(dt_s)
-        if not (math.isfinite(dt) and dt > 0.0):
-            raise ValueError(f"dt_s: must be finite and > 0, got {dt_s!r}")
+        dt = checked_step(dt_s)
         cid = self._cid
         if dt != self._dt:
             self._dt = dt
             p.setTimeStep(dt, physicsClientId=cid)
         pos, orn = p.getBasePositionAndOrientation(self._tool, physicsClientId=cid)
-        self._apply_base_setpoint(self._lead(pos, orn, dt))
+        self._drive.apply(self._drive.lead(pos, wxyz_from_xyzw(orn), dt), force=True)
         p.setJointMotorControlArray(self._tool, range(self._nj), p.POSITION_CONTROL,
                                     targetPositions=list(self._jq_target), targetVelocities=list(self._jqd_target),
                                     forces=[self.max_joint_effort] * self._nj, physicsClientId=cid)
         # weightless in the engine: the haptic force is the server's
         for k in range(self._nl):
             com = pos if k == 0 else p.getLinkState(self._tool, k - 1, physicsClientId=cid)[0]
-            p.applyExternalForce(self._tool, k - 1, (0.0, 0.0, self._masses[k] * _GRAVITY_M_PER_S2), com,
+            p.applyExternalForce(self._tool, k - 1, (0.0, 0.0, self._masses[k] * GRAVITY_M_PER_S2), com,
                                  p.WORLD_FRAME, physicsClientId=cid)
         p.stepSimulation(physicsClientId=cid)
         self._time += dt
-
-    def _lead(self, pos, orn, dt):
-        tpos, torn = self._target
-        lead = self.max_speed_m_per_s * dt / self.drive_erp
-        delta = np.asarray(tpos) - np.asarray(pos)
-        dist = float(np.linalg.norm(delta))
-        spos = tuple(np.asarray(pos) + delta * (lead / dist)) if dist > lead else tuple(tpos)
-        dot = abs(sum(a * b for a, b in zip(orn, torn)))
-        angle = 2.0 * math.acos(min(1.0, dot))
-        lead_rad = self.max_angular_speed_rad_per_s * dt / self.drive_erp
-        sorn = _slerp_xyzw(orn, torn, lead_rad / angle) if angle > lead_rad else tuple(torn)
-        return spos, sorn
-
-    def _apply_base_setpoint(self, setpoint) -> None:
-        p.changeConstraint(self._constraint, list(setpoint[0]), jointChildFrameOrientation=list(setpoint[1]),
-                           maxForce=self.max_drive_force_n, physicsClientId=self._cid)
 
     def contacts(self, buf: ContactBuffer, max_contacts: int) -> int:
         if not 1 <= max_contacts <= buf.capacity:
@@ -339,19 +266,13 @@ class PybulletLinkageEngine(Engine):
             s = p.getLinkState(tool, j, computeLinkVelocity=1, physicsClientId=cid)
             states.append((s[0], s[1], s[6], s[7]))
         for k, (pos, orn, lin, ang) in enumerate(states):
-            row = self._link_row0 + k
-            env[row, _E_POS:_E_POS + 3] = pos
-            env[row, _E_QUAT:_E_QUAT + 4] = orn
-            env[row, _E_LIN:_E_LIN + 3] = lin
-            env[row, _E_ANG:_E_ANG + 3] = ang
+            fill_env_row(env, self._link_row0 + k, pos, orn, lin, ang)
         raw = self._raw
         n = 0
-        eps = self._eps
+        eps = self._epsilon
+        nph = self._nph
         for k, (pos, orn, _lin, _ang) in enumerate(states):
-            t = self._tool_arr
-            t[0:3] = pos
-            t[3:7] = orn
-            t[7:10] = self._half[k]
+            nph.set_tool(pos, wxyz_from_xyzw(orn), self._half[k])
             r = float(np.linalg.norm(self._half[k])) + eps
             m = 0
             for body, _link in p.getOverlappingObjects([pos[i] - r for i in range(3)], [pos[i] + r for i in range(3)],
@@ -367,10 +288,7 @@ class PybulletLinkageEngine(Engine):
             cap = raw.capacity - n
             if cap <= 0:
                 break
-            got, _active, _raw_n, _ovf = _contacts_kernel(
-                t, env, env_int, self._rows, m, eps, eps, cap, 0.1, self._raw_i, self._raw_f, self._scratch_d,
-                self._scratch_i, self._keep, self._work, raw.keys[n:], raw.position_m[n:], raw.normal[n:],
-                raw.separation_m[n:], raw.v_constr_m_per_s[n:])
+            got, _active, _raw_n, _ovf = nph.query_into(raw, env, env_int, self._rows, m, eps, eps, cap, 0.1, start=n)
             raw.keys[n:n + got, 0] = k
             n += got
         raw.n = n
@@ -390,24 +308,7 @@ class PybulletLinkageEngine(Engine):
         out.append((pose[:3].copy(), pose[3:7].copy()))
         for j in range(self._nj):
             s = p.getLinkState(self._tool, j, computeForwardKinematics=1, physicsClientId=cid)
-            com_p, com_q = s[0], s[1]
-            lp, lq = _compose(com_p, com_q, *_inverse(s[2], s[3]))
-            out.append((np.asarray(lp), np.array([lq[3], lq[0], lq[1], lq[2]])))
+            lp, lq = compose(s[0], wxyz_from_xyzw(s[1]), *inverse(s[2], wxyz_from_xyzw(s[3])))
+            out.append((np.asarray(lp), np.asarray(lq)))
         return out
 
-    def warm_up(self) -> None:
-        buf = ContactBuffer(1)
-        env = np.zeros((1, _E_COLS))
-        env[0, _E_QUAT:_E_QUAT + 4] = (0, 0, 0, 1)
-        env[0, _E_HALF:_E_HALF + 3] = (0.5, 0.5, 0.5)
-        _contacts_kernel(np.array([0, 0, 1, 0, 0, 0, 1, 0.01, 0.01, 0.01]), env,
-                         np.array([[0, _KIND_BOX, 0]], dtype=np.int64), np.zeros(1, dtype=np.int64), 1, 0.0, 0.0, 1,
-                         0.01, self._raw_i, self._raw_f, self._scratch_d, self._scratch_i, self._keep, self._work,
-                         buf.keys, buf.position_m, buf.normal, buf.separation_m, buf.v_constr_m_per_s)
-
-    def close(self) -> None:
-        if self._cid >= 0:
-            try:
-                p.disconnect(physicsClientId=self._cid)
-            finally:
-                self._cid = -1

@@ -40,6 +40,10 @@ for ``v_constr``), and the other link's query reports the mirror contact, so eac
 arrives as two contacts, one on each link. Links do not collide with each other in the engine
 (one group): the proxy keeps them apart and the drive makes the engine follow. The ContactUpdate
 carries the engine's joint positions (``joint_positions``).
+
+**GUI** (``gui=True``, needs pygame): :class:`.gui.PymunkWindow` opens with the scene; the runner
+draws the session into it (``window.update(runner)``: the proxy's ghost, the force on the hand,
+the epsilon band, the contacts, the server state).
 """
 from __future__ import annotations
 
@@ -48,9 +52,10 @@ import math
 import numpy as np
 import pymunk
 
-from .contacts import (FACE_FACE, FACE_VERTEX, VERTEX_FACE, VERTEX_VERTEX, feature_id, fill_planar, planar_angle,
-                       planar_pose, reduce_contacts)
-from .engine import ContactBuffer, Engine, LinkDescription, SceneInfo, ToolDescription
+from .contacts import FACE_FACE, FACE_VERTEX, VERTEX_FACE, VERTEX_VERTEX, feature_id, fill_planar, reduce_contacts
+from .engine import (ContactBuffer, Engine, LinkDescription, SceneInfo, ToolDescription, checked_epsilon,
+                     checked_positive, checked_step)
+from .geometry import planar_chain, planar_pose, planar_state, wrap_angle
 from .scenes import (LINK_COUNT, LINK_IZZ_KG_M2, LINK_LENGTH_M, LINK_MASS_KG, LINK_WIDTH_M, TOOL_IZZ_KG_M2,
                      TOOL_LENGTH_M, TOOL_MASS_KG, TOOL_WIDTH_M, Box, HalfPlane, scene)
 
@@ -116,14 +121,16 @@ class PymunkEngine(Engine):
     """pymunk 7 world with the peg as the tool (see the module docstring)."""
 
     name = f"pymunk {pymunk.version}"
+    #: Chipmunk steps the same calls to the same results
+    deterministic = True
+    #: what ``--gui`` needs (the CLI checks before it starts)
+    gui_packages = ("pygame",)
 
     def __init__(self, rate_hz: float = 60.0, *, substeps: int = 2, max_speed_m_per_s: float = 0.3,
                  max_force_n: float = 40.0, max_torque_n_m: float = 1.0, max_spin_rad_per_s: float = 6.0,
                  use_wrench: bool = False, gui: bool = False) -> None:
-        for nm, v in (("rate_hz", rate_hz), ("max_speed_m_per_s", max_speed_m_per_s), ("max_force_n", max_force_n),
-                      ("max_torque_n_m", max_torque_n_m), ("max_spin_rad_per_s", max_spin_rad_per_s)):
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{nm}: must be a finite number > 0, got {v!r}")
+        checked_positive(rate_hz=rate_hz, max_speed_m_per_s=max_speed_m_per_s, max_force_n=max_force_n,
+                         max_torque_n_m=max_torque_n_m, max_spin_rad_per_s=max_spin_rad_per_s)
         if not (isinstance(substeps, int) and 1 <= substeps <= 100):
             raise ValueError(f"substeps: must be an int in 1..100, got {substeps!r}")
         self.rate_hz = float(rate_hz)
@@ -190,20 +197,15 @@ class PymunkEngine(Engine):
         tool_shape.friction = 0.5
         tool_shape.elasticity = 0.0
         tool_shape.filter = pymunk.ShapeFilter(group=_TOOL_GROUP)
-        control = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
-        control.position = (x, y)
-        control.angle = th
-        pivot = pymunk.PivotJoint(control, tool, (0.0, 0.0), (0.0, 0.0))
-        pivot.max_bias = self.max_speed_m_per_s
-        pivot.max_force = self.max_force_n
-        pivot.error_bias = (1.0 - 0.3) ** 60.0  # 30 % of the error per 1/60 s
-        gear = pymunk.GearJoint(control, tool, 0.0, 1.0)
-        gear.max_bias = self.max_spin_rad_per_s
-        gear.max_force = self.max_torque_n_m
-        gear.error_bias = (1.0 - 0.3) ** 60.0
-        space.add(tool, tool_shape, control, pivot, gear)
+        space.add(tool, tool_shape)
+        control = self._drive(space, tool, x, y, th)
         self.space, self.tool, self.tool_shape, self.control = space, tool, tool_shape, control
         self._target = (x, y, th, 0.0, 0.0, 0.0)
+        info_tool = ToolDescription("planar", TOOL_MASS_KG, (0.0, 0.0, 0.0), (0.0, 0.0, TOOL_IZZ_KG_M2, 0.0, 0.0, 0.0))
+        return self._loaded(name, sc, info_tool, "pivot+gear joints to a kinematic proxy body")
+
+    def _loaded(self, name: str, sc, tool: ToolDescription, coupling: str) -> SceneInfo:
+        """The end of every load: clocks reset, the query shapes, the window, the SceneInfo."""
         self._wrench = (0.0, 0.0, 0.0)
         self._t = 0.0
         self.steps = 0
@@ -213,12 +215,11 @@ class PymunkEngine(Engine):
             from .gui import PymunkWindow  # pygame is an optional extra
 
             self.window = PymunkWindow(self)
-        info_tool = ToolDescription("planar", TOOL_MASS_KG, (0.0, 0.0, 0.0), (0.0, 0.0, TOOL_IZZ_KG_M2, 0.0, 0.0, 0.0))
         facts = dict(sc.facts)
         facts["obstacles"] = [ob.name for ob in sc.obstacles]
-        facts["coupling"] = (f"pivot+gear joints to a kinematic proxy body: max_bias {self.max_speed_m_per_s} m/s, "
-                             f"max_force {self.max_force_n} N, {self.max_torque_n_m} N m")
-        return SceneInfo(name, info_tool, env_rate_hz=self.rate_hz, facts=facts)
+        facts["coupling"] = (f"{coupling}: max_bias {self.max_speed_m_per_s} m/s, max_force {self.max_force_n} N, "
+                             f"{self.max_torque_n_m} N m")
+        return SceneInfo(name, tool, env_rate_hz=self.rate_hz, facts=facts)
 
     def _drive(self, space, body: pymunk.Body, x: float, y: float, th: float) -> pymunk.Body:
         """A kinematic control body at (x, y, th) and the pivot + gear coupling of ``body`` to it."""
@@ -264,39 +265,17 @@ class PymunkEngine(Engine):
         self._target = (x, y, th, 0.0, 0.0, 0.0)
         self._joint_target = np.zeros(LINK_COUNT - 1)
         self._joint_rate_target = np.zeros(LINK_COUNT - 1)
-        self._wrench = (0.0, 0.0, 0.0)
-        self._t = 0.0
-        self.steps = 0
-        self._scene = sc
-        self.set_epsilon(self._eps)
-        if self._gui_wanted and self.window is None:
-            from .gui import PymunkWindow  # pygame is an optional extra
-
-            self.window = PymunkWindow(self)
         inertia = (LINK_MASS_KG * W * W / 12.0, LINK_MASS_KG * L * L / 12.0, LINK_IZZ_KG_M2, 0.0, 0.0, 0.0)
         links = [LinkDescription(LINK_MASS_KG, (L / 2, 0.0, 0.0), inertia)]
         links += [LinkDescription(LINK_MASS_KG, (L / 2, 0.0, 0.0), inertia, k - 1, "revolute", (0.0, 0.0, 1.0),
                                   (L, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)) for k in range(1, LINK_COUNT)]
         info_tool = ToolDescription("linkage", LINK_MASS_KG * LINK_COUNT, links=tuple(links), held_link=LINK_COUNT - 1)
-        facts = dict(sc.facts)
-        facts["obstacles"] = [ob.name for ob in sc.obstacles]
-        facts["coupling"] = (f"each link: pivot+gear joints to a kinematic proxy body: max_bias "
-                             f"{self.max_speed_m_per_s} m/s, max_force {self.max_force_n} N, {self.max_torque_n_m} N m")
-        return SceneInfo(name, info_tool, env_rate_hz=self.rate_hz, facts=facts)
+        return self._loaded(name, sc, info_tool, "each link: pivot+gear joints to a kinematic proxy body")
 
     def link_targets(self) -> list[tuple[float, float, float, float, float, float]]:
         """(x, y, angle, vx, vy, w) of every link's frame at the proxy's state (the last ProxyState):
         the planar chain's forward kinematics from the root and the joints."""
-        x, y, th, vx, vy, w = self._target
-        out = [(x, y, th, vx, vy, w)]
-        for k in range(1, LINK_COUNT):
-            # the next pivot is at (L, 0) of this link: its velocity adds w x r
-            rx, ry = LINK_LENGTH_M * math.cos(th), LINK_LENGTH_M * math.sin(th)
-            x, y, vx, vy = x + rx, y + ry, vx - w * ry, vy + w * rx
-            th += float(self._joint_target[k - 1])
-            w += float(self._joint_rate_target[k - 1])
-            out.append((x, y, th, vx, vy, w))
-        return out
+        return planar_chain(self._target, self._joint_target, self._joint_rate_target, LINK_LENGTH_M)
 
     def drive_joints(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray) -> None:
         if not self._linkage:
@@ -314,14 +293,11 @@ class PymunkEngine(Engine):
         # in (-pi, pi]: the drive keeps each body's angle continuous with its own past, so two
         # neighbours' raw angles may be a turn apart (the chain's pose is the same)
         for k in range(1, LINK_COUNT):
-            out[k - 1] = _wrap(self.links[k].angle - self.links[k - 1].angle)
+            out[k - 1] = wrap_angle(self.links[k].angle - self.links[k - 1].angle)
         return out
 
     def set_epsilon(self, epsilon_m: float) -> None:
-        epsilon_m = float(epsilon_m)
-        if not (math.isfinite(epsilon_m) and epsilon_m >= 0):
-            raise ValueError(f"epsilon_m: must be a finite number >= 0, got {epsilon_m!r}")
-        self._eps = epsilon_m
+        self._eps = epsilon_m = checked_epsilon(epsilon_m)
         if self.space is not None and getattr(self, "_linkage", False):
             # one query shape per link; group 0 so the other links' shapes are found too
             self._queries = []
@@ -336,8 +312,7 @@ class PymunkEngine(Engine):
             self._query = q
 
     def drive_tool(self, proxy_pose: np.ndarray, proxy_twist: np.ndarray, wrench: np.ndarray) -> None:
-        self._target = (float(proxy_pose[0]), float(proxy_pose[1]), planar_angle(proxy_pose),
-                        float(proxy_twist[0]), float(proxy_twist[1]), float(proxy_twist[5]))
+        self._target = planar_state(proxy_pose, proxy_twist)
         self._wrench = (float(wrench[0]), float(wrench[1]), float(wrench[5]))
 
     def tool_pose(self, out: np.ndarray) -> np.ndarray:
@@ -349,9 +324,7 @@ class PymunkEngine(Engine):
         return self._t
 
     def step(self, dt_s: float) -> None:
-        dt_s = float(dt_s)
-        if not (math.isfinite(dt_s) and dt_s > 0):
-            raise ValueError(f"dt_s: must be a finite number > 0, got {dt_s!r}")
+        dt_s = checked_step(dt_s)
         targets = self.link_targets() if self._linkage else [self._target]
         bodies = self.links if self._linkage else [self.tool]
         controls = self.controls if self._linkage else [self.control]
@@ -361,7 +334,7 @@ class PymunkEngine(Engine):
                 vx, vy = vx * self.max_speed_m_per_s / speed, vy * self.max_speed_m_per_s / speed
             w = max(-self.max_spin_rad_per_s, min(self.max_spin_rad_per_s, w))
             # Keep the control angle continuous with the body's (the gear joint sees raw angles).
-            th = body.angle + _wrap(th - body.angle)
+            th = body.angle + wrap_angle(th - body.angle)
             # (a link's control body sits at the link frame's origin, the drive's anchors at its COM)
             c.position = (x, y)
             c.angle = th
@@ -376,8 +349,6 @@ class PymunkEngine(Engine):
             self.space.step(h)
         self._t += dt_s
         self.steps += 1
-        if self.window is not None:
-            self.window.draw()
 
     def contacts(self, buf: ContactBuffer, max_contacts: int) -> int:
         rows = []
@@ -392,9 +363,6 @@ class PymunkEngine(Engine):
         else:
             fill_planar(self._raw, rows)
             out = reduce_contacts(self._raw, buf, max_contacts)
-        if self.window is not None:
-            self.window.last_contacts = (buf.position_m[:out].copy(), buf.normal[:out].copy(),
-                                         buf.separation_m[:out].copy())
         return out
 
     def _query_rows(self, rows: list, link: int, tool: pymunk.Body, query: pymunk.Poly) -> None:
@@ -448,10 +416,6 @@ class PymunkEngine(Engine):
         if self.window is not None:
             self.window.close()
             self.window = None
-
-
-def _wrap(a: float) -> float:
-    return math.atan2(math.sin(a), math.cos(a))
 
 
 def _world_geometry_of(body: pymunk.Body, local: list) -> tuple:

@@ -20,6 +20,12 @@ What it does, in one thread (its own, or a background thread of another program)
   duplicate ones by ``seq`` and only the newest of a batch is given to ``Engine.drive_tool``
   (the others are counted as ``proxy_superseded``). Until the first one arrives the tool holds its
   scene start pose.
+- **Server state** (``ProxyState.server_state``, protocol 1.2): the tool follows the proxy only
+  while the server renders it (``ENGAGED``; ``UNKNOWN``, a 1.0/1.1 server that does not say, counts
+  as engaged). When the server says ``IDLE``, ``FADING`` or ``FAULT`` the tool is held where it is
+  (``drive_tool`` with the engine's own pose and zero twist and wrench, once; a linkage's joints
+  likewise) and the proxy states that follow are not applied (``proxy_held``) until it is engaged
+  again, when the newest proxy is followed at once.
 - **Heartbeats and silence**: the session layer sends a ``Heartbeat`` after
   ``heartbeat_interval_s`` without traffic and ends the session (Bye 61) after
   ``silence_timeout_s`` without a valid packet from the server.
@@ -31,9 +37,16 @@ What it does, in one thread (its own, or a background thread of another program)
   :meth:`ClientRunner.run` return instead.
 - **Giving up**: :class:`ClientError` (one line, for the CLI) when the server refuses the
   ``Hello`` (``Reject``: version, tool kind, units, full), or when no session could be opened
-  within ``connect_timeout_s`` of the start (``None``: keep trying). After a first session the
-  runner keeps trying for as long as it runs; ``stats()["state"]`` tells a caller what it is
-  doing.
+  within ``connect_timeout_s`` of the first connection attempt (``None``: keep trying). The time
+  before it (building the engine, loading its scene, opening a GUI, ``Engine.warm_up``'s
+  compilation) does not count. After a first session the runner keeps trying for as long as it
+  runs; ``stats()["state"]`` tells a caller what it is doing.
+- **Windows**: an engine with a ``window`` (``--gui``) gets ``window.update(runner)`` after every
+  step and on every pass without one (the window limits its own frame rate).
+- **Time**: one clock, ``clock_ns`` (default ``time.monotonic_ns``), paces the steps and stamps
+  every message. :meth:`ClientRunner.run` is ``start()`` then ``poll()`` until told to stop; a
+  caller with its own clock (a simulated one, the tests, the contract suite) calls
+  :meth:`~ClientRunner.start`, :meth:`~ClientRunner.poll` and :meth:`~ClientRunner.close` itself.
 
 The runner never owns the engine: closing it (``Engine.close``) is the caller's job.
 """
@@ -47,7 +60,7 @@ from collections.abc import Callable
 import numpy as np
 
 from hapticproxy.protocol.codec import Hello, Limits
-from hapticproxy.protocol.messages import ErrorCode
+from hapticproxy.protocol.messages import ErrorCode, ServerState
 from hapticproxy.protocol.vocab import TOOL_KINDS_BY_NAME
 from hapticproxy.protocol.session import ClientConfig, ClientEndpoint, ClientState
 from hapticproxy.protocol.transport import TransportError, open_transport, parse_transport_url
@@ -61,6 +74,8 @@ TOOL_KINDS = TOOL_KINDS_BY_NAME
 _RTT_RING = 4096
 #: a realtime loop this far behind its schedule restarts the schedule instead of catching up
 _RESYNC_NS = 250_000_000
+#: server states in which the proxy is rendered: the tool follows it
+_FOLLOW = frozenset((ServerState.ENGAGED, ServerState.UNKNOWN))
 
 
 class ClientError(Exception):
@@ -98,7 +113,10 @@ class ClientRunner:
             ``{"connect_timeout_s": 1.0}`` for Zenoh).
         on_step: called as ``on_step(runner)`` after every step (GUI, recording); runs in the
             runner's thread.
-        log: called with one-line messages (session opened / ended); ``None``: silent.
+        log: called with one-line messages (session opened / ended, held / following); ``None``:
+            silent.
+        clock_ns: the clock [ns] of pacing and time stamps (default ``time.monotonic_ns``).
+        sleep: how :meth:`run` waits [s] (default ``time.sleep``).
     """
 
     def __init__(self, engine: Engine, url: str, *, scene: str, epsilon_m: float = 0.005, max_contacts: int = 16,
@@ -106,7 +124,8 @@ class ClientRunner:
                  reconnect_delay_s: float = 1.0, handshake_timeout_s: float = 5.0,
                  connect_timeout_s: float | None = None, hello_retry_s: float = 0.25,
                  transport_options: dict | None = None, on_step: Callable[["ClientRunner"], None] | None = None,
-                 log: Callable[[str], None] | None = None) -> None:
+                 log: Callable[[str], None] | None = None, clock_ns: Callable[[], int] = time.monotonic_ns,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
         if not (isinstance(epsilon_m, (int, float)) and not isinstance(epsilon_m, bool) and math.isfinite(epsilon_m)
                 and epsilon_m >= 0):
             raise ValueError(f"epsilon_m: must be a finite number >= 0 m, got {epsilon_m!r}")
@@ -144,6 +163,8 @@ class ClientRunner:
         self.transport_options = dict(transport_options or {})
         self.on_step = on_step
         self._log = log
+        self._clock = clock_ns
+        self._sleep = sleep
         self.transport = None
         self.endpoint: ClientEndpoint | None = None
         self.contacts = ContactBuffer(max_contacts)
@@ -151,13 +172,22 @@ class ClientRunner:
         self.granted_epsilon_m: float | None = None
         self.granted_max_contacts: int | None = None
         self.last_proxy = None
+        #: the tool follows the proxy (the server renders it); False while it is held
+        self.following = True
+        self._hold_pose = np.zeros(7)
+        self._hold_zeros6 = np.zeros(6)
+        self._hold_zeros_j = np.zeros(len(self._joints))
+        self._hold_joints = np.zeros(len(self._joints))
+        self.done = False
+        self._started = False
         self._sent_ns = np.zeros(_RTT_RING, dtype=np.int64)
         self._lock = threading.Lock()
         self._state = "idle"
         self._error: str | None = None
         self._end_reason = ""
         self._counts = dict.fromkeys((
-            "steps", "updates_sent", "proxy_states", "proxy_applied", "proxy_superseded", "sessions",
+            "steps", "updates_sent", "proxy_states", "proxy_applied", "proxy_superseded", "proxy_held", "holds",
+            "sessions",
             "sessions_ended", "connect_attempts", "transport_errors", "steps_clustered", "contacts_max",
             "stale", "duplicate", "hellos_sent", "heartbeats_sent", "send_failures"), 0)
         self._contacts_last = 0
@@ -181,10 +211,21 @@ class ClientRunner:
                 state=self._state, error=self._error, end_reason=self._end_reason, url=self.url,
                 engine=self.engine.name, scene=self.scene_info.name, env_time_s=self.engine.time_s,
                 contacts_last=self._contacts_last, granted_epsilon_m=self.granted_epsilon_m,
+                server_state=self.server_state, following=self.following,
                 granted_max_contacts=self.granted_max_contacts,
                 rtt_last_ms=self._rtt_last_s * 1e3,
                 rtt_mean_ms=(self._rtt_sum_s / self._rtt_n * 1e3) if self._rtt_n else math.nan)
         return out
+
+    @property
+    def server_state(self) -> str | None:
+        """The server state of the newest ProxyState by name (``"engaged"``, ``"fading"``, ...;
+        ``"unknown"`` from a server that does not report it), ``None`` before the first."""
+        proxy = self.last_proxy
+        if proxy is None:
+            return None
+        v = int(getattr(proxy, "server_state", 0) or 0)
+        return ServerState(v).name.lower() if v in ServerState._value2member_map_ else str(v)
 
     @property
     def state(self) -> str:
@@ -199,83 +240,123 @@ class ClientRunner:
         passed, or (``reconnect=False``) the session ends. Returns :meth:`stats`. Raises
         :class:`ClientError` when the server refuses us or cannot be reached in time."""
         stop = stop or threading.Event()
-        t0 = time.monotonic_ns()
-        t_end = None if duration_s is None else t0 + int(duration_s * _NS)
-        connect_deadline = None if self.connect_timeout_s is None else t0 + int(self.connect_timeout_s * _NS)
-        next_attempt = t0
-        next_step = t0
-        last_open_error = ""
-        self._state = "connecting"
-        self.engine.warm_up()  # e.g. JIT compilation: not while the server waits for our updates
         try:
+            self.start()
+            t_end = None if duration_s is None else self._t0 + int(duration_s * _NS)
             while not stop.is_set():
-                now = time.monotonic_ns()
-                if t_end is not None and now >= t_end:
+                if t_end is not None and self._clock() >= t_end:
                     self._end_reason = "duration reached"
                     break
                 if max_steps is not None and self._counts["steps"] >= max_steps:
                     self._end_reason = "max_steps reached"
                     break
-                if not self._ever_connected and connect_deadline is not None and now >= connect_deadline:
-                    why = f" ({last_open_error})" if last_open_error else " (is the server running?)"
-                    raise ClientError(f"no session with {self.url} within {self.connect_timeout_s:g} s{why}")
-                ep = self.endpoint
-                if ep is None:
-                    if now < next_attempt:
-                        time.sleep(min(0.005, (next_attempt - now) / _NS))
-                        continue
-                    try:
-                        self._open(now)
-                        last_open_error = ""
-                    except (TransportError, OSError) as exc:
-                        last_open_error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-                        self._counts["transport_errors"] += 1
-                        next_attempt = now + int(self.reconnect_delay_s * _NS)
-                        self._state = "waiting"
-                    continue
-                was_established = ep.established
-                self._receive(ep, now)
-                if ep.state == ClientState.ESTABLISHED and not was_established:
-                    self._on_welcome(ep)
-                    next_step = time.monotonic_ns()
-                if ep.state == ClientState.REJECTED:
-                    r = ep.reject
-                    code = ErrorCode(r.code).name if r.code in ErrorCode._value2member_map_ else str(r.code)
-                    raise ClientError(f"server {self.url} refused the session: {code}: {r.reason} "
-                                      f"(server speaks {r.version_min[0]}.{r.version_min[1]}-"
-                                      f"{r.version_max[0]}.{r.version_max[1]})")
-                stepped = False
-                if ep.state == ClientState.ESTABLISHED and (not self.realtime or now >= next_step):
-                    dt = self._tick()
-                    stepped = True
-                    if self.realtime:
-                        next_step += int(dt * _NS)
-                        if time.monotonic_ns() - next_step > _RESYNC_NS:
-                            next_step = time.monotonic_ns()
-                ep.poll(time.monotonic_ns())
-                if ep.state == ClientState.CLOSED:
-                    handshake_failed = ep.welcome is None
-                    self._session_over(ep, handshake_failed)
-                    if not handshake_failed and not self.reconnect:
-                        break
-                    next_attempt = time.monotonic_ns() + (0 if handshake_failed else int(self.reconnect_delay_s * _NS))
-                    continue
-                if not stepped:
-                    wait = (next_step - time.monotonic_ns()) / _NS if ep.established else 0.002
-                    if wait > 0:
-                        time.sleep(min(wait, 0.002))
+                wait = self.poll()
+                if self.done:
+                    break
+                if wait > 0:
+                    self._sleep(min(wait, 0.002))
                 elif not self.realtime:
-                    time.sleep(0)  # let other threads of the process (a server, a GUI) run
+                    self._sleep(0)  # let other threads of the process (a server, a GUI) run
+        finally:
+            self.close()
+        return self.stats()
+
+    def start(self) -> None:
+        """Before the first :meth:`poll`: pay the engine's one-time costs (``Engine.warm_up``), then
+        start the clocks (the connect timeout counts from here)."""
+        self._state = "connecting"
+        self.engine.warm_up()  # e.g. JIT compilation: not while the server waits for our updates
+        now = self._clock()
+        self._t0 = now
+        self._connect_deadline = None if self.connect_timeout_s is None else now + int(self.connect_timeout_s * _NS)
+        self._next_attempt = now
+        self._next_step = now
+        self._last_open_error = ""
+        self.done = False
+        self._started = True
+
+    def poll(self) -> float:
+        """One pass of the loop at ``clock_ns()``: (re)connect when due, read the server, step
+        the engine when its step is due (``realtime=False``: every pass) and send its
+        ContactUpdate, run the session's timers. Returns the time [s] until the next pass has
+        anything to do (0: at once). Sets :attr:`done` when the session ended and
+        ``reconnect=False``. Raises :class:`ClientError` (see the module docstring)."""
+        if not self._started:
+            self.start()
+        try:
+            return self._poll()
         except ClientError as exc:
             self._error = str(exc)
             self._state = "failed"
             self._close_session("client giving up")
             raise
-        finally:
-            if self._state != "failed":
-                self._close_session("client stopping")
-                self._state = "stopped"
-        return self.stats()
+
+    def close(self) -> None:
+        """End the session (Bye) and release the transport; the runner is ``"stopped"`` (or stays
+        ``"failed"``)."""
+        if self._state != "failed":
+            self._close_session("client stopping")
+            self._state = "stopped"
+        self._started = False
+
+    def _poll(self) -> float:
+        clock = self._clock
+        now = clock()
+        if not self._ever_connected and self._connect_deadline is not None and now >= self._connect_deadline:
+            why = f" ({self._last_open_error})" if self._last_open_error else " (is the server running?)"
+            raise ClientError(f"no session with {self.url} within {self.connect_timeout_s:g} s{why}")
+        ep = self.endpoint
+        if ep is None:
+            if now < self._next_attempt:
+                self._update_window()
+                return (self._next_attempt - now) / _NS
+            try:
+                self._open(now)
+                self._last_open_error = ""
+            except (TransportError, OSError) as exc:
+                self._last_open_error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                self._counts["transport_errors"] += 1
+                self._next_attempt = now + int(self.reconnect_delay_s * _NS)
+                self._state = "waiting"
+            return 0.0
+        was_established = ep.established
+        self._receive(ep, now)
+        if ep.state == ClientState.ESTABLISHED and not was_established:
+            self._on_welcome(ep)
+            self._next_step = clock()
+        if ep.state == ClientState.REJECTED:
+            r = ep.reject
+            code = ErrorCode(r.code).name if r.code in ErrorCode._value2member_map_ else str(r.code)
+            raise ClientError(f"server {self.url} refused the session: {code}: {r.reason} "
+                              f"(server speaks {r.version_min[0]}.{r.version_min[1]}-"
+                              f"{r.version_max[0]}.{r.version_max[1]})")
+        stepped = False
+        if ep.state == ClientState.ESTABLISHED and (not self.realtime or now >= self._next_step):
+            dt = self._tick()
+            stepped = True
+            if self.realtime:
+                self._next_step += int(dt * _NS)
+                if clock() - self._next_step > _RESYNC_NS:
+                    self._next_step = clock()
+        ep.poll(clock())
+        if ep.state == ClientState.CLOSED:
+            handshake_failed = ep.welcome is None
+            self._session_over(ep, handshake_failed)
+            if not handshake_failed and not self.reconnect:
+                self.done = True
+                return 0.0
+            self._next_attempt = clock() + (0 if handshake_failed else int(self.reconnect_delay_s * _NS))
+            return 0.0
+        if stepped:
+            return 0.0
+        self._update_window()
+        wait = (self._next_step - clock()) / _NS if ep.established else 0.002
+        return max(0.0, wait)
+
+    def _update_window(self) -> None:
+        window = getattr(self.engine, "window", None)
+        if window is not None:
+            window.update(self)
 
     # ------------------------------------------------------------------------ pieces
     def _open(self, now: int) -> None:
@@ -287,7 +368,7 @@ class ClientRunner:
         ep = ClientEndpoint(transport.send, Hello(client_nonce=1, **self._hello_fields), cfg, hmac_key=self.hmac_key)
         with self._lock:
             self.transport, self.endpoint = transport, ep
-        ep.start(time.monotonic_ns())
+        ep.start(self._clock())
         self._state = "handshaking"
 
     def _receive(self, ep: ClientEndpoint, now: int) -> None:
@@ -304,17 +385,37 @@ class ClientRunner:
         c = self._counts
         c["proxy_states"] += fresh
         c["proxy_superseded"] += fresh - 1
-        c["proxy_applied"] += 1
         self.last_proxy = newest
-        if self._linkage:
-            self.engine.drive_joints(newest.joint_position, newest.joint_velocity, newest.joint_effort)
-        self.engine.drive_tool(newest.proxy_pose, newest.proxy_twist, newest.wrench)
+        follow = int(getattr(newest, "server_state", 0) or 0) in _FOLLOW
+        engine = self.engine
+        if follow:
+            c["proxy_applied"] += 1
+            if self._linkage:
+                engine.drive_joints(newest.joint_position, newest.joint_velocity, newest.joint_effort)
+            engine.drive_tool(newest.proxy_pose, newest.proxy_twist, newest.wrench)
+            if not self.following and self._log:
+                self._log(f"server {self.server_state}: following the proxy again")
+        else:
+            c["proxy_held"] += 1
+            if self.following:
+                self._hold()
+                if self._log:
+                    self._log(f"server {self.server_state}: the proxy is not rendered; holding the tool")
+        self.following = follow
         ack = newest.ack_seq
         if ack and ep.contact_seq - ack < _RTT_RING:
-            rtt = (time.monotonic_ns() - int(self._sent_ns[ack % _RTT_RING])) / _NS
+            rtt = (self._clock() - int(self._sent_ns[ack % _RTT_RING])) / _NS
             self._rtt_last_s = rtt
             self._rtt_sum_s += rtt
             self._rtt_n += 1
+
+    def _hold(self) -> None:
+        """Keep the engine's tool where it is: its own pose (and joints) as the drive's target."""
+        engine = self.engine
+        self._counts["holds"] += 1
+        if self._linkage:
+            engine.drive_joints(engine.joint_positions(self._hold_joints), self._hold_zeros_j, self._hold_zeros_j)
+        engine.drive_tool(engine.tool_pose(self._hold_pose), self._hold_zeros6, self._hold_zeros6)
 
     def _on_welcome(self, ep: ClientEndpoint) -> None:
         w = ep.welcome
@@ -325,6 +426,7 @@ class ClientRunner:
             self.contacts = ContactBuffer(w.max_contacts)
         self._counts["sessions"] += 1
         self._ever_connected = True
+        self.following = True  # until a ProxyState says otherwise
         self._state = "established"
         if self._log:
             self._log(f"session {ep.session_id:#010x} with {w.server_name!r} at {self.url}: epsilon "
@@ -343,7 +445,7 @@ class ClientRunner:
         engine.tool_pose(self.tool_pose)
         joints = engine.joint_positions(self._joints) if self._linkage else None
         ep = self.endpoint
-        now = time.monotonic_ns()
+        now = self._clock()
         seq = ep.send_contacts(now, engine.time_s, self.tool_pose, buf.keys[:n], buf.position_m[:n],
                                buf.normal[:n], buf.separation_m[:n], buf.v_constr_m_per_s[:n],
                                tool_joint_position=joints)
@@ -359,6 +461,7 @@ class ClientRunner:
             c["steps_clustered"] += 1
         if self.on_step is not None:
             self.on_step(self)
+        self._update_window()
         return dt
 
     def _session_over(self, ep: ClientEndpoint, handshake_failed: bool) -> None:
@@ -394,7 +497,7 @@ class ClientRunner:
         ep = self.endpoint
         if ep is not None and ep.established:
             try:
-                ep.close(ErrorCode.BYE_NORMAL, reason)
+                ep.close(ErrorCode.BYE_NORMAL, reason, now_ns=self._clock())
             except Exception:  # noqa: BLE001 - a failing Bye must not hide why we stopped
                 pass
         self._drop_endpoint()

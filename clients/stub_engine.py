@@ -39,9 +39,9 @@ import random
 
 import numpy as np
 
-from .contacts import (FACE_VERTEX, VERTEX_FACE, VERTEX_VERTEX, feature_id, fill_planar, planar_angle, planar_pose,
-                       reduce_contacts, wrap_angle)
-from .engine import ContactBuffer, Engine, SceneInfo, ToolDescription
+from .contacts import FACE_VERTEX, VERTEX_FACE, VERTEX_VERTEX, feature_id, fill_planar, reduce_contacts
+from .engine import ContactBuffer, Engine, SceneInfo, ToolDescription, checked_epsilon, checked_step
+from .geometry import planar_pose, planar_state, wrap_angle
 from .scenes import TOOL_IZZ_KG_M2, TOOL_LENGTH_M, TOOL_MASS_KG, TOOL_WIDTH_M, Box, HalfPlane, scene
 
 _RAW_CAPACITY = 256
@@ -143,6 +143,8 @@ class StubEngine(Engine):
     """The Vortex-style reference engine (see the module docstring)."""
 
     name = "hapticproxy-stub 1"
+    #: the same seed and drive calls give the same steps, rate included
+    deterministic = True
 
     #: coupling natural frequency [Hz] (critically damped spring-damper to the proxy)
     COUPLING_HZ = 8.0
@@ -226,10 +228,7 @@ class StubEngine(Engine):
         return SceneInfo(name, tool, env_rate_hz=self._rate_hz, facts=facts)
 
     def set_epsilon(self, epsilon_m: float) -> None:
-        epsilon_m = float(epsilon_m)
-        if not (math.isfinite(epsilon_m) and epsilon_m >= 0):
-            raise ValueError(f"epsilon_m: must be a finite number >= 0, got {epsilon_m!r}")
-        self._eps = epsilon_m
+        self._eps = checked_epsilon(epsilon_m)
 
     def next_step_s(self) -> float:
         lo, hi = self.rate_range_hz
@@ -239,8 +238,7 @@ class StubEngine(Engine):
         return min(1.0 / lo, max(1.0 / hi, dt))
 
     def drive_tool(self, proxy_pose: np.ndarray, proxy_twist: np.ndarray, wrench: np.ndarray) -> None:
-        self._target = [float(proxy_pose[0]), float(proxy_pose[1]), planar_angle(proxy_pose),
-                        float(proxy_twist[0]), float(proxy_twist[1]), float(proxy_twist[5])]
+        self._target = list(planar_state(proxy_pose, proxy_twist))
         self._wrench = (float(wrench[0]), float(wrench[1]), float(wrench[5]))
 
     def tool_pose(self, out: np.ndarray) -> np.ndarray:
@@ -252,9 +250,7 @@ class StubEngine(Engine):
         return self._t
 
     def step(self, dt_s: float) -> None:
-        dt_s = float(dt_s)
-        if not (math.isfinite(dt_s) and dt_s > 0):
-            raise ValueError(f"dt_s: must be a finite number > 0, got {dt_s!r}")
+        dt_s = checked_step(dt_s)
         q0, v0, t0 = list(self._q), list(self._v), self._t
         motion = self._substep(dt_s)
         n = 1

@@ -88,18 +88,23 @@ class ServerThread:
         """Wait until the client's Bye arrived: everything it sent before is in ``updates``."""
         wait_for(lambda: self.transport.byes > 0, timeout_s, "the client's Bye")
 
-    def stop(self) -> None:
+    def close(self) -> bool:
+        """End the server (Bye); whether its thread stopped. For clean-up: never asserts."""
         if self.thread.is_alive() or not self.transport.inner.closed:
             self.stop_event.set()
             self.thread.join(10)
-            assert not self.thread.is_alive()
             self.transport.close()
+        return not self.thread.is_alive()
+
+    def stop(self) -> None:
+        """End the server, in a test's body: its thread must stop."""
+        assert self.close(), "reference server thread did not stop"
 
     def __enter__(self):
         return self
 
     def __exit__(self, *exc):
-        self.stop()
+        self.close()
 
 
 class RunnerThread:
@@ -133,6 +138,37 @@ class RunnerThread:
 
     def __exit__(self, *exc):
         self.stop()
+
+
+class ClientThread:
+    """A ClientRunner for ``engine`` in a thread, against ``url``; ``close()`` stops it and closes
+    the engine (the exception ``run`` raised, if any, in ``.error``)."""
+
+    def __init__(self, engine, url, scene="testbed", **kw):
+        from hapticproxy.clients.runner import ClientRunner
+
+        kw.setdefault("epsilon_m", 0.005)
+        kw.setdefault("max_contacts", 16)
+        self.engine = engine
+        self.runner = ClientRunner(engine, url, scene=scene, **kw)
+        self.stop = threading.Event()
+        self.error = None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self):
+        try:
+            self.runner.run(self.stop)
+        except BaseException as exc:  # noqa: BLE001 - asserted by the test
+            self.error = exc
+
+    def start(self):
+        self.thread.start()
+        return self
+
+    def close(self):
+        self.stop.set()
+        self.thread.join(15)
+        self.engine.close()
 
 
 class RecordingEngine(Engine):
@@ -194,6 +230,125 @@ class RecordingEngine(Engine):
         return self._t
 
 
+LAB_MODULE = '''"""A lab's own engine, from its own package (a test fixture)."""
+from hapticproxy.clients.stub_engine import StubEngine
+
+
+class LabEngine(StubEngine):
+    name = "lab-engine 0.1"
+'''
+
+
+def make_lab_package(root, entries=(("lab", "labengine:LabEngine"),)) -> None:
+    """An installed third-party package in ``root`` (put it on sys.path): ``labengine.py`` and its
+    ``.dist-info`` registering ``entries`` in the ``hapticproxy.engines`` group."""
+    from pathlib import Path
+
+    root = Path(root)
+    (root / "labengine.py").write_text(LAB_MODULE)
+    info = root / "labengine-0.1.dist-info"
+    info.mkdir(exist_ok=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: labengine\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[hapticproxy.engines]\n" + "".join(f"{n} = {t}\n" for n, t in entries))
+
+
+@pytest.fixture
+def make_lab():
+    return make_lab_package
+
+
+@pytest.fixture
+def lab_package(tmp_path, monkeypatch):
+    """The lab's package installed (on sys.path) for this test: engine ``lab``, and a second entry
+    that tries to take the built-in name ``stub``."""
+    make_lab_package(tmp_path, (("lab", "labengine:LabEngine"), ("stub", "labengine:LabEngine")))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    return tmp_path
+
+
+@pytest.fixture
+def make_pybullet():
+    """Make PybulletEngines (DIRECT), a scene loaded and epsilon set when given; all closed at the
+    end of the test."""
+    pytest.importorskip("pybullet")
+    from hapticproxy.clients.pybullet_engine import PybulletEngine
+
+    made = []
+
+    def make(scene: str | None = None, epsilon_m: float = 0.005, **kw):
+        e = PybulletEngine(**kw)
+        made.append(e)
+        if scene is not None:
+            e.load_scene(scene)
+            e.set_epsilon(epsilon_m)
+        return e
+
+    yield make
+    for e in made:
+        e.close()
+
+
+@pytest.fixture
+def client_thread():
+    """Make :class:`ClientThread` s; every one is closed at the end of the test."""
+    made = []
+
+    def make(engine, url, scene="testbed", **kw) -> ClientThread:
+        c = ClientThread(engine, url, scene, **kw)
+        made.append(c)
+        return c
+
+    yield make
+    for c in made:
+        c.close()
+
+
+#: generous bound of a wait for a count [s] (a cold numba cache costs the server's loop a minute)
+WAIT_S = 180.0
+
+
+def serve_until(sup, done, what: str) -> None:
+    """Serve a Supervisor's status socket until ``done()``; fail naming ``what`` after WAIT_S."""
+    t0 = time.monotonic()
+    while not done():
+        if time.monotonic() - t0 > WAIT_S:
+            raise AssertionError(f"gave up waiting for {what}")
+        sup._serve_status(0.05)
+
+
+@pytest.fixture
+def real_session(client_thread):
+    """``run(settings, engine, scene, sim_seconds, **runner kwargs)``: the real server (supervisor
+    and loop process) with ``settings`` and a client of ``engine`` in ``scene``, served until the
+    engine has run ``sim_seconds`` of its own (simulated) time; returns ``(status snapshot,
+    telemetry rows, client stats, last ProxyState)`` after both stopped."""
+    from hapticproxy.server.daemon import Supervisor
+
+    def run(settings, engine, scene, sim_seconds, **kw):
+        kw.setdefault("connect_timeout_s", WAIT_S)
+        sup = Supervisor(settings)
+        client = None
+        try:
+            sup.start()
+            client = client_thread(engine, settings["transport"]["url"], scene, **kw).start()
+            serve_until(sup, lambda: client.runner.stats()["env_time_s"] >= sim_seconds,
+                        f"{sim_seconds} s of engine time")
+            snap = sup.shared.snapshot()
+            head = int(sup.shared.head[0])
+            n = min(head, sup.ring_rows)
+            rows = sup.shared.ring[np.arange(head - n, head) % sup.ring_rows].copy()
+            stats = client.runner.stats()
+            last = client.runner.last_proxy
+        finally:
+            if client is not None:
+                client.close()
+            sup.close()
+        assert client.error is None, client.error
+        return snap, rows, stats, last
+
+    return run
+
+
 @pytest.fixture
 def server_thread():
     started = []
@@ -205,7 +360,7 @@ def server_thread():
 
     yield make
     for s in started:
-        s.stop()
+        s.close()
 
 
 @pytest.fixture

@@ -1,19 +1,18 @@
 """Each environment client against the real server (supervisor + loop process) over UDP and
 Zenoh: handshake, updates both ways, the peg settling on the wall with the force balancing the
 push, epsilon-contacts entering the model before contact, reconnection after a server restart,
-and a client that survives a server that vanishes. Counts and positions, never timings."""
+and a client that survives a server that vanishes. Counts, positions and the engine's simulated
+time, never timings (a wait for a count gives up after a generous bound only)."""
 from __future__ import annotations
 
 import os
 import signal
 import socket
-import threading
 import time
 
 import numpy as np
 import pytest
 
-from hapticproxy.clients.runner import ClientRunner
 from hapticproxy.clients.scenes import WALL_CONTACT_Y_COM_M
 from hapticproxy.server import config as cfgmod
 from hapticproxy.server.daemon import Supervisor
@@ -34,16 +33,23 @@ def _url(transport: str) -> str:
     return f"zenoh://127.0.0.1:{_port(socket.SOCK_STREAM)}/t{os.getpid()}"
 
 
-def _settings(url: str, **model) -> cfgmod.Settings:
+#: the planar device pushed towards the bottom wall (damping 10 N s/m: the hand reaches the wall
+#: at about 0.1 m/s, under epsilon per engine step)
+PLANAR_PUSH = {"kind": "planar", "damping_n_s_per_m": 10.0, "workspace_min_m": [-0.25, -0.25],
+               "workspace_max_m": [0.25, 0.25], "hand": {"type": "constant", "wrench": [0.0, PUSH_N, 0.0]}}
+#: the 6-DOF device pushed down
+SPATIAL_PUSH = {"kind": "spatial", "damping_n_s_per_m": 10.0,
+                "hand": {"type": "constant", "wrench": [0.0, 0.0, -PUSH_N, 0.0, 0.0, 0.0]}}
+
+
+def _settings(url: str, device: dict = PLANAR_PUSH, ring_s: float = 20.0) -> cfgmod.Settings:
     return cfgmod.load({
         "loop": {"rate_hz": 1000.0, "realtime": False},
         "transport": {"url": url, "silence_timeout_s": 0.5},
         "status": {"address": f"127.0.0.1:{_port()}"},
-        "model": {"epsilon_m": 0.005, **model},
-        # damping 10 N s/m: the hand reaches the wall at about 0.1 m/s, under epsilon per engine step
-        "device": {"driver": "sim", "kind": "planar", "damping_n_s_per_m": 10.0, "watchdog_s": 0.5, "workspace_min_m": [-0.25, -0.25],
-                   "workspace_max_m": [0.25, 0.25], "hand": {"type": "constant", "wrench": [0.0, PUSH_N, 0.0]}},
-        "telemetry": {"ring_s": 20.0},
+        "model": {"epsilon_m": 0.005},
+        "device": {"driver": "sim", "watchdog_s": 0.5, **device},
+        "telemetry": {"ring_s": ring_s},
     })
 
 
@@ -57,60 +63,23 @@ def _engine(name: str):
     return StubEngine(seed=3)
 
 
-class Client:
-    def __init__(self, engine, url, scene="testbed", **kw):
-        self.engine = engine
-        self.runner = ClientRunner(engine, url, scene=scene, epsilon_m=0.005, max_contacts=16, **kw)
-        self.stop = threading.Event()
-        self.error = None
-        self.thread = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self):
-        try:
-            self.runner.run(self.stop)
-        except BaseException as exc:  # noqa: BLE001 - asserted by the test
-            self.error = exc
-
-    def start(self):
-        self.thread.start()
-        return self
-
-    def close(self):
-        self.stop.set()
-        self.thread.join(15)
-        self.engine.close()
+#: generous bound of a wait for a count [s]: a cold numba cache costs the loop a minute first
+_WAIT_S = 180.0
 
 
-def _serve_for(sup: Supervisor, seconds: float) -> None:
+def _serve_until(sup: Supervisor, done, what: str) -> None:
+    """Serve the status socket until ``done()``; fail naming ``what`` after ``_WAIT_S``."""
     t0 = time.monotonic()
-    while time.monotonic() - t0 < seconds:
+    while not done():
+        if time.monotonic() - t0 > _WAIT_S:
+            raise AssertionError(f"gave up waiting for {what}")
         sup._serve_status(0.05)
-
-
-def _rows(sup: Supervisor) -> np.ndarray:
-    head = int(sup.shared.head[0])
-    n = min(head, sup.ring_rows)
-    return sup.shared.ring[np.arange(head - n, head) % sup.ring_rows].copy()
 
 
 @pytest.mark.parametrize("transport", ["udp", "zenoh"])
 @pytest.mark.parametrize("engine", ["stub", "pymunk"])
-def test_client_against_the_real_server(engine, transport):
-    url = _url(transport)
-    sup = Supervisor(_settings(url))
-    client = None
-    try:
-        sup.start()
-        client = Client(_engine(engine), url, connect_timeout_s=30.0).start()
-        _serve_for(sup, 3.5)
-        snap = sup.shared.snapshot()
-        rows = _rows(sup)
-        stats = client.runner.stats()
-    finally:
-        if client is not None:
-            client.close()
-        sup.close()
-    assert client.error is None
+def test_client_against_the_real_server(engine, transport, real_session):
+    snap, rows, stats, _ = real_session(_settings(_url(transport)), _engine(engine), "testbed", 3.5)
     # handshake and updates both ways
     assert stats["sessions"] == 1
     assert snap["updates"] >= 50 and stats["updates_sent"] >= snap["updates"]
@@ -138,20 +107,12 @@ def _any_engine(name):
 
 
 def _settings_for(engine: str, url: str) -> cfgmod.Settings:
-    if engine != "pybullet":
-        return _settings(url)
-    return cfgmod.load({
-        "loop": {"rate_hz": 1000.0, "realtime": False},
-        "transport": {"url": url, "silence_timeout_s": 0.5},
-        "status": {"address": f"127.0.0.1:{_port()}"},
-        "device": {"driver": "sim", "kind": "spatial", "watchdog_s": 0.5},
-        "telemetry": {"ring_s": 5.0},
-    })
+    return _settings(url, {"kind": "spatial"}, ring_s=5.0) if engine == "pybullet" else _settings(url)
 
 
 @pytest.mark.parametrize("transport", ["udp", "zenoh"])
 @pytest.mark.parametrize("engine", ["stub", "pymunk", "pybullet"])
-def test_reconnects_after_a_server_restart(engine, transport):
+def test_reconnects_after_a_server_restart(engine, transport, client_thread):
     url = _url(transport)
     s = _settings_for(engine, url)
     sup = Supervisor(s)
@@ -159,86 +120,61 @@ def test_reconnects_after_a_server_restart(engine, transport):
     try:
         sup.start()
         eng, scene = _any_engine(engine)
-        client = Client(eng, url, scene=scene, connect_timeout_s=60.0, reconnect_delay_s=0.3).start()
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < 30 and sup.shared.snapshot()["updates"] < 20:
-            sup._serve_status(0.05)
-        assert client.runner.stats()["sessions"] == 1
+        client = client_thread(eng, url, scene=scene, connect_timeout_s=_WAIT_S, reconnect_delay_s=0.3).start()
+        _serve_until(sup, lambda: sup.shared.snapshot()["updates"] >= 20, "20 updates")
+        first_sessions = client.runner.stats()["sessions"]
         sup.close()  # clean stop: forces ramp down, Bye to the client
         sup = Supervisor(s)  # same address
         sup.start()
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < 15 and sup.shared.snapshot()["updates"] < 20:
-            sup._serve_status(0.05)
+        _serve_until(sup, lambda: sup.shared.snapshot()["updates"] >= 20, "20 updates to the restarted server")
         snap = sup.shared.snapshot()
         stats = client.runner.stats()
     finally:
         if client is not None:
             client.close()
         sup.close()
-    assert client.error is None
+    assert client.error is None and first_sessions == 1
     assert stats["sessions"] == 2 and stats["sessions_ended"] >= 1
     assert snap["updates"] >= 20 and snap["faults_total"] == 0
 
 
 @pytest.mark.parametrize("transport", ["udp", "zenoh"])
 @pytest.mark.parametrize("engine", ["stub", "pymunk", "pybullet"])
-def test_client_survives_a_server_that_vanishes(engine, transport):
+def test_client_survives_a_server_that_vanishes(engine, transport, client_thread):
     url = _url(transport)
     sup = Supervisor(_settings_for(engine, url))
     client = None
     try:
         sup.start()
         eng, scene = _any_engine(engine)
-        client = Client(eng, url, scene=scene, connect_timeout_s=60.0, reconnect_delay_s=0.3).start()
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < 30 and sup.shared.snapshot()["updates"] < 20:
-            sup._serve_status(0.05)
-        assert client.runner.stats()["sessions"] == 1
+        client = client_thread(eng, url, scene=scene, connect_timeout_s=_WAIT_S, reconnect_delay_s=0.3).start()
+        _serve_until(sup, lambda: sup.shared.snapshot()["updates"] >= 20, "20 updates")
+        first_sessions = client.runner.stats()["sessions"]
         os.kill(int(sup.shared.snapshot()["pid"]), signal.SIGKILL)  # the loop process dies, no Bye
         sup.proc.join(10)
-        time.sleep(1.5)  # longer than the silence timeout: the client notices and keeps trying
+        # the client notices the silence and keeps trying
+        t0 = time.monotonic()
+        while client.runner.stats()["sessions_ended"] < 1 and time.monotonic() - t0 < _WAIT_S:
+            time.sleep(0.05)
         stats = client.runner.stats()
-        assert client.thread.is_alive() and client.error is None
-        assert stats["sessions_ended"] >= 1
-        assert stats["state"] in ("connecting", "handshaking", "waiting")
+        alive = client.thread.is_alive()
     finally:
         if client is not None:
             client.close()
         sup.close()
-    assert client.error is None
+    assert first_sessions == 1
+    assert alive and client.error is None
+    assert stats["sessions_ended"] >= 1
+    assert stats["state"] in ("connecting", "handshaking", "waiting")
 
 
 @pytest.mark.parametrize("transport", ["udp", "zenoh"])
-def test_pybullet_client_against_the_real_server(transport):
+def test_pybullet_client_against_the_real_server(transport, real_session):
     """The 3-D client: a 40 mm cube 3 mm above the floor of the `loose` scene, pushed down with 0.5 N
     by the hand on a simulated 6-DOF device."""
     from hapticproxy.clients.pybullet_engine import PybulletEngine
 
-    url = _url(transport)
-    settings = cfgmod.load({
-        "loop": {"rate_hz": 1000.0, "realtime": False},
-        "transport": {"url": url, "silence_timeout_s": 0.5},
-        "status": {"address": f"127.0.0.1:{_port()}"},
-        "model": {"epsilon_m": 0.005},
-        "device": {"driver": "sim", "kind": "spatial", "damping_n_s_per_m": 10.0, "watchdog_s": 0.5,
-                   "hand": {"type": "constant", "wrench": [0.0, 0.0, -PUSH_N, 0.0, 0.0, 0.0]}},
-        "telemetry": {"ring_s": 20.0},
-    })
-    sup = Supervisor(settings)
-    client = None
-    try:
-        sup.start()
-        client = Client(PybulletEngine(), url, scene="loose", connect_timeout_s=60.0).start()
-        _serve_for(sup, 4.0)
-        snap = sup.shared.snapshot()
-        rows = _rows(sup)
-        stats = client.runner.stats()
-    finally:
-        if client is not None:
-            client.close()
-        sup.close()
-    assert client.error is None
+    snap, rows, stats, _ = real_session(_settings(_url(transport), SPATIAL_PUSH), PybulletEngine(), "loose", 4.0)
     assert stats["sessions"] == 1 and snap["updates"] >= 50 and snap["acks_sent"] == snap["updates"]
     assert snap["faults_total"] == 0, (snap["fault"], snap["device_fault"], snap["speed_trips"])
     eng = rows[rows[:, TEL["updates"]] > 0]

@@ -1,5 +1,6 @@
-"""``hapticproxy client``: bad input gives one line and a non-zero status, a good run works, and the
-protocol's conformance kit passes for every engine."""
+"""``hapticproxy client``: bad input gives one line and a non-zero status, a good run works, the
+engine registry (built-ins and another package's engines, ``--list``), and the protocol's
+conformance kit passes for every registered engine."""
 from __future__ import annotations
 
 import importlib.util
@@ -12,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from hapticproxy.clients import cli
+from hapticproxy.clients import cli, registry
 from hapticproxy.protocol import conformance as K
 from hapticproxy.protocol.codec import Codec, Hello, Reject
 from hapticproxy.protocol.messages import ErrorCode
@@ -36,7 +37,7 @@ def one_line(err: str) -> str:
 
 
 @pytest.mark.parametrize("argv, needle", [
-    (["frobnicate"], "unknown engine 'frobnicate'; choose one of: pymunk, pybullet, stub"),
+    (["frobnicate"], "unknown engine 'frobnicate'; choose one of: peg1d, pybullet, pybullet-linkage, pymunk, stub"),
     (["stub", "--scene", "moon"], "unknown scene 'moon' for engine stub; choose one of: testbed"),
     (["pymunk", "--scene", "scenes/lab.json"], "takes a scene name, not a file"),
     (["stub", "--epsilon=-0.001"], "--epsilon: must be a finite number of metres >= 0"),
@@ -50,7 +51,7 @@ def one_line(err: str) -> str:
     (["stub", "--gui"], "--gui is not an option of engine 'stub'"),
     (["stub", "--bogus"], "unrecognized arguments: --bogus"),
     (["stub", "--epsilon", "abc"], "invalid float value"),
-    ([], "the following arguments are required: engine"),
+    ([], "the following arguments are required: engine (see --list)"),
 ])
 def test_bad_arguments_give_one_line_and_status_2(capsys, argv, needle):
     code, out, err = run_main(capsys, *argv)
@@ -64,10 +65,46 @@ def test_gui_without_pygame_gives_one_line(capsys):
     assert code == 2 and "--gui needs pygame" in one_line(err)
 
 
-def test_missing_engine_module_gives_one_line(capsys, monkeypatch):
-    monkeypatch.setitem(cli.ENGINES, "ghost", "hapticproxy.clients.no_such_engine:GhostEngine")
+def test_missing_engine_module_gives_one_line(capsys, tmp_path, monkeypatch, make_lab):
+    make_lab(tmp_path, (("ghost", "hapticproxy.clients.no_such_engine:GhostEngine"),
+                                ("needy", "labneedy:NeedyEngine")))
+    (tmp_path / "labneedy.py").write_text("import pybullet_but_not_installed\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
     code, _, err = run_main(capsys, "ghost")
     assert code == 2 and "engine 'ghost' is not available" in one_line(err)
+    code, _, err = run_main(capsys, "needy")
+    assert code == 2 and "engine 'needy' needs the 'pybullet_but_not_installed' package" in one_line(err)
+
+
+def test_list_prints_every_registered_engine(capsys):
+    code, out, _ = run_main(capsys, "--list")
+    assert code == 0
+    lines = out.splitlines()
+    assert [ln.split()[0] for ln in lines] == ["peg1d", "pybullet", "pybullet-linkage", "pymunk", "stub"]
+    stub = next(ln for ln in lines if ln.startswith("stub"))
+    assert "hapticproxy.clients.stub_engine:StubEngine" in stub and "scenes: testbed, hole, wall, piston" in stub
+    code, out, _ = run_main(capsys, "--list", "--json")
+    rows = json.loads(out)
+    assert code == 0 and all(r["builtin"] and r["available"] for r in rows)
+    assert {r["name"]: r["scenes"] for r in rows}["pybullet"] == ["peg", "loose"]
+
+
+def test_an_engine_of_another_package_is_listed_and_runs(capsys, lab_package, server_thread):
+    """A lab's package registers ``lab`` in the ``hapticproxy.engines`` group: it is listed and
+    runs by name; its attempt to take the built-in name ``stub`` is shown and ignored."""
+    reg = registry.engines()
+    assert reg["lab"].package == "labengine 0.1" and not reg["lab"].builtin
+    assert reg["stub"].builtin and reg["stub"].ignored == ("labengine 0.1: labengine:LabEngine",)
+    assert cli.load_engine_class("stub").__name__ == "StubEngine"
+    code, out, _ = run_main(capsys, "--list")
+    assert code == 0
+    assert any(ln.startswith("lab ") and "(labengine 0.1)" in ln and "scenes: testbed" in ln for ln in out.splitlines())
+    assert "ignored, the name is taken: labengine 0.1: labengine:LabEngine" in out
+    srv = server_thread("udp://127.0.0.1:0")
+    code, out, err = run_main(capsys, "lab", "--scene", "wall", "--connect", srv.url, "--duration", "0.3", "--json")
+    assert code == 0, err
+    st = json.loads(out)
+    assert st["engine"] == "lab-engine 0.1" and st["sessions"] == 1 and st["steps"] > 0
 
 
 def test_unreachable_server_gives_one_line_and_status_1(capsys):
@@ -147,7 +184,7 @@ def _engine_scene(name):
     return cls.scenes()[0]
 
 
-@pytest.mark.parametrize("engine", list(cli.ENGINES))
+@pytest.mark.parametrize("engine", list(registry.engines()))
 def test_check_client_passes_for_every_engine(engine):
     """``hapticproxy protocol check-client`` playing the server, the real CLI as the client."""
     scene = _engine_scene(engine)

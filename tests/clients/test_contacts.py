@@ -1,4 +1,4 @@
-"""Shared contact helpers: feature ids, planar poses, clustering (cap, deepest kept, one
+"""Shared contact helpers: feature ids, planar poses (geometry), clustering (cap, deepest kept, one
 representative per direction, determinism)."""
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hapticproxy.clients.contacts import (FACE_VERTEX, VERTEX_FACE, cluster_rows, feature_id, fill_planar, planar_angle,
-                                          planar_pose, reduce_contacts, split_feature, wrap_angle)
+from hapticproxy.clients.contacts import FACE_VERTEX, VERTEX_FACE, cluster_rows, feature_id, fill_planar, reduce_contacts, split_feature
 from hapticproxy.clients.engine import ContactBuffer
+from hapticproxy.clients.geometry import planar_angle, planar_pose, wrap_angle
 
 
 def buffer(rows):

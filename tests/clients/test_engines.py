@@ -8,8 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from hapticproxy.clients.contacts import FACE_VERTEX, VERTEX_FACE, planar_angle, planar_pose, split_feature
+from hapticproxy.clients.contacts import FACE_VERTEX, VERTEX_FACE, split_feature
 from hapticproxy.clients.engine import ContactBuffer
+from hapticproxy.clients.geometry import planar_angle, planar_pose
 from hapticproxy.clients.pymunk_engine import PymunkEngine
 from hapticproxy.clients.scenes import (SCENES, BOTTOM_WALL_Y_M, HOLE_BOTTOM_Y_M, HOLE_WIDTH_M, IN_HOLE_POSE, TOOL_LENGTH_M,
                                         TOOL_WIDTH_M, WALL_CONTACT_Y_COM_M)

@@ -1,19 +1,16 @@
 """Linkage clients against the real server (supervisor + loop process) over UDP: the pymunk
 testbed's 3-bar linkage pushed onto the bottom wall settles with the force balancing the push;
-the pybullet URDF chain engages a spatial device. Counts and positions, never timings."""
+the pybullet URDF chain engages a spatial device. Counts, positions and the engine's simulated
+time, never timings."""
 from __future__ import annotations
 
 import socket
-import threading
-import time
 
 import numpy as np
 import pytest
 
-from hapticproxy.clients.runner import ClientRunner
 from hapticproxy.clients.scenes import BOTTOM_WALL_Y_M, LINK_WIDTH_M
 from hapticproxy.server import config as cfgmod
-from hapticproxy.server.daemon import Supervisor
 from hapticproxy.server.shm import TEL
 
 PUSH_N = 0.5
@@ -40,62 +37,14 @@ def _settings(url: str, device: dict) -> cfgmod.Settings:
     })
 
 
-class Client:
-    def __init__(self, engine, url, scene):
-        self.engine = engine
-        self.runner = ClientRunner(engine, url, scene=scene, epsilon_m=0.005, max_contacts=32, connect_timeout_s=30.0)
-        self.stop = threading.Event()
-        self.error = None
-        self.thread = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self):
-        try:
-            self.runner.run(self.stop)
-        except BaseException as exc:  # noqa: BLE001 - asserted by the test
-            self.error = exc
-
-    def start(self):
-        self.thread.start()
-        return self
-
-    def close(self):
-        self.stop.set()
-        self.thread.join(15)
-        self.engine.close()
-
-
-def _run(settings, engine, scene, seconds):
-    url = settings["transport"]["url"]
-    sup = Supervisor(settings)
-    client = None
-    try:
-        sup.start()
-        client = Client(engine, url, scene).start()
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < seconds:
-            sup._serve_status(0.05)
-        snap = sup.shared.snapshot()
-        head = int(sup.shared.head[0])
-        n = min(head, sup.ring_rows)
-        rows = sup.shared.ring[np.arange(head - n, head) % sup.ring_rows].copy()
-        stats = client.runner.stats()
-        last = client.runner.last_proxy
-    finally:
-        if client is not None:
-            client.close()
-        sup.close()
-    assert client.error is None
-    return snap, rows, stats, last
-
-
-def test_pymunk_linkage_against_the_real_server_settles_on_the_wall():
+def test_pymunk_linkage_against_the_real_server_settles_on_the_wall(real_session):
     from hapticproxy.clients.pymunk_engine import PymunkEngine
 
     url = f"udp://127.0.0.1:{_port()}"
     settings = _settings(url, {"kind": "planar", "damping_n_s_per_m": 10.0, "workspace_min_m": [-0.25, -0.25],
                                "workspace_max_m": [0.25, 0.25],
                                "hand": {"type": "constant", "wrench": [0.0, PUSH_N, 0.0]}})
-    snap, rows, stats, last = _run(settings, PymunkEngine(), "linkage", 5.0)
+    snap, rows, stats, last = real_session(settings, PymunkEngine(), "linkage", 5.0, max_contacts=32)
     assert stats["sessions"] == 1 and snap["updates"] >= 100 and snap["acks_sent"] == snap["updates"]
     assert snap["faults_total"] == 0, (snap["fault"], snap["device_fault"], snap["speed_trips"])
     assert len(last.joint_position) == 2 and len(last.joint_effort) == 2
@@ -109,13 +58,13 @@ def test_pymunk_linkage_against_the_real_server_settles_on_the_wall():
     assert np.max(eng[:, TEL["contacts"]]) >= 4
 
 
-def test_pybullet_linkage_against_the_real_server_engages_a_spatial_device():
+def test_pybullet_linkage_against_the_real_server_engages_a_spatial_device(real_session):
     pytest.importorskip("pybullet")
     from hapticproxy.clients.pybullet_linkage import PybulletLinkageEngine
 
     url = f"udp://127.0.0.1:{_port()}"
     settings = _settings(url, {"kind": "spatial", "hand": {"type": "constant", "wrench": [0.0, 0.0, -0.3, 0.0, 0.0, 0.0]}})
-    snap, rows, stats, last = _run(settings, PybulletLinkageEngine(), "chain", 3.0)
+    snap, rows, stats, last = real_session(settings, PybulletLinkageEngine(), "chain", 3.0, max_contacts=32)
     assert stats["sessions"] == 1 and snap["updates"] >= 100 and snap["acks_sent"] == snap["updates"]
     assert snap["faults_total"] == 0, (snap["fault"], snap["device_fault"], snap["speed_trips"])
     assert len(last.joint_position) == 3

@@ -12,8 +12,8 @@ import pybullet as p
 import pytest
 
 from hapticproxy.clients.engine import ContactBuffer
-from hapticproxy.clients.pybullet_linkage import (DEFAULT_URDF, SELF_BODY_BASE, PybulletLinkageEngine, _compose,
-                                                  _inverse, links_from_body)
+from hapticproxy.clients.geometry import compose, inverse, wxyz_from_xyzw
+from hapticproxy.clients.pybullet_linkage import DEFAULT_URDF, SELF_BODY_BASE, PybulletLinkageEngine, links_from_body
 from hapticproxy.clients.pymunk_engine import SELF_BODY_BASE as PYMUNK_SELF, PymunkEngine
 from hapticproxy.clients.runner import ClientRunner
 from hapticproxy.clients.scenes import LINK_COUNT, LINK_LENGTH_M, LINKAGE_START
@@ -125,22 +125,22 @@ def _follow(dynamics: str, force_n, seconds: float = 1.0, dt: float = 1e-3):
                       links=tuple(ln.record() for ln in links), held_link=nj)
         model = LocalModel(tool_from_hello(hello, planar=False), ContactParams(), period_s=dt, capacity=1,
                            linkage_dynamics=dynamics)
-        base_com = (links[0].com_m, p.getDynamicsInfo(b, -1, physicsClientId=cid)[4])
+        base_com = (links[0].com_m, wxyz_from_xyzw(p.getDynamicsInfo(b, -1, physicsClientId=cid)[4]))
         pos, orn = p.getBasePositionAndOrientation(b, physicsClientId=cid)
-        lp, lq = _compose(pos, orn, *_inverse(*base_com))
-        model.reset(np.r_[lp, lq[3], lq[0], lq[1], lq[2], q0])
+        lp, lq = compose(pos, wxyz_from_xyzw(orn), *inverse(*base_com))
+        model.reset(np.r_[lp, lq, q0])
         force = np.asarray(force_n, dtype=float)
         hand = np.r_[force, 0.0, 0.0, 0.0]
         held = nj - 1
         err_p = err_q = speed = 0.0
         for _ in range(int(round(seconds / dt))):
             s = p.getLinkState(b, held, computeForwardKinematics=1, physicsClientId=cid)
-            origin, _ = _compose(s[0], s[1], *_inverse(s[2], s[3]))
+            origin, _ = compose(s[0], wxyz_from_xyzw(s[1]), *inverse(s[2], wxyz_from_xyzw(s[3])))
             p.applyExternalForce(b, held, list(force), list(origin), p.WORLD_FRAME, physicsClientId=cid)
             p.stepSimulation(physicsClientId=cid)
             model.step(hand)
             s = p.getLinkState(b, held, computeForwardKinematics=1, physicsClientId=cid)
-            origin, _ = _compose(s[0], s[1], *_inverse(s[2], s[3]))
+            origin, _ = compose(s[0], wxyz_from_xyzw(s[1]), *inverse(s[2], wxyz_from_xyzw(s[3])))
             jq = np.array([st[0] for st in p.getJointStates(b, range(nj), physicsClientId=cid)])
             hs = model.hand_state()
             err_p = max(err_p, float(np.linalg.norm(hs[:3] - np.asarray(origin))))

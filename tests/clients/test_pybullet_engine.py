@@ -12,9 +12,12 @@ import numpy as np
 import pybullet as p
 import pytest
 
-from hapticproxy.clients.contacts import FACE_VERTEX, VERTEX_FACE, cluster_rows, split_feature
+from hapticproxy.clients.contacts import EDGE_EDGE, FACE_VERTEX, VERTEX_FACE, cluster_rows, split_feature
 from hapticproxy.clients.engine import ContactBuffer
-from hapticproxy.clients.pybullet_engine import EDGE_EDGE, PybulletEngine, _cluster
+from hapticproxy.clients.geometry import quat_from_axis_angle as quat_axis_angle
+from hapticproxy.clients.geometry import quat_to_matrix as rot
+from hapticproxy.clients.narrowphase import _cluster
+from hapticproxy.clients.pybullet_engine import PybulletEngine
 
 EPS = 0.005
 FREE_SPOT = (0.15, 0.15)  # over the peg scene's floor, far from the block
@@ -23,36 +26,12 @@ BLOCK_FACE_X = 0.05  # the block's +x outer face
 
 
 @pytest.fixture
-def make_engine():
-    made = []
-
-    def make(scene: str | None = None, epsilon_m: float = EPS, **kw) -> PybulletEngine:
-        e = PybulletEngine(**kw)
-        made.append(e)
-        if scene is not None:
-            e.load_scene(scene)
-            e.set_epsilon(epsilon_m)
-        return e
-
-    yield make
-    for e in made:
-        e.close()
+def make_engine(make_pybullet):
+    return make_pybullet
 
 
 def pose(x, y, z, q=(1.0, 0.0, 0.0, 0.0)):
     return np.array([x, y, z, *q], dtype=float)
-
-
-def quat_axis_angle(axis, angle):
-    axis = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
-    return (math.cos(angle / 2), *(math.sin(angle / 2) * axis))
-
-
-def rot(q):
-    w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
 def rows(buf: ContactBuffer) -> dict:

@@ -1,6 +1,9 @@
-"""The engine-neutral client loop against the protocol's reference server (and small fake servers
-where a test needs to misbehave on purpose): handshake, one ContactUpdate per step, newest
-ProxyState, grants, heartbeats, reconnection, vanishing servers, refusals."""
+"""The engine-neutral client loop against the protocol's reference server, a scripted server in
+simulated time (``contract.ScriptedServer``: the protocol's ServerEndpoint on the in-memory
+transport) and small fake servers where a test needs to misbehave on purpose: handshake, one
+ContactUpdate per step, pacing, newest ProxyState, the server state (held while not rendered),
+grants, heartbeats, reconnection, vanishing servers, refusals. Timing is simulated time or
+counts, never the wall clock."""
 from __future__ import annotations
 
 import threading
@@ -9,10 +12,11 @@ import time
 import numpy as np
 import pytest
 
+from hapticproxy.clients.contract import ProxyCommand, ScriptedServer, SimClock
 from hapticproxy.clients.runner import ClientError, ClientRunner
 from hapticproxy.clients.stub_engine import StubEngine
 from hapticproxy.protocol.codec import Codec, Hello, ProxyState, Reject
-from hapticproxy.protocol.messages import ErrorCode, ToolKind
+from hapticproxy.protocol.messages import ErrorCode, ServerState, ToolKind
 from hapticproxy.protocol.session import ServerConfig, ServerEndpoint
 from hapticproxy.protocol.transport import open_transport
 
@@ -64,15 +68,25 @@ def test_one_contact_update_after_every_engine_step(server_thread, helpers):
     assert all(u.n_contacts == 3 for u in ups)
 
 
-def test_realtime_loop_never_runs_ahead_of_the_wall_clock(server_thread, helpers):
-    srv = server_thread("mem://realtime")
+def _scripted(clock, script=None, **config):
+    return ScriptedServer(clock, script or (lambda t, s: ProxyCommand(s.start_pose)),
+                          config=ServerConfig(**config) if config else None)
+
+
+def test_realtime_loop_keeps_pace_with_its_clock(helpers):
+    """In simulated time: a 200 Hz engine run for 0.4 s steps every 5 ms of the runner's clock,
+    never ahead of it."""
+    clock = SimClock()
+    srv = _scripted(clock)
     engine = helpers.RecordingEngine(rate_hz=200.0)
-    runner = ClientRunner(engine, srv.url, scene="floor")
-    t0 = time.monotonic()
+    runner = ClientRunner(engine, srv.url, scene="floor", clock_ns=clock, sleep=srv.sleep)
+    t0 = clock()
     st = runner.run(duration_s=0.4)
-    elapsed = time.monotonic() - t0
-    assert st["steps"] > 0
-    assert engine.time_s <= elapsed + 1.0 / 200.0
+    elapsed = (clock() - t0) / 1e9
+    assert 78 <= st["steps"] <= 80  # 0.4 s at 200 Hz, less the handshake's first poll
+    assert engine.time_s <= elapsed + 1e-12
+    received = [t for t, _ in srv.updates]
+    assert np.diff(received) == pytest.approx(0.005, abs=1e-9)  # one step per 5 ms of the clock
 
 
 def test_newest_proxy_state_is_applied_and_stale_ones_dropped(runner_thread, helpers):
@@ -138,16 +152,16 @@ def test_granted_epsilon_and_capacity_are_used(server_thread):
     assert st["steps_clustered"] > 0
 
 
-def test_heartbeats_keep_a_slow_engine_session_alive(server_thread, helpers):
-    cfg = ServerConfig(heartbeat_interval_s=0.05, silence_timeout_s=0.3)
-    srv = server_thread("mem://slow", config=cfg)
+def test_heartbeats_keep_a_slow_engine_session_alive(helpers):
+    clock = SimClock()
+    srv = _scripted(clock, heartbeat_interval_s=0.05, silence_timeout_s=0.3)
     engine = helpers.RecordingEngine(rate_hz=2.0)  # a step every 0.5 s: longer than the silence timeout
-    runner = ClientRunner(engine, srv.url, scene="floor")
+    runner = ClientRunner(engine, srv.url, scene="floor", clock_ns=clock, sleep=srv.sleep)
     st = runner.run(duration_s=1.3)
-    srv.stop()
-    assert st["heartbeats_sent"] >= 3
+    assert st["steps"] == 3  # at 0, 0.5 and 1.0 s
+    assert st["heartbeats_sent"] >= 3 * 2  # twice at least in each 0.5 s between steps
     assert st["sessions"] == 1 and st["sessions_ended"] == 0
-    assert srv.endpoint.counters.timeouts == 0
+    assert srv.endpoint.counters.timeouts == 0 and srv.endpoint.counters.heartbeats_sent > 0
 
 
 @pytest.mark.parametrize("scheme", ["udp", "mem", "zenoh"])
@@ -203,7 +217,8 @@ def test_survives_a_server_that_vanishes_and_reconnects_when_it_is_back(server_t
         t.close()  # gone, without a word
     helpers.wait_for(lambda: rt.runner.stats()["sessions_ended"] == 1, what="the silence timeout")
     steps_then = rt.runner.stats()["steps"]
-    time.sleep(0.3)
+    attempts = rt.runner.stats()["connect_attempts"]
+    helpers.wait_for(lambda: rt.runner.stats()["connect_attempts"] >= attempts + 2, what="two more attempts")
     st = rt.runner.stats()
     assert rt.thread.is_alive() and rt.error is None
     assert st["state"] in ("waiting", "connecting", "handshaking") and st["steps"] == steps_then  # world paused
@@ -215,42 +230,51 @@ def test_survives_a_server_that_vanishes_and_reconnects_when_it_is_back(server_t
 
 
 def test_without_reconnect_run_returns_when_the_server_goes_silent(helpers):
-    url = "mem://silent-once"
-    t = open_transport(url, role="server")
-    stop = threading.Event()
-    th = threading.Thread(target=_silent_server, args=(t, stop, ServerConfig(heartbeat_interval_s=0.05,
-                                                                              silence_timeout_s=0.2)), daemon=True)
-    th.start()
+    """In simulated time: the server stops answering at 0.3 s (no Bye); the runner gives the
+    session up after the silence timeout it was told (0.2 s) and returns."""
+    clock = SimClock()
+    srv = _scripted(clock, heartbeat_interval_s=0.05, silence_timeout_s=0.2)
+    t0 = clock()
+
+    def sleep(s):
+        clock.advance(s)
+        if clock() - t0 < 0.3e9:
+            srv.service()  # then it is gone, without a word
+
     engine = helpers.RecordingEngine(rate_hz=100.0)
-    runner = ClientRunner(engine, url, scene="floor", reconnect=False)
-    killer = threading.Timer(0.3, stop.set)
-    killer.start()
+    runner = ClientRunner(engine, srv.url, scene="floor", reconnect=False, clock_ns=clock, sleep=sleep)
     try:
         st = runner.run(duration_s=10.0)
     finally:
-        stop.set()
-        th.join(5)
-        t.close()
+        srv.transport.close()
     assert st["state"] == "stopped" and st["error"] is None
     assert st["end_reason"].startswith("server silent") and st["sessions"] == 1
+    # the last answer came within a step (10 ms) before 0.3 s; 0.2 s of silence later it gave up
+    assert 0.3 - 0.011 + 0.2 <= (clock() - t0) / 1e9 <= 0.3 + 0.2 + 0.003
 
 
 def test_unreachable_server_gives_one_line_client_error(helpers):
     url = f"udp://127.0.0.1:{helpers.free_udp_port()}"  # nobody listens
-    runner = ClientRunner(StubEngine(), url, scene="wall", connect_timeout_s=0.4, handshake_timeout_s=0.2)
+    clock = SimClock()
+    runner = ClientRunner(StubEngine(), url, scene="wall", connect_timeout_s=0.4, handshake_timeout_s=0.2,
+                          clock_ns=clock, sleep=clock.advance)
     with pytest.raises(ClientError) as err:
         runner.run()
     msg = str(err.value)
     assert "\n" not in msg and url in msg and "0.4 s" in msg
-    assert runner.stats()["state"] == "failed" and runner.stats()["hellos_sent"] >= 2
+    # Hellos every 0.25 s of the runner's clock: at 0 and 0.25 s; then the handshake (0.2 s) is
+    # given up and the transport reopened at once, Hello again
+    st = runner.stats()
+    assert st["state"] == "failed" and st["hellos_sent"] >= 2 and st["connect_attempts"] >= 2
 
 
 def test_missing_mem_server_is_retried_then_reported():
+    clock = SimClock()
     runner = ClientRunner(StubEngine(), "mem://nobody-here", scene="wall", connect_timeout_s=0.3,
-                          reconnect_delay_s=0.05)
+                          reconnect_delay_s=0.05, clock_ns=clock, sleep=clock.advance)
     with pytest.raises(ClientError, match="no mem server"):
         runner.run()
-    assert runner.stats()["transport_errors"] >= 2
+    assert runner.stats()["transport_errors"] == 6  # at 0, 0.05, ..., 0.25 s: the 0.3 s deadline comes first
 
 
 def test_refused_tool_kind_raises_client_error(server_thread):
@@ -326,3 +350,121 @@ def test_bad_url_and_scene_are_refused_before_running():
         ClientRunner(StubEngine(), "tcp://127.0.0.1:1", scene="wall")
     with pytest.raises(ValueError, match="unknown scene 'moon'.*testbed"):
         ClientRunner(StubEngine(), "mem://x", scene="moon")
+
+
+# ------------------------------------------------------------------------------ server state
+_SCHEDULE = ((0.2, ServerState.ENGAGED), (0.4, ServerState.FADING), (0.6, ServerState.ENGAGED),
+             (0.8, ServerState.FAULT), (1.0, ServerState.IDLE), (1.2, ServerState.ENGAGED),
+             (1.4, ServerState.UNKNOWN))
+
+
+def _state_at(t):
+    for end, state in _SCHEDULE:
+        if t < end:
+            return state
+    return ServerState.UNKNOWN
+
+
+def test_the_tool_follows_only_an_engaged_proxy_and_is_held_otherwise(helpers):
+    """A scripted server (ServerEndpoint on the in-memory transport, simulated time) moves the proxy
+    along +y at 0.1 m/s and reports engaged, fading, engaged, fault, idle, engaged, unknown: the
+    engine is driven towards the proxy only while engaged (or unknown: a 1.1 server), is held at
+    its own pose once when the server stops rendering, and follows the newest proxy at once when
+    the server renders it again."""
+    clock = SimClock()
+
+    def script(t, s):
+        pose = s.start_pose.copy()
+        pose[1] = 0.1 * t
+        twist = np.zeros(6)
+        twist[1] = 0.1
+        return ProxyCommand(pose, twist, server_state=_state_at(t))
+
+    srv = _scripted(clock, script)
+    engine = helpers.RecordingEngine(rate_hz=100.0)  # its tool jumps to where it is driven
+    log = []
+    runner = ClientRunner(engine, srv.url, scene="floor", clock_ns=clock, sleep=srv.sleep, log=log.append)
+    st = runner.run(duration_s=1.6)
+    ys = {round(t, 6): float(u.tool_pose[1]) for t, u in srv.updates}
+    ts = sorted(ys)
+
+    def tool_y(a, b):
+        return [ys[t] for t in ts if a < t < b]
+
+    # held: the tool stays where it was when the server stopped rendering (a step after 0.2 / 0.6 s)
+    for a, b in ((0.2, 0.4), (0.6, 1.0)):
+        held = tool_y(a + 0.02, b)
+        assert held and max(held) - min(held) == 0.0, (a, b, held)
+        assert min(held) < 0.1 * a + 0.002  # not where the proxy went meanwhile
+    # engaged (and unknown): the tool is where the proxy was a step before
+    for a, b in ((0.0, 0.2), (0.4, 0.6), (1.0, 1.2), (1.4, 1.6)):
+        for t in ts:
+            if a + 0.02 < t < b:
+                assert ys[t] == pytest.approx(0.1 * t, abs=0.1 * 0.011), t
+    assert st["holds"] == 2  # fading, then fault (idle after fault: still held, no second hold)
+    assert st["proxy_held"] > 0 and st["proxy_applied"] > 0
+    assert st["proxy_states"] == st["proxy_applied"] + st["proxy_held"] + st["proxy_superseded"]
+    assert st["server_state"] == "unknown" and st["following"] is True
+    assert any("holding the tool" in m for m in log) and any("following the proxy again" in m for m in log)
+    # every drive was either a proxy pose (engaged) or the engine's own pose (held): never a pose
+    # the proxy took while the server did not render it
+    proxy_ys = {round(0.1 * t, 9) for t in ts}
+    assert all(round(float(p[1]), 9) in proxy_ys or float(p[1]) in ys.values() for p in engine.driven)
+
+
+def test_a_linkage_is_held_with_its_joints(helpers):
+    """While not rendered, a linkage engine's joints are held at its own joint positions too."""
+    from hapticproxy.clients.engine import LinkDescription, SceneInfo, ToolDescription
+
+    class Chain(helpers.RecordingEngine):
+        def __init__(self):
+            super().__init__(rate_hz=100.0, n_contacts=0)
+            self.joints = np.array([0.3, -0.2])
+            self.joint_calls = []
+
+        def load_scene(self, name):
+            links = (LinkDescription(0.1), LinkDescription(0.1, parent=0, joint="revolute"),
+                     LinkDescription(0.1, parent=1, joint="revolute"))
+            return SceneInfo(name, ToolDescription("linkage", 0.3, links=links, held_link=2), env_rate_hz=100.0)
+
+        def drive_joints(self, position, velocity, effort):
+            self.joint_calls.append(np.array(position, dtype=float))
+            if len(position):
+                self.joints = np.array(position, dtype=float)
+
+        def joint_positions(self, out):
+            out[:] = self.joints
+            return out
+
+    clock = SimClock()
+
+    def script(t, s):
+        state = ServerState.FAULT if t >= 0.2 else ServerState.ENGAGED
+        return ProxyCommand(s.start_pose, joint_position=np.array([1.0 + t, 2.0]), joint_velocity=np.zeros(2),
+                            server_state=state)
+
+    srv = _scripted(clock, script)
+    engine = Chain()
+    st = ClientRunner(engine, srv.url, scene="floor", clock_ns=clock, sleep=srv.sleep).run(duration_s=0.5)
+    assert st["holds"] == 1 and st["proxy_held"] > 0
+    # one call per engaged ProxyState, then the hold: the engine's own joints (where the last
+    # engaged one put them), and nothing after it although the scripted joints moved on
+    assert len(engine.joint_calls) == st["proxy_applied"] + 1
+    np.testing.assert_array_equal(engine.joint_calls[-1], engine.joint_calls[-2])
+    assert engine.joints[0] < 1.0 + 0.2 + 0.011
+
+
+def test_start_up_time_does_not_count_against_the_connect_timeout(helpers):
+    """An engine whose warm-up (compilation, a GUI coming up) takes 30 s of the runner's clock still
+    gets its 5 s to connect: the timeout counts from the first attempt."""
+    clock = SimClock()
+    srv = _scripted(clock)
+
+    class SlowStart(helpers.RecordingEngine):
+        def warm_up(self):
+            clock.advance(30.0)
+
+    runner = ClientRunner(SlowStart(rate_hz=100.0), srv.url, scene="floor", connect_timeout_s=5.0, clock_ns=clock,
+                          sleep=srv.sleep)
+    st = runner.run(duration_s=0.2)
+    assert st["error"] is None and st["sessions"] == 1 and st["steps"] >= 15
