@@ -31,10 +31,10 @@ COMMANDS = {
     "status": ("hapticproxy.server.status", "ask a running server for its live figures (--json)"),
     "plot": ("hapticproxy.server.plot", "write PNG plots from a recording (.mcap or .hpt)"),
     "convert": ("hapticproxy.server.convert", "convert a recording (.hpt, or a torn .mcap) to a complete MCAP file"),
-    "client": ("hapticproxy.clients.cli", "run an environment client: pymunk | pybullet | stub"),
+    "client": ("hapticproxy.clients.cli", "run an environment client (`hapticproxy client --list` names the engines)"),
     "device": ("hapticproxy.server.devices.remote", "run a device program that streams to a server over UDP"),
     "experiment": ("hapticproxy.experiments.cli", "reproduce the paper's figures; the speed/accuracy trade-off"),
-    "warmup": ("hapticproxy.server.warm", "compile every numba kernel now (set-up does it; later runs load them)"),
+    "warmup": ("hapticproxy.cli.warmup", "compile every numba kernel now (set-up does it; later runs load them)"),
 }
 
 

@@ -6,19 +6,16 @@ deadline compiles first: the loop process runs ``HapticLoop.warm_up`` before it 
 and set-up (``sh run.sh``, the container build) runs ``hapticproxy warmup`` once, so that even
 the first start on a new machine only loads kernels from the cache.
 
-``hapticproxy warmup`` builds a loop for every device and tool kind on an in-memory transport and
-warms it (exactly the calls the loop makes, with the argument types it passes), then the engines'
-own kernels; it prints what it did. Numba writes its cache next to the sources (``__pycache__``)
+``hapticproxy warmup`` (``cli/warmup.py``) builds a loop for every device and tool kind on an
+in-memory transport and warms it (exactly the calls the loop makes, with the argument types it
+passes), then the engines' own kernels; it prints what it did. Numba writes its cache next to the sources (``__pycache__``)
 or under ``NUMBA_CACHE_DIR`` when that is set (the systemd unit and the container set it to a
 directory the service user owns).
 """
 from __future__ import annotations
 
-import argparse
 import importlib
 import os
-import sys
-import time
 
 #: Modules holding the server's numba kernels (imported to find them).
 SERVER_KERNEL_MODULES = (
@@ -30,9 +27,6 @@ SERVER_KERNEL_MODULES = (
     "hapticproxy.server.devices.dynamics",
     "hapticproxy.server.devices.hands",
 )
-#: Engines whose kernels are warmed too (skipped when the engine's extra is not installed); an
-#: engine module lists itself here with a ``warm_up_kernels()`` function.
-CLIENT_KERNEL_MODULES: tuple[str, ...] = ()
 
 
 def dispatchers(modules=SERVER_KERNEL_MODULES) -> list:
@@ -88,42 +82,3 @@ def warm_server() -> int:
         finally:
             loop.close()
     return n
-
-
-def warm_clients() -> list[str]:
-    """Warm the engines' kernels (those installed); returns their names."""
-    done = []
-    for name in CLIENT_KERNEL_MODULES:
-        try:
-            mod = importlib.import_module(name)
-        except ImportError:
-            continue
-        mod.warm_up_kernels()
-        done.append(name.rsplit(".", 1)[-1])
-    return done
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="hapticproxy warmup", description=__doc__.splitlines()[0])
-    p.add_argument("-q", "--quiet", action="store_true", help="print nothing when every kernel is cached")
-    args = p.parse_args(argv)
-    t0 = time.monotonic()
-    todo = cold(SERVER_KERNEL_MODULES + CLIENT_KERNEL_MODULES)
-    if todo:
-        print(f"hapticproxy: compiling {len(todo)} kernels (first run on this machine, about a minute) ...",
-              file=sys.stderr, flush=True)
-    loops = warm_server()
-    engines = warm_clients()
-    left = cold(SERVER_KERNEL_MODULES + CLIENT_KERNEL_MODULES)
-    if todo or not args.quiet:
-        what = f"{loops} loop configurations" + (f" and engines {', '.join(engines)}" if engines else "")
-        print(f"hapticproxy: kernels ready: {len(dispatchers(SERVER_KERNEL_MODULES + CLIENT_KERNEL_MODULES))} "
-              f"({len(todo) - len(left)} compiled now; {what}) in {time.monotonic() - t0:.1f} s",
-              file=sys.stderr, flush=True)
-    if left:
-        print(f"hapticproxy: not cached after warm-up (they compile at first use): {', '.join(left)}", file=sys.stderr)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

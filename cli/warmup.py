@@ -1,0 +1,52 @@
+"""``hapticproxy warmup``: compile (or load from numba's cache) every kernel of the server and of
+the installed engines before anything runs (set-up runs it; see ``server/warm.py`` for why)."""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import time
+
+from hapticproxy.server.warm import SERVER_KERNEL_MODULES, cold, dispatchers, warm_server
+
+#: engine modules with numba kernels, each with a ``warm_up_kernels()``; skipped when the
+#: engines extra is not installed
+CLIENT_KERNEL_MODULES = ("hapticproxy.clients.narrowphase",)
+
+
+def warm_clients() -> list[str]:
+    done = []
+    for name in CLIENT_KERNEL_MODULES:
+        try:
+            mod = importlib.import_module(name)
+        except ImportError:
+            continue
+        mod.warm_up_kernels()
+        done.append(name.rsplit(".", 1)[-1])
+    return done
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="hapticproxy warmup", description=__doc__.splitlines()[0])
+    p.add_argument("-q", "--quiet", action="store_true", help="print nothing when every kernel is cached")
+    args = p.parse_args(argv)
+    modules = SERVER_KERNEL_MODULES + CLIENT_KERNEL_MODULES
+    t0 = time.monotonic()
+    todo = cold(modules)
+    if todo:
+        print(f"hapticproxy: compiling {len(todo)} kernels (first run on this machine, about a minute) ...",
+              file=sys.stderr, flush=True)
+    loops = warm_server()
+    engines = warm_clients()
+    left = cold(modules)
+    if todo or not args.quiet:
+        what = f"{loops} loop configurations" + (f" and the engines' {', '.join(engines)}" if engines else "")
+        print(f"hapticproxy: kernels ready: {len(dispatchers(modules))} ({len(todo) - len(left)} compiled now; "
+              f"{what}) in {time.monotonic() - t0:.1f} s", file=sys.stderr, flush=True)
+    if left:
+        print(f"hapticproxy: not cached after warm-up (they compile at first use): {', '.join(left)}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
