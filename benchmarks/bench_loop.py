@@ -11,7 +11,10 @@ minus the absolute deadline, 1 us bins, upper edges), ``step_us`` (``p50``, ``p9
 write), ``missed_fraction`` (steps that finished after the next deadline / steps),
 ``missed_deadlines`` (whole periods skipped), ``rt_scheduling``, ``spin_us``, ``updates``,
 ``faults``, ``naive_lateness_us`` (``p50``, ``p99``, ``p999``, ``max``), ``naive_missed_fraction``,
-``p99_ratio_naive_over_loop``, ``machine``.
+``p99_ratio_naive_over_loop``, ``machine``; then ``update_steps`` (per tool kind: the CPU time of
+the steps that receive, apply, or do neither with a model update; ``benchmarks/update_steps.py``),
+``apply_p99_max_us``, ``receive_p99_max_us``, ``budget_us`` (a quarter of a 4 kHz period) and
+``within_budget``.
 """
 from __future__ import annotations
 
@@ -162,15 +165,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=60.0, help="measured seconds of the real loop (default 60)")
     ap.add_argument("--naive-seconds", type=float, default=None,
                     help="seconds of the naive comparison loop (default: same as --seconds, at most 20)")
+    ap.add_argument("--update-steps", type=int, default=6000, metavar="N",
+                    help="steps per tool kind of the update-step measurement (default 6000)")
+    ap.add_argument("--update-steps-only", action="store_true", help="only the update-step measurement")
     args = ap.parse_args(argv)
     if not (100 <= args.rate <= 20000) or not args.seconds > 0:
         print("hapticproxy bench loop: --rate must be in [100, 20000] Hz and --seconds > 0", file=sys.stderr)
         return 2
     naive_s = min(args.seconds, 20.0) if args.naive_seconds is None else args.naive_seconds
+    from . import update_steps
+
     try:
-        res = run(args.rate, args.seconds, naive_s)
+        res = {} if args.update_steps_only else run(args.rate, args.seconds, naive_s)
     except RuntimeError as exc:
         print(f"hapticproxy bench loop: {exc}", file=sys.stderr)
         return 1
+    # the steps that receive and apply a model update, per tool kind (in-process, CPU time)
+    res.update(update_steps.run(steps=args.update_steps, rate_hz=args.rate))
     print(json.dumps(res, indent=1))
     return 0

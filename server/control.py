@@ -583,6 +583,54 @@ def fade_only(cp, cs, cc, cmd):
     return _safety(cp, cs, cc, cmd)
 
 
+#: ``tool_q_from_pose`` kinds: the rigid tool kinds, then a linkage's root on each device kind
+QK_1DOF = 0
+QK_PLANAR = 1
+QK_SPATIAL = 2
+QK_LINKAGE_PLANAR = 3
+QK_LINKAGE_SPATIAL = 4
+Q_KINDS = {"1dof": QK_1DOF, "planar": QK_PLANAR, "spatial": QK_SPATIAL, "linkage-planar": QK_LINKAGE_PLANAR,
+           "linkage-spatial": QK_LINKAGE_SPATIAL}
+
+
+@njit(**_JIT)
+def tool_q_from_pose(qk, pose, com, axis, joints, out):
+    """The engine tool's configuration q (like the model's ``q``) from its tool-frame pose (x y z
+    qw qx qy qz) at each model update: a rigid tool's COM pose (``com``: the COM in the tool
+    frame; 1dof: the coordinate along ``axis``), a linkage's root-frame pose then ``joints``.
+    The quaternion is normalised (a zero one reads as the identity). Writes ``out``."""
+    px = pose[0]; py = pose[1]; pz = pose[2]
+    w = pose[3]; x = pose[4]; y = pose[5]; z = pose[6]
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if n > 0.0:
+        w /= n; x /= n; y /= n; z /= n
+    else:
+        w = 1.0; x = 0.0; y = 0.0; z = 0.0
+    if qk == QK_LINKAGE_PLANAR or qk == QK_LINKAGE_SPATIAL:
+        if qk == QK_LINKAGE_PLANAR:
+            out[0] = px; out[1] = py; out[2] = 2.0 * math.atan2(z, w)
+            o = 3
+        else:
+            out[0] = px; out[1] = py; out[2] = pz; out[3] = w; out[4] = x; out[5] = y; out[6] = z
+            o = 7
+        for j in range(joints.shape[0]):
+            out[o + j] = joints[j]
+        return
+    cx = com[0]; cy = com[1]; cz = com[2]
+    if qk == QK_1DOF:
+        out[0] = (px + cx) * axis[0] + (py + cy) * axis[1] + (pz + cz) * axis[2]
+        return
+    # c = p + R com
+    rx = (1 - 2 * (y * y + z * z)) * cx + 2 * (x * y - w * z) * cy + 2 * (x * z + w * y) * cz
+    ry = 2 * (x * y + w * z) * cx + (1 - 2 * (x * x + z * z)) * cy + 2 * (y * z - w * x) * cz
+    rz = 2 * (x * z - w * y) * cx + 2 * (y * z + w * x) * cy + (1 - 2 * (x * x + y * y)) * cz
+    if qk == QK_PLANAR:
+        out[0] = px + rx; out[1] = py + ry; out[2] = 2.0 * math.atan2(z, w)
+        return
+    out[0] = px + rx; out[1] = py + ry; out[2] = pz + rz
+    out[3] = w; out[4] = x; out[5] = y; out[6] = z
+
+
 class Controller:
     """Owns the controller/safety arrays; ``configure`` from validated settings."""
 

@@ -1,14 +1,16 @@
-"""The haptic loop: a fixed-rate schedule of poll -> update/ack -> read -> control+model -> write.
+"""The haptic loop: a fixed-rate schedule of update/ack -> poll -> read -> control+model -> write.
 
 ``HapticLoop`` knows no engine and no particular device: it owns a transport (any backend), the
 protocol's ``ServerEndpoint``, a device driver, the controller/safety arrays and, once a client
 has engaged it, a ``LocalModel`` built from the client's ``Hello``. Each step, in this order:
 
 1. wait for the absolute deadline (``deadline += period_ns``; the clock is injected);
-2. poll the transport without blocking (at most ``max_packets_per_step`` datagrams and at most
+2. if the previous step received a ContactUpdate: update the local model and acknowledge with a
+   ``ProxyState`` (receiving and applying an update fall in two consecutive steps, so no step
+   pays for both: the step that applies one costs the model update and the acknowledgement);
+3. poll the transport without blocking (at most ``max_packets_per_step`` datagrams and at most
    ``POLL_BUDGET`` of the period, so a flood cannot stretch a step, even of datagrams that are
-   slow to refuse); the session layer keeps the newest ContactUpdate;
-3. on a new ContactUpdate: update the local model and acknowledge with a ``ProxyState``;
+   slow to refuse); the session layer keeps the newest ContactUpdate for the next step;
 4. read the device;
 5. run the controller, the model step and the safety filter (one numba kernel);
 6. write the device command;
@@ -315,7 +317,14 @@ class HapticLoop:
         self._hk_count = 0
         self._hk_n = 0
         self._kernels_compiled = -1
+        self._kernels: list = []
+        self._pending = None  # the newest ContactUpdate received, applied in the next step
         self._scratch_pose = np.zeros(13)
+        self._no_joints = np.zeros(0)
+        # the acknowledgement's arrays: views made once (the ack encodes from them as they are)
+        self._ack_pose = self._scratch_pose[:7]
+        self._ack_twist = self._scratch_pose[7:13]
+        self._ack_wrench = self.ctrl.cs[ctl.CS_HAND:ctl.CS_HAND + 6]
         self._R = np.zeros((3, 3))
         self._c = np.zeros(3)
         self._st_missed = ST["missed_deadlines"]
@@ -404,10 +413,18 @@ class HapticLoop:
         record_contacts(scratch.contacts, 0.0, 0.0, 1, 1, np.zeros((4, 3), dtype=np.int64), np.zeros((4, 3)),
                         np.zeros((4, 3)), np.zeros(4))
         ctl.proxy_hand_state(tmp.kind, tmp.kernel_args()[1], tmp.kernel_args()[2], c.R, c.c, self._scratch_pose, 0)
+        pose = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+        pose.flags.writeable = False  # what the decoder hands out: read-only views of the packet
+        joints = np.zeros(2)
+        joints.flags.writeable = False
+        for qk in ctl.Q_KINDS.values():
+            ctl.tool_q_from_pose(qk, pose, np.zeros(3), np.array([1.0, 0.0, 0.0]), joints, np.zeros(9))
+            ctl.tool_q_from_pose(qk, pose, np.zeros(3), np.array([1.0, 0.0, 0.0]), self._no_joints, np.zeros(9))
         warm = getattr(self.device, "warm_up", None)
         if callable(warm):
             warm()
-        self._kernels_compiled = kernels_compiled()
+        self._kernels = package_kernels()
+        self._kernels_compiled = sum(len(d.overloads) for d in self._kernels)
 
     def start(self) -> None:
         """Arm the device and set the first deadline one period from now."""
@@ -418,7 +435,8 @@ class HapticLoop:
         self._last_write_ns = now
         self._ontime_since = now
         if self._kernels_compiled < 0:
-            self._kernels_compiled = kernels_compiled()
+            self._kernels = package_kernels()
+            self._kernels_compiled = sum(len(d.overloads) for d in self._kernels)
         st = self.shared.status
         st[ST["t_start_ns"]] = now
         self.transition("idle", Reason.START)
@@ -444,24 +462,12 @@ class HapticLoop:
             self._stall_ns = gap
             self._stall_at = wake
             self._ontime_since = wake
-        # 1-2: poll without blocking; newest ContactUpdate wins
-        tr = self.transport
-        ep = self.endpoint
-        buf = self.rxbuf
-        upd = None
-        poll_end = wake + self.poll_budget_ns
-        now_ns = clock.now_ns
-        for _ in range(self.max_packets_per_step):
-            n, peer = tr.recv_into(buf)
-            if peer is None:
-                break
-            m = ep.receive(buf[:n], peer, wake)  # bytearray slice: a copy the update may keep
-            if m is not None:
-                upd = m
-            if now_ns() > poll_end:
-                self.poll_cut += 1
-                break
+        # 1: apply the ContactUpdate the previous step received, and acknowledge it. Receiving
+        # (decode, validation) and applying (model update, ProxyState) are each a few tens of
+        # us of Python: in two consecutive steps, no step pays for both.
+        upd = self._pending
         if upd is not None:
+            self._pending = None
             try:
                 self._on_update(upd, wake)
             except Exception:  # noqa: BLE001 - e.g. a finite but absurd proxy state the codec refuses
@@ -471,6 +477,22 @@ class HapticLoop:
                 self._on_fault(ctl.RC_NONFINITE, 0, wake, Reason.UPDATE_ERROR)
         elif self.state == LS["engaged"] and wake - self.last_update_ns > self.watchdog_ns:
             self.transition("fading", Reason.SILENT, (wake - self.last_update_ns) * 1e-6)
+        # 2: poll without blocking; the newest ContactUpdate wins (applied next step)
+        tr = self.transport
+        ep = self.endpoint
+        buf = self.rxbuf
+        poll_end = wake + self.poll_budget_ns
+        now_ns = clock.now_ns
+        for _ in range(self.max_packets_per_step):
+            n, peer = tr.recv_into(buf)
+            if peer is None:
+                break
+            m = ep.receive(buf[:n], peer, wake)  # bytearray slice: a copy the update may keep
+            if m is not None:
+                self._pending = m
+            if now_ns() > poll_end:
+                self.poll_cut += 1
+                break
         # 3: device
         dev = self.dev
         rc_dev = self.device.read(dev)
@@ -561,12 +583,13 @@ class HapticLoop:
         without them (a v1.0 client) is located with the paper's eq. 1."""
         if not self._use_engine_frame:
             return None
+        joints = self._no_joints
         if self._linkage:
-            joints = getattr(upd, "tool_joint_position", None)
-            if joints is None or len(joints) != self._n_joints:
+            joints = upd.tool_joint_position
+            if len(joints) != self._n_joints:
                 return None
-            return q_from_tool_pose(self._tool_kind, upd.tool_pose, None, None, joints)
-        return q_from_tool_pose(self._tool_kind, upd.tool_pose, self._hello_com, self._hello_axis)
+        ctl.tool_q_from_pose(self._qk, upd.tool_pose, self._hello_com, self._hello_axis, joints, self._tool_q)
+        return self._tool_q
 
     def _granted(self, hello) -> tuple[float, int]:
         """What the handshake grants this Hello (the session layer's rule)."""
@@ -599,14 +622,13 @@ class HapticLoop:
             pose, twist, wrench, effort, jq, jqd = m.joint_state(cs[ctl.CS_HAND:ctl.CS_HAND + 6])
             if self.endpoint.send_proxy_state(self.session_id, now, pose, twist, wrench, server_time_s=m.time_s,
                                               joint_position=jq, joint_velocity=jqd, joint_effort=effort,
-                                              server_state=state):
+                                              server_state=state, trusted=True):
                 self.acks += 1
             return
         kind, par, st_ = self._margs[0], self._margs[1], self._margs[2]
         ctl.proxy_hand_state(kind, par, st_, self._R, self._c, self._scratch_pose, 0)
-        if self.endpoint.send_proxy_state(self.session_id, now, self._scratch_pose[:7], self._scratch_pose[7:13],
-                                          cs[ctl.CS_HAND:ctl.CS_HAND + 6], server_time_s=m.time_s,
-                                          server_state=state):
+        if self.endpoint.send_proxy_state(self.session_id, now, self._ack_pose, self._ack_twist, self._ack_wrench,
+                                          server_time_s=m.time_s, server_state=state, trusted=True):
             self.acks += 1
 
     def _engage(self, upd, now: int) -> None:
@@ -649,6 +671,8 @@ class HapticLoop:
         self._hello_com = np.asarray(hello.com_m, dtype=float)
         self._hello_axis = np.asarray(hello.axis, dtype=float)
         self._tool_kind = qkind
+        self._qk = ctl.Q_KINDS[qkind]
+        self._tool_q = np.zeros(model.nq)  # the engine's tool configuration of each update
         if model.update_arrays(self._kbuf, self._pbuf, self._nbuf, self._sbuf, self._vbuf, n,
                                self._engine_q(upd)) != 0:
             self.update_errors += 1
@@ -836,7 +860,9 @@ class HapticLoop:
         if self._hk_n % 100 == 0 and self._kernels_compiled >= 0:
             # about once a second: a kernel compiled after warm-up stalls the loop for seconds;
             # counted so a test (and a person reading status) sees that warm-up missed one
-            n = kernels_compiled()
+            n = 0
+            for d in self._kernels:  # the dispatchers found at warm-up: a few us, no module scan
+                n += len(d.overloads)
             if n > self._kernels_compiled:
                 sh.status[ST["late_compiles"]] += n - self._kernels_compiled
                 self._kernels_compiled = n
@@ -932,6 +958,22 @@ class HapticLoop:
 
     def device_time_s(self) -> float:
         return float(self.dev[DS_TIME])
+
+
+def package_kernels() -> list:
+    """The numba dispatchers of every imported module of this package."""
+    import sys
+
+    from numba.core.registry import CPUDispatcher
+
+    out = []
+    for name, mod in list(sys.modules.items()):
+        if not name.startswith("hapticproxy.") or mod is None:
+            continue
+        for obj in vars(mod).values():
+            if isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == name:
+                out.append(obj)
+    return out
 
 
 def kernel_signatures() -> dict[str, int]:

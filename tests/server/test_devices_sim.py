@@ -175,7 +175,8 @@ def test_workspace_endstop_holds_and_releases():
 
 
 def test_endstop_stops_a_fast_handle_and_never_pulls():
-    dev = make("planar", initial_velocity=[1.0, -0.5, 0.0])
+    dev = make("planar", initial_velocity=[1.0, -0.5, 0.0], workspace_min_m=[-0.06, -0.06],
+               workspace_max_m=[0.06, 0.06])
     dev.enable()
     xs = []
     for _ in range(2000):

@@ -57,7 +57,7 @@ def test_every_update_is_applied_and_acknowledged_in_the_same_step(rig_factory):
     assert r.env.last_proxy.ack_seq == L.updates  # the newest ContactUpdate is what is acknowledged
 
 
-def test_step_order_poll_update_ack_read_control_write(rig_factory):
+def test_step_order_update_ack_poll_read_control_write(rig_factory):
     events = []
     dev = PointDevice(hand=PUSH)
     r = rig_factory(device=dev)
@@ -89,8 +89,9 @@ def test_step_order_poll_update_ack_read_control_write(rig_factory):
     assert len(with_ack) >= 10
     for s in with_ack:
         words = s.split()
-        assert words.index("ack") > words.index("poll")
-        assert words.index("read") > words.index("ack")
+        # the update received in the previous step is applied and acknowledged first, then the poll
+        assert words.index("poll") > words.index("ack")
+        assert words.index("read") > words.index("poll")
         assert words[-1] == "read"  # the command is written after the read and the computation
 
 

@@ -1,0 +1,118 @@
+"""What the haptic steps that handle a model update cost, per tool kind (``hapticproxy bench loop``).
+
+A warmed ``HapticLoop`` runs in this process in simulated time (so nothing waits) with an
+environment on the in-memory transport that sends a ContactUpdate with ``contacts`` contacts
+every ``every`` steps (60 Hz at 1 kHz) and follows the ProxyState it gets back, like an engine.
+Each step is timed with the thread's CPU clock (``time.thread_time_ns``: preemption by other
+processes is not counted) and classified: the step that *receives* an update (decode and
+validation), the step that *applies* it (the model update and the ProxyState), and the others.
+The loop does the same work in the real server; what differs there is only the waiting.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from hapticproxy.protocol.messages import Hello, ToolKind
+from hapticproxy.protocol.session import ClientEndpoint
+from hapticproxy.protocol.transport import open_transport
+
+#: the budget the issue sets: a quarter of a 4 kHz period
+BUDGET_US = 62.5
+
+_BAR = dict(mass_kg=0.08, com_m=[0.03, 0.0, 0.0], inertia_kg_m2=[3e-6, 2.5e-5, 2.5e-5, 0.0, 0.0, 0.0])
+
+
+def _hello(kind: str, contacts: int) -> Hello:
+    common = dict(client_nonce=7, engine="bench update steps", max_contacts=max(contacts, 1), epsilon_m=0.005,
+                  env_rate_hz=60.0)
+    if kind.startswith("linkage"):
+        links = [dict(_BAR, parent=-1, joint_type=0, joint_axis=[0.0, 0.0, 1.0],
+                      joint_origin=[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])]
+        for k in (1, 2):
+            links.append(dict(_BAR, parent=k - 1, joint_type=1, joint_axis=[0.0, 0.0, 1.0],
+                              joint_origin=[0.06, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]))
+        return Hello(tool_kind=ToolKind.LINKAGE, mass_kg=0.24, links=links, held_link=2, **common)
+    tk = {"1dof": ToolKind.ONE_DOF, "planar": ToolKind.PLANAR, "spatial": ToolKind.SPATIAL}[kind]
+    axis = (0.0, 1.0, 0.0) if kind == "1dof" else (1.0, 0.0, 0.0)
+    return Hello(tool_kind=tk, mass_kg=0.2, inertia_kg_m2=(2e-4, 2e-4, 2e-4, 0.0, 0.0, 0.0), axis=axis, **common)
+
+
+def measure(kind: str, *, steps: int = 6000, every: int = 16, contacts: int = 8, rate_hz: float = 1000.0) -> dict:
+    """Step times [us] of one tool kind: ``receive``, ``apply`` and ``other`` steps (p50, p99, max)."""
+    from hapticproxy.server import config as cfgmod
+    from hapticproxy.server.clock import SimClock
+    from hapticproxy.server.loop import HapticLoop
+
+    device_kind = {"linkage-planar": "planar", "linkage-spatial": "spatial"}.get(kind, kind)
+    url = f"mem://bench-update-{kind}-{time.monotonic_ns()}"
+    model = {"tool": "linkage", "damping_n_s_per_m": 10.0} if kind.startswith("linkage") else {}
+    settings = cfgmod.load({"loop": {"rate_hz": rate_hz}, "transport": {"url": url},
+                            "device": {"driver": "sim", "kind": device_kind}, "model": model,
+                            "telemetry": {"ring_s": 1.0}})
+    clock = SimClock(start_ns=1_000_000_000)
+    loop = HapticLoop.build(settings, clock=clock)
+    tr = open_transport(url, "client")
+    try:
+        loop.warm_up()
+        loop.start()
+        ep = ClientEndpoint(tr.send, _hello(kind, contacts))
+        ep.start(clock.now_ns())
+        n = contacts
+        keys = np.zeros((n, 3), dtype=np.int64)
+        keys[:, 1] = 1
+        keys[:, 2] = np.arange(n)
+        normal = np.zeros((n, 3))
+        normal[:, 1] = 1.0  # a floor under the tool (+y up), every contact in the x-y plane
+        sep = np.linspace(0.001, 0.004, n)
+        vc = np.zeros(n)
+        pose = np.array([0.0, 0.05, 0.0, 1.0, 0.0, 0.0, 0.0])
+        joints = np.zeros(2) if kind.startswith("linkage") else None
+        t = {"receive": [], "apply": [], "other": []}
+        t_env = 0.0
+        for i in range(steps):
+            now = clock.now_ns()
+            while (item := tr.recv()) is not None:
+                ps = ep.receive(item[0], item[1], now)
+                if ps is not None:
+                    pose[:] = ps.proxy_pose
+            ep.poll(now)
+            sent = False
+            if ep.established and i % every == 0:
+                pos = np.zeros((n, 3))
+                pos[:, 0] = np.linspace(-0.01, 0.01, n)
+                pos[:, 1] = pose[1] - 0.01
+                ep.send_contacts(now, t_env, pose, keys, pos, normal, sep, vc, tool_joint_position=joints)
+                t_env += every / rate_hz
+                sent = True
+            pending = loop._pending is not None
+            u0 = loop.updates
+            c0 = time.thread_time_ns()
+            loop.step()
+            dt = (time.thread_time_ns() - c0) * 1e-3
+            if loop.updates != u0 or pending:
+                t["apply"].append(dt)
+            elif sent and loop._pending is not None:
+                t["receive"].append(dt)
+            else:
+                t["other"].append(dt)
+        out = {"tool": kind, "contacts": n, "updates": loop.updates, "faults": loop.faults_total}
+        for k, v in t.items():
+            a = np.asarray(v[3:]) if len(v) > 10 else np.asarray(v)
+            out[f"{k}_us"] = ({"n": int(len(a)), "p50": round(float(np.percentile(a, 50)), 1),
+                               "p99": round(float(np.percentile(a, 99)), 1), "max": round(float(a.max()), 1)}
+                              if len(a) else None)
+        return out
+    finally:
+        tr.close()
+        loop.close()
+
+
+def run(kinds=("1dof", "planar", "spatial", "linkage-planar", "linkage-spatial"), **kw) -> dict:
+    rows = [measure(k, **kw) for k in kinds]
+    worst = max(r["apply_us"]["p99"] for r in rows if r["apply_us"])
+    worst_rx = max(r["receive_us"]["p99"] for r in rows if r["receive_us"])
+    return {"update_steps": rows, "apply_p99_max_us": worst, "receive_p99_max_us": worst_rx,
+            "budget_us": BUDGET_US, "within_budget": bool(max(worst, worst_rx) < BUDGET_US),
+            "clock": "thread CPU time (time.thread_time_ns)"}
