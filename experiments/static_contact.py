@@ -118,7 +118,8 @@ def run_static_contact(*, seconds: float = 5.0, rate_hz: float = 512.0, epsilon_
         rows = sup.shared.ring[idx].copy()
     finally:
         stop.set()
-        th.join(10)
+        if th.is_alive():
+            th.join(10)
         sup.close()
         eng.close()
     if err:

@@ -475,7 +475,9 @@ class HapticLoop:
                 # value (zero wrench, device disabled, re-arm needed), never die with force on.
                 self.update_errors += 1
                 self._on_fault(ctl.RC_NONFINITE, 0, wake, Reason.UPDATE_ERROR)
-        elif self.state == LS["engaged"] and wake - self.last_update_ns > self.watchdog_ns:
+        elif self.state == LS["engaged"] and wake - max(self.last_update_ns, self._stall_at) > self.watchdog_ns:
+            # (the environment's silence is counted from the end of this loop's own last stall:
+            # while the loop did not run, the environment's updates waited in the socket)
             self.transition("fading", Reason.SILENT, (wake - self.last_update_ns) * 1e-6)
         # 2: poll without blocking; the newest ContactUpdate wins (applied next step)
         tr = self.transport

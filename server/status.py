@@ -80,6 +80,27 @@ def _f(v, fmt: str = ".1f", none: str = "-") -> str:
     return none if v is None else format(v, fmt)
 
 
+def _what_the_hand_feels(s: dict) -> list[str]:
+    """The device and the proxy (hand point, world, mm), the command against the caps, the
+    contacts of the last update: what a person at the device feels."""
+    lt = s.get("latest") or {}
+    out = []
+    dp, pp, cmd = lt.get("device_pose"), lt.get("proxy_pose"), lt.get("command")
+    mm = lambda p: " ".join(f"{a} {1e3 * (v or 0.0):+8.2f}" for a, v in zip("xyz", p[:3]))  # noqa: E731
+    if dp and pp:
+        out.append(f"device mm    {mm(dp)}    proxy mm {mm(pp)}")
+    if cmd:
+        f = " ".join(f"{a} {v or 0.0:+.3f}" for a, v in zip(("fx", "fy", "fz"), cmd[:3]))
+        t = " ".join(f"{a} {v or 0.0:+.4f}" for a, v in zip(("tx", "ty", "tz"), cmd[3:6]))
+        out.append(f"command      {f} N (cap {_f(s.get('force_cap_n'), 'g')})   {t} N m (cap "
+                   f"{_f(s.get('torque_cap_n_m'), 'g')})")
+    lu = s.get("last_update")
+    if lu:
+        out.append(f"last update  {lu.get('count', 0)} contacts, deepest penetration "
+                   f"{1e3 * (lu.get('penetration_m') or 0.0):.3f} mm")
+    return out
+
+
 def format_status(s: dict) -> str:
     lat = s.get("lateness_us") or {}
     comp = s.get("compute_us") or {}
@@ -87,6 +108,8 @@ def format_status(s: dict) -> str:
     wd = s.get("watchdog") or 0
     silence = s.get("env_silence_ms")
     lines = [
+        f"server       {s.get('url', '?')}  {s.get('tool_kind', '?')} tool on a {s.get('device_kind', '?')} device  "
+        f"(config {s.get('config_source', '?')})",
         f"state        {s.get('loop_state')}  (fault: {_fault_name(s.get('fault', 0))}, device fault: "
         f"{_device_fault_name(s.get('device_fault', 0))}; stall trips {s.get('stall_trips', 0)}, "
         f"recovered {s.get('stall_recoveries', 0)})",
@@ -108,6 +131,7 @@ def format_status(s: dict) -> str:
     ]
     for why in s.get("outside_stable_region") or ():
         lines.append(f"WARNING      outside the stable region (safety.allow_outside_stable_region): {why}")
+    lines[2:2] = _what_the_hand_feels(s)
     tr = s.get("last_transition")
     if tr:
         lines.append(f"last change  {tr.get('from')} -> {tr.get('to')}: {tr.get('text')}")
