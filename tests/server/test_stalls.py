@@ -152,3 +152,22 @@ def test_a_watchdog_trip_without_a_stall_latches(rig):
     r.run(1.0)
     assert r.loop.state_name == "fault" and r.loop.fault == Fault.DEVICE
     assert r.loop.stall_trips == 0
+
+
+def test_the_engine_is_told_the_server_state_in_every_acknowledgement(rig):
+    from hapticproxy.protocol.vocab import ServerState
+
+    r = rig()
+    seen = []
+
+    def on_step(_):
+        p = r.env.last_proxy
+        if p is not None and (not seen or seen[-1] != p.server_state):
+            seen.append(p.server_state)
+
+    r.run(2.0, on_step=on_step)
+    r.clock.stall(80_000_000)
+    r.run(1.5, on_step=on_step)                     # fault, then recovered
+    r.env.alive = False
+    r.run(0.3, on_step=on_step)                     # silent: the acks stop with the updates
+    assert seen == [ServerState.ENGAGED, ServerState.FAULT, ServerState.ENGAGED], seen
