@@ -211,6 +211,34 @@ def _device_main(port: int, out_path: str, seconds_max: float, stop, ready, hand
         np.save(out_path, rec[:i])
 
 
+class DeviceProcess:
+    """The remote device program in its own process (``_device_main``), started and stopped
+    around a case; ``record()`` is what it rendered, per tick, once stopped."""
+
+    def __init__(self, port: int, folder: str, seconds_max: float, hand: dict | None = None) -> None:
+        ctx = mp.get_context("spawn")
+        self.stop, ready = ctx.Event(), ctx.Event()
+        self.out = str(Path(folder) / "device.npy")
+        self.proc = ctx.Process(target=_device_main, args=(port, self.out, seconds_max, self.stop, ready),
+                                kwargs={"hand": hand}, name="fault-device", daemon=True)
+        self.proc.start()
+        ready.wait(60)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def close(self) -> None:
+        self.stop.set()
+        self.proc.join(20)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join(5)
+
+    def record(self):
+        return np.load(self.out) if os.path.exists(self.out) else None
+
+
 class _Silencer:
     """Wraps a relay direction's decider: drops everything while ``on``."""
 
@@ -339,7 +367,6 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
     extra: dict = {}
     loop_pid = 0
     stopped = False
-    ctx = mp.get_context("spawn")
     patch = None
     try:
         if case.transport == "udp":
@@ -350,13 +377,7 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
         s = settings_for(url, device=case.device, device_port=dev_port, realtime=realtime, seconds=seconds + 10,
                          device_watchdog_s=device_watchdog_s, flush_rows=64 if case.kind == "crash" else 512)
         if case.device == "remote":
-            stop_dev, ready = ctx.Event(), ctx.Event()
-            dev_out = str(Path(tmp.name) / "device.npy")
-            proc = ctx.Process(target=_device_main, args=(dev_port, dev_out, seconds + 60, stop_dev, ready),
-                               name="fault-device", daemon=True)
-            proc.start()
-            dev_proc = proc
-            ready.wait(60)
+            dev_proc = DeviceProcess(dev_port, tmp.name, seconds + 60)
         sup = Supervisor(s, record=str(rec_path))
         sup.start()
         rec_start = sup.writer._read  # the ring row the recording starts at
@@ -443,7 +464,9 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
         t0_s = snap["t_start_ns"] * 1e-9
         if case.kind == "stall":
             # the device is re-enabled when the loop recovers (instead of a person's re-arm)
-            rec = [t_ns for _, t_ns, _f, _t, r, _d in sup.shared.transitions_since(0) if r == 13]  # RECOVERED
+            from hapticproxy.server.lifecycle import Reason
+
+            rec = [t_ns for _, t_ns, _f, _t, r, _d in sup.shared.transitions_since(0) if r == Reason.RECOVERED]
             if rec:
                 events["rearm_s"] = rec[0] * 1e-9
     finally:
@@ -460,13 +483,8 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
         if sup is not None:
             sup.close()
         if dev_proc is not None:
-            stop_dev.set()
-            dev_proc.join(20)
-            if dev_proc.is_alive():
-                dev_proc.kill()
-                dev_proc.join(5)
-            if os.path.exists(dev_out):
-                dev_rec = np.load(dev_out)
+            dev_proc.close()
+            dev_rec = dev_proc.record()
     if case.kind == "crash":
         meta, file_rows = telemetry.read(rec_path)
         crash_info.update(file_rows=len(file_rows), torn_bytes=meta["torn_bytes"])

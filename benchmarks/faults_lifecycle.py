@@ -187,22 +187,13 @@ def run_lifecycle_case(case: LifecycleCase, bf, *, engine: str = "pymunk", realt
     sup = None
     clients: list = []
     dev_proc = None
-    stop_dev = None
     events: dict = {}
     extra: dict = {}
     same = None
     same_ctx = None
     try:
         if remote:
-            import multiprocessing as mp
-
-            ctx = mp.get_context("spawn")
-            stop_dev, ready = ctx.Event(), ctx.Event()
-            dev_out = os.path.join(tmp.name, "device.npy")
-            dev_proc = ctx.Process(target=bf._device_main, args=(dev_port, dev_out, 120.0, stop_dev, ready),
-                                   kwargs={"hand": HAND[case.hand]}, name="fault-device", daemon=True)
-            dev_proc.start()
-            ready.wait(60)
+            dev_proc = bf.DeviceProcess(dev_port, tmp.name, 120.0, hand=HAND[case.hand])
         t_start = time.monotonic()
         with _env("NUMBA_CACHE_DIR", os.path.join(tmp.name, "numba") if case.kind == "cold" else None):
             sup = Supervisor(s)
@@ -280,11 +271,7 @@ def run_lifecycle_case(case: LifecycleCase, bf, *, engine: str = "pymunk", realt
         if sup is not None:
             sup.close()
         if dev_proc is not None:
-            stop_dev.set()
-            dev_proc.join(20)
-            if dev_proc.is_alive():
-                dev_proc.kill()
-                dev_proc.join(5)
+            dev_proc.close()
         tmp.cleanup()
     limits = bf.limits_from(s, snap)
     ev_rel = {k: v - t0_s for k, v in events.items() if k.endswith("_s")}

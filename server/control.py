@@ -171,20 +171,23 @@ def proxy_hand_state(kind, par, st, R, c, out, o):
 
 
 @njit(**_JIT)
+def _fault_zero(cs, cc, cmd):
+    """A non-finite value before the device: zero output, no gain, counted."""
+    for k in range(6):
+        cmd[k] = 0.0
+        cs[CS_PREV + k] = 0.0
+    cs[CS_GAIN] = 0.0
+    cs[CS_TARGET] = 0.0
+    cc[CC_NONFINITE] += 1
+    return RC_NONFINITE
+
+
+@njit(**_JIT)
 def _safety(cp, cs, cc, cmd):
     """Finite check, fade gain, per-axis caps, rate limit. ``cmd`` (device frame) in/out."""
-    ok = True
     for j in range(6):
         if not math.isfinite(cmd[j]):
-            ok = False
-    if not ok:
-        for j in range(6):
-            cmd[j] = 0.0
-            cs[CS_PREV + j] = 0.0
-        cs[CS_GAIN] = 0.0
-        cs[CS_TARGET] = 0.0
-        cc[CC_NONFINITE] += 1
-        return RC_NONFINITE
+            return _fault_zero(cs, cc, cmd)
     g_old = cs[CS_GAIN]
     g = g_old
     # the gain keeps its time across periods the loop skipped (a fade reaches zero in fade_s of
@@ -246,18 +249,6 @@ def _safety(cp, cs, cc, cmd):
     if lim:
         cc[CC_RATE_LIMITED] += 1
     return RC_OK
-
-
-@njit(**_JIT)
-def _fault_zero(cs, cc, cmd):
-    """A non-finite value before the device: zero output, no gain, counted."""
-    for k in range(6):
-        cmd[k] = 0.0
-        cs[CS_PREV + k] = 0.0
-    cs[CS_GAIN] = 0.0
-    cs[CS_TARGET] = 0.0
-    cc[CC_NONFINITE] += 1
-    return RC_NONFINITE
 
 
 @njit(**_JIT)

@@ -980,18 +980,7 @@ def package_kernels() -> list:
 
 def kernel_signatures() -> dict[str, int]:
     """Signatures compiled (or loaded) so far, per numba kernel of this package."""
-    import sys
-
-    from numba.core.registry import CPUDispatcher
-
-    out: dict[str, int] = {}
-    for name, mod in list(sys.modules.items()):
-        if not name.startswith("hapticproxy.") or mod is None:
-            continue
-        for obj in vars(mod).values():
-            if isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == name:
-                out[f"{name}.{obj.py_func.__name__}"] = len(obj.overloads)
-    return out
+    return {f"{d.py_func.__module__}.{d.py_func.__name__}": len(d.overloads) for d in package_kernels()}
 
 
 def kernels_compiled() -> int:

@@ -97,9 +97,8 @@ def _run(name: str) -> dict:
 
 def test_client_killed_mid_contact_fades_within_the_promise():
     row = _run("client killed mid-contact")
-    _check(row)
-    assert row["fades"] >= 1 and row["fade_ms"] <= 200.0 + 1.0
-    assert row["detect_ms"] <= 100.0 + 2.0
+    _check(row)  # incl. "fade not at zero within fade_s" and "silent past the watchdog, still engaged"
+    assert row["fades"] >= 1 and row["fade_ms"] is not None and row["detect_ms"] is not None
 
 
 def test_a_stalled_loop_is_cut_by_the_device_watchdog_and_recovers_by_itself():

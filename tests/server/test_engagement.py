@@ -94,76 +94,59 @@ def _assert_no_kick(rec, i0, what, rate_hz=1000.0):
 KINDS = ("1dof", "planar", "spatial")
 
 
+def _first_engagement(r, rec):
+    r.env.alive = False
+    rec.run(0.3)                  # the hand pushes the free device for 0.3 s before any client
+    r.env.alive = True
+
+
+def _rearm_after_a_device_fault(r, rec):
+    rec.run(2.0)                  # resting on the floor, pushing
+    r.device.disable()            # the device reports a fault (disabled under the loop)
+    rec.run(0.5)                  # the hand pushes the dead handle on
+    assert r.loop.state_name == "fault"
+    assert r.loop.rearm()
+
+
+def _new_client_while_the_fade_runs(r, rec):
+    rec.run(2.0)
+    r.env.bye()
+    rec.run(0.05)                 # the fade is still running
+    old = r.env
+    r.env = WallEnv(r.settings["transport"]["url"], r.clock, kind=old.kind, start_pose=(0.0, 0.01, 0.0), seed=2)
+    old.close()
+
+
+def _client_restarted_on_the_same_socket(r, rec):
+    rec.run(2.0)
+    env = r.env
+    # the engine process restarts: same address, a new Hello, its tool back at its start
+    env.ep = ClientEndpoint(env.tr.send, env.hello)
+    env.started = False
+    env.pose[:] = (0.0, 0.01, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+
+#: what happens before the engagement judged, and the engagements counted by then
+CASES = {
+    "first engagement": (_first_engagement, 1),
+    "re-arm after a device fault": (_rearm_after_a_device_fault, 1),
+    "new client while the previous fade runs": (_new_client_while_the_fade_runs, 2),
+    "client restarted on the same socket": (_client_restarted_on_the_same_socket, 2),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
 @pytest.mark.parametrize("hand", list(HANDS))
 @pytest.mark.parametrize("kind", KINDS)
-def test_first_engagement_with_the_hand_already_pushing(kind, hand):
+def test_an_engagement_never_kicks_the_hand(kind, hand, case):
+    prepare, engagements = CASES[case]
     r = _rig(kind, hand)
     try:
         rec = Recorder(r)
-        r.env.alive = False
-        rec.run(0.3)                  # the hand pushes the free device for 0.3 s before any client
-        r.env.alive = True
+        prepare(r, rec)
         i0 = len(rec.f)
         rec.run(3.0)
-        assert r.loop.engagements == 1
-        _assert_no_kick(rec, i0, f"{kind}/{hand} first engagement")
-    finally:
-        r.close()
-
-
-@pytest.mark.parametrize("hand", list(HANDS))
-@pytest.mark.parametrize("kind", KINDS)
-def test_rearm_after_a_device_fault(kind, hand):
-    r = _rig(kind, hand)
-    try:
-        rec = Recorder(r)
-        rec.run(2.0)                  # resting on the floor, pushing
-        r.device.disable()            # the device reports a fault (disabled under the loop)
-        rec.run(0.5)                  # the hand pushes the dead handle on
-        assert r.loop.state_name == "fault"
-        assert r.loop.rearm()
-        i0 = len(rec.f)
-        rec.run(3.0)
-        _assert_no_kick(rec, i0, f"{kind}/{hand} re-arm")
-    finally:
-        r.close()
-
-
-@pytest.mark.parametrize("hand", list(HANDS))
-@pytest.mark.parametrize("kind", KINDS)
-def test_new_client_while_the_previous_fade_runs(kind, hand):
-    r = _rig(kind, hand)
-    try:
-        rec = Recorder(r)
-        rec.run(2.0)
-        r.env.bye()
-        rec.run(0.05)                 # the fade is still running
-        old = r.env
-        r.env = WallEnv(r.settings["transport"]["url"], r.clock, kind=kind, start_pose=(0.0, 0.01, 0.0), seed=2)
-        old.close()
-        i0 = len(rec.f)
-        rec.run(3.0)
-        assert r.loop.engagements == 2
-        _assert_no_kick(rec, i0, f"{kind}/{hand} new client after Bye")
-    finally:
-        r.close()
-
-
-@pytest.mark.parametrize("hand", list(HANDS))
-@pytest.mark.parametrize("kind", KINDS)
-def test_client_restarted_on_the_same_socket(kind, hand):
-    r = _rig(kind, hand)
-    try:
-        rec = Recorder(r)
-        rec.run(2.0)
-        env = r.env
-        # the engine process restarts: same address, a new Hello, its tool back at its start
-        env.ep = ClientEndpoint(env.tr.send, env.hello)
-        env.started = False
-        env.pose[:] = (0.0, 0.01, 0.0, 1.0, 0.0, 0.0, 0.0)
-        i0 = len(rec.f)
-        rec.run(3.0)
-        assert r.loop.engagements == 2
-        _assert_no_kick(rec, i0, f"{kind}/{hand} restart on the same socket")
+        assert r.loop.engagements == engagements
+        _assert_no_kick(rec, i0, f"{kind}/{hand} {case}")
     finally:
         r.close()
