@@ -58,6 +58,20 @@ TOOL_KIND_NAMES: dict[ToolKind, str] = {
 TOOL_KINDS_BY_NAME: dict[str, ToolKind] = {v: k for k, v in TOOL_KIND_NAMES.items()}
 
 
+#: The rigid tool kinds by name, which are also the device kinds (a linkage rides on a planar or
+#: a spatial device).
+RIGID_TOOL_KINDS: tuple[str, ...] = ("1dof", "planar", "spatial")
+DEVICE_KINDS: tuple[str, ...] = RIGID_TOOL_KINDS
+
+#: Update policies of the local model (``[model] policy``): ``rigid`` replaces the geometry at
+#: each update (the intermediate-representation baseline, the paper's eq. 1); ``lm0`` deforms the
+#: proxy without epsilon-active geometry; ``lm`` deforms with it (eqs. 4-6); ``deformation`` is
+#: another name for ``lm``.
+POLICIES: tuple[str, ...] = ("rigid", "lm0", "lm", "deformation")
+#: Controllers between the device and the proxy (``[controller] type``).
+CONTROLLERS: tuple[str, ...] = ("four_channel", "coupler", "direct")
+
+
 class JointType(IntEnum):
     """Joint of a linkage link to its parent (``Hello.links[i].joint_type``)."""
 

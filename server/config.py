@@ -55,13 +55,12 @@ import msgspec
 from msgspec import Meta, Struct
 
 from hapticproxy.protocol.transport import transport_options
+from hapticproxy.protocol.vocab import CONTROLLERS, POLICIES  # noqa: F401 - the vocabulary, once
+from hapticproxy.protocol.vocab import RIGID_TOOL_KINDS as TOOL_KINDS
 
 from . import schema
 from . import stability
 
-POLICIES = ("rigid", "lm0", "lm", "deformation")
-CONTROLLERS = ("four_channel", "coupler", "direct")
-TOOL_KINDS = ("1dof", "planar", "spatial")
 #: ``model.tool`` may also be "linkage": a kinematic tree from the client's Hello, planar on a
 #: planar device, spatial on a spatial one (the hand holds its held link).
 MODEL_TOOLS = TOOL_KINDS + ("linkage",)
@@ -115,7 +114,7 @@ class ModelConfig(_Table):
     tool: _doc(Literal["", "1dof", "planar", "spatial", "linkage"],
                "tool kind accepted from clients; empty: the device's kind; linkage: a kinematic tree "
                "(planar on a planar device, spatial on a spatial one)") = ""
-    policy: _doc(Literal["rigid", "lm0", "lm", "deformation"], "update policy (rigid = the IR baseline)") = "deformation"
+    policy: _doc(Literal[POLICIES], "update policy (rigid = the IR baseline)") = "deformation"
     contact_frame: _doc(Literal["engine", "proxy"],
                         "engine: reported features taken in the engine tool's frame (ContactUpdate.tool_pose); "
                         "proxy: the paper's eq. 1, relative to the proxy's COM") = "engine"
@@ -142,7 +141,7 @@ class ModelConfig(_Table):
 
 
 class ControllerConfig(_Table):
-    type: _doc(Literal["four_channel", "coupler", "direct"], "four_channel | coupler | direct (IR baseline)") = "four_channel"
+    type: _doc(Literal[CONTROLLERS], "four_channel | coupler | direct (IR baseline)") = "four_channel"
     stiffness_n_per_m: _num(0, 1e6, doc="position channel, translational spring [N/m]") = 1500.0
     damping_n_s_per_m: _num(0, 1e4, doc="position channel, translational damper [N s/m]") = 15.0
     rot_stiffness_n_m_per_rad: _num(0, 1e4, doc="position channel, rotational spring [N m/rad]") = 1.5

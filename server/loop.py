@@ -38,7 +38,7 @@ import time
 
 import numpy as np
 
-from hapticproxy.protocol.messages import ToolKind
+from hapticproxy.protocol.vocab import JOINT_TYPE_NAMES, TOOL_KIND_NAMES, TOOL_KINDS_BY_NAME
 from hapticproxy.protocol.session import ServerConfig, ServerEndpoint
 
 from . import control as ctl
@@ -50,11 +50,6 @@ from .model.model import ContactParams, LinkSpec, LocalModel, ToolSpec, warm_up 
 from .rings import account, record_contacts
 from .shm import CT, ST, SharedState
 
-_KIND_TO_TOOLKIND = {"1dof": ToolKind.ONE_DOF, "planar": ToolKind.PLANAR, "spatial": ToolKind.SPATIAL,
-                     "linkage": ToolKind.LINKAGE}
-_TOOLKIND_TO_KIND = {v: k for k, v in _KIND_TO_TOOLKIND.items()}
-_JOINT_NAMES = {0: "root", 1: "revolute", 2: "prismatic"}
-
 #: Share of the period the poll may spend reading datagrams before it leaves the rest for the
 #: next step. Refusing a datagram usually costs 2-6 us, but a 1 kB msgpack of 1,000 nested
 #: arrays costs ~40 us to unpack and refuse: 32 of them per step stretched steps to milliseconds
@@ -65,14 +60,12 @@ WD_OK = 0
 WD_SILENT = 1
 WD_SESSION_ENDED = 2
 
-
-
 def tool_from_hello(hello, planar: bool | None = None) -> ToolSpec:
     """The proxy's ToolSpec from a client's Hello; the hand holds a rigid tool at its tool-frame
     origin, a linkage at its held link's frame origin. ``planar``: a linkage's model (planar on a
     planar device, spatial on a spatial one); ``ValueError`` naming the field for a linkage the
     model cannot hold."""
-    kind = _TOOLKIND_TO_KIND.get(hello.tool_kind)
+    kind = TOOL_KIND_NAMES.get(hello.tool_kind)
     if kind is None:
         raise ValueError(f"tool_kind {hello.tool_kind!r} is not a tool this server models")
     if kind == "linkage":
@@ -85,7 +78,7 @@ def tool_from_hello(hello, planar: bool | None = None) -> ToolSpec:
             links.append(LinkSpec(
                 float(ln["mass_kg"]), tuple(float(v) for v in ln["com_m"]),
                 ((ixx, ixy, ixz), (ixy, iyy, iyz), (ixz, iyz, izz)), int(ln["parent"]),
-                _JOINT_NAMES.get(int(ln["joint_type"]), "?"), tuple(float(v) for v in ln["joint_axis"]),
+                JOINT_TYPE_NAMES.get(int(ln["joint_type"]), "?"), tuple(float(v) for v in ln["joint_axis"]),
                 origin[:3], origin[3:7] if int(ln["parent"]) >= 0 else (1.0, 0.0, 0.0, 0.0)))
         tool = ToolSpec.linkage(links, int(hello.held_link), planar)
         tool.validated()
@@ -99,7 +92,6 @@ def tool_from_hello(hello, planar: bool | None = None) -> ToolSpec:
     if kind == "planar":
         return ToolSpec.planar(float(hello.mass_kg), izz, hand_point_m=tuple(-com[:2]))
     return ToolSpec.spatial(float(hello.mass_kg), inertia, hand_point_m=tuple(-com))
-
 
 def q_from_tool_pose(kind: str, pose, com_m, axis=None, joints=None) -> np.ndarray:
     """COM configuration q of the proxy from the engine's tool-frame pose (x y z qw qx qy qz).
@@ -129,7 +121,6 @@ def q_from_tool_pose(kind: str, pose, com_m, axis=None, joints=None) -> np.ndarr
     if kind == "planar":
         return np.array([px + rx, py + ry, 2 * math.atan2(z, w)])
     return np.array([px + rx, py + ry, pz + rz, w, x, y, z])
-
 
 class ModelFactory:
     """Builds the local model for a client's Hello: the server's contact parameters, rate and
@@ -179,7 +170,6 @@ class ModelFactory:
                 del self._kept[i]
                 return built
         return self.build(hello, epsilon_m, max_contacts)
-
 
 class HapticLoop:
     """The server loop. It receives its parts built (``HapticLoop.build`` builds them from the
@@ -255,7 +245,7 @@ class HapticLoop:
             heartbeat_interval_s=tcfg["heartbeat_interval_s"],
             silence_timeout_s=tcfg["silence_timeout_s"],
             max_sessions=tcfg["max_sessions"],
-            supported_tools=frozenset({_KIND_TO_TOOLKIND[self.kind]}),
+            supported_tools=frozenset({TOOL_KINDS_BY_NAME[self.kind]}),
             hello_check=self._check_hello,
             workspace_extent_m=mcfg["workspace_extent_m"],
             max_constraint_speed_m_per_s=mcfg["max_constraint_speed_m_per_s"],
@@ -961,7 +951,6 @@ class HapticLoop:
     def device_time_s(self) -> float:
         return float(self.dev[DS_TIME])
 
-
 def package_kernels() -> list:
     """The numba dispatchers of every imported module of this package."""
     import sys
@@ -977,15 +966,12 @@ def package_kernels() -> list:
                 out.append(obj)
     return out
 
-
 def kernel_signatures() -> dict[str, int]:
     """Signatures compiled (or loaded) so far, per numba kernel of this package."""
     return {f"{d.py_func.__module__}.{d.py_func.__name__}": len(d.overloads) for d in package_kernels()}
 
-
 def kernels_compiled() -> int:
     """Signatures compiled (or loaded) so far by every numba kernel of this package."""
     return sum(kernel_signatures().values())
-
 
 __all__ = ["HapticLoop", "tool_from_hello", "q_from_tool_pose", "kernels_compiled", "DEV_NSTATE"]

@@ -32,6 +32,8 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+from hapticproxy.protocol.vocab import CONTROLLERS, POLICIES  # noqa: F401 - the vocabulary, once
+
 #: b = DAMPING_PER_STIFFNESS_S x k: the damping the rows were measured with (the paper's 30 N s/m
 #: at 4000 N/m); ``experiments/tradeoff.py`` DAMPING_PER_STIFFNESS_S.
 DAMPING_PER_STIFFNESS_S = 0.0075
@@ -50,8 +52,6 @@ FIXED_DAMPING_N_S_PER_M = 30.0
 #: Largest stable stiffness [N/m] of the four-channel controller with b = 30 N s/m.
 MEASURED_FIXED_DAMPING: tuple[float, ...] = (4000.0, 20000.0, 50000.0, 200000.0, 1000000.0, 1000000.0)
 IR_ROW = "IR (direct, rigid, eps 0, eq. 1)"
-CONTROLLERS = ("four_channel", "coupler", "direct")
-POLICIES = ("rigid", "lm0", "lm", "deformation")
 #: One haptic step's force change at most this unless overridden (``safety.force_rate_n_per_s``).
 MAX_FORCE_STEP_N = 1.0
 
