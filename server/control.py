@@ -42,6 +42,8 @@ import math
 import numpy as np
 from numba import njit
 
+from hapticproxy.protocol.vocab import CONTROLLERS
+
 from .model.kernels import _rigid_pose, step_rigid
 from .model.layout import LM_PLANAR, P_AXIS, P_HAND, P_ORIGIN, S_FENV, S_Q, S_QD, TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL
 from .model.linkage import hand_state_linkage, step_linkage
@@ -51,7 +53,9 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 CTRL_FOUR_CHANNEL = 0
 CTRL_COUPLER = 1
 CTRL_DIRECT = 2
-CONTROLLER_IDS = {"four_channel": CTRL_FOUR_CHANNEL, "coupler": CTRL_COUPLER, "direct": CTRL_DIRECT}
+#: kernel code of each controller name (the names: ``protocol.vocab.CONTROLLERS``, in this order)
+CONTROLLER_IDS = {name: code for code, name in enumerate(CONTROLLERS)}
+assert CONTROLLER_IDS == {"four_channel": CTRL_FOUR_CHANNEL, "coupler": CTRL_COUPLER, "direct": CTRL_DIRECT}
 
 # ---- parameters (float64[NCP])
 CP_TYPE = 0
