@@ -302,6 +302,14 @@ def render_devlink() -> str:
         ["watchdog_s", dl.DEFAULT_WATCHDOG_S, "device program: armed and no command accepted for this long -> zero, latched"],
         ["max datagram bytes", dl.MAX_DATAGRAM_BYTES, "longer datagrams are dropped unread (counted as malformed)"],
         ["max drain", dl.MAX_DRAIN, "datagrams one poll reads at most (a flood cannot stretch a step)"]]))
+    from .device_conformance import DEVICE_RULES, SERVER_RULES
+
+    parts += ["", "#### Conformance rules (`hapticproxy protocol check-device`, `check-device-server`)", ""]
+    parts.append(_table(["check-device rule", "what the device program must do"],
+                        [[f"`{k}`", v] for k, v in DEVICE_RULES.items()]))
+    parts += [""]
+    parts.append(_table(["check-device-server rule", "what the server driver must do"],
+                        [[f"`{k}`", v] for k, v in SERVER_RULES.items()]))
     pkt = dl.COMMAND.pack(**DEVLINK_EXAMPLE)
     e = DEVLINK_EXAMPLE
     parts += ["", "#### Example: one COMMAND", "", "```text",

@@ -114,3 +114,27 @@ def test_the_drivers_numbers_are_the_links():
     assert {int(f) for f in dl.DeviceFault} == set(base.DEV_FAULT_NAMES)
     assert (base.DS_POSE, base.DS_TWIST, base.DS_HAND, base.DS_TIME, base.DEV_NSTATE) == \
         tuple(c.start for c in dl.ROW_COLUMNS) + (dl.ROW_FLOATS,)
+
+
+def test_spec_appendix_is_generated_from_the_declaration():
+    from hapticproxy.protocol import spec
+    from hapticproxy.protocol.device_conformance import DEVICE_RULES, SERVER_RULES
+
+    text = spec.SPEC_PATH.read_text(encoding="utf-8")
+    block = spec.extract_block(text, "devlink")
+    assert block == spec.render_block("devlink")
+    assert text.index("## Appendix A. The remote-device link") < text.index(block)
+    for d in dl.DATAGRAMS:
+        assert f"#### {d.name} (type {int(d.type_id)}, {d.direction}, {d.size} bytes)" in block
+        for f in d.fields:
+            if not f.padding:
+                assert f"| {d.offsets[f.name]} | {f.size} | {f.wire} | `{f.name}` |" in block
+    for rule in list(DEVICE_RULES) + list(SERVER_RULES):
+        assert f"| `{rule}` |" in block
+    dump = block[block.index("```text", block.index("The 96 bytes:")) + 7:]
+    data = bytes.fromhex("".join(line[6:] for line in dump[:dump.index("```")].strip().splitlines()))
+    c = COMMAND.unpack(data)
+    e = spec.DEVLINK_EXAMPLE
+    assert (c.flags, c.device_session, c.server_session, c.epoch, c.engagements, c.seq, c.state_seq) == \
+        (e["flags"], e["device_session"], e["server_session"], e["epoch"], e["engagements"], e["seq"], e["state_seq"])
+    np.testing.assert_array_equal(c.wrench, e["wrench"])
