@@ -55,7 +55,6 @@ import threading
 import time
 from typing import Annotated
 
-import msgspec
 import numpy as np
 from msgspec import Meta
 

@@ -8,7 +8,6 @@ they are deterministic; two run the real commands in real time over UDP on loopb
 from __future__ import annotations
 
 import itertools
-import os
 import signal
 import socket
 import subprocess

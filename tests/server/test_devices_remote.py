@@ -2,7 +2,6 @@
 counted drops, the device-side watchdog and the epoch rules, link loss, and the CLI."""
 from __future__ import annotations
 
-import os
 import signal
 import socket
 import subprocess
@@ -420,3 +419,67 @@ def test_device_cli_runs_from_a_server_config_file(tmp_path, capsys):
         assert "spatial sim device" in err and "Traceback" not in err
     finally:
         server.close()
+
+
+def test_a_bound_device_program_hears_only_its_server():
+    """``--bind``: the program's socket is bound, not connected; datagrams from anyone but the
+    server are dropped as foreign (the kernel no longer filters them)."""
+    clock = FakeClock()
+    srv = RemoteDevice(kind="planar", limits=base.DeviceLimits(10, 0.5, 2, 20), listen=("127.0.0.1", 0),
+                       clock_ns=clock)
+    sim = make_sim_device({"kind": "planar"}, period_s=DT, clock_ns=clock)
+    prog = DeviceProgram(sim, srv.local_address, bind=("127.0.0.1", 0), watchdog_s=0.05, clock_ns=clock)
+    other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    row = np.zeros(base.DEV_NSTATE)
+    try:
+        for _ in range(3):
+            clock.advance(DT)
+            prog.tick()
+            assert eventually(lambda: (srv.read(row), srv.link_up)[1])
+        srv.enable()
+        srv.write(F1)
+        c = COMMAND.unpack(COMMAND.pack(flags=1, device_session=prog.session, server_session=srv.session + 1, epoch=9,
+                                        engagements=0, seq=1, state_seq=0, wrench=[5.0, 0, 0, 0, 0, 0]))
+        other.sendto(COMMAND.pack(**c._asdict()), prog.local_address)   # a newer key, from a stranger
+        assert eventually(lambda: (prog.tick(), prog.counters()["foreign"] + prog.counters()["arms"])[1] >= 2)
+        assert prog.counters()["foreign"] == 1 and prog.key == (srv.session, srv.epoch) and prog.armed
+    finally:
+        other.close()
+        prog.close()
+        srv.close()
+
+
+def test_both_ends_run_over_any_transport_in_lock_step():
+    """The link on ``mem://`` (no sockets): the same rules, deterministic."""
+    from hapticproxy.protocol.transport import MemTransport
+
+    clock = FakeClock()
+    s_tr, c_tr = MemTransport.pair()
+    srv = RemoteDevice(kind="1dof", limits=base.DeviceLimits(10, 0.0, 2, float("inf")), transport=s_tr,
+                       clock_ns=clock)
+    sim = make_sim_device({"kind": "1dof"}, period_s=DT, clock_ns=clock)
+    prog = DeviceProgram(sim, transport=c_tr, watchdog_s=0.05, clock_ns=clock)
+    row = np.zeros(base.DEV_NSTATE)
+    try:
+        clock.advance(DT)
+        prog.tick()
+        srv.read(row)
+        assert srv.link_up and srv.device_address == c_tr.client_id
+        srv.enable()
+        for _ in range(5):
+            clock.advance(DT)
+            prog.tick()
+            srv.read(row)
+            srv.write(F1)
+        assert prog.armed and sim.last_command[0] == 1.0 and srv.device_armed
+        assert srv.counters()["commands_sent"] == 5 and prog.counters()["commands"] == 4
+        a, b = MemTransport.pair()
+        try:
+            with pytest.raises(ValueError, match="server-role"):
+                RemoteDevice(kind="1dof", limits=srv.limits, transport=b)
+        finally:
+            b.close()
+            a.close()
+    finally:
+        prog.close()
+        srv.close()
