@@ -726,6 +726,10 @@ class ServerCheck(_Scripted):
         R = self.report
         # kind: states of another kind first; the server must not arm
         self.send_kind = (self.kind + 1) % 3
+        got = yield from self._until(lambda: bool(self.cmds), self.arm_timeout_s)
+        if not got:
+            R.fail_open(f"no command from the server within {self.arm_timeout_s:g} s")
+            return
         t0 = self.clock()
         yield from self._for(max(0.3, 3 * self.link_timeout_s))
         R.check("kind", not self._enabled_since(t0),
@@ -736,8 +740,8 @@ class ServerCheck(_Scripted):
         got = yield from self._wait_enabled(t0)
         if got is None:
             self._commands_verdict()
-            R.fail_open(f"the server did not arm the device within {self.arm_timeout_s:g} s"
-                        if self.cmds else f"no command from the server within {self.arm_timeout_s:g} s")
+            R.fail_open(f"the server did not arm the device within {self.arm_timeout_s:g} s (a server that heard "
+                        "the wrong kind before it ran may hold a fault: start the check once it runs)")
             return
         R.ok("arms", f"armed {_ms(got[0])} after the device of its kind streamed")
         yield from self._for(0.05)

@@ -8,10 +8,12 @@ they are deterministic; two run the real commands in real time over UDP on loopb
 from __future__ import annotations
 
 import itertools
+import json
 import signal
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -341,13 +343,18 @@ def test_hapticproxy_serve_passes_check_device_server_over_udp(tmp_path):
     serve = subprocess.Popen([EXE, "serve", "--config", str(cfg), "--duration", "300", "-q"],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        # the server's loop runs (waiting for its device) once its status address answers
+        # start once the loop runs and waits for its device (link fault 4): a device of the wrong
+        # kind heard before the loop's first step would latch a hardware fault instead, which
+        # waits for `status --rearm` (the kind rule then holds, but nothing could be armed)
+        waiting = False
         for _ in range(120):
             st = subprocess.run([EXE, "status", "--address", f"127.0.0.1:{status}", "--json", "--timeout", "1"],
                                 capture_output=True, text=True, timeout=60)
-            if st.returncode == 0 or serve.poll() is not None:
+            waiting = st.returncode == 0 and json.loads(st.stdout).get("device_fault") == 4
+            if waiting or serve.poll() is not None:
                 break
-        assert st.returncode == 0, st.stderr
+            time.sleep(0.2)
+        assert waiting, st.stdout + st.stderr
         out = subprocess.run([sys.executable, "-m", "hapticproxy.protocol.device_conformance", "check-device-server",
                               "--server", f"127.0.0.1:{listen}", "--slack-s", "0.15", "--arm-timeout-s", "120"],
                              capture_output=True, text=True, timeout=400)
