@@ -145,6 +145,7 @@ class _Scripted:
         self.period_s = float(period_s)
         self.report = Report(self.rules)
         self.rx = bytearray(max(dl.MAX_DATAGRAM_BYTES, transport.max_packet_bytes))
+        self.problem = ""
         self.done = False
         self._gen = self.script()
 
@@ -193,12 +194,25 @@ class _Scripted:
         while self.clock() < end:
             yield
 
+    def receive(self, now: int) -> None:
+        """Everything waiting (at most MAX_DRAIN datagrams), each to :meth:`take`."""
+        for _ in range(dl.MAX_DRAIN):
+            n, peer = self.tr.recv_into(self.rx)
+            if peer is None:
+                return
+            self.take(bytes(self.rx[:n]), peer, now)
+
+    def _problem(self, text: str) -> None:
+        """The first thing wrong with the peer's stream (its stream rule's reason)."""
+        if not self.problem:
+            self.problem = text
+
     # -- subclass hooks --------------------------------------------------------------------------
     def script(self):  # pragma: no cover - interface
         raise NotImplementedError
         yield
 
-    def receive(self, now: int) -> None:  # pragma: no cover - interface
+    def take(self, data: bytes, peer, now: int) -> None:  # pragma: no cover - interface
         raise NotImplementedError
 
     def send(self, now: int) -> None:  # pragma: no cover - interface
@@ -231,7 +245,6 @@ class DeviceCheck(_Scripted):
         self.peer = None
         self.session = 0          # the device's session
         self.states: list[tuple[int, tuple]] = []   # (receive time ns, decoded STATE) of the device
-        self.stream_problem = ""
         self.stream_gaps = 0
         self.foreign = 0
         self.plan: dict | None = None   # the command sent every period (None: send nothing)
@@ -245,23 +258,12 @@ class DeviceCheck(_Scripted):
     def newest(self):
         return self.states[-1][1] if self.states else None
 
-    def receive(self, now: int) -> None:
-        for _ in range(dl.MAX_DRAIN):
-            n, peer = self.tr.recv_into(self.rx)
-            if peer is None:
-                return
-            if self.peer is None:
-                self.peer = peer
-            elif peer != self.peer:
-                self.foreign += 1
-                continue
-            self._take(bytes(self.rx[:n]), now)
-
-    def _problem(self, text: str) -> None:
-        if not self.stream_problem:
-            self.stream_problem = text
-
-    def _take(self, data: bytes, now: int) -> None:
+    def take(self, data: bytes, peer, now: int) -> None:
+        if self.peer is None:
+            self.peer = peer
+        elif peer != self.peer:
+            self.foreign += 1
+            return
         try:
             s = STATE.unpack(data)
         except ValueError as exc:
@@ -362,9 +364,9 @@ class DeviceCheck(_Scripted):
     # -- the scenario ----------------------------------------------------------------------------
     def _stream_verdict(self) -> None:
         if self.states:
-            self.report.check("state-stream", not self.stream_problem,
+            self.report.check("state-stream", not self.problem,
                               f"{len(self.states)} states" + (f", {self.stream_gaps} lost" if self.stream_gaps else ""),
-                              self.stream_problem)
+                              self.problem)
 
     def script(self):
         yield from self._script()
@@ -603,7 +605,6 @@ class ServerCheck(_Scripted):
         self.cmd_seq = 0
         self.armed = False
         self.cmds: list[tuple[int, tuple]] = []   # (receive time ns, decoded COMMAND)
-        self.cmd_problem = ""
         self._last: dict[int, tuple] = {}         # server session -> last command
         self.tx = STATE.new_buffer()
         self.row = STATE.floats(self.tx)
@@ -612,18 +613,7 @@ class ServerCheck(_Scripted):
         self.row[13:19] = math.nan
 
     # -- the link ------------------------------------------------------------------------------
-    def receive(self, now: int) -> None:
-        for _ in range(dl.MAX_DRAIN):
-            n, peer = self.tr.recv_into(self.rx)
-            if peer is None:
-                return
-            self._take(bytes(self.rx[:n]), now)
-
-    def _problem(self, text: str) -> None:
-        if not self.cmd_problem:
-            self.cmd_problem = text
-
-    def _take(self, data: bytes, now: int) -> None:
+    def take(self, data: bytes, peer, now: int) -> None:
         try:
             c = COMMAND.unpack(data)
         except ValueError as exc:
@@ -874,7 +864,7 @@ class ServerCheck(_Scripted):
 
     def _commands_verdict(self) -> None:
         if self.cmds:
-            self.report.check("commands", not self.cmd_problem, f"{len(self.cmds)} commands", self.cmd_problem)
+            self.report.check("commands", not self.problem, f"{len(self.cmds)} commands", self.problem)
 
     def script(self):
         yield from self._script()

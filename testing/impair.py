@@ -469,23 +469,9 @@ class ImpairedTransport(Transport):
         self.clock = clock
         self._tx = _Direction(send or Impairment())
         self._rx = _Direction(recv or Impairment())
+        self.impair_send, self.counters_send = self._tx.impairment, self._tx.counters
+        self.impair_recv, self.counters_recv = self._rx.impairment, self._rx.counters
         self._buf = bytearray(inner.max_packet_bytes)
-
-    @property
-    def impair_send(self) -> Impairment:
-        return self._tx.impairment
-
-    @property
-    def impair_recv(self) -> Impairment:
-        return self._rx.impairment
-
-    @property
-    def counters_send(self) -> ImpairmentCounters:
-        return self._tx.counters
-
-    @property
-    def counters_recv(self) -> ImpairmentCounters:
-        return self._rx.counters
 
     @property
     def default_peer(self) -> Peer | None:

@@ -55,6 +55,7 @@ import threading
 import time
 from typing import Annotated
 
+import msgspec
 import numpy as np
 from msgspec import Meta
 
@@ -408,29 +409,17 @@ class RemoteDevice(DeviceDriver):
             self._fault = fault if fault in DEV_FAULT_NAMES and fault != DEV_FAULT_DISABLED else DEV_FAULT_HARDWARE
 
 
-class Remote1dof(_sim.Limits1dof):
-    driver: str = "remote"
-    listen: str = DEFAULT_LISTEN
-    device_address: str = ""
-    link_timeout_s: Annotated[float, Meta(gt=0.0, le=60.0)] = DEFAULT_LINK_TIMEOUT_S
-    connect_timeout_s: Annotated[float, Meta(ge=0.0, le=600.0)] = 0.0
-
-
-class RemotePlanar(_sim.LimitsPlanar):
-    driver: str = "remote"
-    listen: str = DEFAULT_LISTEN
-    device_address: str = ""
-    link_timeout_s: Annotated[float, Meta(gt=0.0, le=60.0)] = DEFAULT_LINK_TIMEOUT_S
-    connect_timeout_s: Annotated[float, Meta(ge=0.0, le=600.0)] = 0.0
-
-
-class RemoteSpatial(_sim.LimitsSpatial):
-    driver: str = "remote"
-    listen: str = DEFAULT_LISTEN
-    device_address: str = ""
-    link_timeout_s: Annotated[float, Meta(gt=0.0, le=60.0)] = DEFAULT_LINK_TIMEOUT_S
-    connect_timeout_s: Annotated[float, Meta(ge=0.0, le=600.0)] = 0.0
-
+# The link's own keys, added to each kind's limits (``_sim.Limits*``): one declaration, three tables.
+_LINK_KEYS = (
+    ("driver", str, "remote"),
+    ("listen", str, DEFAULT_LISTEN),
+    ("device_address", str, ""),
+    ("link_timeout_s", Annotated[float, Meta(gt=0.0, le=60.0)], DEFAULT_LINK_TIMEOUT_S),
+    ("connect_timeout_s", Annotated[float, Meta(ge=0.0, le=600.0)], 0.0),
+)
+Remote1dof, RemotePlanar, RemoteSpatial = (
+    msgspec.defstruct(f"Remote{name}", _LINK_KEYS, bases=(limits,), module=__name__)
+    for name, limits in (("1dof", _sim.Limits1dof), ("Planar", _sim.LimitsPlanar), ("Spatial", _sim.LimitsSpatial)))
 
 #: kind -> the ``[device]`` table of the ``remote`` driver
 REMOTE_CONFIGS: dict[str, type] = {"1dof": Remote1dof, "planar": RemotePlanar, "spatial": RemoteSpatial}
