@@ -6,7 +6,7 @@ with the simulated planar device whose hand pushes the paper's peg onto the test
 (0.5 N along +y; the wall is met at y_COM = 124 mm) and the pymunk testbed client (``--engine
 stub`` for the analytic one) on loopback. Faults are injected in user space (no ``tc netem``):
 
-- **UDP matrix** through :class:`~hapticproxy.protocol.transport.impair.ImpairingRelay`, both
+- **UDP matrix** through :class:`~hapticproxy.testing.impair.ImpairingRelay`, both
   directions impaired with their own seeds: loss 0 / 5 / 30 % uniform and bursty
   (Gilbert-Elliott, mean burst 3 datagrams), delay 20 / 100 ms one way, jitter 50 ms (delay
   50 +- 50 ms), duplication 1 %, reordering 25 %, corruption 1 %, and all of them at once;
@@ -18,9 +18,9 @@ stub`` for the analytic one) on loopback. Faults are injected in user space (no 
   killed (SIGKILL: the device's watchdog cuts the output; the telemetry recording keeps every
   flushed block);
 - **Zenoh**: the same client over Zenoh through
-  :class:`~hapticproxy.protocol.transport.impair_tcp.ImpairingTcpProxy` (TCP delay 20 / 100 ms,
+  :class:`~hapticproxy.testing.impair_tcp.ImpairingTcpProxy` (TCP delay 20 / 100 ms,
   a 400 ms stall, the link reset) and with the messages impaired by
-  :class:`~hapticproxy.protocol.transport.impair_wrap.ImpairedTransport` (30 % bursty loss +
+  :class:`~hapticproxy.testing.impair.ImpairedTransport` (30 % bursty loss +
   1 % duplication + 25 % reordering), and a Zenoh client killed mid-contact.
 
 One JSON row per case (``--json``: JSON lines; otherwise a table): ``case``, ``max_force_n``
@@ -67,7 +67,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hapticproxy.protocol.transport.impair import Decision, GilbertElliott, Impairment, ImpairingRelay
+from hapticproxy.testing.impair import Decision, GilbertElliott, Impairment, ImpairingRelay
 
 PUSH_N = 0.5
 RATE_HZ = 1000.0
@@ -257,7 +257,7 @@ class _Silencer:
 def _impaired_runner_transport(c2s: dict, s2c: dict):
     """While active, ClientRunner opens its transport wrapped in ImpairedTransport."""
     from hapticproxy.clients import runner as runner_mod
-    from hapticproxy.protocol.transport.impair_wrap import ImpairedTransport
+    from hapticproxy.testing.impair import ImpairedTransport
 
     real = runner_mod.open_transport
 
@@ -392,7 +392,7 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
             relay.start()
             client_url = relay.url
         elif case.transport == "zenoh":
-            from hapticproxy.protocol.transport.impair_tcp import ImpairingTcpProxy
+            from hapticproxy.testing.impair_tcp import ImpairingTcpProxy
 
             zport = int(url.split(":")[2].split("/")[0])
             proxy = ImpairingTcpProxy(("127.0.0.1", zport), delay_s=case.tcp_delay_s, seed=5).start()

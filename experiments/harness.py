@@ -450,7 +450,7 @@ def run_realtime(spec: RunSpec, *, log=None, connect_timeout_s: float = 30.0) ->
         relay = None
         client_url = url
         if spec.env_delay_s > 0:
-            from hapticproxy.protocol.transport.impair import ImpairingRelay, Impairment
+            from hapticproxy.testing.impair import ImpairingRelay, Impairment
 
             host, _, port = url.removeprefix("udp://").rpartition(":")
             relay = ImpairingRelay((host, int(port)), c2s=Impairment(delay_s=float(spec.env_delay_s)))

@@ -14,6 +14,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
+from . import devlink as dl
 from .codec import Codec, Limits
 from .messages import (
     CONTACT_COLUMNS,
@@ -37,7 +38,7 @@ from .messages import (
 from .session import HMAC_TAG_BYTES, ClientConfig, ServerConfig
 
 SPEC_PATH = Path(__file__).with_name("SPEC.md")
-BLOCKS = ("tables", "example")
+BLOCKS = ("tables", "example", "devlink")
 
 
 def _begin(name: str) -> str:
@@ -260,7 +261,66 @@ def render_example() -> str:
     return "\n".join(lines)
 
 
-RENDERERS = {"tables": render_tables, "example": render_example}
+# ------------------------------------------------------------------ the remote-device link
+DEVLINK_EXAMPLE = dict(flags=dl.F_ENABLE, device_session=1_700_000_000_500_000_000,
+                       server_session=1_700_000_000_000_000_000, epoch=1, engagements=1, seq=42, state_seq=41,
+                       wrench=(0.5, -0.25, 0.0, 0.0, 0.0, 0.01))
+
+
+def render_devlink() -> str:
+    """SPEC's tables of the remote-device link, from :mod:`.devlink`'s declaration."""
+    parts = [f"Layout version of these tables: **{dl.VERSION}** (magic `{dl.MAGIC.decode()}`); every integer and "
+             "float is little-endian, with no padding other than the declared pad bytes.", ""]
+    parts.append(_table(["type", "datagram", "direction", "bytes", "purpose"], [
+        [int(d.type_id), f"`{d.name}`", d.direction, d.size, d.doc] for d in dl.DATAGRAMS]))
+    for d in dl.DATAGRAMS:
+        parts += ["", f"#### {d.name} (type {int(d.type_id)}, {d.direction}, {d.size} bytes)", ""]
+        parts.append(_table(["offset", "bytes", "wire type", "field", "unit", "meaning"], [
+            [d.offsets[f.name], f.size, f.wire, " " if f.padding else f"`{f.name}`", f.unit, f.doc]
+            for f in d.fields]))
+    parts += ["", "#### Flags", ""]
+    parts.append(_table(["datagram", "bit", "name", "meaning"], [
+        ["STATE", 0, "`F_ARMED`", "the device's output is armed (it renders the commanded wrench)"],
+        ["COMMAND", 0, "`F_ENABLE`", "render this wrench; clear: zero the output now (not a fault)"],
+        ["both", "1-15", "-", "zero when sent, ignored when received"]]))
+    parts += ["", "#### The state row (STATE.state, float64)", ""]
+    parts.append(_table(["floats", "column", "unit", "meaning"], [
+        [f"{c.start}" if c.width == 1 else f"{c.start}-{c.start + c.width - 1}", f"`{c.name}`", c.unit, c.doc]
+        for c in dl.ROW_COLUMNS]))
+    parts += ["", "#### Enumerations", ""]
+    parts.append(_table(["kind", "name", "meaning"], [
+        [int(k), f"`{dl.KIND_NAMES[k]}`", {dl.DeviceKind.ONE_DOF: "translation along the device's axis only",
+                                           dl.DeviceKind.PLANAR: "translation in world x-y, rotation about +z",
+                                           dl.DeviceKind.SPATIAL: "6 DOF"}[k]] for k in dl.DeviceKind]))
+    parts += [""]
+    parts.append(_table(["fault", "name", "meaning"], [
+        [int(f), f.name.lower(), dl.FAULT_DOCS[f]] for f in dl.DeviceFault]))
+    parts += ["", "#### Defaults (this implementation)", ""]
+    parts.append(_table(["name", "default", "meaning"], [
+        ["listen port", dl.DEFAULT_PORT, "UDP port of the server driver (`[device] listen`)"],
+        ["link_timeout_s", dl.DEFAULT_LINK_TIMEOUT_S, "server driver: no STATE for this long -> link fault"],
+        ["watchdog_s", dl.DEFAULT_WATCHDOG_S, "device program: armed and no command accepted for this long -> zero, latched"],
+        ["max datagram bytes", dl.MAX_DATAGRAM_BYTES, "longer datagrams are dropped unread (counted as malformed)"],
+        ["max drain", dl.MAX_DRAIN, "datagrams one poll reads at most (a flood cannot stretch a step)"]]))
+    from .device_conformance import DEVICE_RULES, SERVER_RULES
+
+    parts += ["", "#### Conformance rules (`hapticproxy protocol check-device`, `check-device-server`)", ""]
+    parts.append(_table(["check-device rule", "what the device program must do"],
+                        [[f"`{k}`", v] for k, v in DEVICE_RULES.items()]))
+    parts += [""]
+    parts.append(_table(["check-device-server rule", "what the server driver must do"],
+                        [[f"`{k}`", v] for k, v in SERVER_RULES.items()]))
+    pkt = dl.COMMAND.pack(**DEVLINK_EXAMPLE)
+    e = DEVLINK_EXAMPLE
+    parts += ["", "#### Example: one COMMAND", "", "```text",
+              f"flags = {e['flags']} (enable), device_session = {e['device_session']}, server_session = "
+              f"{e['server_session']}",
+              f"epoch = {e['epoch']}, engagements = {e['engagements']}, seq = {e['seq']}, state_seq = {e['state_seq']}",
+              f"wrench = {list(e['wrench'])}", "```", "", f"The {len(pkt)} bytes:", "", "```text", _hexdump(pkt), "```"]
+    return "\n".join(parts)
+
+
+RENDERERS = {"tables": render_tables, "example": render_example, "devlink": render_devlink}
 
 
 def render_block(name: str) -> str:

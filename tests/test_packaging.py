@@ -12,7 +12,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SUBPACKAGES = ["hapticproxy.protocol", "hapticproxy.server", "hapticproxy.server.model", "hapticproxy.clients",
-               "hapticproxy.cli", "hapticproxy.benchmarks", "hapticproxy.experiments"]
+               "hapticproxy.cli", "hapticproxy.benchmarks", "hapticproxy.experiments", "hapticproxy.testing"]
 
 
 def _declared_packages() -> list[str]:
@@ -25,7 +25,8 @@ def test_every_package_folder_is_declared():
     declared = set(_declared_packages())
     assert set(SUBPACKAGES) <= declared
     mapping = {"protocol": "hapticproxy.protocol", "server": "hapticproxy.server", "clients": "hapticproxy.clients",
-               "cli": "hapticproxy.cli", "benchmarks": "hapticproxy.benchmarks", "experiments": "hapticproxy.experiments"}
+               "cli": "hapticproxy.cli", "benchmarks": "hapticproxy.benchmarks", "experiments": "hapticproxy.experiments",
+               "testing": "hapticproxy.testing"}
     for folder, name in mapping.items():
         for init in (ROOT / folder).rglob("__init__.py"):
             rel = init.parent.relative_to(ROOT / folder)

@@ -1,65 +1,25 @@
-"""Remote devices over UDP (entry point ``remote``) and the device-side program.
+"""Remote devices (entry point ``remote``) and the device-side program (``hapticproxy device``).
 
 A device running in another process or on another machine (a real device with its own small
 program, or ``hapticproxy device``, which runs a simulated one) streams its state to the server
-every tick and receives wrenches back. Two fixed-layout little-endian datagrams:
+every tick and receives wrenches back over the remote-device link: two fixed-layout datagrams,
+STATE (device -> server) and COMMAND (server -> device), declared once in
+:mod:`hapticproxy.protocol.devlink` and specified, with the reason for each rule, in SPEC.md's
+appendix "The remote-device link" (its tables are generated from that declaration).
 
-STATE (device -> server, 216 bytes) ::
+In short (SPEC has the whole rule set): each side keeps only the newest datagram by ``seq``
+and drops and counts stale, duplicate, malformed and foreign ones; the device obeys a command only
+if it is addressed to its own ``device_session`` and its key ``(server_session, epoch)`` is not
+older than the newest it has seen; a *newer* key with the enable flag arms the output, and within
+one key commands only update the wrench, so a cut (disable, the device's watchdog, a non-finite
+command) lasts until the server's next ``enable()``; the server driver latches
+``DEV_FAULT_LINK`` when no state arrives within ``link_timeout_s`` or the device restarted.
 
-    offset  type     field
-    0       4s       magic  b"HPDV"
-    4       u8       version (1)
-    5       u8       type (1 = STATE)
-    6       u16      flags: bit 0 = output armed
-    8       u64      device_session: the device program's boot epoch (ns since 1970 at start)
-    16      u64      server_session  } the command key the device is in (echo; 0 before any)
-    24      u32      epoch           }
-    28      u32      period_us: the device tick [us]
-    32      u64      seq: state sequence number, +1 per datagram from 1
-    40      u64      cmd_seq: sequence number of the last command accepted
-    48      u8       kind: 0 1dof, 1 planar, 2 spatial
-    49      u8       fault: the device's latched fault (DEV_FAULT_* of base.py), 0 if none
-    50      6x       padding (zero)
-    56      20 f64   the state row of base.py (pose 7, twist 6, hand wrench 6, time)
-
-COMMAND (server -> device, 96 bytes) ::
-
-    0       4s       magic  b"HPDV"
-    4       u8       version (1)
-    5       u8       type (2 = COMMAND)
-    6       u16      flags: bit 0 = enable (render the wrench); clear = zero output now
-    8       u64      device_session: the device this command is for (from its STATE)
-    16      u64      server_session: the server driver's boot epoch (ns since 1970 at start)
-    24      u32      epoch: +1 at every enable() of the server driver
-    28      u32      engagements: the server's count of sessions engaged so far; each rise
-                     starts the device program's scripted hand (a simulated hand's script
-                     starts at engagement, as with the in-process ``sim`` device)
-    32      u64      seq: command sequence number, +1 per datagram from 1
-    40      u64      state_seq: the newest state seq the server holds
-    48      6 f64    wrench fx fy fz tx ty tz [N, N m], world, at the handle
-
-Rules (what makes it safe over a lossy, reordering network and across restarts):
-
-- Each side keeps only the newest datagram by ``seq``; stale, duplicate, malformed (size, magic,
-  version, type, non-finite pose/twist/time) and foreign (other address or session) datagrams are
-  dropped and counted.
-- The device obeys a command only if it is addressed to its own ``device_session`` (a restarted
-  device ignores everything sent to its previous incarnation) and its key ``(server_session,
-  epoch)`` is not older than the newest key it has seen (a delayed command from before a server
-  restart or from before the last ``enable()`` is ignored). A *newer* key with the enable flag
-  arms the output; within one key, commands only update the wrench.
-- The device's own watchdog: armed and no accepted command for ``watchdog_s`` -> zero output and
-  the fault ``DEV_FAULT_WATCHDOG`` latched *for that key*: more commands with the same key do
-  not re-arm it; only a newer key (the server's next ``enable()``) does. The state stream reports
-  the fault with the key, and the server driver latches it.
-- The server driver reports ``DEV_FAULT_LINK`` when no state arrives within ``link_timeout_s``
-  (and before the first state), latched until ``enable()`` finds the link up again; a device
-  restart (a newer ``device_session``, or any other one once the current device has been silent
-  for the link timeout) is latched the same way. While faulted or disabled it sends zero
-  wrenches with the enable flag clear.
-- Sessions are wall-clock boot epochs, so restarts order themselves; a device accepts only
-  server sessions not older than the newest it has seen (if a server host's clock went back
-  across a restart, restart the device program too).
+Sockets: both sides move datagrams through the protocol's
+:class:`~hapticproxy.protocol.transport.Transport` interface (UDP by default; any transport may be
+injected, e.g. ``mem://`` for lock-step tests, or an impaired one); the link's newest-wins, key
+and watchdog logic is this module's, above the transport, as the session layer is for the
+environment protocol (the transport contract leaves ordering to the layer above).
 
 Server-side config (``[device]`` with ``driver = "remote"``; every key optional):
 
@@ -82,62 +42,52 @@ Server-side config (``[device]`` with ``driver = "remote"``; every key optional)
 
 Device side: :class:`DeviceProgram` bridges any local :class:`DeviceDriver` (a simulated device
 by default) to a server; ``hapticproxy device --kind planar --server HOST:PORT`` runs one (see
-:func:`main`).
+:func:`main`). ``hapticproxy protocol check-device`` checks a device program against the rules,
+``check-device-server`` a server driver.
 """
 from __future__ import annotations
 
 import argparse
 import math
 import socket
-import struct
 import sys
 import threading
 import time
 from typing import Annotated
 
+import msgspec
 import numpy as np
 from msgspec import Meta
+
+from hapticproxy.protocol import devlink as dl
+from hapticproxy.protocol.devlink import COMMAND, F_ARMED, F_ENABLE, PREFIX_BYTES, STATE, new_session
+from hapticproxy.protocol.transport import Transport, UdpTransport
 
 from . import _check as ck
 from . import sim as _sim
 from .base import (
     DEV_FAULT_DISABLED, DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_NAMES,
-    DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_NSTATE, DEV_OK, DEVICE_KINDS, DS_TIME,
-    DeviceDriver, DeviceLimits,
+    DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_NSTATE, DEV_OK, DEVICE_KINDS, DS_HAND, DS_POSE,
+    DS_TIME, DS_TWIST, DeviceDriver, DeviceLimits,
 )
 from .layout import KIND_IDS
 
-MAGIC = b"HPDV"
-VERSION = 1
-T_STATE = 1
-T_COMMAND = 2
-F_ARMED = 1
-F_ENABLE = 1
+# The link carries the drivers' state row, kinds and fault codes: one set of numbers.
+assert (DEV_NSTATE, DS_POSE, DS_TWIST, DS_HAND, DS_TIME) == (dl.ROW_FLOATS, *(c.start for c in dl.ROW_COLUMNS))
+assert KIND_IDS == {name: int(k) for k, name in dl.KIND_NAMES.items()}
+assert {DEV_OK, DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_FAULT_DISABLED, DEV_FAULT_LINK,
+        DEV_FAULT_HARDWARE} == {int(f) for f in dl.DeviceFault} and DEV_FAULT_WATCHDOG == dl.DeviceFault.WATCHDOG \
+    and DEV_FAULT_LINK == dl.DeviceFault.LINK and DEV_FAULT_NONFINITE_COMMAND == dl.DeviceFault.NONFINITE_COMMAND
 
-STATE_HDR = struct.Struct("<4sBBHQQIIQQBB6x")
-COMMAND_HDR = struct.Struct("<4sBBHQQIIQQ")
-STATE_SIZE = STATE_HDR.size + 8 * DEV_NSTATE      # 216
-COMMAND_SIZE = COMMAND_HDR.size + 8 * 6          # 96
-assert STATE_HDR.size == 56 and COMMAND_HDR.size == 48
+STATE_SIZE = STATE.size            # 216
+COMMAND_SIZE = COMMAND.size        # 96
 
-DEFAULT_LISTEN = "127.0.0.1:9872"
-DEFAULT_LINK_TIMEOUT_S = 0.1
-DEFAULT_DEVICE_WATCHDOG_S = 0.05
-#: at most this many datagrams are drained per read (bounds the time a flood can take)
-MAX_DRAIN = 512
-_RECV_BYTES = 2048
-_KIND_NAMES = {v: k for k, v in KIND_IDS.items()}
+DEFAULT_LISTEN = f"127.0.0.1:{dl.DEFAULT_PORT}"
+DEFAULT_LINK_TIMEOUT_S = dl.DEFAULT_LINK_TIMEOUT_S
+DEFAULT_DEVICE_WATCHDOG_S = dl.DEFAULT_WATCHDOG_S
+MAX_DRAIN = dl.MAX_DRAIN
 
-_session_lock = threading.Lock()
-_last_session = 0
-
-
-def new_session() -> int:
-    """A boot epoch: ns since 1970, strictly increasing within the process (orders restarts)."""
-    global _last_session
-    with _session_lock:
-        _last_session = max(time.time_ns(), _last_session + 1)
-        return _last_session
+__all__ = ["DeviceProgram", "RemoteDevice", "make_remote_device", "new_session", "parse_hostport", "main"]
 
 
 def parse_hostport(key: str, value) -> tuple[str, int]:
@@ -150,26 +100,40 @@ def parse_hostport(key: str, value) -> tuple[str, int]:
     return host, int(port)
 
 
-def _udp_socket(host: str) -> socket.socket:
-    fam = socket.AF_INET6 if ":" in host else socket.AF_INET
-    s = socket.socket(fam, socket.SOCK_DGRAM)
-    s.setblocking(False)
-    return s
+def _udp(key: str, host: str, port: int, role: str) -> UdpTransport:
+    """A UDP endpoint of the link's size limit: ``role="server"`` binds ``host:port``, a client
+    connects there. ``ValueError`` naming ``key`` when the socket cannot be set up."""
+    try:
+        return UdpTransport(host, port, role, max_packet_bytes=dl.MAX_DATAGRAM_BYTES)
+    except OSError as exc:
+        what = "bind" if role == "server" else "reach"
+        raise ck.fail(key, f"cannot {what} {host}:{port}: {exc.strerror or exc}") from None
+    except ValueError as exc:
+        raise ck.fail(key, str(exc)) from None
 
 
-def pack_state(buf, *, device_session, server_session, epoch, period_us, seq, cmd_seq, kind, fault,
-               armed, state) -> None:
-    """Write a STATE datagram into ``buf`` (a bytearray of STATE_SIZE)."""
-    STATE_HDR.pack_into(buf, 0, MAGIC, VERSION, T_STATE, F_ARMED if armed else 0, device_session,
-                        server_session, epoch, period_us, seq, cmd_seq, kind, fault)
-    struct.pack_into(f"<{DEV_NSTATE}d", buf, STATE_HDR.size, *state)
+def _peer_id(peer):
+    """A UDP source address as ``(host, port)`` (IPv6 reports 4-tuples); other peers as they are."""
+    if type(peer) is tuple and len(peer) > 2:
+        return peer[:2]
+    return peer
 
 
-def pack_command(buf, *, device_session, server_session, epoch, seq, state_seq, enable, wrench) -> None:
-    """Write a COMMAND datagram into ``buf`` (a bytearray of COMMAND_SIZE)."""
-    COMMAND_HDR.pack_into(buf, 0, MAGIC, VERSION, T_COMMAND, F_ENABLE if enable else 0, device_session,
-                          server_session, epoch, 0, seq, state_seq)
-    struct.pack_into("<6d", buf, COMMAND_HDR.size, *wrench)
+def _resolve(key: str, address: tuple[str, int]) -> tuple[str, int]:
+    try:
+        info = socket.getaddrinfo(address[0], address[1], type=socket.SOCK_DGRAM)
+    except OSError as exc:
+        raise ck.fail(key, f"cannot resolve {address[0]}: {exc.strerror or exc}") from None
+    return info[0][4][:2]
+
+
+def _merge_transport_counters(cnt: dict, tr: Transport) -> dict:
+    """The link's counters with what the transport dropped before the link saw it."""
+    out = dict(cnt)
+    tc = tr.counters
+    out["malformed"] += tc.dropped_oversize_recv + tc.dropped_empty
+    out["recv_errors"] += tc.recv_errors
+    return out
 
 
 # =============================================================================== server side
@@ -179,17 +143,20 @@ REMOTE_COUNTERS = ("states", "stale", "duplicate", "malformed", "foreign", "old_
 
 
 class RemoteDevice(DeviceDriver):
-    """The server side of a remote device: ``read`` drains the socket (non-blocking) and keeps the
-    newest state; ``write`` sends one COMMAND datagram.
+    """The server side of a remote device: ``read`` drains the transport (non-blocking) and keeps
+    the newest state; ``write`` sends one COMMAND datagram.
 
-    Starts disabled with ``DEV_FAULT_LINK`` latched (no state yet): call ``enable()`` once
-    :attr:`link_up` is true.
+    ``transport``: a server-role :class:`~hapticproxy.protocol.transport.Transport` to use instead
+    of binding UDP at ``listen`` (the driver closes it). ``device_address`` then pins a peer id of
+    that transport. Starts disabled with ``DEV_FAULT_LINK`` latched (no state yet): call
+    ``enable()`` once :attr:`link_up` is true.
     """
 
     name = "remote"
 
     def __init__(self, *, kind: str, limits: DeviceLimits, listen=("127.0.0.1", 0), device_address=None,
-                 link_timeout_s: float = DEFAULT_LINK_TIMEOUT_S, clock_ns=None, session: int | None = None) -> None:
+                 link_timeout_s: float = DEFAULT_LINK_TIMEOUT_S, clock_ns=None, session: int | None = None,
+                 transport: Transport | None = None) -> None:
         if kind not in DEVICE_KINDS:
             raise ck.fail("device.kind", f"expected one of {', '.join(DEVICE_KINDS)}; got {kind!r}")
         self.kind = kind
@@ -199,22 +166,17 @@ class RemoteDevice(DeviceDriver):
         self._link_ns = int(round(link_timeout_s * 1e9))
         self._pinned = None
         if device_address is not None:
-            try:
-                info = socket.getaddrinfo(device_address[0], device_address[1], type=socket.SOCK_DGRAM)
-            except OSError as exc:
-                raise ck.fail("device.device_address", f"cannot resolve {device_address[0]}: {exc.strerror or exc}") from None
-            self._pinned = info[0][4][:2]
-        self._sock = _udp_socket(listen[0])
-        try:
-            self._sock.bind(listen)
-        except OSError as exc:
-            self._sock.close()
-            raise ck.fail("device.listen", f"cannot bind {listen[0]}:{listen[1]}: {exc.strerror or exc}") from None
+            self._pinned = device_address if transport is not None else _resolve("device.device_address", device_address)
+        if transport is None:
+            transport = _udp("device.listen", listen[0], listen[1], "server")
+        elif transport.role != "server":
+            raise ValueError(f"transport: the server driver needs a server-role transport, got a {transport.role}")
+        self._tr = transport
         self.session = session if session is not None else new_session()
-        self._rx = bytearray(_RECV_BYTES)
-        self._rx_state = np.frombuffer(self._rx, dtype="<f8", count=DEV_NSTATE, offset=STATE_HDR.size)
-        self._tx = bytearray(COMMAND_SIZE)
-        self._tx_wrench = np.frombuffer(self._tx, dtype="<f8", count=6, offset=COMMAND_HDR.size)
+        self._rx = bytearray(max(dl.MAX_DATAGRAM_BYTES, transport.max_packet_bytes))
+        self._rx_state = STATE.floats(self._rx)
+        self._tx = COMMAND.new_buffer()
+        self._tx_wrench = COMMAND.floats(self._tx)
         self._finite = np.zeros(13, dtype=bool)
         self._state = np.zeros(DEV_NSTATE)
         self._state[3] = 1.0
@@ -297,12 +259,17 @@ class RemoteDevice(DeviceDriver):
         try:
             self.disable()
         finally:
-            self._sock.close()
+            self._tr.close()
 
     # -- extras --------------------------------------------------------------------------------
     @property
+    def transport(self) -> Transport:
+        return self._tr
+
+    @property
     def local_address(self) -> tuple[str, int]:
-        return self._sock.getsockname()[:2]
+        """The UDP address the driver listens on (what ``hapticproxy device --server`` is given)."""
+        return tuple(self._tr.local_address[:2])
 
     @property
     def device_address(self):
@@ -327,7 +294,7 @@ class RemoteDevice(DeviceDriver):
         return self._dev_armed and self._dev_key == (self.session, self._epoch)
 
     def counters(self) -> dict[str, int]:
-        return dict(self._cnt)
+        return _merge_transport_counters(self._cnt, self._tr)
 
     def status_text(self) -> str:
         return DEV_FAULT_NAMES.get(self._status(), f"fault {self._status()}")
@@ -365,31 +332,25 @@ class RemoteDevice(DeviceDriver):
             self._cnt["unsent"] += 1
             return
         self._seq += 1
-        COMMAND_HDR.pack_into(self._tx, 0, MAGIC, VERSION, T_COMMAND, 0 if wrench is None else F_ENABLE,
-                              self._dev_session, self.session, self._epoch, self._engagements, self._seq,
-                              self._state_seq)
+        COMMAND.body.pack_into(self._tx, PREFIX_BYTES, 0 if wrench is None else F_ENABLE, self._dev_session,
+                               self.session, self._epoch, self._engagements, self._seq, self._state_seq)
         if wrench is None:
             self._tx_wrench[:] = 0.0
         else:
             self._tx_wrench[:] = wrench
-        try:
-            self._sock.sendto(self._tx, self._dev_addr)
+        if self._tr.send(self._tx, self._dev_addr):
             self._cnt["commands_sent"] += 1
-        except OSError:
+        else:
             self._cnt["send_errors"] += 1
 
     def _drain(self, now: int) -> None:
-        sock = self._sock
+        recv_into = self._tr.recv_into
         rx = self._rx
         for _ in range(MAX_DRAIN):
-            try:
-                n, addr = sock.recvfrom_into(rx)
-            except (BlockingIOError, InterruptedError):
+            n, peer = recv_into(rx)
+            if peer is None:
                 return
-            except OSError:
-                self._cnt["recv_errors"] += 1
-                continue
-            self._accept(n, addr[:2], now)
+            self._accept(n, _peer_id(peer), now)
 
     def _accept(self, n: int, addr, now: int) -> None:
         cnt = self._cnt
@@ -397,8 +358,8 @@ class RemoteDevice(DeviceDriver):
             cnt["malformed"] += 1
             return
         (magic, version, ptype, flags, dev_session, srv_session, epoch, _period_us, seq, _cmd_seq,
-         kind, fault) = STATE_HDR.unpack_from(self._rx, 0)
-        if magic != MAGIC or version != VERSION or ptype != T_STATE:
+         kind, fault) = STATE.header.unpack_from(self._rx, 0)
+        if not STATE.prefix_ok(magic, version, ptype):
             cnt["malformed"] += 1
             return
         np.isfinite(self._rx_state[:13], out=self._finite)
@@ -448,29 +409,17 @@ class RemoteDevice(DeviceDriver):
             self._fault = fault if fault in DEV_FAULT_NAMES and fault != DEV_FAULT_DISABLED else DEV_FAULT_HARDWARE
 
 
-class Remote1dof(_sim.Limits1dof):
-    driver: str = "remote"
-    listen: str = DEFAULT_LISTEN
-    device_address: str = ""
-    link_timeout_s: Annotated[float, Meta(gt=0.0, le=60.0)] = DEFAULT_LINK_TIMEOUT_S
-    connect_timeout_s: Annotated[float, Meta(ge=0.0, le=600.0)] = 0.0
-
-
-class RemotePlanar(_sim.LimitsPlanar):
-    driver: str = "remote"
-    listen: str = DEFAULT_LISTEN
-    device_address: str = ""
-    link_timeout_s: Annotated[float, Meta(gt=0.0, le=60.0)] = DEFAULT_LINK_TIMEOUT_S
-    connect_timeout_s: Annotated[float, Meta(ge=0.0, le=600.0)] = 0.0
-
-
-class RemoteSpatial(_sim.LimitsSpatial):
-    driver: str = "remote"
-    listen: str = DEFAULT_LISTEN
-    device_address: str = ""
-    link_timeout_s: Annotated[float, Meta(gt=0.0, le=60.0)] = DEFAULT_LINK_TIMEOUT_S
-    connect_timeout_s: Annotated[float, Meta(ge=0.0, le=600.0)] = 0.0
-
+# The link's own keys, added to each kind's limits (``_sim.Limits*``): one declaration, three tables.
+_LINK_KEYS = (
+    ("driver", str, "remote"),
+    ("listen", str, DEFAULT_LISTEN),
+    ("device_address", str, ""),
+    ("link_timeout_s", Annotated[float, Meta(gt=0.0, le=60.0)], DEFAULT_LINK_TIMEOUT_S),
+    ("connect_timeout_s", Annotated[float, Meta(ge=0.0, le=600.0)], 0.0),
+)
+Remote1dof, RemotePlanar, RemoteSpatial = (
+    msgspec.defstruct(f"Remote{name}", _LINK_KEYS, bases=(limits,), module=__name__)
+    for name, limits in (("1dof", _sim.Limits1dof), ("Planar", _sim.LimitsPlanar), ("Spatial", _sim.LimitsSpatial)))
 
 #: kind -> the ``[device]`` table of the ``remote`` driver
 REMOTE_CONFIGS: dict[str, type] = {"1dof": Remote1dof, "planar": RemotePlanar, "spatial": RemoteSpatial}
@@ -518,7 +467,7 @@ make_remote_device.effective_config = effective_config
 
 # =============================================================================== device side
 PROGRAM_COUNTERS = ("ticks", "states_sent", "send_errors", "commands", "stale", "duplicate", "malformed",
-                    "foreign_session", "old_key", "ignored_latched", "arms", "disarms", "watchdog_trips",
+                    "foreign", "foreign_session", "old_key", "ignored_latched", "arms", "disarms", "watchdog_trips",
                     "nonfinite_refused", "driver_faults", "overruns", "recv_errors")
 
 
@@ -527,29 +476,44 @@ class DeviceProgram:
     server at ``server`` (host, port). One :meth:`tick` per device period: drain commands, the
     watchdog, ``driver.write``, ``driver.read``, one STATE datagram. :meth:`run` paces ticks.
 
+    ``transport``: a :class:`~hapticproxy.protocol.transport.Transport` to the server instead of
+    UDP to ``server`` (a client-role one; the program closes it). Without ``bind`` the UDP
+    socket is connected to the server (the kernel drops datagrams from anyone else); with
+    ``bind`` it is bound there and datagrams from other sources are dropped as foreign.
+
     The driver is enabled when a command arms the output and disabled when it is disarmed or a
     fault latches; the program's own faults (watchdog, non-finite command) and the driver's are
     reported in the state stream.
     """
 
-    def __init__(self, driver: DeviceDriver, server: tuple[str, int], *, watchdog_s: float = DEFAULT_DEVICE_WATCHDOG_S,
-                 bind: tuple[str, int] | None = None, clock_ns=None, period_s: float = 1e-3,
-                 session: int | None = None) -> None:
+    def __init__(self, driver: DeviceDriver, server: tuple[str, int] | None = None, *,
+                 watchdog_s: float = DEFAULT_DEVICE_WATCHDOG_S, bind: tuple[str, int] | None = None, clock_ns=None,
+                 period_s: float = 1e-3, session: int | None = None, transport: Transport | None = None) -> None:
         self.driver = driver
         self.server = server
         self._clock = clock_ns if clock_ns is not None else time.monotonic_ns
         self._wd_ns = int(round(watchdog_s * 1e9))
         self._period_us = int(round(period_s * 1e6))
         self.session = session if session is not None else new_session()
-        self._sock = _udp_socket(server[0])
-        if bind is not None:
-            self._sock.bind(bind)
-        self._sock.connect(server)
+        self._peer = None      # where commands come from and states go (None: the client's one peer)
+        if transport is None:
+            if server is None:
+                raise ValueError("server: give the server's (host, port) or a transport")
+            if bind is None:
+                transport = _udp("--server", server[0], server[1], "client")
+            else:
+                self._peer = _resolve("--server", server)
+                transport = _udp("--bind", bind[0], bind[1], "server")
+        elif transport.role == "server":
+            if server is None:
+                raise ValueError("server: a server-role transport needs the server's peer id")
+            self._peer = server
+        self._tr = transport
         self._kind_id = KIND_IDS[driver.kind]
-        self._rx = bytearray(_RECV_BYTES)
-        self._rx_wrench = np.frombuffer(self._rx, dtype="<f8", count=6, offset=COMMAND_HDR.size)
-        self._tx = bytearray(STATE_SIZE)
-        self._tx_state = np.frombuffer(self._tx, dtype="<f8", count=DEV_NSTATE, offset=STATE_HDR.size)
+        self._rx = bytearray(max(dl.MAX_DATAGRAM_BYTES, transport.max_packet_bytes))
+        self._rx_wrench = COMMAND.floats(self._rx)
+        self._tx = STATE.new_buffer()
+        self._tx_state = STATE.floats(self._tx)
         self._state = np.zeros(DEV_NSTATE)
         self._cmd = np.zeros(6)
         self._zero = np.zeros(6)
@@ -578,7 +542,12 @@ class DeviceProgram:
 
     @property
     def local_address(self) -> tuple[str, int]:
-        return self._sock.getsockname()[:2]
+        """The UDP address of the program's socket."""
+        return tuple(self._tr.local_address[:2])
+
+    @property
+    def transport(self) -> Transport:
+        return self._tr
 
     @property
     def command(self) -> np.ndarray:
@@ -586,11 +555,11 @@ class DeviceProgram:
         return (self._cmd if self._armed else self._zero).copy()
 
     def counters(self) -> dict[str, int]:
-        return dict(self._cnt)
+        return _merge_transport_counters(self._cnt, self._tr)
 
     def close(self) -> None:
         self._disarm()
-        self._sock.close()
+        self._tr.close()
         self.driver.close()
 
     # -- one period ------------------------------------------------------------------------------
@@ -647,24 +616,24 @@ class DeviceProgram:
         self._seq += 1
         drv_fault = self.driver.fault
         fault = self._fault or (drv_fault if drv_fault not in (DEV_OK, DEV_FAULT_DISABLED) else DEV_OK)
-        STATE_HDR.pack_into(self._tx, 0, MAGIC, VERSION, T_STATE, F_ARMED if self._armed else 0, self.session,
-                            self._key[0], self._key[1], self._period_us, self._seq, self._cmd_seq,
-                            self._kind_id, fault)
+        STATE.body.pack_into(self._tx, PREFIX_BYTES, F_ARMED if self._armed else 0, self.session, self._key[0],
+                             self._key[1], self._period_us, self._seq, self._cmd_seq, self._kind_id, fault)
         self._tx_state[:] = self._state
-        try:
-            self._sock.send(self._tx)
+        if self._tr.send(self._tx, self._peer):
             self._cnt["states_sent"] += 1
-        except OSError:
+        else:
             self._cnt["send_errors"] += 1
 
     def _drain(self, now: int) -> None:
+        # (an ICMP port-unreachable while no server listens is counted by the transport)
+        recv_into = self._tr.recv_into
+        want = self._peer
         for _ in range(MAX_DRAIN):
-            try:
-                n = self._sock.recv_into(self._rx)
-            except (BlockingIOError, InterruptedError):
+            n, peer = recv_into(self._rx)
+            if peer is None:
                 return
-            except OSError:  # e.g. ICMP port unreachable while no server listens
-                self._cnt["recv_errors"] += 1
+            if want is not None and _peer_id(peer) != want:
+                self._cnt["foreign"] += 1
                 continue
             self._accept(n, now)
 
@@ -674,8 +643,8 @@ class DeviceProgram:
             cnt["malformed"] += 1
             return
         magic, version, ptype, flags, dev_session, srv_session, epoch, engagements, seq, _sseq = \
-            COMMAND_HDR.unpack_from(self._rx, 0)
-        if magic != MAGIC or version != VERSION or ptype != T_COMMAND:
+            COMMAND.header.unpack_from(self._rx, 0)
+        if not COMMAND.prefix_ok(magic, version, ptype):
             cnt["malformed"] += 1
             return
         if dev_session != self.session:

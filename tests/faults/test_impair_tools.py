@@ -8,9 +8,8 @@ import socket
 import pytest
 
 from hapticproxy.protocol.transport import open_transport
-from hapticproxy.protocol.transport.impair import GilbertElliott, Impairment
-from hapticproxy.protocol.transport.impair_tcp import ImpairingTcpProxy
-from hapticproxy.protocol.transport.impair_wrap import ImpairedTransport
+from hapticproxy.testing.impair import GilbertElliott, ImpairedTransport, Impairment
+from hapticproxy.testing.impair_tcp import ImpairingTcpProxy
 
 
 class FakeClock:

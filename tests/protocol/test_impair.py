@@ -12,7 +12,7 @@ import time
 import pytest
 
 from hapticproxy.protocol.transport import open_transport
-from hapticproxy.protocol.transport.impair import GilbertElliott, Impairment, ImpairingRelay
+from hapticproxy.testing.impair import GilbertElliott, Impairment, ImpairingRelay
 
 N = 2000
 SIZE = 64

@@ -2,7 +2,6 @@
 counted drops, the device-side watchdog and the epoch rules, link loss, and the CLI."""
 from __future__ import annotations
 
-import os
 import signal
 import socket
 import subprocess
@@ -13,14 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hapticproxy.protocol.devlink import COMMAND, STATE
 from hapticproxy.server.devices import base
 from hapticproxy.server.devices.base import (
     DEV_FAULT_DISABLED, DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_WATCHDOG, DEV_OK, load_device,
 )
 from hapticproxy.server.devices import remote
-from hapticproxy.server.devices.remote import (
-    COMMAND_SIZE, STATE_SIZE, DeviceProgram, RemoteDevice, pack_command, pack_state,
-)
+from hapticproxy.server.devices.remote import COMMAND_SIZE, STATE_SIZE, DeviceProgram, RemoteDevice
 from hapticproxy.server.devices.sim import make_sim_device
 
 DT = 1e-3
@@ -124,13 +122,12 @@ def test_server_keeps_the_newest_state_and_counts_what_it_drops():
     other.bind(("127.0.0.1", 0))
     try:
         def state(seq, x, *, session=100, kind=1, sock=tx, magic=None, nan=False):
-            buf = bytearray(STATE_SIZE)
             row = base.empty_state()
             row[0] = x
             if nan:
                 row[8] = np.nan
-            pack_state(buf, device_session=session, server_session=0, epoch=0, period_us=1000, seq=seq,
-                       cmd_seq=0, kind=kind, fault=0, armed=False, state=row)
+            buf = bytearray(STATE.pack(flags=0, device_session=session, server_session=0, epoch=0, period_us=1000,
+                                       seq=seq, cmd_seq=0, kind=kind, fault=0, state=row))
             if magic:
                 buf[:4] = magic
             sock.sendto(bytes(buf), srv.local_address)
@@ -179,13 +176,11 @@ def test_a_pinned_device_address_is_the_only_one_heard():
     srv = load_device("remote", {"kind": "1dof", "listen": "127.0.0.1:0", "device_address": f"{host}:{port}"},
                       period_s=DT, clock_ns=FakeClock())
     try:
-        buf = bytearray(STATE_SIZE)
         for seq, sock in ((1, tx), (2, pinned)):
             r = base.empty_state()
             r[0] = seq
-            pack_state(buf, device_session=7, server_session=0, epoch=0, period_us=1000, seq=seq, cmd_seq=0,
-                       kind=0, fault=0, armed=False, state=r)
-            sock.sendto(bytes(buf), srv.local_address)
+            sock.sendto(STATE.pack(flags=0, device_session=7, server_session=0, epoch=0, period_us=1000, seq=seq,
+                                   cmd_seq=0, kind=0, fault=0, state=r), srv.local_address)
         row = np.zeros(base.DEV_NSTATE)
         assert eventually(lambda: (srv.read(row), srv.counters()["states"])[1] == 1)
         assert srv.counters()["foreign"] == 1 and row[0] == 2.0 and srv.device_address == (host, port)
@@ -193,8 +188,8 @@ def test_a_pinned_device_address_is_the_only_one_heard():
         srv.write(F1)                          # the command goes to the pinned address
         pinned.settimeout(5.0)
         data = pinned.recv(4096)
-        hdr = remote.COMMAND_HDR.unpack_from(data, 0)
-        assert len(data) == COMMAND_SIZE and hdr[3] & 1 and hdr[4] == 7 and hdr[6] == srv.epoch
+        c = COMMAND.unpack(data)
+        assert len(data) == COMMAND_SIZE and c.flags & 1 and c.device_session == 7 and c.epoch == srv.epoch
     finally:
         srv.close()
         tx.close()
@@ -229,12 +224,10 @@ def test_device_epoch_rules_with_crafted_commands():
     server.bind(("127.0.0.1", 0))
     sim = make_sim_device({"kind": "1dof"}, period_s=DT, clock_ns=clock)
     prog = DeviceProgram(sim, server.getsockname(), watchdog_s=0.05, clock_ns=clock)
-    buf = bytearray(COMMAND_SIZE)
-
     def cmd(seq, *, session=1000, epoch=1, enable=True, f=1.0, device=None):
-        pack_command(buf, device_session=prog.session if device is None else device, server_session=session,
-                     epoch=epoch, seq=seq, state_seq=0, enable=enable, wrench=[f, 0, 0, 0, 0, 0])
-        server.sendto(bytes(buf), prog.local_address)
+        server.sendto(COMMAND.pack(flags=int(enable), device_session=prog.session if device is None else device,
+                                   server_session=session, epoch=epoch, engagements=0, seq=seq, state_seq=0,
+                                   wrench=[f, 0, 0, 0, 0, 0]), prog.local_address)
 
     def tick(n=1):
         for _ in range(n):
@@ -282,9 +275,9 @@ def test_device_epoch_rules_with_crafted_commands():
                 data = server.recv(4096)
             except BlockingIOError:
                 break
-        hdr = remote.STATE_HDR.unpack_from(data, 0)
-        assert len(data) == STATE_SIZE and hdr[4] == prog.session and hdr[5:7] == (2000, 1)
-        assert hdr[3] & 1 == 0 and hdr[11] == base.DEV_FAULT_NONFINITE_COMMAND
+        st = STATE.unpack(data)
+        assert len(data) == STATE_SIZE and st.device_session == prog.session and (st.server_session, st.epoch) == (2000, 1)
+        assert st.flags & 1 == 0 and st.fault == base.DEV_FAULT_NONFINITE_COMMAND
     finally:
         prog.close()
         server.close()
@@ -418,11 +411,75 @@ def test_device_cli_runs_from_a_server_config_file(tmp_path, capsys):
             except BlockingIOError:
                 break
         assert got and all(len(d) == STATE_SIZE for d in got)
-        hdr = remote.STATE_HDR.unpack_from(got[-1], 0)
-        assert hdr[10] == 2                                  # spatial
-        row = np.frombuffer(got[-1], dtype="<f8", offset=remote.STATE_HDR.size)
+        st = STATE.unpack(got[-1])
+        assert st.kind == 2                                  # spatial
+        row = st.state
         assert row[13] == 0.1 and row[0] > 0.0               # the hand pushed it
         err = capsys.readouterr().err
         assert "spatial sim device" in err and "Traceback" not in err
     finally:
         server.close()
+
+
+def test_a_bound_device_program_hears_only_its_server():
+    """``--bind``: the program's socket is bound, not connected; datagrams from anyone but the
+    server are dropped as foreign (the kernel no longer filters them)."""
+    clock = FakeClock()
+    srv = RemoteDevice(kind="planar", limits=base.DeviceLimits(10, 0.5, 2, 20), listen=("127.0.0.1", 0),
+                       clock_ns=clock)
+    sim = make_sim_device({"kind": "planar"}, period_s=DT, clock_ns=clock)
+    prog = DeviceProgram(sim, srv.local_address, bind=("127.0.0.1", 0), watchdog_s=0.05, clock_ns=clock)
+    other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    row = np.zeros(base.DEV_NSTATE)
+    try:
+        for _ in range(3):
+            clock.advance(DT)
+            prog.tick()
+            assert eventually(lambda: (srv.read(row), srv.link_up)[1])
+        srv.enable()
+        srv.write(F1)
+        c = COMMAND.unpack(COMMAND.pack(flags=1, device_session=prog.session, server_session=srv.session + 1, epoch=9,
+                                        engagements=0, seq=1, state_seq=0, wrench=[5.0, 0, 0, 0, 0, 0]))
+        other.sendto(COMMAND.pack(**c._asdict()), prog.local_address)   # a newer key, from a stranger
+        assert eventually(lambda: (prog.tick(), prog.counters()["foreign"] + prog.counters()["arms"])[1] >= 2)
+        assert prog.counters()["foreign"] == 1 and prog.key == (srv.session, srv.epoch) and prog.armed
+    finally:
+        other.close()
+        prog.close()
+        srv.close()
+
+
+def test_both_ends_run_over_any_transport_in_lock_step():
+    """The link on ``mem://`` (no sockets): the same rules, deterministic."""
+    from hapticproxy.protocol.transport import MemTransport
+
+    clock = FakeClock()
+    s_tr, c_tr = MemTransport.pair()
+    srv = RemoteDevice(kind="1dof", limits=base.DeviceLimits(10, 0.0, 2, float("inf")), transport=s_tr,
+                       clock_ns=clock)
+    sim = make_sim_device({"kind": "1dof"}, period_s=DT, clock_ns=clock)
+    prog = DeviceProgram(sim, transport=c_tr, watchdog_s=0.05, clock_ns=clock)
+    row = np.zeros(base.DEV_NSTATE)
+    try:
+        clock.advance(DT)
+        prog.tick()
+        srv.read(row)
+        assert srv.link_up and srv.device_address == c_tr.client_id
+        srv.enable()
+        for _ in range(5):
+            clock.advance(DT)
+            prog.tick()
+            srv.read(row)
+            srv.write(F1)
+        assert prog.armed and sim.last_command[0] == 1.0 and srv.device_armed
+        assert srv.counters()["commands_sent"] == 5 and prog.counters()["commands"] == 4
+        a, b = MemTransport.pair()
+        try:
+            with pytest.raises(ValueError, match="server-role"):
+                RemoteDevice(kind="1dof", limits=srv.limits, transport=b)
+        finally:
+            b.close()
+            a.close()
+    finally:
+        prog.close()
+        srv.close()

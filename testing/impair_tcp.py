@@ -21,40 +21,28 @@ While stalled nothing is released (reading goes on, so the senders do not block:
 injectable ``clock`` (seconds).
 
 Counters (:attr:`ImpairingTcpProxy.counters`, plain ints): connections accepted / reset /
-refused upstream, chunks and bytes per direction, stalls.
-
-Standard library only (the ``protocol`` package's rule).
+refused upstream, chunks and bytes per direction, stalls. The background thread is the UDP
+relay's (:class:`~.impair._SelectLoop`).
 """
 from __future__ import annotations
 
 import collections
 import random
-import select
 import socket
 import struct
-import threading
 import time
 from collections.abc import Callable
 
+from .impair import Counters, _SelectLoop
+
 _CHUNK = 65536
-_IDLE_WAIT_S = 0.005
 
 
-class TcpProxyCounters:
-    """What the proxy did, as plain ints."""
+class TcpProxyCounters(Counters):
+    """What the proxy did."""
 
     __slots__ = ("accepted", "upstream_refused", "reset", "closed", "chunks_c2s", "chunks_s2c", "bytes_c2s",
                  "bytes_s2c", "stalls")
-
-    def __init__(self) -> None:
-        for name in self.__slots__:
-            setattr(self, name, 0)
-
-    def as_dict(self) -> dict[str, int]:
-        return {name: getattr(self, name) for name in self.__slots__}
-
-    def __repr__(self) -> str:
-        return "TcpProxyCounters(" + ", ".join(f"{k}={v}" for k, v in self.as_dict().items()) + ")"
 
 
 class _Pipe:
@@ -71,7 +59,7 @@ class _Pipe:
         self.eof = False
 
 
-class ImpairingTcpProxy:
+class ImpairingTcpProxy(_SelectLoop):
     """Listen on ``listen``; relay every connection to ``upstream`` through the impairments.
 
     Args:
@@ -84,9 +72,12 @@ class ImpairingTcpProxy:
         clock: time source in seconds.
     """
 
+    _thread_name = "impairing-tcp-proxy"
+
     def __init__(self, upstream: tuple[str, int], *, delay_s: float = 0.0, jitter_s: float = 0.0,
                  listen: tuple[str, int] = ("127.0.0.1", 0), seed: int = 0,
                  clock: Callable[[], float] = time.monotonic) -> None:
+        self._init_loop()
         for name, v in (("delay_s", delay_s), ("jitter_s", jitter_s)):
             if not (isinstance(v, (int, float)) and v >= 0.0):
                 raise ValueError(f"{name} must be a number >= 0, got {v!r}")
@@ -105,19 +96,8 @@ class ImpairingTcpProxy:
         self._pipes: list[_Pipe] = []
         self._pairs: list[tuple[socket.socket, socket.socket]] = []
         self._stalled_until = 0.0
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._closed = False
 
     # ------------------------------------------------------------------ control
-    def start(self) -> "ImpairingTcpProxy":
-        """Run in a background thread until :meth:`close`."""
-        if self._thread is None:
-            self._thread = threading.Thread(target=self._run, name="impairing-tcp-proxy", daemon=True)
-            self._thread.start()
-        return self
-
     def set_delay(self, delay_s: float, jitter_s: float | None = None) -> None:
         """Change the delay (and jitter) for chunks read from now on."""
         if not delay_s >= 0.0 or (jitter_s is not None and not jitter_s >= 0.0):
@@ -156,27 +136,13 @@ class ImpairingTcpProxy:
     def connections(self) -> int:
         return len(self._pairs)
 
-    def close(self) -> None:
-        """Stop the thread and close every socket. Idempotent."""
-        if self._closed:
-            return
-        self._closed = True
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(5)
-        with self._lock:
-            for a, b in self._pairs:
-                a.close()
-                b.close()
-            self._pairs.clear()
-            self._pipes.clear()
-            self._lsock.close()
-
-    def __enter__(self) -> "ImpairingTcpProxy":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def _close_sockets(self) -> None:
+        for a, b in self._pairs:
+            a.close()
+            b.close()
+        self._pairs.clear()
+        self._pipes.clear()
+        self._lsock.close()
 
     # ------------------------------------------------------------------ the loop
     def step(self) -> None:
@@ -186,23 +152,14 @@ class ImpairingTcpProxy:
             self._read()
             self._release()
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            with self._lock:
-                rd = [self._lsock] + [p.src for p in self._pipes if not p.eof]
-                due = min((p.queue[0][0] for p in self._pipes if p.queue), default=None)
-                if due is not None and self._stalled_until > due:
-                    due = self._stalled_until
-            wait = _IDLE_WAIT_S if due is None else min(_IDLE_WAIT_S, max(0.0, due - self.clock()))
-            try:
-                select.select(rd, [], [], wait)
-            except (OSError, ValueError):
-                if self._stop.is_set():
-                    break
-                continue
-            if self._stop.is_set():
-                break
-            self.step()
+    def _readable(self) -> list:
+        return [self._lsock] + [p.src for p in self._pipes if not p.eof]
+
+    def _next_due(self) -> float | None:
+        due = min((p.queue[0][0] for p in self._pipes if p.queue), default=None)
+        if due is not None and self._stalled_until > due:
+            due = self._stalled_until
+        return due
 
     def _accept(self) -> None:
         while True:
