@@ -46,6 +46,7 @@ class MemTransport(Transport):
     """
 
     scheme = "mem"
+    url_form = "name"
 
     def __init__(
         self,
