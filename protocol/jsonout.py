@@ -15,8 +15,6 @@ import sys
 from collections.abc import Mapping
 from typing import IO, Any
 
-import numpy as np
-
 __all__ = ["jsonable", "dumps", "print_json"]
 
 
@@ -26,18 +24,21 @@ def jsonable(obj: Any) -> Any:
     other enum as its name, any other object as ``str(obj)``. ``json.dumps(jsonable(x), allow_nan=False)`` never fails."""
     if obj is None or isinstance(obj, str):
         return obj
-    if isinstance(obj, (bool, np.bool_)):
+    # numpy is not imported here: when no one imported it, no value can be one of its types
+    # (and ``hapticproxy status --json`` starts without it)
+    np = sys.modules.get("numpy")
+    if isinstance(obj, bool) or (np is not None and isinstance(obj, np.bool_)):
         return bool(obj)
-    if isinstance(obj, (int, np.integer)):  # an IntEnum too: a code stays its number
+    if isinstance(obj, int) or (np is not None and isinstance(obj, np.integer)):  # an IntEnum too: a code stays its number
         return int(obj)
     if isinstance(obj, enum.Enum):
         return obj.name
-    if isinstance(obj, (float, np.floating)):
+    if isinstance(obj, float) or (np is not None and isinstance(obj, np.floating)):
         v = float(obj)
         return v if math.isfinite(v) else None
     if isinstance(obj, Mapping):
         return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, np.ndarray):
+    if np is not None and isinstance(obj, np.ndarray):
         return [jsonable(v) for v in obj.tolist()]
     if isinstance(obj, (list, tuple, set, frozenset)):
         return [jsonable(v) for v in obj]
