@@ -105,7 +105,7 @@ class MemTransport(Transport):
     @property
     def url(self) -> str:
         """``mem://NAME``: what a client opens to reach this bus's server."""
-        return f"mem://{self.name}"
+        return f"{self.scheme}://{self.name}"
 
     @property
     def client_id(self) -> int:
