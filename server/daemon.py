@@ -11,7 +11,12 @@ disabled, the timer slack set to 1 ns, SCHED_FIFO requested (the status says whe
 granted), optionally pinned to a CPU, and the spin phase of the hybrid wait calibrated.
 
 Clean stop (SIGINT/SIGTERM/``status --stop``/``--duration``): forces ramp to zero over
-``safety.fade_s``, ``Bye`` goes to every client, telemetry is flushed, exit code 0.
+``safety.fade_s``, ``Bye`` goes to every client, telemetry is flushed, exit code 0. A stop
+during start-up (while the loop process imports, builds, compiles or warms up) stops the loop
+process before it runs (SIGTERM unwinds it through the ``finally`` that closes its device), also
+exit code 0. A start-up failure is one line naming what failed: a taken transport or status
+address exits 1 (it may be free later), one this machine does not have exits 2 (the config must
+change). In ``ps`` the supervisor is ``hapticproxy serve ARGS`` and the loop ``hapticproxy-loop``.
 """
 from __future__ import annotations
 
@@ -594,7 +599,11 @@ def _check_writable(path: str, what: str, raise_: bool = True) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="hapticproxy serve", description="Run the haptics server daemon.")
+    p = argparse.ArgumentParser(
+        prog="hapticproxy serve", description="Run the haptics server daemon.",
+        epilog="Exit status: 0 after a clean stop (Ctrl-C, SIGTERM, `status --stop`, --duration; during start-up "
+               "too), 1 a run-time failure (the transport or status address is taken, the loop process failed), "
+               "2 a bad option, config key or value, or an address this machine does not have.")
     p.add_argument("--config", help="TOML scene/config file (defaults: loopback UDP, simulated planar device)")
     p.add_argument("--preset", choices=list(cfgmod.PRESETS),
                    help="speed/accuracy preset; wins over the file's preset and over the keys the preset sets "
