@@ -10,8 +10,8 @@ Examples::
     hapticproxy client pymunk --scene linkage                       # a linkage tool (server: model.tool = "linkage")
     hapticproxy client pybullet-linkage --scene chain               # the URDF chain (spatial device)
 
-Engines are found by name in the ``hapticproxy.engines`` entry-point group (:mod:`.registry`: the
-built-ins and any installed package's) and imported only when chosen, so an engine whose library
+Engines are found by name (:mod:`.registry`: the built-ins merged with any installed package's
+``hapticproxy.engines`` entry points) and imported only when chosen, so an engine whose library
 is missing does not affect the others. Exit status: 0 after a normal
 stop (``--duration`` over, Ctrl-C / SIGTERM, or the session ended with ``--no-reconnect``) after
 a session was open, 1 when no session ever opened (the server refused it, TLS or credentials

@@ -189,7 +189,7 @@ class StatusConfig(_Table):
 
 class DeviceHeader(Struct, kw_only=True):
     """The keys of ``[device]`` the server reads itself; the rest is the driver's."""
-    driver: _doc(Annotated[str, Meta(min_length=1)], "device driver (entry point in hapticproxy.devices)") = "sim"
+    driver: _doc(Annotated[str, Meta(min_length=1)], "device driver (a built-in or a hapticproxy.devices entry point; `hapticproxy plugins`)") = "sim"
     kind: _doc(Literal["1dof", "planar", "spatial"], "1dof | planar | spatial") = "planar"
 
 

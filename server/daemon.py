@@ -104,6 +104,8 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         transport = open_server_transport(settings["transport"]["url"])
         loop = HapticLoop.build(settings, clock=clock, transport=transport, shared=shared, hmac_key=hmac_key)
         loop.parent_pid = parent  # a loop whose supervisor died stops (forces fade, Bye, exit)
+        llog.debug("pid %d: transport %s open, %s device %r built", os.getpid(), transport.url,
+                   settings["device"]["kind"], settings["device"]["driver"])
         from .warm import cold
 
         todo = cold()
@@ -111,6 +113,7 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
             llog.info("compiling %d kernels before the loop starts (first run on this machine: about a minute; "
                       "`hapticproxy warmup` does it ahead) ...", len(todo))
         loop.warm_up()
+        llog.debug("kernels warm")
 
         def on_term(signum, frame):  # noqa: ARG001 - checked in housekeeping, never in a kernel
             loop._stop_flag = True
@@ -311,6 +314,7 @@ class Supervisor:
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         report.close()  # the child holds its own end
+        log.debug("loop process %d started", self.proc.pid)
         try:
             t_end = time.monotonic() + self.ready_timeout_s
             while self.shared.status[self._st("ready")] != 1.0:

@@ -384,3 +384,15 @@ def test_plugins_lists_every_kind_with_its_package(tmp_path):
     assert {("engine", "stub"), ("device", "sim"), ("device", "labdev"), ("transport", "zenoh")} <= set(kinds)
     assert kinds[("engine", "stub")]["builtin"] and "testbed" in kinds[("engine", "stub")]["scenes"]
     assert not kinds[("transport", "broken")]["available"]
+
+
+def test_the_log_level_reaches_the_loop_process():
+    """``-v`` shows the debug lines of the supervisor and of the loop process (which inherits the
+    level); ``--log-level warning`` hides the info lines of both."""
+    args = ["--url", f"udp://127.0.0.1:{free_udp_port()}", "--status", f"127.0.0.1:{free_udp_port()}", "--duration", "0.2"]
+    out = run("-v", "serve", *args)
+    assert out.returncode == 0, out.stderr
+    assert re.search(r"hapticproxy serve: debug: loop process \d+ started", out.stderr)
+    assert re.search(r"hapticproxy loop: debug: pid \d+: transport udp://127\.0\.0\.1:\d+ open", out.stderr)
+    quiet = run("serve", *args, "--log-level", "warning")
+    assert quiet.returncode == 0 and quiet.stderr == "", quiet.stderr
