@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import math
 import multiprocessing as mp
 import statistics
@@ -33,6 +32,8 @@ import sys
 import time
 
 import numpy as np
+
+from hapticproxy.protocol.jsonout import print_json
 
 PUSH_M = 0.15
 PERIOD_S = 4.0
@@ -209,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
             if server.is_alive():
                 server.terminate()
     if args.json:
-        print(json.dumps(rows))
+        print_json(rows)
     else:
         p99 = [r["tick_p99_us"] for r in rows]
         if p99:

@@ -10,7 +10,6 @@ same checks (finite values, unit normals, unique keys). Times are medians over b
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -19,6 +18,7 @@ import msgpack
 import numpy as np
 
 from hapticproxy.protocol.codec import Codec, ProtocolError, ProxyState
+from hapticproxy.protocol.jsonout import print_json
 
 CONTACT_COUNTS = (0, 8, 32, 64)
 POSE = np.array([0.1, -0.2, 0.3, 1.0, 0.0, 0.0, 0.0])
@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--batch and --repeats must be >= 1")
     rows = run(args.batch, args.repeats)
     if args.json:
-        print(json.dumps(rows, indent=1))
+        print_json(rows, indent=1)
         return 0
     head = ["message", "contacts", "bytes", "encode_median_us", "decode_median_us", "naive_encode_median_us",
             "naive_decode_median_us", "encode_speedup", "decode_speedup"]

@@ -49,7 +49,6 @@ full gain (the static-contact experiment's settle test).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import multiprocessing as mp
 import os
@@ -68,6 +67,7 @@ from pathlib import Path
 import numpy as np
 
 from hapticproxy.testing.impair import Decision, GilbertElliott, Impairment, ImpairingRelay
+from hapticproxy.protocol.jsonout import print_json
 
 PUSH_N = 0.5
 RATE_HZ = 1000.0
@@ -762,7 +762,7 @@ def main(argv: list[str] | None = None) -> int:
     info = {"machine": machine(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "engine": args.engine, "rate_hz": RATE_HZ}
     if args.json:
-        print(json.dumps({"run": info}), flush=True)
+        print_json({"run": info})
     rows = []
     this = sys.modules[__name__]
     for c in cases + life:
@@ -775,7 +775,7 @@ def main(argv: list[str] | None = None) -> int:
             row = {"case": c.name, "error": f"{type(exc).__name__}: {exc}", "violations": None}
         rows.append(row)
         if args.json:
-            print(json.dumps(row), flush=True)
+            print_json(row)
         else:
             print(f"{c.name}: " + ", ".join(f"{k} {row.get(k)}" for k in COLUMNS[1:]), file=sys.stderr, flush=True)
     total = sum(r["violations"] or 0 for r in rows if r.get("violations") is not None)
@@ -783,10 +783,10 @@ def main(argv: list[str] | None = None) -> int:
     unstable = sum(1 for r in rows if r.get("unstable"))
     summary = {"cases": len(rows), "violations": total, "unstable": unstable, "errors": errors}
     if args.json:
-        print(json.dumps({"summary": summary}), flush=True)
+        print_json({"summary": summary})
     else:
         print(format_table(rows))
-        print(json.dumps({"run": info, "summary": summary}))
+        print_json({"run": info, "summary": summary})
     return 0 if total == 0 and errors == 0 else 1
 
 

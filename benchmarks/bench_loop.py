@@ -19,7 +19,6 @@ the steps that receive, apply, or do neither with a model update; ``benchmarks/u
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
@@ -36,6 +35,7 @@ from hapticproxy.protocol.session import ClientEndpoint
 from hapticproxy.protocol.transport import open_transport
 from hapticproxy.server import config as cfgmod
 from hapticproxy.server.daemon import Supervisor
+from hapticproxy.protocol.jsonout import print_json
 
 
 def _free_port() -> int:
@@ -182,5 +182,5 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     # the steps that receive and apply a model update, per tool kind (in-process, CPU time)
     res.update(update_steps.run(steps=args.update_steps, rate_hz=args.rate))
-    print(json.dumps(res, indent=1))
+    print_json(res, indent=1)
     return 0

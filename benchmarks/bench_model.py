@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import math
 import subprocess
 import sys
@@ -27,6 +26,7 @@ import numpy as np
 
 from hapticproxy.server.model import ContactParams, LinkSpec, LocalModel, ToolSpec
 from hapticproxy.server.model.reference import LinkageReference, reference_step
+from hapticproxy.protocol.jsonout import print_json
 
 TOOLS = ("1dof", "planar", "spatial", "linkage3", "linkage6")
 CONTACTS = (0, 8, 32, 64)
@@ -188,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = [bench_row(kind, n, args.steps, args.numpy_steps, args.seed) for kind in tools for n in counts_of(kind)]
     print(f"# warm start (fresh process: import + load cached kernels): {warm_start_s():.3f} s", file=sys.stderr)
     if args.json:
-        print(json.dumps(rows, indent=1))
+        print_json(rows, indent=1)
     else:
         print(f"{'tool':<9} {'contacts':>8} {'numba med':>10} {'numba p99':>10} {'numpy med':>10} {'speedup':>8} {'update':>8}")
         for r in rows:

@@ -16,7 +16,6 @@ a table and, with ``--json``, one JSON object.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import socket
@@ -33,6 +32,7 @@ from hapticproxy.protocol.session import ClientEndpoint
 from hapticproxy.protocol.transport import open_transport
 from hapticproxy.server import config as cfgmod
 from hapticproxy.server.daemon import Supervisor
+from hapticproxy.protocol.jsonout import print_json
 
 
 def _free_port() -> int:
@@ -182,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"hapticproxy bench recorder: {exc}", file=sys.stderr)
         return 1
     if args.json:
-        print(json.dumps(res, indent=1))
+        print_json(res, indent=1)
         return 0
     print(f"recorder at {res['rate_hz']:g} Hz, {res['contacts']} contacts per update at 60 Hz, "
           f"{res['seconds_per_window']:g} s windows")

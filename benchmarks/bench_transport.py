@@ -34,7 +34,6 @@ went) and, for Zenoh rows, ``zenoh_runtime`` (the ``ZENOH_RUNTIME`` in force). `
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
 import random
@@ -43,6 +42,7 @@ import sys
 import time
 
 from hapticproxy.protocol.transport import open_transport
+from hapticproxy.protocol.jsonout import print_json
 
 UPDATE_BYTES = 1300  # a 32-contact ContactUpdate
 ACK_BYTES = 200  # a ProxyState acknowledgement
@@ -363,8 +363,7 @@ def main(argv: list[str] | None = None) -> int:
                     flush=True,
                 )
     if args.json:
-        json.dump(rows, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        print_json(rows, indent=2)
     return 0
 
 

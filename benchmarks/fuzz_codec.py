@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import heapq
-import json
 import math
 import multiprocessing as mp
 import os
@@ -54,6 +53,7 @@ from hapticproxy.protocol import messages as M
 from hapticproxy.protocol.codec import (
     Bye, Codec, ContactUpdate, Error, Heartbeat, Hello, Limits, Message, ProtocolError, ProxyState, Reject, Welcome,
 )
+from hapticproxy.protocol.jsonout import print_json
 
 LIMITS = Limits()
 IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
@@ -512,7 +512,7 @@ def run_atheris(inputs: int, seed: int, corpus_dir: str) -> None:
             f.write(s)
 
     def report() -> None:
-        print(json.dumps(figures(st, [], "atheris", seed, time.monotonic() - t0), indent=1), flush=True)
+        print_json(figures(st, [], "atheris", seed, time.monotonic() - t0), indent=1)
 
     def one(data: bytes) -> None:
         check_one(codec, data, st, probe)
@@ -570,7 +570,7 @@ def main(argv: list[str] | None = None) -> int:
     log = None if args.quiet else (lambda m: print(f"fuzz_codec: {m}", file=sys.stderr, flush=True))
     st, crashes = run_random(args.inputs, args.seed, args.jobs, model=not args.no_model, log=log)
     out = figures(st, crashes, "random", args.seed, time.monotonic() - t0)
-    print(json.dumps(out, indent=1))
+    print_json(out, indent=1)
     bad = out["crashes"] + out["unhandled_exceptions"] + out["caught_by_catch_all"] + out["invalid_reached_model"] + out["model_nonfinite"]
     return 0 if bad == 0 else 1
 

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import sys
 import time
 
+from hapticproxy.protocol import logs
 from hapticproxy.server.warm import SERVER_KERNEL_MODULES, cold, dispatchers, warm_server
 
 #: engine modules with numba kernels, each with a ``warm_up_kernels()``; skipped when the
@@ -30,21 +32,22 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="hapticproxy warmup", description=__doc__.splitlines()[0])
     p.add_argument("-q", "--quiet", action="store_true", help="print nothing when every kernel is cached")
     args = p.parse_args(argv)
+    logs.configure(logging.INFO)
+    log = logging.getLogger("hapticproxy.warmup")
     modules = SERVER_KERNEL_MODULES + CLIENT_KERNEL_MODULES
     t0 = time.monotonic()
     todo = cold(modules)
     if todo:
-        print(f"hapticproxy: compiling {len(todo)} kernels (first run on this machine, about a minute) ...",
-              file=sys.stderr, flush=True)
+        log.info("compiling %d kernels (first run on this machine, about a minute) ...", len(todo))
     loops = warm_server()
     engines = warm_clients()
     left = cold(modules)
     if todo or not args.quiet:
         what = f"{loops} loop configurations" + (f" and the engines' {', '.join(engines)}" if engines else "")
-        print(f"hapticproxy: kernels ready: {len(dispatchers(modules))} ({len(todo) - len(left)} compiled now; "
-              f"{what}) in {time.monotonic() - t0:.1f} s", file=sys.stderr, flush=True)
+        log.info("kernels ready: %d (%d compiled now; %s) in %.1f s", len(dispatchers(modules)), len(todo) - len(left),
+                 what, time.monotonic() - t0)
     if left:
-        print(f"hapticproxy: not cached after warm-up (they compile at first use): {', '.join(left)}", file=sys.stderr)
+        log.warning("not cached after warm-up (they compile at first use): %s", ", ".join(left))
     return 0
 
 

@@ -4,8 +4,8 @@
 - :mod:`.runner`: :class:`~.runner.ClientRunner`, the engine-neutral loop (handshake, stepping,
   one ContactUpdate per step, newest ProxyState followed only while the server renders it,
   heartbeats, reconnection; one injected clock).
-- :mod:`.registry`: engines by name, the ``hapticproxy.engines`` entry-point group (the built-ins
-  and any installed package's); :mod:`.contract`: the contract suite every engine passes, shipped
+- :mod:`.registry`: engines by name, the built-ins merged with any installed package's
+  ``hapticproxy.engines`` entry points; :mod:`.contract`: the contract suite every engine passes, shipped
   so a lab runs it against its own.
 - Engines (thin adapters): :mod:`.stub_engine` (Vortex-style analytic reference),
   :mod:`.pymunk_engine` (the paper's planar testbed; scene ``linkage``: a 3-bar chain held by its

@@ -10,25 +10,33 @@ Examples::
     hapticproxy client pymunk --scene linkage                       # a linkage tool (server: model.tool = "linkage")
     hapticproxy client pybullet-linkage --scene chain               # the URDF chain (spatial device)
 
-Engines are found by name in the ``hapticproxy.engines`` entry-point group (:mod:`.registry`: the
-built-ins and any installed package's) and imported only when chosen, so an engine whose library
+Engines are found by name (:mod:`.registry`: the built-ins merged with any installed package's
+``hapticproxy.engines`` entry points) and imported only when chosen, so an engine whose library
 is missing does not affect the others. Exit status: 0 after a normal
-stop (``--duration`` over, Ctrl-C / SIGTERM, or the session ended with ``--no-reconnect``), 1
-when the server refused the session or could not be reached within ``--connect-timeout``, 2 for
-bad arguments; every failure is one line on stderr, never a traceback.
+stop (``--duration`` over, Ctrl-C / SIGTERM, or the session ended with ``--no-reconnect``) after
+a session was open, 1 when no session ever opened (the server refused it, TLS or credentials
+kept us out, nothing answered within ``--connect-timeout``, or the run ended first), 2 for bad
+arguments; every failure is one line on stderr, never a traceback. For a ``zenoh://`` server,
+``--connect-timeout`` bounds the Zenoh connect too (unless the URL sets ``connect_timeout_s``).
+Session messages are log lines with a timestamp on stderr (``--quiet``: none; ``hapticproxy -v``:
+more); ``--json`` prints the final statistics as strict JSON on stdout.
 """
 from __future__ import annotations
 
 import argparse
 import importlib.util
 import inspect
-import json
+import logging
 import math
 import signal
 import sys
 import threading
 
-from .registry import availability, engines, load_engine_class
+from hapticproxy.protocol import logs
+from hapticproxy.protocol.jsonout import print_json
+from hapticproxy.protocol.registry import format_rows
+
+from .registry import REGISTRY, load_engine_class
 
 __all__ = ["load_engine_class", "main"]
 
@@ -155,33 +163,37 @@ def main(argv: list[str] | None = None) -> int:
 
 def _list(as_json: bool) -> int:
     """One line per registered engine: name, where it comes from, and whether it loads here."""
-    registry = engines()
-    rows = []
-    for name, entry in registry.items():
-        why = availability(name, registry)
-        scenes = [] if why else list(load_engine_class(name, registry).scenes())
-        rows.append({"name": name, "target": entry.target, "package": entry.package, "builtin": entry.builtin,
-                     "available": not why, "reason": why, "scenes": scenes, "ignored": list(entry.ignored)})
-    if as_json:
-        print(json.dumps(rows, sort_keys=True))
-        return 0
-    width = max((len(r["name"]) for r in rows), default=4)
+    rows = REGISTRY.rows(lambda name, cls: {"scenes": list(cls.scenes())})
     for r in rows:
-        status = f"scenes: {', '.join(r['scenes'])}" if r["available"] else f"not available: {r['reason']}"
-        print(f"{r['name']:<{width}}  {r['target']}  ({r['package'] or 'unknown package'})  {status}")
-        for other in r["ignored"]:
-            print(f"{'':<{width}}  ignored, the name is taken: {other}")
+        r.setdefault("scenes", [])
+        del r["kind"]
+    if as_json:
+        print_json(rows, sort_keys=True)
+        return 0
+    for line in format_rows(rows, lambda r: f"scenes: {', '.join(r['scenes'])}"):
+        print(line)
     if not rows:
         print("no engines registered (is hapticproxy installed? pip install -e .)")
     return 0
 
 
+def _transport_options(url: str, connect_timeout_s: float) -> dict:
+    """Zenoh's own connect wait is bounded by ``--connect-timeout`` (its default is 5 s), unless
+    the URL names ``connect_timeout_s`` itself."""
+    from hapticproxy.protocol.transport import parse_transport_url
+
+    parsed = parse_transport_url(url)
+    if parsed.scheme == "zenoh" and "connect_timeout_s" not in parsed.options:
+        return {"connect_timeout_s": connect_timeout_s}
+    return {}
+
+
 def _run(cls, kwargs: dict, url: str, key, args) -> int:
     from .runner import ClientError, ClientRunner
 
-    def log(msg: str) -> None:
-        if not args.quiet:
-            print(f"{PROG}: {msg}", file=sys.stderr, flush=True)
+    logs.configure(logging.INFO, quiet=1 if args.quiet else 0)
+    logger = logging.getLogger("hapticproxy.client")
+    log = logger.info
 
     stop = threading.Event()
     engine = None
@@ -195,7 +207,8 @@ def _run(cls, kwargs: dict, url: str, key, args) -> int:
             engine = cls(**kwargs)
             runner = ClientRunner(engine, url, scene=args.scene, epsilon_m=args.epsilon, max_contacts=args.max_contacts,
                                   hmac_key=key, realtime=not args.free_run, reconnect=not args.no_reconnect,
-                                  connect_timeout_s=args.connect_timeout, log=log)
+                                  connect_timeout_s=args.connect_timeout, log=log,
+                                  transport_options=_transport_options(url, args.connect_timeout))
             window = getattr(engine, "window", None)  # the GUI (opened by load_scene) stops us when closed
             if window is not None:
                 window.on_close = stop.set
@@ -221,11 +234,16 @@ def _run(cls, kwargs: dict, url: str, key, args) -> int:
             signal.signal(signal.SIGTERM, previous)
     if runner is not None:
         st = runner.stats()
-        if code == 0:
+        if code == 0 and not st["sessions"]:
+            # a client that never had a session did not do its job, whatever stopped it
+            print(f"{PROG}: no session with {url} before the client stopped "
+                  f"({st['end_reason'] or 'interrupted'})", file=sys.stderr)
+            code = 1
+        elif code == 0:
             log(f"stopped ({st['end_reason'] or 'interrupted'}): {st['steps']} steps, {st['updates_sent']} updates, "
                 f"{st['proxy_applied']} proxy states applied, {st['sessions']} session(s)")
         if args.json:
-            print(json.dumps(st, default=str, sort_keys=True))
+            print_json(st, sort_keys=True)
     return code
 
 

@@ -188,7 +188,7 @@ class StatusConfig(_Table):
 
 class DeviceHeader(Struct, kw_only=True):
     """The keys of ``[device]`` the server reads itself; the rest is the driver's."""
-    driver: _doc(Annotated[str, Meta(min_length=1)], "device driver (entry point in hapticproxy.devices)") = "sim"
+    driver: _doc(Annotated[str, Meta(min_length=1)], "device driver (a built-in or a hapticproxy.devices entry point; `hapticproxy plugins`)") = "sim"
     kind: _doc(Literal["1dof", "planar", "spatial"], "1dof | planar | spatial") = "planar"
 
 
@@ -383,17 +383,17 @@ def _hostport(key: str, v: str) -> None:
 
 def device_config(table: dict, *, period_s: float) -> dict:
     """The ``[device]`` table with the driver's effective values (every key of the kind, the
-    hand's too), from the driver's ``effective_config`` hook (an attribute of the entry point's
+    hand's too), from the driver's ``effective_config`` hook (an attribute of the registered
     factory: ``factory.effective_config(table, period_s=...) -> dict``, raising
     ``ValueError("device.<key>: ...")``). A driver without the hook validates its table when it
     is built; its table is passed on as written."""
-    from importlib.metadata import entry_points
+    from .devices.base import device_factory
 
-    name = table["driver"]
-    eps = {ep.name: ep for ep in entry_points(group="hapticproxy.devices")}
-    if name not in eps:
-        raise ConfigError("device.driver", f"unknown device {name!r}; installed: {', '.join(sorted(eps))}")
-    hook = getattr(eps[name].load(), "effective_config", None)
+    try:
+        factory = device_factory(table["driver"])
+    except ValueError as exc:
+        raise ConfigError("device.driver", str(exc).removeprefix("device.driver: ")) from None
+    hook = getattr(factory, "effective_config", None)
     if hook is None:
         return copy.deepcopy(table)
     try:

@@ -11,25 +11,32 @@ disabled, the timer slack set to 1 ns, SCHED_FIFO requested (the status says whe
 granted), optionally pinned to a CPU, and the spin phase of the hybrid wait calibrated.
 
 Clean stop (SIGINT/SIGTERM/``status --stop``/``--duration``): forces ramp to zero over
-``safety.fade_s``, ``Bye`` goes to every client, telemetry is flushed, exit code 0.
+``safety.fade_s``, ``Bye`` goes to every client, telemetry is flushed, exit code 0. A stop
+during start-up (while the loop process imports, builds, compiles or warms up) stops the loop
+process before it runs (SIGTERM unwinds it through the ``finally`` that closes its device), also
+exit code 0. A start-up failure is one line naming what failed: a taken transport or status
+address exits 1 (it may be free later), one this machine does not have exits 2 (the config must
+change). In ``ps`` the supervisor is ``hapticproxy serve ARGS`` and the loop ``hapticproxy-loop``.
 """
 from __future__ import annotations
 
 import argparse
+import errno
 import gc
 import hmac
 import json
 import logging
-import math
 import multiprocessing as mp
 import os
+import re
 import select
 import signal
 import socket
 import sys
 import time
 
-import numpy as np
+
+from hapticproxy.protocol.jsonout import dumps, jsonable  # noqa: F401 - re-exported (the status replies' rule)
 
 from . import config as cfgmod
 from .lifecycle import LOOP_STATES, Reason, describe
@@ -40,10 +47,42 @@ log = logging.getLogger("hapticproxy.serve")
 
 
 # ------------------------------------------------------------------------------ loop process
-def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes | None, naive: bool = False) -> None:
+class _StopDuringStartup(BaseException):
+    """SIGTERM reached the loop process before its loop ran (while it imports, builds, compiles or
+    warms up): unwind through the ``finally`` that closes the device, exit 0. A BaseException, so
+    no ``except Exception`` on the way swallows it."""
+
+
+def _raise_stop(signum, frame):  # noqa: ARG001
+    raise _StopDuringStartup
+
+
+def set_process_title(title: str) -> None:
+    """Name this process in ``ps``/``top`` (setproctitle; nothing happens without it)."""
+    try:
+        from setproctitle import setproctitle
+    except ImportError:  # pragma: no cover - a declared dependency
+        return
+    setproctitle(title)
+
+
+LOOP_TITLE = "hapticproxy-loop"
+
+
+def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes | None, naive: bool = False,
+                      report=None) -> None:
     """Entry point of the loop process (spawned). ``naive``: the comparison baseline of
-    ``bench loop``: the same work paced by ``time.sleep`` alone, with none of the tuning."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ``bench loop``: the same work paced by ``time.sleep`` alone, with none of the tuning.
+    ``report``: the sending end of a pipe; a start-up failure sends ``(message, exit code)`` on it,
+    so the supervisor prints one line that names what failed (a taken transport address...)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the supervisor's to handle
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    signal.signal(signal.SIGTERM, _raise_stop)
+    set_process_title(LOOP_TITLE)
+    from hapticproxy.protocol import logs
+
+    logs.configure(logging.INFO)
+    llog = logging.getLogger("hapticproxy.loop")
     parent = os.getppid()
     _die_with_parent()
     shared = SharedState.attach(shm_name, ring_rows)
@@ -53,6 +92,8 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
     st[ST["pid"]] = os.getpid()
     code = 0
     loop = None
+    transport = None
+    running = False
     try:
         from .clock import MonotonicClock, SleepClock, pin_to_cpu, set_timer_slack_ns, try_realtime
         from .loop import HapticLoop
@@ -60,21 +101,26 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         settings = cfgmod.Settings(data, "<supervisor>")
         lcfg = settings["loop"]
         clock = SleepClock() if naive else MonotonicClock()
-        loop = HapticLoop.build(settings, clock=clock, shared=shared, hmac_key=hmac_key)
+        transport = open_server_transport(settings["transport"]["url"])
+        loop = HapticLoop.build(settings, clock=clock, transport=transport, shared=shared, hmac_key=hmac_key)
         loop.parent_pid = parent  # a loop whose supervisor died stops (forces fade, Bye, exit)
-
-        def on_term(signum, frame):  # noqa: ARG001 - checked in housekeeping, never in a kernel
-            loop._stop_flag = True
-
-        signal.signal(signal.SIGTERM, on_term)
+        llog.debug("pid %d: transport %s open, %s device %r built", os.getpid(), transport.url,
+                   settings["device"]["kind"], settings["device"]["driver"])
         from .warm import cold
 
         todo = cold()
         if todo:
-            print(f"hapticproxy loop: compiling {len(todo)} kernels before the loop starts (first run on this "
-                  "machine: about a minute; `hapticproxy warmup` does it ahead) ...", file=sys.stderr, flush=True)
+            llog.info("compiling %d kernels before the loop starts (first run on this machine: about a minute; "
+                      "`hapticproxy warmup` does it ahead) ...", len(todo))
         loop.warm_up()
+        llog.debug("kernels warm")
+
+        def on_term(signum, frame):  # noqa: ARG001 - checked in housekeeping, never in a kernel
+            loop._stop_flag = True
+
         if naive:
+            signal.signal(signal.SIGTERM, on_term)
+            running = True
             loop.start()
             loop.run()
             return
@@ -90,26 +136,93 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         if lcfg["realtime"]:
             rt, why = try_realtime()
             if not rt:
-                print(f"hapticproxy loop: real-time scheduling not granted: {why}", file=sys.stderr)
+                llog.warning("real-time scheduling not granted: %s", why)
         st[ST["rt_scheduling"]] = 1.0 if rt else 0.0
         gc.collect()
         gc.freeze()
         gc.disable()
+        signal.signal(signal.SIGTERM, on_term)  # from now on a stop ramps the forces down
+        running = True
         loop.start()
         loop.run()
+    except _StopDuringStartup:
+        llog.info("stopped during start-up")
+    except StartupError as exc:
+        _report(report, str(exc), exc.code)
+        code = exc.code
     except Exception as exc:  # noqa: BLE001 - reported to the supervisor, then exit non-zero
-        print(f"hapticproxy loop: {type(exc).__name__}: {exc}", file=sys.stderr)
+        why = f"{type(exc).__name__}: {exc}"
+        if running:
+            llog.error("%s", why)
+        else:
+            _report(report, f"the loop process failed to start: {why}", 1)
         code = 1
     finally:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # the clean-up below is not interrupted
         if loop is not None:
             try:
                 loop.close()
             except Exception:  # noqa: BLE001
                 pass
+        if transport is not None:
+            transport.close()
         st[ST["exit_code"]] = code
         st[ST["loop_state"]] = LOOP_STATES.index("stopped")
         shared.close()
     sys.exit(code)
+
+
+def _report(conn, message: str, code: int) -> None:
+    if conn is None:
+        print(f"hapticproxy loop: {message}", file=sys.stderr)
+        return
+    try:
+        conn.send((message, code))
+    except (OSError, ValueError):
+        print(f"hapticproxy loop: {message}", file=sys.stderr)
+
+
+class StartupError(RuntimeError):
+    """The server cannot start; ``code`` is the exit status (2: the config or the command line
+    must change, 1: something at run time, e.g. an address another process holds)."""
+
+    def __init__(self, message: str, code: int = 1) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+_OS_ERROR = re.compile(r"os error (\d+)")
+
+
+def address_error(what: str, address: str, exc: BaseException) -> StartupError:
+    """One line naming the setting and the address that cannot be bound, and why. A taken address
+    is a run-time condition (exit 1: it may be free later); an address this machine does not
+    have, an unknown host or a forbidden port is the configuration's (exit 2)."""
+    err = getattr(exc, "errno", None)
+    if not isinstance(exc, OSError) or err is None:
+        m = _OS_ERROR.search(str(exc))  # Zenoh reports the OS error inside its text
+        err = int(m.group(1)) if m else None
+    if isinstance(exc, socket.gaierror):
+        return StartupError(f"{what} {address}: unknown host ({exc.strerror})", 2)
+    if err == errno.EADDRINUSE:
+        return StartupError(f"{what} {address}: address already in use (another server running?)", 1)
+    if err == errno.EADDRNOTAVAIL:
+        return StartupError(f"{what} {address}: not an address of this machine (cannot assign it)", 2)
+    if err == errno.EACCES:
+        return StartupError(f"{what} {address}: permission denied (a port below 1024 needs privileges)", 2)
+    why = os.strerror(err) if err else (getattr(exc, "strerror", None) or str(exc))
+    return StartupError(f"{what} {address}: cannot bind ({why})", 1)
+
+
+def open_server_transport(url: str):
+    """The server's transport endpoint at ``url``; :class:`StartupError` naming
+    ``transport.url`` and the address when it cannot be opened."""
+    from hapticproxy.protocol.transport import TransportError, open_transport
+
+    try:
+        return open_transport(url, "server")
+    except (OSError, TransportError) as exc:
+        raise address_error("transport.url", url, exc) from None
 
 
 def _die_with_parent() -> None:
@@ -171,29 +284,54 @@ class Supervisor:
 
         return load_hmac_key(path)
 
-    def start(self) -> None:
-        host, _, port = self.settings["status"]["address"].rpartition(":")
+    def start(self) -> bool:
+        """Bind the status address, start the loop process and wait until it is ready (serving
+        status meanwhile). ``False`` when a stop was requested during start-up (the loop process
+        is stopped then, cleanly); :class:`StartupError` (one line, naming the address or what
+        failed) when the server cannot start."""
+        address = self.settings["status"]["address"]
+        host, _, port = address.rpartition(":")
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             self.sock.bind((host, int(port)))
         except OSError as exc:
-            raise RuntimeError(f"status.address {host}:{port}: cannot bind ({exc.strerror})") from None
+            raise address_error("status.address", address, exc) from None
         self.sock.setblocking(False)
         if self.record:
             _check_writable(self.record, "--record")
             from . import recording  # noqa: F401 - imported now, so the recording starts with the loop
         ctx = mp.get_context("spawn")
-        self.proc = ctx.Process(target=loop_process_main, name="hapticproxy-loop",
-                                args=(self.settings.as_dict(), self.shared.name, self.ring_rows, self._key, self.naive),
+        reports, report = ctx.Pipe(duplex=False)
+        self.proc = ctx.Process(target=loop_process_main, name=LOOP_TITLE,
+                                args=(self.settings.as_dict(), self.shared.name, self.ring_rows, self._key, self.naive,
+                                      report),
                                 daemon=False)
-        self.proc.start()
-        t_end = time.monotonic() + self.ready_timeout_s
-        while self.shared.status[self._st("ready")] != 1.0:
-            if not self.proc.is_alive():
-                raise RuntimeError(f"the loop process exited during start-up (exit code {self.proc.exitcode})")
-            if time.monotonic() > t_end:
-                raise RuntimeError("the loop process did not become ready in time")
-            self._serve_status(0.02)
+        # The child starts with SIGINT blocked (a Ctrl-C while it imports would print a
+        # traceback there); it ignores SIGINT, then unblocks it. The supervisor gets it meanwhile.
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            self.proc.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        report.close()  # the child holds its own end
+        log.debug("loop process %d started", self.proc.pid)
+        try:
+            t_end = time.monotonic() + self.ready_timeout_s
+            while self.shared.status[self._st("ready")] != 1.0:
+                if self._stop_requested:
+                    self._stop_during_startup()
+                    return False
+                if not self.proc.is_alive():
+                    self.proc.join(1)
+                    if reports.poll(0.5):
+                        message, code = reports.recv()
+                        raise StartupError(message, code)
+                    raise StartupError(f"the loop process exited during start-up (exit code {self.proc.exitcode})")
+                if time.monotonic() > t_end:
+                    raise StartupError("the loop process did not become ready in time")
+                self._serve_status(0.02)
+        finally:
+            reports.close()
         if self.record:
             self.start_recording(self.record)
         if self.live_address:
@@ -205,6 +343,17 @@ class Supervisor:
                  "yes" if self.shared.status[self._st("rt_scheduling")] else "no",
                  f", recording to {self.record}" if self.record else "",
                  f", live view on ws://{self.live.address}" if self.live else "")
+        return True
+
+    def _stop_during_startup(self) -> None:
+        """Stop the loop process before it ever ran (it unwinds and closes its device at SIGTERM)."""
+        log.info("stopping during start-up")
+        self.proc.terminate()
+        self.proc.join(10)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join(2)
+        self.exit_code = 0
 
     @property
     def t0_epoch_ns(self) -> int:
@@ -338,7 +487,7 @@ class Supervisor:
 
     def _reply(self, obj: dict, addr) -> None:
         try:
-            self.sock.sendto(json.dumps(jsonable(obj), allow_nan=False).encode()[:65000], addr)
+            self.sock.sendto(dumps(obj).encode()[:65000], addr)
         except OSError:
             pass
 
@@ -453,25 +602,12 @@ def _check_writable(path: str, what: str, raise_: bool = True) -> str:
     return why
 
 
-def jsonable(obj):
-    """``obj`` with every non-finite float as None and numpy scalars as Python numbers (strict
-    JSON: ``json.dumps(..., allow_nan=False)`` never fails on it)."""
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    return obj
-
-
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="hapticproxy serve", description="Run the haptics server daemon.")
+    p = argparse.ArgumentParser(
+        prog="hapticproxy serve", description="Run the haptics server daemon.",
+        epilog="Exit status: 0 after a clean stop (Ctrl-C, SIGTERM, `status --stop`, --duration; during start-up "
+               "too), 1 a run-time failure (the transport or status address is taken, the loop process failed), "
+               "2 a bad option, config key or value, or an address this machine does not have.")
     p.add_argument("--config", help="TOML scene/config file (defaults: loopback UDP, simulated planar device)")
     p.add_argument("--preset", choices=list(cfgmod.PRESETS),
                    help="speed/accuracy preset; wins over the file's preset and over the keys the preset sets "
@@ -486,10 +622,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, help="stop cleanly after this many seconds")
     p.add_argument("--print-config", action="store_true",
                    help="print every key in effect (the device's and the hand's too) as TOML and exit")
-    p.add_argument("-q", "--quiet", action="store_true")
+    p.add_argument("-q", "--quiet", action="count", default=0, help="fewer log lines (warnings and errors only)")
     args = p.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
-                        format="hapticproxy serve: %(message)s", stream=sys.stderr)
+    from hapticproxy.protocol import logs
+
+    logs.configure(logging.INFO, quiet=args.quiet)
     over: dict = {}
     if args.preset:
         over["preset"] = args.preset
@@ -504,6 +641,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.print_config:
             print(settings.to_toml(), end="")
             return 0
+        set_process_title(" ".join(["hapticproxy serve", *(argv if argv is not None else sys.argv[1:])]))
         _check_device(settings)
     except cfgmod.ConfigError as exc:
         print(f"hapticproxy serve: {exc}", file=sys.stderr)
@@ -511,18 +649,30 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"hapticproxy serve: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C before anything runs: nothing to stop
+        log.info("stopped during start-up")
+        return 0
     warn_outside_stable_region(settings)
     record = os.path.abspath(args.record) if args.record else ""
-    sup = Supervisor(settings, record=record, duration_s=args.duration, live=args.live)
-
-    def on_signal(signum, frame):  # noqa: ARG001
-        sup.request_stop()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    # From here a signal asks the supervisor for a clean stop (during start-up too: the loop
+    # process is stopped before it runs); held back while the supervisor is being built.
+    signals = {signal.SIGINT, signal.SIGTERM}
+    signal.pthread_sigmask(signal.SIG_BLOCK, signals)
     try:
-        sup.start()
-        code = sup.run()
+        sup = Supervisor(settings, record=record, duration_s=args.duration, live=args.live)
+
+        def on_signal(signum, frame):  # noqa: ARG001
+            sup.request_stop()
+
+        for sig in signals:
+            signal.signal(sig, on_signal)
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, signals)
+    try:
+        code = sup.run() if sup.start() else 0
+    except StartupError as exc:
+        print(f"hapticproxy serve: {exc}", file=sys.stderr)
+        code = exc.code
     except RuntimeError as exc:
         print(f"hapticproxy serve: {exc}", file=sys.stderr)
         code = 1

@@ -23,6 +23,8 @@ import socket
 import sys
 import time
 
+from hapticproxy.protocol.jsonout import print_json
+
 DEFAULT_ADDRESS = "127.0.0.1:9871"
 #: A signed request older (or newer) than this is refused; its nonce is remembered twice as long.
 AUTH_WINDOW_S = 30.0
@@ -199,12 +201,11 @@ def main(argv: list[str] | None = None) -> int:
     if "error" in reply:
         print(f"hapticproxy status: {reply['error']}", file=sys.stderr)
         return 1
+    if args.json or req["cmd"] != "status":
+        print_json(reply, indent=1 if args.json else None, sort_keys=True)
+        return 0
     try:
-        if args.json or req["cmd"] != "status":
-            print(json.dumps(reply, indent=None if not args.json else 1, sort_keys=True, allow_nan=False))
-        else:
-            print(format_status(reply))
-        sys.stdout.flush()
+        print(format_status(reply), flush=True)
     except BrokenPipeError:
         # `status | head`: the reader left; nothing more to say, and no traceback at exit
         devnull = os.open(os.devnull, os.O_WRONLY)

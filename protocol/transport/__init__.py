@@ -34,6 +34,13 @@ win over mapping entries, which win over URL query parameters; unknown options r
 
 The ``zenoh`` package is imported only when a ``zenoh://`` endpoint is opened, so the rest of
 the protocol package needs only the standard library.
+
+Backends are found by scheme in :data:`TRANSPORT_REGISTRY`: the built-ins (:data:`TRANSPORTS`)
+merged with the ``hapticproxy.transports`` entry-point group, so a lab's package adds a scheme
+from its own ``pyproject.toml`` (``[project.entry-points."hapticproxy.transports"] shm =
+"mylab.shm:ShmTransport"``, a :class:`Transport` subclass whose ``url_form`` says what its URL
+holds and whose constructor takes ``role`` and those of ``host``, ``port``, ``name`` it needs);
+``hapticproxy plugins`` lists them.
 """
 from __future__ import annotations
 
@@ -54,6 +61,7 @@ from .base import (
     TransportCounters,
     TransportError,
 )
+from ..registry import Registry
 from .mem import MemTransport
 from .udp import UdpTransport
 
@@ -64,6 +72,8 @@ __all__ = [
     "MemTransport",
     "Peer",
     "SCHEMES",
+    "TRANSPORTS",
+    "TRANSPORT_REGISTRY",
     "Transport",
     "TransportClosedError",
     "TransportCounters",
@@ -76,7 +86,29 @@ __all__ = [
     "transport_options",
 ]
 
-SCHEMES = ("mem", "udp", "zenoh")
+#: the built-in backends by URL scheme (scheme -> module:class)
+TRANSPORTS = {
+    "mem": "hapticproxy.protocol.transport.mem:MemTransport",
+    "udp": "hapticproxy.protocol.transport.udp:UdpTransport",
+    # the module imports zenoh only when a ZenohTransport is built
+    "zenoh": "hapticproxy.protocol.transport.zenoh_backend:ZenohTransport",
+}
+#: the built-in schemes
+SCHEMES = tuple(TRANSPORTS)
+URL_FORMS = ("host:port/name", "host:port", "name")
+
+
+def _is_transport(name: str, obj) -> str:
+    if not (isinstance(obj, type) and issubclass(obj, Transport)):
+        return "is not a Transport subclass"
+    if getattr(obj, "url_form", None) not in URL_FORMS:
+        return f"has url_form {getattr(obj, 'url_form', None)!r}, not one of {', '.join(URL_FORMS)}"
+    return ""
+
+
+#: transport backends by URL scheme: :data:`TRANSPORTS` merged with the ``hapticproxy.transports``
+#: entry points (:mod:`hapticproxy.protocol.registry`)
+TRANSPORT_REGISTRY = Registry("transport", "hapticproxy.transports", TRANSPORTS, check=_is_transport)
 
 
 def _int(value: Any) -> int:
@@ -121,22 +153,21 @@ _CONVERTERS = {"int": (_int, "an integer"), "float": (_float, "a number"), "bool
 _NOT_OPTIONS = ("self", "host", "port", "name", "session", "role")
 
 
-def _backend(scheme: str) -> type:
-    if scheme == "mem":
-        return MemTransport
-    if scheme == "udp":
-        return UdpTransport
-    # the module imports zenoh only when a ZenohTransport is built
-    from .zenoh_backend import ZenohTransport
+def _unknown_scheme(scheme: str, url: str = "") -> ValueError:
+    return ValueError(f"transport url scheme must be one of {', '.join(TRANSPORT_REGISTRY.names())}; got {scheme!r}"
+                      + (f" in {url!r}" if url else ""))
 
-    return ZenohTransport
+
+def _backend(scheme: str) -> type:
+    """The backend class of ``scheme``; ``ValueError`` naming the schemes when there is none."""
+    if not TRANSPORT_REGISTRY.known(scheme):
+        raise _unknown_scheme(scheme)
+    return TRANSPORT_REGISTRY.load(scheme)
 
 
 def transport_option_types(scheme: str) -> dict[str, tuple[Any, Any, str]]:
     """A scheme's options: ``name -> (converter, default, what it wants)``. Declared once, by the
     backend's constructor (its keyword parameters, their annotations and defaults)."""
-    if scheme not in SCHEMES:
-        raise ValueError(f"transport url scheme must be one of {', '.join(SCHEMES)}; got {scheme!r}")
     out: dict[str, tuple[Any, Any, str]] = {}
     for name, p in inspect.signature(_backend(scheme).__init__).parameters.items():
         if name in _NOT_OPTIONS or p.kind not in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY):
@@ -169,18 +200,19 @@ def parse_transport_url(url: str) -> TransportUrl:
         raise ValueError(f"transport url must look like 'scheme://...', got {url!r}")
     parts = urlsplit(url)
     scheme = parts.scheme.lower()
-    if scheme not in SCHEMES:
-        raise ValueError(f"transport url scheme must be one of {', '.join(SCHEMES)}; got {scheme!r} in {url!r}")
+    if not TRANSPORT_REGISTRY.known(scheme):
+        raise _unknown_scheme(scheme, url)
+    form = getattr(_backend(scheme), "url_form", "host:port/name")
     options: dict[str, str] = {}
     for key, value in parse_qsl(parts.query, keep_blank_values=True, strict_parsing=False):
         if key in options:
             raise ValueError(f"transport url option {key!r} given twice in {url!r}")
         options[key] = value
-    if scheme == "mem":
+    if form == "name":
         name = unquote(parts.netloc + parts.path)
         if not name:
-            raise ValueError(f"mem url needs a name: 'mem://NAME', got {url!r}")
-        return TransportUrl("mem", name=name, options=options)
+            raise ValueError(f"{scheme} url needs a name: '{scheme}://NAME', got {url!r}")
+        return TransportUrl(scheme, name=name, options=options)
     try:
         host = parts.hostname or ""
         port = parts.port
@@ -189,8 +221,8 @@ def parse_transport_url(url: str) -> TransportUrl:
     if not host or port is None:
         raise ValueError(f"{scheme} url needs HOST:PORT, e.g. '{scheme}://127.0.0.1:7447', got {url!r}")
     name = unquote(parts.path.lstrip("/"))
-    if scheme == "udp" and name:
-        raise ValueError(f"udp url takes no path, got {parts.path!r} in {url!r}")
+    if form == "host:port" and name:
+        raise ValueError(f"{scheme} url takes no path, got {parts.path!r} in {url!r}")
     return TransportUrl(scheme, host=host, port=port, name=name, options=options)
 
 
@@ -248,12 +280,9 @@ def open_transport(url_or_config: str | Mapping[str, Any], role: str = "server",
     if role not in ("server", "client"):
         raise ValueError(f"role must be 'server' or 'client', got {role!r}")
     parsed, kwargs = transport_options(url_or_config, **options)
-    if parsed.scheme == "mem":
-        return MemTransport(parsed.name, role, **kwargs)
-    if parsed.scheme == "udp":
-        return UdpTransport(parsed.host, parsed.port, role, **kwargs)
-    # Imported here so that only zenoh users need the zenoh package (layering: protocol stays
-    # standard library + numpy + msgpack except for this one optional backend).
-    from .zenoh_backend import ZenohTransport
-
-    return ZenohTransport(parsed.host, parsed.port, parsed.name or "default", role, **kwargs)
+    cls = _backend(parsed.scheme)
+    params = inspect.signature(cls.__init__).parameters
+    where = {"host": parsed.host, "port": parsed.port}
+    if parsed.name:  # the mem bus, or the zenoh session (its constructor's default when empty)
+        where["name" if "name" in params else "session"] = parsed.name
+    return cls(role=role, **{k: v for k, v in where.items() if k in params}, **kwargs)

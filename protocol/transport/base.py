@@ -132,6 +132,10 @@ class Transport(abc.ABC):
 
     #: URL scheme of the backend ("mem", "udp", "zenoh").
     scheme: str = ""
+    #: What the URL after ``scheme://`` holds: ``"host:port/name"`` (the name, the URL's path, is
+    #: optional), ``"host:port"`` (no path) or ``"name"`` (no address: an in-process bus). The
+    #: constructor takes those of ``host``, ``port``, ``name`` it declares, and ``role``.
+    url_form: str = "host:port/name"
 
     def __init__(self, role: str, max_packet_bytes: int = DEFAULT_MAX_PACKET_BYTES) -> None:
         self.role = check_role(role)

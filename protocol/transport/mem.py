@@ -46,6 +46,7 @@ class MemTransport(Transport):
     """
 
     scheme = "mem"
+    url_form = "name"
 
     def __init__(
         self,
@@ -104,7 +105,7 @@ class MemTransport(Transport):
     @property
     def url(self) -> str:
         """``mem://NAME``: what a client opens to reach this bus's server."""
-        return f"mem://{self.name}"
+        return f"{self.scheme}://{self.name}"
 
     @property
     def client_id(self) -> int:

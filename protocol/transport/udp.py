@@ -79,6 +79,7 @@ class UdpTransport(Transport):
     """
 
     scheme = "udp"
+    url_form = "host:port"
 
     def __init__(
         self,

@@ -86,6 +86,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import socket
 import time
 
@@ -168,6 +169,16 @@ def _endpoint(protocol: str, host: str, port: int) -> str:
     if ":" in host and not host.startswith("["):
         host = f"[{host}]"
     return f"{protocol}/{host}:{port}"
+
+
+_RUST_SOURCE = re.compile(r"\s*\bat \S+\.rs:\d+\.?")
+
+
+def zenoh_reason(exc: BaseException | None) -> str:
+    """Zenoh's error text on one line, without the Rust source locations it appends (``at
+    /root/.cargo/.../unicast.rs:338.``): what a user reads, not where in Zenoh it was raised."""
+    text = " ".join(str(exc).split()) if exc is not None else "unknown error"
+    return _RUST_SOURCE.sub("", text).strip() or type(exc).__name__
 
 
 class ZenohTransport(Transport):
@@ -262,7 +273,7 @@ class ZenohTransport(Transport):
             except zenoh.ZError as exc:
                 last_exc = exc
         if self._session is None:
-            raise TransportError(f"could not open Zenoh session ({self.describe()}): {last_exc}")
+            raise TransportError(f"could not open Zenoh session ({self.describe()}): {zenoh_reason(last_exc)}")
         self._closed = False
         try:
             self._declare()

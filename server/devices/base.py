@@ -38,6 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hapticproxy.protocol.registry import Registry
+
 DS_POSE = 0
 DS_TWIST = 7
 DS_HAND = 13
@@ -129,21 +131,39 @@ class DeviceDriver(abc.ABC):
         self.disable()
 
 
+#: the entry-point group device drivers register in
+DEVICE_GROUP = "hapticproxy.devices"
+#: the built-in drivers (name -> module:factory); a lab's package adds its own through
+#: ``[project.entry-points."hapticproxy.devices"] mydev = "mypkg:make_device"``
+DEVICES = {
+    "sim": "hapticproxy.server.devices.sim:make_sim_device",
+    "remote": "hapticproxy.server.devices.remote:make_remote_device",
+}
+
+
+def _is_factory(name: str, obj) -> str:
+    return "" if callable(obj) else "is not callable (a device factory)"
+
+
+#: device drivers by name: :data:`DEVICES` merged with the ``hapticproxy.devices`` entry points
+DEVICE_REGISTRY = Registry("device", DEVICE_GROUP, DEVICES, check=_is_factory, field="device.driver")
+
+
+def device_factory(name: str):
+    """The factory registered as ``name`` (imported now); ``ValueError`` starting with
+    ``device.driver:`` naming the choices when it is unknown or does not load."""
+    return DEVICE_REGISTRY.load(name)
+
+
 def load_device(name: str, config: dict, *, period_s: float, clock_ns=None) -> DeviceDriver:
-    """Build the driver registered as ``name`` in the ``hapticproxy.devices`` entry-point group.
+    """Build the driver registered as ``name`` (:data:`DEVICE_REGISTRY`).
 
     The factory is called as ``factory(config, period_s=..., clock_ns=...)`` where ``config`` is
     the ``[device]`` table of the server config (a dict) and ``clock_ns`` a callable returning
     the loop's clock in ns (the injected clock; ``None`` means ``time.monotonic_ns``).
     Raises ``ValueError`` naming the choices when ``name`` is unknown.
     """
-    from importlib.metadata import entry_points
-
-    eps = {ep.name: ep for ep in entry_points(group="hapticproxy.devices")}
-    if name not in eps:
-        raise ValueError(f"device.driver: unknown device {name!r}; installed: {sorted(eps)}")
-    factory = eps[name].load()
-    dev = factory(config, period_s=period_s, clock_ns=clock_ns)
+    dev = device_factory(name)(config, period_s=period_s, clock_ns=clock_ns)
     if not isinstance(dev, DeviceDriver):
         raise ValueError(f"device.driver: {name!r} did not build a DeviceDriver (got {type(dev).__name__})")
     if dev.kind not in DEVICE_KINDS:

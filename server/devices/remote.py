@@ -795,11 +795,16 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"hapticproxy device: error: {exc.strerror or exc}", file=sys.stderr)
         return 2
+    import logging
+
+    from hapticproxy.protocol import logs
+
+    logs.configure(logging.INFO, quiet=1 if args.quiet else 0)
+    log = logging.getLogger("hapticproxy.device")
     drv = prog.driver
-    if not args.quiet:
-        host, port = prog.server
-        print(f"hapticproxy device: {drv.kind} sim device -> {host}:{port} at {args.rate:g} Hz "
-              f"(session {prog.session}, watchdog {args.watchdog_s:g} s)", file=sys.stderr, flush=True)
+    host, port = prog.server
+    log.info("%s sim device -> %s:%s at %g Hz (session %s, watchdog %g s)", drv.kind, host, port, args.rate,
+             prog.session, args.watchdog_s)
     stop = threading.Event()
     previous = None
     if threading.current_thread() is threading.main_thread():
@@ -815,8 +820,7 @@ def main(argv: list[str] | None = None) -> int:
         prog.close()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-    if not args.quiet:
-        print("hapticproxy device: " + ", ".join(f"{k} {v}" for k, v in c.items() if v), file=sys.stderr)
+    log.info("%s", ", ".join(f"{k} {v}" for k, v in c.items() if v))
     return 0
 
 

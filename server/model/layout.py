@@ -125,8 +125,6 @@ K_SLIPPING = 15     # contacts slipping this step
 NCOUNT = 16
 
 # --- linkages ---------------------------------------------------------------------------------
-#: Most links a linkage model holds (a planar linkage with 9 joints; spatial ones stop at 7).
-MAX_LINKS = 10
 JT_ROOT = 0         # joint types, the protocol's JointType values
 JT_REVOLUTE = 1
 JT_PRISMATIC = 2

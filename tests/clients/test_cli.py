@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import socket
 import subprocess
 import sys
 import threading
@@ -199,3 +200,94 @@ def test_check_client_passes_for_every_engine(engine):
         listen.close()
     assert rep.passed, "\n".join(rep.lines()) + "\n" + err
     assert "Traceback" not in err
+
+
+def _strict(text: str):
+    def refuse(const):
+        raise ValueError(f"not strict JSON: {const}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def _dead_udp_url() -> str:
+    t = open_transport("udp://127.0.0.1:0", role="server")
+    url = t.url
+    t.close()  # a port nobody listens on
+    return url
+
+
+def test_a_run_that_never_opened_a_session_exits_1_with_strict_json(capsys):
+    """``--duration`` over before any session: the client did not do its job (exit 1); its
+    statistics are still printed, strict (the mean round trip of no round trip is null)."""
+    url = _dead_udp_url()
+    code, out, err = run_main(capsys, "stub", "--connect", url, "--duration", "0.3", "--json", "--quiet")
+    assert code == 1
+    assert f"no session with {url} before the client stopped (duration reached)" in one_line(err)
+    st = _strict(out)
+    assert st["sessions"] == 0 and st["rtt_mean_ms"] is None and isinstance(st["connect_attempts"], int)
+
+
+def test_zenoh_connect_waits_at_most_the_connect_timeout(capsys, monkeypatch):
+    """The Zenoh backend's own connect wait (5 s by default) is bounded by --connect-timeout, unless
+    the URL names connect_timeout_s; the failure is one line without Zenoh's source paths."""
+    pytest.importorskip("zenoh")
+    from hapticproxy.clients import runner as runner_mod
+
+    seen = []
+
+    def recording_open(url, role="server", **options):
+        seen.append((url, options))
+        return open_transport(url, role, **options)
+
+    monkeypatch.setattr(runner_mod, "open_transport", recording_open)
+    with socket.socket() as s:  # a TCP port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    url = f"zenoh://127.0.0.1:{port}/nobody"
+    code, _, err = run_main(capsys, "stub", "--connect", url, "--connect-timeout", "0.5")
+    line = one_line(err)
+    assert code == 1 and f"no session with {url} within 0.5 s" in line
+    assert "/root/" not in line and ".rs:" not in line and "cargo" not in line
+    assert seen and all(opts == {"connect_timeout_s": 0.5} for _, opts in seen)
+    seen.clear()
+    code, _, err = run_main(capsys, "stub", "--connect", url + "?connect_timeout_s=0.2", "--connect-timeout", "0.5")
+    assert code == 1 and seen and all(opts == {} for _, opts in seen)
+
+
+@pytest.fixture(scope="module")
+def tls_pki(tmp_path_factory):
+    """A CA and a server certificate (P-256, openssl) for a mutual-TLS Zenoh server."""
+    import shutil
+
+    openssl = shutil.which("openssl")
+    if openssl is None:
+        pytest.skip("openssl command not available to generate test certificates")
+    d = tmp_path_factory.mktemp("tls")
+    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes"]
+    (d / "server.ext").write_text("subjectAltName=IP:127.0.0.1\nextendedKeyUsage=serverAuth,clientAuth\n")
+    for args in (["req", "-x509", *ec, "-keyout", "ca-key.pem", "-out", "ca.pem", "-days", "2", "-subj", "/CN=ca"],
+                 ["req", *ec, "-keyout", "server-key.pem", "-out", "server.csr", "-subj", "/CN=server"],
+                 ["x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca-key.pem", "-CAcreateserial",
+                  "-days", "2", "-out", "server.pem", "-extfile", "server.ext"]):
+        subprocess.run([openssl, *args], cwd=d, check=True, capture_output=True, timeout=60)
+    return d
+
+
+def test_a_client_refused_by_tls_exits_1_in_one_line(capsys, tls_pki):
+    """A mutual-TLS Zenoh server; the client has the CA but no certificate of its own: it never
+    gets a session, exits 1, one line."""
+    pytest.importorskip("zenoh")
+    deploy = Path(__file__).resolve().parents[2] / "deploy" / "zenoh"
+    server_cfg = tls_pki / "server.json5"
+    server_cfg.write_text((deploy / "tls-server.json5").read_text().replace("/etc/hapticproxy/zenoh/", f"{tls_pki}/"))
+    client_cfg = tls_pki / "client-without-certificate.json5"
+    text = (deploy / "tls-client.json5").read_text().replace("/etc/hapticproxy/zenoh/", f"{tls_pki}/")
+    text = "\n".join(ln for ln in text.splitlines() if "connect_certificate" not in ln and "connect_private_key" not in ln)
+    client_cfg.write_text(text)
+    with open_transport(f"zenoh://127.0.0.1:0/tls?protocol=tls&config={server_cfg}", role="server") as server:
+        url = f"{server.url}&config={client_cfg}"
+        code, _, err = run_main(capsys, "stub", "--connect", url, "--connect-timeout", "1")
+        assert server.counters.received == 0
+    line = one_line(err)
+    assert code == 1 and "no session with" in line and "within 1 s" in line
+    assert ".rs:" not in line

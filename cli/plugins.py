@@ -1,0 +1,61 @@
+"""``hapticproxy plugins [--kind engine|device|transport] [--json]``: every registered plug-in.
+
+The three registries (:mod:`hapticproxy.protocol.registry`): environment engines
+(``hapticproxy.engines``), device drivers (``hapticproxy.devices``) and transports by URL
+scheme (``hapticproxy.transports``), each the built-ins merged with what installed packages
+declare. One line per plug-in: name, ``module:attr``, the package that declared it, and whether
+it loads here (the reason when not); an installed package's entry that tries to take a built-in
+name is shown as ignored.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from hapticproxy.protocol.jsonout import print_json
+from hapticproxy.protocol.registry import Registry, format_rows
+
+KINDS = ("engine", "device", "transport")
+
+
+def registries() -> dict[str, Registry]:
+    from hapticproxy.clients.registry import REGISTRY as ENGINES
+    from hapticproxy.protocol.transport import TRANSPORT_REGISTRY
+    from hapticproxy.server.devices.base import DEVICE_REGISTRY
+
+    return {"engine": ENGINES, "device": DEVICE_REGISTRY, "transport": TRANSPORT_REGISTRY}
+
+
+def _describe(kind: str):
+    if kind == "engine":
+        return lambda name, cls: {"scenes": list(cls.scenes())}
+    if kind == "transport":
+        return lambda name, cls: {"url_form": f"{name}://{cls.url_form}"}
+    return None
+
+
+def _detail(r: dict) -> str:
+    if "scenes" in r:
+        return f"scenes: {', '.join(r['scenes'])}"
+    if "url_form" in r:
+        return f"url: {r['url_form']}"
+    return ""
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="hapticproxy plugins", description=__doc__.splitlines()[0].split(": ", 1)[1])
+    p.add_argument("--kind", choices=KINDS, action="append", help="only this kind (repeatable; default: all)")
+    p.add_argument("--json", action="store_true", help="print a JSON list of rows")
+    args = p.parse_args(argv)
+    regs = registries()
+    kinds = args.kind or list(KINDS)
+    rows = {kind: regs[kind].rows(_describe(kind)) for kind in kinds}
+    if args.json:
+        print_json([r for kind in kinds for r in rows[kind]], sort_keys=True)
+        return 0
+    lines = []
+    for kind in kinds:
+        lines.append(f"{kind}s ({regs[kind].group}):")
+        lines.extend(f"  {ln}" for ln in format_rows(rows[kind], _detail))
+    sys.stdout.write("\n".join(lines) + "\n")
+    return 0
