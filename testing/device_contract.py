@@ -178,15 +178,15 @@ _BUILTIN = {"sim": SimHarness, "remote": RemoteHarness}
 
 
 def harness_for(name: str, kind: str = "planar", period_s: float = PERIOD_S) -> Callable[[], Harness]:
-    """A factory of fresh harnesses for the driver registered as ``name`` (entry point group
-    ``hapticproxy.devices``): its factory's ``contract_harness(kind, period_s)``, or a built-in
-    one. ``ValueError`` if the driver has neither."""
-    from importlib.metadata import entry_points
+    """A factory of fresh harnesses for the driver registered as ``name`` (the device registry:
+    built-ins merged with the ``hapticproxy.devices`` entry points): its factory's
+    ``contract_harness(kind, period_s)``, or a built-in one. ``ValueError`` if the driver has
+    neither."""
+    from hapticproxy.server.devices.base import DEVICE_REGISTRY
 
-    eps = {ep.name: ep for ep in entry_points(group="hapticproxy.devices")}
-    if name not in eps:
-        raise ValueError(f"device driver {name!r} is not registered; installed: {sorted(eps)}")
-    made = getattr(eps[name].load(), "contract_harness", None) or _BUILTIN.get(name)
+    if not DEVICE_REGISTRY.known(name):
+        raise ValueError(f"device driver {name!r} is not registered; installed: {DEVICE_REGISTRY.names()}")
+    made = getattr(DEVICE_REGISTRY.load(name), "contract_harness", None) or _BUILTIN.get(name)
     if made is None:
         raise ValueError(f"device driver {name!r} has no contract harness: attach one to its factory "
                          f"(make_x.contract_harness = MyHarness, see hapticproxy.testing.device_contract)")

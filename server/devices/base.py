@@ -38,15 +38,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hapticproxy.protocol.devlink import ROW_COLUMNS, ROW_FLOATS, DeviceFault
 from hapticproxy.protocol.registry import Registry
+from hapticproxy.protocol.vocab import DEVICE_KINDS  # noqa: F401 - re-exported
 
-DS_POSE = 0
-DS_TWIST = 7
-DS_HAND = 13
-DS_TIME = 19
-DEV_NSTATE = 20
-
-DEVICE_KINDS = ("1dof", "planar", "spatial")
+# The state row and the status codes are the remote-device link's (protocol/devlink.py): one set
+# of numbers for every driver and for the wire.
+DS_POSE, DS_TWIST, DS_HAND, DS_TIME = (c.start for c in ROW_COLUMNS)
+DEV_NSTATE = ROW_FLOATS
 #: Wrench components a kind renders (the rest are ignored): fx fy fz tx ty tz.
 KIND_WRENCH_MASK = {
     "1dof": (1, 1, 1, 0, 0, 0),  # the projection on the axis
@@ -55,12 +54,12 @@ KIND_WRENCH_MASK = {
 }
 
 #: Status codes returned by ``read``/``write`` (0 = fine). A non-zero code is a latched fault.
-DEV_OK = 0
-DEV_FAULT_NONFINITE_COMMAND = 1
-DEV_FAULT_WATCHDOG = 2
-DEV_FAULT_DISABLED = 3
-DEV_FAULT_LINK = 4  # remote device: no state within its timeout
-DEV_FAULT_HARDWARE = 5
+DEV_OK = int(DeviceFault.OK)
+DEV_FAULT_NONFINITE_COMMAND = int(DeviceFault.NONFINITE_COMMAND)
+DEV_FAULT_WATCHDOG = int(DeviceFault.WATCHDOG)
+DEV_FAULT_DISABLED = int(DeviceFault.DISABLED)
+DEV_FAULT_LINK = int(DeviceFault.LINK)  # remote device: no state within its timeout
+DEV_FAULT_HARDWARE = int(DeviceFault.HARDWARE)
 DEV_FAULT_NAMES = {
     DEV_OK: "ok",
     DEV_FAULT_NONFINITE_COMMAND: "non-finite command",

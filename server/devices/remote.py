@@ -72,12 +72,8 @@ from .base import (
 )
 from .layout import KIND_IDS
 
-# The link carries the drivers' state row, kinds and fault codes: one set of numbers.
-assert (DEV_NSTATE, DS_POSE, DS_TWIST, DS_HAND, DS_TIME) == (dl.ROW_FLOATS, *(c.start for c in dl.ROW_COLUMNS))
+# The link carries the drivers' state row, kinds and fault codes: base.py takes them from devlink.
 assert KIND_IDS == {name: int(k) for k, name in dl.KIND_NAMES.items()}
-assert {DEV_OK, DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_FAULT_DISABLED, DEV_FAULT_LINK,
-        DEV_FAULT_HARDWARE} == {int(f) for f in dl.DeviceFault} and DEV_FAULT_WATCHDOG == dl.DeviceFault.WATCHDOG \
-    and DEV_FAULT_LINK == dl.DeviceFault.LINK and DEV_FAULT_NONFINITE_COMMAND == dl.DeviceFault.NONFINITE_COMMAND
 
 STATE_SIZE = STATE.size            # 216
 COMMAND_SIZE = COMMAND.size        # 96
