@@ -20,7 +20,13 @@ its own figures:
   (impedance) hand: the first engagement with the hand already pushing, a re-arm after a device
   fault (the remote device's link cut for 150 ms by stopping the device program), a new client
   50 ms after a Bye (the fade still running), a client restarted on the same socket (a new Hello
-  from the same address): ``peak_n`` within 2 s of the engagement against ``steady_n``.
+  from the same address): ``peak_n`` within 2 s of the engagement against ``steady_n``;
+- **input no engine should send** (``MISREPORTS``): for 2 s, every second ContactUpdate carries
+  absurd values (a constraint velocity of 1e9 m/s, a position or tool pose at 1e9 m, a 5 m
+  penetration), contacts the tool cannot use (a z normal on the planar tool, tool link 3), or
+  what real engines do (normals flipped, feature ids renumbered): the first kind must be refused
+  and counted (``refused``), none may make the force step above the rate limit or pull the hand
+  towards the surface (``max_pull_n``).
 """
 from __future__ import annotations
 
@@ -50,10 +56,63 @@ HAND = {
 @dataclass
 class LifecycleCase:
     name: str
-    kind: str                      # cold | stall-idle | stall | stalls | first | rearm | bye50 | restart
+    kind: str                      # cold | stall-idle | stall | stalls | first | rearm | bye50 | restart | input
     stall_ms: float = 0.0
     hand: str = "force"
     safety: dict = field(default_factory=dict)
+    misreport: str = ""            # input: what every second ContactUpdate gets wrong (MISREPORTS)
+
+
+#: What an engine may send that no engine should, applied to every second update for 2 s once the
+#: peg rests on the wall: ``(counter in status that must count it, what is done to the contacts)``;
+#: the first six must be refused before the model, the last two are real engines' habits the model
+#: must take without a force step above the rate limit or a pull towards the surface.
+MISREPORTS = {
+    "v_constr 1e9 m/s": ("refused_out_of_bounds", lambda b, n, pose: b.v_constr_m_per_s[:n].fill(1e9)),
+    "contact position 1e9 m": ("refused_out_of_bounds", lambda b, n, pose: b.position_m[:n, 0].fill(1e9)),
+    "tool pose 1e9 m": ("refused_out_of_bounds", lambda b, n, pose: pose.__setitem__(0, 1e9)),
+    "separation -5 m": ("refused_out_of_bounds", lambda b, n, pose: b.separation_m[:n].fill(-5.0)),
+    "a z normal on a planar tool": ("refused_unusable", lambda b, n, pose: _tilt_normals(b, n)),
+    "tool link 3 on a rigid tool": ("refused_unusable", lambda b, n, pose: b.keys[:n, 0].fill(3)),
+    "normals flipped": ("", lambda b, n, pose: b.normal[:n].__imul__(-1.0)),
+    "feature ids renumbered": ("", lambda b, n, pose: b.keys[:n, 2].__iadd__(1000)),
+}
+
+
+def _tilt_normals(b, n):
+    b.normal[:n, 2] = 0.6
+    b.normal[:n, :] /= np.linalg.norm(b.normal[:n], axis=1)[:, None]
+
+
+class _Misreporting:
+    """Wraps an engine: every second ContactUpdate is altered by ``alter(buf, n, pose)`` while
+    ``on``; otherwise the engine is unchanged."""
+
+    def __init__(self, engine, alter) -> None:
+        self._e = engine
+        self._alter = alter
+        self.on = False
+        self._k = 0
+        self._pose_bad = False
+
+    def contacts(self, buf, max_contacts):
+        n = self._e.contacts(buf, max_contacts)
+        self._k += 1
+        self._pose_bad = False
+        if self.on and self._k % 2 == 0 and n:
+            probe = np.zeros(7)
+            self._alter(buf, n, probe)
+            self._pose_bad = probe[0] != 0.0
+        return n
+
+    def tool_pose(self, out):
+        self._e.tool_pose(out)
+        if self._pose_bad:
+            out[0] = 1e9
+        return out
+
+    def __getattr__(self, name):
+        return getattr(self._e, name)
 
 
 def cases() -> list[LifecycleCase]:
@@ -62,6 +121,7 @@ def cases() -> list[LifecycleCase]:
     out += [LifecycleCase(f"stall {ms:.0f} ms while engaged: recovers", "stall", ms) for ms in (60.0, 120.0, 250.0)]
     out.append(LifecycleCase("4 stalls of 80 ms within 5 s: the 4th latches", "stalls", 80.0,
                              safety={"stall_trips_max": 3, "stall_window_s": 60.0}))
+    out += [LifecycleCase(f"every 2nd update: {what}", "input", misreport=what) for what in MISREPORTS]
     for hand in ("force", "grip"):
         what = "pushing hand" if hand == "force" else "gripping hand"
         out += [LifecycleCase(f"first engagement, {what} already pushing", "first", hand=hand),
@@ -206,10 +266,14 @@ def run_lifecycle_case(case: LifecycleCase, bf, *, engine: str = "pymunk", realt
 
         # the re-engagement cases engage with the peg already resting in contact (the hole
         # scene: in the bottom hole), so what they measure is the engagement, not an approach
-        scene = "hole" if case.kind in ("first", "rearm", "bye50", "restart") else "testbed"
+        scene = "hole" if case.kind in ("first", "rearm", "bye50", "restart", "input") else "testbed"
 
         def client():
-            c = bf._ThreadClient(engine, url, scene=scene).start()
+            c = bf._ThreadClient(engine, url, scene=scene)
+            if case.kind == "input":
+                c.engine = _Misreporting(c.engine, MISREPORTS[case.misreport][1])
+                c.runner.engine = c.engine
+            c.start()
             clients.append(c)
             return c
 
@@ -235,6 +299,15 @@ def run_lifecycle_case(case: LifecycleCase, bf, *, engine: str = "pymunk", realt
                 _stall(loop_pid, case.stall_ms)
                 bf._serve(sup, 1.2)
             bf._serve(sup, 1.5)
+        elif case.kind == "input":
+            snap0 = sup.shared.snapshot()
+            c.engine.on = True
+            bf._serve(sup, 2.0)
+            c.engine.on = False
+            bf._serve(sup, 1.0)
+            counter = MISREPORTS[case.misreport][0]
+            if counter:
+                extra["refused"] = int(sup.shared.get(counter) - snap0[counter])
         elif case.kind == "rearm":
             os.kill(dev_proc.pid, signal.SIGSTOP)  # the device program stops: its link is lost
             try:
@@ -327,6 +400,21 @@ def _judge(case: LifecycleCase, row: dict, rows: np.ndarray, trans: list, ev: di
         else:
             row["recover_ms"] = round((rec[0][0] - trip[0][0]) * 1e3, 1)
             _kick(rows, rec[0][0], row)
+    elif case.kind == "input":
+        counter = MISREPORTS[case.misreport][0]
+        if counter and not row.get("refused"):
+            _fail(row, f"nothing refused as {counter}")
+        if to_fault:
+            _fail(row, "a fault")
+        from hapticproxy.server.shm import TEL as _T
+
+        t = rows[:, _T["t_s"]]
+        win = t >= ev.get("fault_s", 0.0)
+        fy = rows[win][:, _T["cmd_fy"]]
+        # the wall pushes the hand back (-y); a flipped normal must never pull it in (+y)
+        row["max_pull_n"] = round(float(max(0.0, fy.max())), 4) if len(fy) else None
+        if len(fy) and fy.max() > 1e-9:
+            _fail(row, "a pull towards the surface", int((fy > 1e-9).sum()))
     elif case.kind == "stalls":
         latched = [t for t in trans if t[3] == "stalls_repeated"]
         if not latched:
