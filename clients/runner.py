@@ -47,7 +47,7 @@ from collections.abc import Callable
 import numpy as np
 
 from hapticproxy.protocol.codec import Hello, Limits
-from hapticproxy.protocol.messages import ErrorCode
+from hapticproxy.protocol.messages import ErrorCode, ServerState
 from hapticproxy.protocol.vocab import TOOL_KINDS_BY_NAME
 from hapticproxy.protocol.session import ClientConfig, ClientEndpoint, ClientState
 from hapticproxy.protocol.transport import TransportError, open_transport, parse_transport_url
@@ -306,9 +306,12 @@ class ClientRunner:
         c["proxy_superseded"] += fresh - 1
         c["proxy_applied"] += 1
         self.last_proxy = newest
-        if self._linkage:
-            self.engine.drive_joints(newest.joint_position, newest.joint_velocity, newest.joint_effort)
-        self.engine.drive_tool(newest.proxy_pose, newest.proxy_twist, newest.wrench)
+        # SPEC 5: follow only a proxy the server renders (engaged; 0 = not reported by a 1.0/1.1
+        # server); otherwise the engine keeps driving towards the last rendered one
+        if newest.server_state in (ServerState.UNKNOWN, ServerState.ENGAGED):
+            if self._linkage:
+                self.engine.drive_joints(newest.joint_position, newest.joint_velocity, newest.joint_effort)
+            self.engine.drive_tool(newest.proxy_pose, newest.proxy_twist, newest.wrench)
         ack = newest.ack_seq
         if ack and ep.contact_seq - ack < _RTT_RING:
             rtt = (time.monotonic_ns() - int(self._sent_ns[ack % _RTT_RING])) / _NS
