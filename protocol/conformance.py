@@ -201,6 +201,7 @@ class _Session:
     late: list = field(default_factory=list)  # (t, type name): packets after the session ended
     heartbeats: int = 0
     proxy_seq: int = 0
+    heartbeat_seq: int = 0  # the Heartbeats we sent in it
     last_tx: float = 0.0
     ended: float | None = None  # when a Bye (ours or theirs) ended it
     p0: np.ndarray | None = None  # the first reported tool pose
@@ -246,8 +247,9 @@ class _ScriptedServer:
         self._ids = iter(range(0x5EC0_0001, 0x5EC0_1000))
         self._invalid_i = 0
         self._addr_i = 0
-        self.t_follow = 0.5
-        self.hb_sent = 0
+        self.t_follow = 0.5  # seconds the tool took to follow a move half-way (measured)
+        self.reject_nonce = 0
+        self.reject_at = 0.0
 
     # ------------------------------------------------------------------ sending
     def _emit(self, packet: bytes, peer) -> None:
@@ -339,8 +341,8 @@ class _ScriptedServer:
                 s = self.sess
                 if (s is not None and s.ended is None and not self.mode.silent
                         and now - s.last_tx >= self.cfg.heartbeat_interval_s):
-                    self.hb_sent += 1
-                    self._emit(self.codec.encode(Heartbeat(seq=self.hb_sent, time_s=now - s.opened,
+                    s.heartbeat_seq += 1
+                    self._emit(self.codec.encode(Heartbeat(seq=s.heartbeat_seq, time_s=now - s.opened,
                                                            session_id=s.session_id, token=s.token)), s.peer)
                 time.sleep(0.0003)
                 continue
@@ -630,7 +632,7 @@ class _ScriptedServer:
 
     @property
     def decoy_s(self) -> float:
-        return min(2.0, max(self.phase_s, 2.0 * self.t_follow + 0.1))
+        return min(2.0, max(0.3, 2.0 * self.t_follow + 0.1))
 
     def _decoy(self, decoy: str, rule: str) -> None:
         s = self.sess
@@ -639,10 +641,11 @@ class _ScriptedServer:
         n_err = len(s.errors)
         self.pump(self.decoy_s)
         self.pump(0.05)
-        worst = max(self.proj(t0), default=math.nan)
-        if not self.proj(t0):
+        moved = self.proj(t0)
+        if not moved:
             self.rep.fail(rule, "no ContactUpdate during the scenario")
             return
+        worst = max(moved)
         ok = worst <= self.hold_tol
         what = {"stale": "seq 1", "duplicate": "the newest seq", "reordered": "seq one below the newest",
                 "address": "a wrong token or session id", "invalid": "invalid content"}[decoy]
@@ -657,6 +660,10 @@ class _ScriptedServer:
 
     def _server_state(self) -> None:
         rep = self.rep
+        minor = self.sess.welcome.version[1]
+        if minor < 2:
+            rep.fail("server-state", f"not judged: the client speaks 1.{minor} (server_state is 1.2)")
+            return
         tol = self.hold_tol
         for state in (ServerState.FADING, ServerState.FAULT, ServerState.IDLE):
             self.mode = _Mode(self._static(self.step_m), state=state)
@@ -802,10 +809,13 @@ class _ScriptedServer:
 def check_client(transport, *, duration_s: float = 0.5, hmac_key: bytes | None = None, timeout_s: float = 10.0,
                  config: ServerConfig | None = None, step_m: float = 0.01, direction=None) -> Report:
     """Play the scripted server on ``transport`` (role server) against the first client that
-    connects, and judge it. ``duration_s``: the length of each observation phase (the scenarios
-    take about 25 phases plus the client's reconnection delays); ``step_m``: how far the proxy
-    is moved (along ``direction``, or away from the first reported contacts, else +y planar, +z
-    spatial, +axis 1-DOF)."""
+    connects, and judge it (about 15 s with a client that reconnects after 1 s).
+    ``duration_s``: how long the proxy is held at the client's first pose (in the first session
+    and in the one after it reconnects); the other scenarios last as long as the client took to
+    follow a move (twice, at least 0.3 s). ``step_m``: how far the proxy is moved, along
+    ``direction``, or else away from the first reported contacts (+y planar, +z spatial, +axis
+    1-DOF when there are none). ``config``: the grants (default: 16 contacts, the granted epsilon
+    capped at 10 mm, heartbeats every 0.1 s, silence timeout 0.5 s)."""
     if not (math.isfinite(step_m) and 0.001 <= step_m <= 0.1):
         raise ValueError(f"step_m: must be in [0.001, 0.1] m, got {step_m!r}")
     if direction is not None:
@@ -1513,8 +1523,9 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="mode", required=True)
     pc = sub.add_parser("check-client", help="play a scripted server and judge the client that connects")
     pc.add_argument("--listen", default="udp://127.0.0.1:9870", help="transport URL to listen on")
-    pc.add_argument("--duration", "--phase", dest="duration", type=float, default=0.5,
-                    help="seconds of each observation phase (default 0.5; the whole check takes about 15 s)")
+    pc.add_argument("--duration", type=float, default=0.5,
+                    help="seconds the proxy is held at the client's first pose (default 0.5); the whole check "
+                         "takes about 15 s")
     pc.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for the client's Hello")
     pc.add_argument("--step", type=float, default=0.01, help="how far the proxy is moved [m] (default 0.01)")
     pc.add_argument("--direction", type=_direction, default=None,
