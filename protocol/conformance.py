@@ -65,8 +65,8 @@ _NS = 1_000_000_000
 IDENTITY = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
 _ZERO6 = np.zeros(6)
 _EMPTY = np.zeros(0)
-#: SPEC 5: the server fades the force when no ContactUpdate was applied for this long (this
-#: server's default ``[safety] watchdog_s``; not told in Welcome yet), so no client may pause longer
+#: SPEC 5: the server fades the force when no ContactUpdate was applied for this long (told in
+#: Welcome.update_watchdog_s; the scripted server tells this value), so no client may pause longer
 UPDATE_WATCHDOG_S = 0.1
 #: states in which a client follows the proxy (UNKNOWN: a 1.0/1.1 server that does not say)
 _FOLLOW_STATES = (ServerState.UNKNOWN, ServerState.ENGAGED)
@@ -826,7 +826,8 @@ def check_client(transport, *, duration_s: float = 0.5, hmac_key: bytes | None =
         if direction.shape != (3,) or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) < 1e-9:
             raise ValueError(f"direction: must be 3 finite numbers, not all zero, got {direction!r}")
     rep = Report(CLIENT_RULES)
-    cfg = config or ServerConfig(max_contacts=16, heartbeat_interval_s=0.1, silence_timeout_s=0.5)
+    cfg = config or ServerConfig(max_contacts=16, heartbeat_interval_s=0.1, silence_timeout_s=0.5,
+                                 update_watchdog_s=UPDATE_WATCHDOG_S)
     _ScriptedServer(transport, rep, config=cfg, hmac_key=hmac_key, step_m=step_m, direction=direction,
                     phase_s=max(0.1, float(duration_s)), timeout_s=timeout_s).run()
     return rep

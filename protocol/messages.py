@@ -275,6 +275,8 @@ class Welcome(Message, kw_only=True):
                           since=2) = MAX_ABS_FLOAT
     note: text("why a granted value differs from the request (e.g. epsilon capped), '' if none",
                since=2) = ""
+    update_watchdog_s: f64("the force fades when no ContactUpdate was applied for this long (Heartbeats keep "
+                           "only the session); 0: not told", "s", rule="nonneg", since=2) = 0.0
 
 
 class Reject(Message, kw_only=True):
@@ -348,11 +350,13 @@ class ProxyState(Message, kw_only=True):
     server_time_s: f64("server clock at the haptic step, since the session began", "s")
     proxy_pose: f64_bin(7, "proxy tool-frame pose", "m, quaternion", "world")
     proxy_twist: f64_bin(6, "velocity of the tool-frame origin (3), angular velocity (3)", "m/s, rad/s", "world")
-    wrench: f64_bin(6, "force (3) at the tool-frame origin, torque (3) about it, that the environment may apply "
-                       "to its tool", "N, N m", "world", "acts on the tool")
+    wrench: f64_bin(6, "force (3) at the tool-frame origin, torque (3) about it: what the user applies to the "
+                       "proxy (hand plus coupling), already applied by the server; an engine that drives its tool "
+                       "by pose does not apply it again (SPEC 8)", "N, N m", "world", "acts on the tool")
     joint_position: f64_bin("J", "linkage: q of links 1..L-1 in link order; others: empty", "rad or m") = b""
     joint_velocity: f64_bin("J", "linkage: dq/dt, same order; others: empty", "rad/s or m/s") = b""
-    joint_effort: f64_bin("J", "linkage: joint effort the environment may apply; others: empty", "N m or N",
+    joint_effort: f64_bin("J", "linkage: the joint efforts of the same wrench (already applied by the server); "
+                                "others: empty", "N m or N",
                           sign="positive along +q") = b""
     server_state: enum(ServerState, "ServerState: 1 idle, 2 engaged, 3 fading, 4 fault (0: not reported); follow "
                                     "the proxy only while engaged: otherwise it is held and not rendered",

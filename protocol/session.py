@@ -290,6 +290,9 @@ class ServerConfig:
     #: Largest forward jump of a sequence number (a gap of lost packets); a larger one is
     #: refused with Error SEQ_JUMP naming seq.
     max_seq_jump: int = 1 << 16
+    #: Told in Welcome: the server's force fades when no ContactUpdate was applied for this long
+    #: (its ``safety.watchdog_s``); 0: not told.
+    update_watchdog_s: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("haptic_rate_hz", "heartbeat_interval_s", "silence_timeout_s", "error_rate_per_s",
@@ -663,7 +666,8 @@ class ServerEndpoint:
             heartbeat_interval_s=float(cfg.heartbeat_interval_s), silence_timeout_s=float(cfg.silence_timeout_s),
             server_name=cfg.server_name, workspace_extent_m=float(cfg.workspace_extent_m),
             max_constraint_speed_m_per_s=float(cfg.max_constraint_speed_m_per_s),
-            max_separation_m=float(cfg.max_separation_m), note="; ".join(notes), session_id=session_id, token=token)
+            max_separation_m=float(cfg.max_separation_m), note="; ".join(notes),
+            update_watchdog_s=float(cfg.update_watchdog_s), session_id=session_id, token=token)
         packet = self.codec.encode(welcome)
         self.sessions[session_id] = ServerSession(session_id, token, peer, hello, welcome, packet, now,
                                                   cfg.error_rate_per_s)

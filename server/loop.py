@@ -250,6 +250,7 @@ class HapticLoop:
             workspace_extent_m=mcfg["workspace_extent_m"],
             max_constraint_speed_m_per_s=mcfg["max_constraint_speed_m_per_s"],
             max_separation_m=mcfg["max_separation_m"],
+            update_watchdog_s=scfg["watchdog_s"],
         )
         self.endpoint = endpoint or ServerEndpoint(self.transport.send, self.server_config, hmac_key=hmac_key)
         self.ctrl = controller or ctl.Controller(settings, self.device.kind, self.device.limits)

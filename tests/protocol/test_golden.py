@@ -105,11 +105,11 @@ def test_every_message_encodes_to_the_same_bytes_and_decodes_to_the_same_values(
     codec = C.Codec()
     packet = _encode(codec, entry["build"])
     if entry["build"].get("message") == "Welcome":
-        # 1.2 appended the scene bounds and a note (issue 13 section 4): the old fields are
-        # unchanged, the new ones follow with their defaults
+        # 1.2 appended the scene bounds, a note (issue 13 section 4) and the update watchdog
+        # (issue 16): the old fields are unchanged, the new ones follow with their defaults
         old, new = msgpack.unpackb(bytes.fromhex(entry["hex"])), msgpack.unpackb(packet)
         assert new[:len(old)] == old
-        assert new[len(old):] == [MAX_ABS_FLOAT] * 3 + [""]
+        assert new[len(old):] == [MAX_ABS_FLOAT] * 3 + ["", 0.0]
     else:
         assert packet.hex() == entry["hex"]
     got = _verdict(codec, bytes.fromhex(entry["hex"]))
