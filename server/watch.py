@@ -16,6 +16,7 @@ from rich.table import Table
 from rich.text import Text
 from textual.app import App, ComposeResult
 from textual.containers import Horizontal, Vertical
+from textual.css.query import NoMatches
 from textual.widgets import Footer, Header, Static
 
 STATE_STYLE = {"engaged": "bold green", "idle": "cyan", "fading": "yellow", "fault": "bold white on red",
@@ -179,6 +180,12 @@ class WatchApp(App):
         self.set_interval(self.interval_s, self.refresh_status)
 
     def refresh_status(self) -> None:
+        try:
+            self._refresh()
+        except NoMatches:
+            pass  # the app is closing: its widgets are gone before the last timer tick
+
+    def _refresh(self) -> None:
         self.polls += 1
         try:
             s = self.fetch()
