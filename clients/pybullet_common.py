@@ -19,7 +19,7 @@ import importlib.metadata
 import math
 
 import numpy as np
-import pybullet as p
+from ._pybullet import p
 
 from .engine import Engine, checked_epsilon
 from .geometry import quat_angle, slerp, wxyz_from_xyzw, xyzw_from_wxyz

@@ -69,7 +69,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pybullet as p
+from ._pybullet import p
 
 from .contacts import EDGE_EDGE, NORMAL_WEIGHT_M
 from .engine import ContactBuffer, SceneInfo, ToolDescription, checked_positive, checked_step

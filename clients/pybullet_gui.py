@@ -24,7 +24,7 @@ import math
 import time
 
 import numpy as np
-import pybullet as p
+from ._pybullet import p
 
 from .geometry import IDENTITY_WXYZ, xyzw_from_wxyz
 from .views import PROXY_RGB, contact_colour, state_style, view_state

@@ -39,7 +39,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pybullet as p
+from ._pybullet import p
 
 from .contacts import reduce_contacts
 from .engine import ContactBuffer, LinkDescription, SceneInfo, ToolDescription, checked_positive, checked_step
