@@ -133,6 +133,13 @@ class RunSpec:
     device: tuple = ()                        # extra [device] keys as (key, value) pairs
     device_kind: str = "planar"               # planar | 1dof (along world x)
     safety: tuple = ()                        # extra [safety] keys as (key, value) pairs
+    #: simulated time only: the engine misreports its contacts the way real engines do, from
+    #: ``misreport_from_s`` of engine time on (see :class:`Misreport`): "" (never), "flip" (the
+    #: first contact's normal reversed in every ``misreport_every``-th update), "flip-hold" (reversed
+    #: in every update), "rekey" (every key renumbered in every ``misreport_every``-th update)
+    misreport: str = ""
+    misreport_from_s: float = 0.0
+    misreport_every: int = 4
 
     @classmethod
     def for_method(cls, method: str, **kw) -> "RunSpec":
@@ -251,6 +258,39 @@ def trace_from_rows(spec: RunSpec, mode: str, rows: np.ndarray, **kw) -> Trace:
 
 
 # ------------------------------------------------------------------------------ simulated time
+class Misreport:
+    """What real engines do to a contact set that the model must survive (issue 13, section 4):
+    edge-edge normals without a fixed sign (``flip``: the first contact's normal reversed, its
+    point and depth kept, in one update out of ``every``; ``flip-hold``: in every update) and
+    feature ids that get renumbered (``rekey``: every key's feature id moved to a new number in
+    one update out of ``every``, the geometry unchanged)."""
+
+    KINDS = ("", "flip", "flip-hold", "rekey")
+
+    def __init__(self, kind: str, from_s: float, every: int) -> None:
+        if kind not in self.KINDS:
+            raise ValueError(f"misreport: expected one of {self.KINDS}, got {kind!r}")
+        if int(every) < 1:
+            raise ValueError(f"misreport_every: must be >= 1, got {every!r}")
+        self.kind, self.from_s, self.every = kind, float(from_s), int(every)
+        self.updates = 0
+        self.applied = 0
+        self._generation = 0
+
+    def apply(self, env_time_s: float, keys: np.ndarray, normal: np.ndarray, n: int) -> None:
+        if not self.kind or env_time_s < self.from_s or n == 0:
+            return
+        self.updates += 1
+        if self.kind == "flip-hold" or (self.kind == "flip" and self.updates % self.every == 0):
+            normal[0] *= -1.0
+            self.applied += 1
+        elif self.kind == "rekey" and self.updates % self.every == 0:
+            self._generation += 1
+            self.applied += 1
+        if self.kind == "rekey" and self._generation:
+            keys[:n, 2] += 1_000_000 * self._generation
+
+
 class SimEnvClient:
     """An engine behind the real protocol, stepped in simulated time (one thread, no sockets).
 
@@ -261,7 +301,7 @@ class SimEnvClient:
     step length later (its variable rate), as for an engine running in real time."""
 
     def __init__(self, engine, url: str, clock, *, scene: str, epsilon_m: float, max_contacts: int,
-                 delay_s: float = 0.0) -> None:
+                 delay_s: float = 0.0, misreport: Misreport | None = None) -> None:
         from hapticproxy.clients.engine import ContactBuffer
         from hapticproxy.clients.runner import hello_fields
         from hapticproxy.protocol.codec import Hello
@@ -278,6 +318,7 @@ class SimEnvClient:
         self.buf = ContactBuffer(max_contacts)
         self.pose = np.zeros(7)
         self.delay_ns = int(round(delay_s * _NS))
+        self.misreport = misreport or Misreport("", 0.0, 1)
         self.pending: list = []
         self.next_ns = 0
         self.started = False
@@ -317,6 +358,7 @@ class SimEnvClient:
             n = eng.contacts(self.buf, self.buf.capacity)
             eng.tool_pose(self.pose)
             b = self.buf
+            self.misreport.apply(eng.time_s, b.keys, b.normal, n)
             item = (now + self.delay_ns, eng.time_s, self.pose.copy(), b.keys[:n].copy(), b.position_m[:n].copy(),
                     b.normal[:n].copy(), b.separation_m[:n].copy(), b.v_constr_m_per_s[:n].copy())
             self.pending.append(item)
@@ -354,7 +396,8 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
         loop.warm_up()
         loop.start()
         env = SimEnvClient(spec.make_engine(), url, clock, scene=spec.scene, epsilon_m=spec.epsilon_m,
-                           max_contacts=spec.capacity, delay_s=spec.env_delay_s)
+                           max_contacts=spec.capacity, delay_s=spec.env_delay_s,
+                           misreport=Misreport(spec.misreport, spec.misreport_from_s, spec.misreport_every))
         n_steps = int(round((spec.hand.start_s + spec.seconds) * settings.rate_hz))
         step_ns = np.zeros(n_steps, dtype=np.int64)
         hd = 3
@@ -403,6 +446,7 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
             model_numba_us=np.array(numba_us) if numba_us else None,
             model_numpy_us=np.array(numpy_us) if numpy_us else None,
             extra={"loop_exception": crash, "env_steps": env.steps, "updates_sent": env.updates_sent,
+                   "misreported_updates": env.misreport.applied,
                    "loop_updates": loop.updates,
                    "update_errors": loop.update_errors, "model": loop.model.counters() if loop.model else {}})
         return tr

@@ -122,7 +122,9 @@ K_N_PENETRATING = 12
 K_N_SEPARATING = 13
 K_RANK = 14         # rank of the collision constraint set at the last impulse
 K_SLIPPING = 15     # contacts slipping this step
-NCOUNT = 16
+K_FLIPS = 16        # reported normals refused because they reversed an existing contact's (cumulative)
+K_REKEYED = 17      # new keys that took over a contact that left at the same feature (cumulative)
+NCOUNT = 18
 
 # --- linkages ---------------------------------------------------------------------------------
 #: Most links a linkage model holds (a planar linkage with 9 joints; spatial ones stop at 7).
@@ -196,3 +198,17 @@ UNIT_TOL = 1e-6
 #: put deformed contacts at exactly s = 0, which rounding turns into +-1e-19; without a margin
 #: the contact state there would flip on the last bit.
 TOUCH_TOL_M = 1e-12
+#: An existing key whose reported normal turned by more than 90 deg (n_new . n_old below this)
+#: reversed: an edge-edge normal without a fixed sign, or a feature seen from the wrong side. The
+#: update keeps that contact as it was (its previous geometry and state) instead of pushing the
+#: proxy the other way; counted in K_FLIPS.
+FLIP_DOT = 0.0
+#: A new key is the same contact under a new number (engines re-number feature ids) when a
+#: contact that left in the same update has a normal within 5 deg of it, and the proxy's point
+#: of that contact lies within REKEY_DISTANCE_M of the new feature both along the surface and
+#: across it (the two constraint planes coincide): it inherits that contact's state (its
+#: penetration, friction, age), so the force neither drops nor overshoots; counted in K_REKEYED.
+#: Reported in reverse (n_new . n_old below -REKEY_COS) at the same point, it is a flip: the old
+#: contact is kept as it was.
+REKEY_COS = 0.9961946980917455   # cos(5 deg)
+REKEY_DISTANCE_M = 0.002
