@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from . import metrics as M
-from .harness import METHODS, Hand, RunSpec, Trace, run
+from .harness import METHODS, RECOVERY_OFF, Hand, RunSpec, Trace, run
 
 COLORS = {"IR": "tab:red", "LM0": "tab:blue", "LM5": "tab:green"}
 #: device time at which the hand starts: after the session engaged and the force ramped in
@@ -145,8 +145,10 @@ def felt_wall_sweep(out, *, quick: bool = False, log=None) -> dict:
     went on for up to an engine period plus the engine tool's lag; the update rules then deform
     the proxy to just touch there (eq. 4) and keep that while it presses (eq. 5), so the wall is
     felt that much beyond. Predicted in time (epsilon above the travel per engine period) the
-    contact is placed at its true geometry (eq. 6). Writes ``felt_wall_sweep.json`` and
-    ``fig14_felt_wall_vs_epsilon.png``; returns the rows."""
+    contact is placed at its true geometry (eq. 6). Each row is run without deformation recovery
+    (the paper's model: ``felt_wall_mm``) and with the server's default recovery
+    (``recovered``). Writes ``felt_wall_sweep.json`` and ``fig14_felt_wall_vs_epsilon.png``;
+    returns the rows."""
     out = Path(out)
     seeds = QUICK_SEEDS if quick else SEEDS[:5]
     eps_list = (0.0, 5.0, 10.0) if quick else FELT_SWEEP_EPS_MM
@@ -155,12 +157,13 @@ def felt_wall_sweep(out, *, quick: bool = False, log=None) -> dict:
     for f in forces:
         for e in eps_list:
             _log(log, f"fig14 felt-wall sweep: push {f:g} N, epsilon {e:g} mm")
-            felt, first, speed, step_mm = [], [], [], []
+            felt, first, speed, step_mm, recovered = [], [], [], [], []
             for seed in seeds:
                 spec = fig14_spec("LM5", "simulated", True, seed=seed, contact_frame="engine").but(
                     method=f"LM{e:g}", epsilon_m=e / 1e3, policy="lm0" if e == 0 else "deformation",
                     hand=Hand("constant", (0.0, f, 0.0), start_s=HAND_START_S["simulated"]))
-                tr = run(spec, "simulated")
+                recovered.append(M.static_contact_metrics(run(spec, "simulated"))["felt_wall_mm"])
+                tr = run(spec.but(recovery=RECOVERY_OFF), "simulated")
                 m = M.static_contact_metrics(tr)
                 felt.append(m["felt_wall_mm"])
                 first.append(m["first_contact_mm"] if m["first_contact_mm"] is not None else float("nan"))
@@ -168,15 +171,20 @@ def felt_wall_sweep(out, *, quick: bool = False, log=None) -> dict:
                 speed.append(float(tr.dev_vel[i, 1]))
                 step_mm.append(float(tr.dev_vel[i, 1]) * 1e3 / max(tr.env_rate_hz, 1e-9))
             a = np.asarray(felt)
+            rc = np.asarray(recovered)
             rows.append({"push_n": f, "epsilon_mm": e, "seeds": list(seeds),
                          "felt_wall_mm": {"min": round(float(a.min()), 2), "mean": round(float(a.mean()), 2),
                                           "max": round(float(a.max()), 2)},
+                         "recovered": {"felt_wall_mm": {"min": round(float(rc.min()), 2), "mean": round(float(rc.mean()), 2),
+                                                        "max": round(float(rc.max()), 2)},
+                                       "wall_error_mm_mean": round(float(rc.mean()) - M.WALL_Y_MM, 2)},
                          "wall_error_mm_mean": round(float(a.mean()) - M.WALL_Y_MM, 2),
                          "first_contact_mm_mean": round(float(np.nanmean(first)), 2),
                          "approach_speed_m_per_s": round(float(np.mean(speed)), 3),
                          "travel_per_engine_step_mm": round(float(np.mean(step_mm)), 1)})
     res = {"set_up": "Fig. 14 (stub engine 30-60 Hz, k 4000, b 30, 512 Hz, four-channel, deformation, engine "
-                     "contact frame), simulated time; epsilon 0 is LM0", "rows": rows}
+                     "contact frame), simulated time; epsilon 0 is LM0; felt_wall_mm without deformation recovery "
+                     "(the paper's model), recovered: with the server's default recovery", "rows": rows}
     write_json(out / "felt_wall_sweep.json", res)
     plt = _plt()
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -188,6 +196,8 @@ def felt_wall_sweep(out, *, quick: bool = False, log=None) -> dict:
                     marker="o", capsize=3,
                     label=f"push {f:g} N: approach {rs[0]['approach_speed_m_per_s']:.2f} m/s, "
                           f"{rs[0]['travel_per_engine_step_mm']:.1f} mm per engine step")
+        ax.plot([r["epsilon_mm"] for r in rs], [r["recovered"]["felt_wall_mm"]["mean"] for r in rs], ls=":",
+                marker="s", label=f"push {f:g} N, with deformation recovery (the server's default)")
     ax.axhline(M.WALL_Y_MM, color="k", ls="--", lw=0.8, label="the wall (y_COM = 124 mm)")
     ax.set_xlabel("epsilon [mm]")
     ax.set_ylabel("felt wall [mm] (mean, min-max over seeds)")

@@ -48,6 +48,9 @@ METHODS: dict[str, dict] = {
     "LM5": {"controller": "four_channel", "policy": "deformation", "epsilon_m": 0.005},
 }
 
+#: ``RunSpec.recovery`` that turns the deformation recovery off (the paper's model)
+RECOVERY_OFF = (("speed_m_per_s", 0.0),)
+
 _NS = 1_000_000_000
 _mem_names = itertools.count(1)
 TEL_UPDATES = 6  # shm.TEL["updates"]
@@ -140,6 +143,14 @@ class RunSpec:
     misreport: str = ""
     misreport_from_s: float = 0.0
     misreport_every: int = 4
+    #: deformation recovery of the local model (``LocalModel.set_recovery`` keywords as (key,
+    #: value) pairs; () = the model's defaults; ``RECOVERY_OFF`` = the paper's eq. 5 for ever).
+    #: Simulated time only: set on the model the loop builds for the session (the real-time
+    #: server process takes the [model] config's settings)
+    recovery: tuple = ()
+    #: simulated time only: every ProxyState reaches the engine this much later (the engine's
+    #: tool lags the proxy by that much more than its own tracking and the update period)
+    tool_lag_s: float = 0.0
 
     @classmethod
     def for_method(cls, method: str, **kw) -> "RunSpec":
@@ -216,6 +227,7 @@ class Trace:
     model_numpy_us: np.ndarray | None = None  # simulated: the numpy reference on the same states [us]
     penalty: np.ndarray | None = None         # simulated: (n, 3) penalty + friction wrench at the hand
     update_step: np.ndarray | None = None     # simulated: (n,) bool, a model update was applied this step
+    recovering: np.ndarray | None = None      # simulated: (n,) contacts whose deformation was being recovered
     compute_us: dict = field(default_factory=dict)   # realtime: the loop's compute-time percentiles
     lateness_us: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
@@ -301,7 +313,7 @@ class SimEnvClient:
     step length later (its variable rate), as for an engine running in real time."""
 
     def __init__(self, engine, url: str, clock, *, scene: str, epsilon_m: float, max_contacts: int,
-                 delay_s: float = 0.0, misreport: Misreport | None = None) -> None:
+                 delay_s: float = 0.0, misreport: Misreport | None = None, tool_lag_s: float = 0.0) -> None:
         from hapticproxy.clients.engine import ContactBuffer
         from hapticproxy.clients.runner import hello_fields
         from hapticproxy.protocol.codec import Hello
@@ -319,6 +331,8 @@ class SimEnvClient:
         self.pose = np.zeros(7)
         self.delay_ns = int(round(delay_s * _NS))
         self.misreport = misreport or Misreport("", 0.0, 1)
+        self.lag_ns = int(round(tool_lag_s * _NS))
+        self.inbox: list = []      # ProxyStates on their way to the engine (tool_lag_s)
         self.pending: list = []
         self.next_ns = 0
         self.started = False
@@ -334,13 +348,15 @@ class SimEnvClient:
         if not self.started:
             ep.start(now)
             self.started = True
-        newest = None
         while (got := self.tr.recv()) is not None:
             ps = ep.receive(got[0], got[1], now)
             if ps is not None:
-                newest = ps
+                self.inbox.append((now + self.lag_ns, ps))
+        newest = None
+        while self.inbox and self.inbox[0][0] <= now:
+            newest = self.inbox.pop(0)[1]
         if newest is not None:
-            self.engine.drive_tool(newest.proxy_pose, newest.proxy_twist, newest.wrench)
+            self.drive(newest)
         ep.poll(now)
         if ep.reject is not None:
             self.rejected = f"Reject {ep.reject.code}: {ep.reject.reason}"
@@ -370,6 +386,10 @@ class SimEnvClient:
                 ep.send_contacts(now, t_env, pose, k, p, nrm, d, vc)
                 self.updates_sent += 1
 
+    def drive(self, ps) -> None:
+        """Drive the engine's tool towards the newest ProxyState (as the client runner does)."""
+        self.engine.drive_tool(ps.proxy_pose, ps.proxy_twist, ps.wrench)
+
     def close(self) -> None:
         self.tr.close()
 
@@ -391,18 +411,21 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
         settings = cfgmod.load(spec.settings_dict(url, 1, folder))
         clock = SimClock(start_ns=_NS)
         loop = HapticLoop(settings, clock=clock)
+    _configure_models(loop, spec)
     env = None
     try:
         loop.warm_up()
         loop.start()
         env = SimEnvClient(spec.make_engine(), url, clock, scene=spec.scene, epsilon_m=spec.epsilon_m,
                            max_contacts=spec.capacity, delay_s=spec.env_delay_s,
-                           misreport=Misreport(spec.misreport, spec.misreport_from_s, spec.misreport_every))
+                           misreport=Misreport(spec.misreport, spec.misreport_from_s, spec.misreport_every),
+                           tool_lag_s=spec.tool_lag_s)
         n_steps = int(round((spec.hand.start_s + spec.seconds) * settings.rate_hz))
         step_ns = np.zeros(n_steps, dtype=np.int64)
         hd = 3
         pen = np.zeros((n_steps, hd)) if record_penalty else None
         upd = np.zeros(n_steps, dtype=bool)
+        recovering = np.zeros(n_steps, dtype=np.int64)
         numba_us: list[float] = []
         numpy_us: list[float] = []
         rows = np.zeros((n_steps, loop.shared.ring.shape[1]))
@@ -428,9 +451,12 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
             if loop.updates != last_updates:
                 upd[i] = True
                 last_updates = loop.updates
-            if pen is not None and loop.model is not None:
-                pen[i] = loop.model.penalty_wrench[:hd]
+            if loop.model is not None:
+                recovering[i] = loop.model.recovering
+                if pen is not None:
+                    pen[i] = loop.model.penalty_wrench[:hd]
         rows, step_ns, pen, upd = rows[:n_steps], step_ns[:n_steps], (None if pen is None else pen[:n_steps]), upd[:n_steps]
+        recovering = recovering[:n_steps]
         if crash and not np.any(rows[:, TEL_UPDATES] > 0):
             raise RunFailed(f"the server loop failed before the client engaged it: {crash}", crash)
         if env.rejected and not np.any(rows[:, TEL_UPDATES] > 0):
@@ -442,11 +468,13 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
             env_rate_hz=float(snap["env_rate_hz"]), faults=int(loop.faults_total) + (1 if crash else 0),
             model_nonfinite=int(loop.model.counters()["nonfinite"]) if loop.model is not None else 0,
             rate_limited=counters["rate_limited"], saturated=counters["saturated"],
-            per_step={"step_us": step_ns / 1e3, "penalty": pen, "update_step": upd},
+            per_step={"step_us": step_ns / 1e3, "penalty": pen, "update_step": upd, "recovering": recovering},
             model_numba_us=np.array(numba_us) if numba_us else None,
             model_numpy_us=np.array(numpy_us) if numpy_us else None,
             extra={"loop_exception": crash, "env_steps": env.steps, "updates_sent": env.updates_sent,
                    "misreported_updates": env.misreport.applied,
+                   "recovery_energy_j": loop.model.recovery_energy_j if loop.model is not None else 0.0,
+                   "touching_contacts": int(np.sum(loop.model.proxy_separations() <= 0.0)) if loop.model else 0,
                    "loop_updates": loop.updates,
                    "update_errors": loop.update_errors, "model": loop.model.counters() if loop.model else {}})
         return tr
@@ -455,6 +483,27 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
             env.close()
             env.engine.close()
         loop.close()
+
+
+def _configure_models(loop, spec: RunSpec) -> None:
+    """Apply the spec's model options to every LocalModel the loop builds for a session (the
+    loop builds it from the client's Hello; its config has no keys for these yet)."""
+    if not spec.recovery:
+        return
+    build = loop._new_model
+    rec = dict(spec.recovery)
+
+    def new_model(hello, epsilon_m, max_contacts):
+        tool, model = build(hello, epsilon_m, max_contacts)
+        cur = model.recovery
+        if "speed_m_per_s" in rec and "normal_speed_max_m_per_s" not in rec:
+            cur["normal_speed_max_m_per_s"] = None      # follows the speed
+        cur.update(rec)
+        model.set_recovery(cur["speed_m_per_s"], cur["force_rate_n_per_s"], cur["tau_s"], int(cur["min_age_updates"]),
+                           cur["normal_speed_max_m_per_s"])
+        return tool, model
+
+    loop._new_model = new_model
 
 
 def _time_model_step(loop) -> tuple[float, float]:
@@ -477,6 +526,9 @@ def _time_model_step(loop) -> tuple[float, float]:
 # ------------------------------------------------------------------------------ real time
 def run_realtime(spec: RunSpec, *, log=None, connect_timeout_s: float = 30.0) -> Trace:
     """Run ``spec`` on the real server process and a real client over UDP on 127.0.0.1."""
+    if spec.recovery or spec.misreport or spec.tool_lag_s:
+        raise ValueError("recovery / misreport / tool_lag_s: simulated time only (the real-time server takes its "
+                         "[model] config)")
     from hapticproxy.clients.runner import ClientRunner
     from hapticproxy.server import config as cfgmod
     from hapticproxy.server.daemon import Supervisor

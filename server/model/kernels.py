@@ -33,19 +33,19 @@ import numpy as np
 from numba import njit
 
 from .layout import (
-    C_CP, C_D, C_FN, C_FT, C_IMP, C_N, C_P, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
+    C_CP, C_D, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
     CI_AGE, CI_KEY, CI_SLIP, CI_STATE,
     CS_COLLIDING, CS_IMPENDING, CS_PENETRATING, CS_SEPARATING,
     E_CONTACT_NONFINITE, E_DUPLICATE_KEY, E_HAND_NONFINITE, E_LINK_OUT_OF_RANGE,
     E_NORMAL_NOT_UNIT, E_NORMAL_OUT_OF_PLANE, E_OK, E_TOO_MANY,
     K_COLLISIONS, K_DEFORMED, K_DROPPED, K_LEFT, K_M, K_N_COLLIDING, K_N_IMPENDING,
     K_N_PENETRATING, K_N_SEPARATING, K_NEW, K_NONFINITE, K_PROXY, K_RANK, K_SLIPPING, K_STEPS,
-    K_FLIPS, K_REKEYED, K_UPDATES,
+    K_FLIPS, K_RECOVERING, K_REKEYED, K_UPDATES,
     FLIP_DOT, MAX_DOF, NCOLS_F, NCOLS_I, REKEY_COS, REKEY_DISTANCE_M,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
-    P_ORIGIN, P_POLICY,
+    P_ORIGIN, P_POLICY, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN,
     POLICY_RIGID, PS_COLLIDING, PS_FREE, PS_RESTING,
-    S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_Q, S_QD, S_T,
+    S_EREC, S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_Q, S_QD, S_T,
     TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL, TOUCH_TOL_M, UNIT_TOL,
 )
 
@@ -326,6 +326,59 @@ def _render(d, h, L, Jh, Y, G, tau, out, V):
 
 
 @njit(**_JIT)
+def _recovering(C, CI, i, age, vg):
+    """Contact ``i`` is recovered this step: deformed, persisting, touching at the last step, and
+    the proxy resting on it (normal speed at most ``vg``; 0: any)."""
+    return (C[i, C_DEF] > 0.0 and CI[i, CI_AGE] >= age and C[i, C_S] <= TOUCH_TOL_M
+            and (vg <= 0.0 or abs(C[i, C_VN]) <= vg))
+
+
+@njit(**_JIT)
+def _recover(par, st, C, CI, cnt, m):
+    """Deformation recovery: move each deformed, persisting, touching contact's constraint back
+    towards the true geometry (its C_REC grows, its C_DEF shrinks), so the proxy is brought out
+    to the real surface. Bounds: the speed ``P_REC_V`` per contact, the summed penalty force it
+    adds at a fixed pose ``P_REC_FRATE`` (N/s, shared by the recovering contacts), an exponential
+    landing (speed <= remaining / ``P_REC_TAU``). It only deepens contacts already touching (no
+    new collision, no impulse) and never pulls: the penalty force stays one-sided. Its work on the
+    proxy (normal force x recovered distance) accumulates in ``S_EREC``."""
+    vmax = par[P_REC_V]
+    if not vmax > 0.0 or m == 0:
+        cnt[K_RECOVERING] = 0
+        return
+    age = par[P_REC_AGE]
+    vg = par[P_REC_VN]
+    n_r = 0
+    for i in range(m):
+        if _recovering(C, CI, i, age, vg):
+            n_r += 1
+    cnt[K_RECOVERING] = n_r
+    if n_r == 0:
+        return
+    dt = par[P_DT]
+    k = par[P_K]
+    v = vmax
+    fr = par[P_REC_FRATE]
+    if fr > 0.0 and k > 0.0 and fr / (k * n_r) < v:
+        v = fr / (k * n_r)
+    tau = par[P_REC_TAU]
+    e = 0.0
+    for i in range(m):
+        dd = C[i, C_DEF]
+        if not _recovering(C, CI, i, age, vg):
+            continue
+        step = v * dt
+        if tau > 0.0 and dd * dt / tau < step:
+            step = dd * dt / tau
+        if step > dd or dd < 1e-9:
+            step = dd                          # the last nanometre: done
+        C[i, C_DEF] = dd - step
+        C[i, C_REC] += step
+        e += C[i, C_FN] * step
+    st[S_EREC] += e
+
+
+@njit(**_JIT)
 def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V, m):
     """Everything after the kinematics. Reads qd from st, leaves the new velocity in V[_V_QD]
     and the rendered wrenches in st; returns False when the result is not finite."""
@@ -343,6 +396,7 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
     for a in range(d):
         qd0[a] = st[S_QD + a]
         qd[a] = qd0[a]
+    _recover(par, st, C, CI, cnt, m)
     if not _chol(D, L, d):
         return False
 
@@ -353,9 +407,10 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
     n_sep = 0
     for i in range(m):
         n0 = C[i, C_N]; n1 = C[i, C_N + 1]; n2 = C[i, C_N + 2]
-        # the constraint moves with v_constr along n since its update (eq. 2)
+        # the constraint moves with v_constr along n since its update (eq. 2), and towards the
+        # tool by what the recovery took back of the deformation
         s = (n0 * (X[i, 0] - C[i, C_CP]) + n1 * (X[i, 1] - C[i, C_CP + 1])
-             + n2 * (X[i, 2] - C[i, C_CP + 2]) - C[i, C_VC] * (t - C[i, C_TU]))
+             + n2 * (X[i, 2] - C[i, C_CP + 2]) - C[i, C_VC] * (t - C[i, C_TU]) - C[i, C_REC])
         vn = -C[i, C_VC]
         for a in range(d):
             jn = n0 * Jpt[i, 0, a] + n1 * Jpt[i, 1, a] + n2 * Jpt[i, 2, a]
@@ -790,7 +845,7 @@ def _same_feature(C, CI, X, t, i, k, xp, cp, nrm, j):
     if abs(dot) < REKEY_COS:
         return 0.0
     # the two constraint planes (the old one moved on with v_constr since its update)
-    ds = C[i, C_VC] * (t - C[i, C_TU])
+    ds = C[i, C_VC] * (t - C[i, C_TU]) + C[i, C_REC]
     across = 0.0
     for a in range(3):
         across += nrm[j, a] * (cp[j, a] - C[i, C_CP + a] - ds * C[i, C_N + a])
@@ -836,7 +891,7 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
             for b2 in range(3):
                 s += P[k, 3 * a + b2] * C[i, C_P + b2]
             X[i, a] = s
-        s = -C[i, C_VC] * (t - C[i, C_TU])
+        s = -C[i, C_VC] * (t - C[i, C_TU]) - C[i, C_REC]
         for a in range(3):
             s += C[i, C_N + a] * (X[i, a] - C[i, C_CP + a])
         W[i, _W_SP] = s
@@ -952,6 +1007,9 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
         newF[a, C_IMP] = 0.0
         for q_ in range(3):
             newF[a, C_FT + q_] = 0.0
+        # what the rules put the proxy off the true geometry by (eqs. 4/5): to be recovered
+        newF[a, C_DEF] = off - dj if off > dj else 0.0
+        newF[a, C_REC] = 0.0
         # local contact point in the link frame: p = R^T (Xp + (off - s_w) n - c); with the
         # engine at the proxy's pose Xp = c_p + d n, s_w = d: p = R^T (c_p + off n - c)  (eqs. 1, 4, 5, 6)
         w0 = xp[0] + (off - dj) * newF[a, C_N] - P[k, 9]

@@ -59,7 +59,11 @@ C_FN = 15           # penalty normal force this step, N (>= 0: never pulling)
 C_Z = 16            # 16..18 friction bristle (stick spring elongation), world, m
 C_FT = 19           # 19..21 friction force on the proxy, world, N
 C_IMP = 22          # collision impulse at this contact this step, N s (eq. 11)
-NCOLS_F = 23
+C_DEF = 23          # deformation still to recover, m (>= 0): how far the update rules (eqs. 4/5)
+                    # put the local contact point out along n from the true feature
+C_REC = 24          # deformation recovered since the update, m (>= 0): the proxy's separation at this
+                    # contact is eq. 3 minus C_REC (the constraint moved towards the tool by it)
+NCOLS_F = 25
 
 # --- contact store, int64 columns -------------------------------------------------------------
 CI_KEY = 0          # 0..2 stable key: (tool link, environment body, feature)
@@ -85,7 +89,17 @@ P_ORIGIN = 24       # 24..26 1-DOF COM position at q = 0, world, m
 P_HAND = 27         # 27..29 hand (grasp) point, body frame, m
 P_POLICY = 30       # POLICY_* (stored as float)
 P_EPS = 31          # epsilon granted to the engine, m (metadata: the engine applies it)
-NPAR = 32
+P_REC_V = 32        # deformation recovery: largest speed at which a contact's constraint moves back
+                    # towards the true geometry, m/s (0: no recovery, the paper's eq. 5 for ever)
+P_REC_FRATE = 33    # deformation recovery: largest rate of change of the summed penalty force it
+                    # causes, N/s (the speed per contact is capped at P_REC_FRATE / (k * recovering))
+P_REC_TAU = 34      # deformation recovery: the last part is recovered exponentially with this time
+                    # constant, s (speed <= remaining / tau: the proxy lands on the surface gently)
+P_REC_AGE = 35      # deformation recovery: only contacts that survived at least this many model
+                    # updates are recovered (stored as float)
+P_REC_VN = 36       # deformation recovery: only while the proxy's normal speed at the contact is at
+                    # most this, m/s (a resting contact, not an impact or a shaken one; 0: no gate)
+NPAR = 37
 
 # --- state (float64) --------------------------------------------------------------------------
 S_T = 0             # model time, s
@@ -103,7 +117,9 @@ S_LQ = 59           # 59..71 linkage configuration: the root link frame's pose (
                     # theta; spatial: x, y, z, qw, qx, qy, qz; world) then one q per joint in link
                     # order (rad or m). Rigid tools keep q at S_Q; qd is at S_QD for both (root:
                     # velocity of the root frame's origin and angular velocity, world; then joints)
-NSTATE = 72
+S_EREC = 72         # energy the deformation recovery gave the proxy since reset, J (sum of the
+                    # normal force times the recovered distance: the moving constraint's work)
+NSTATE = 73
 
 # --- counters (int64) -------------------------------------------------------------------------
 K_M = 0             # live contacts
@@ -124,7 +140,8 @@ K_RANK = 14         # rank of the collision constraint set at the last impulse
 K_SLIPPING = 15     # contacts slipping this step
 K_FLIPS = 16        # reported normals refused because they reversed an existing contact's (cumulative)
 K_REKEYED = 17      # new keys that took over a contact that left at the same feature (cumulative)
-NCOUNT = 18
+K_RECOVERING = 18   # contacts whose deformation was being recovered this step
+NCOUNT = 19
 
 # --- linkages ---------------------------------------------------------------------------------
 #: Most links a linkage model holds (a planar linkage with 9 joints; spatial ones stop at 7).
