@@ -151,6 +151,10 @@ class RunSpec:
     #: simulated time only: every ProxyState reaches the engine this much later (the engine's
     #: tool lags the proxy by that much more than its own tracking and the update period)
     tool_lag_s: float = 0.0
+    #: simulated time only: the server's advice to the engine (``server/prediction.py``), as the
+    #: ProxyState would carry it: ``predict_epsilon`` the epsilon to use next (bounded by the
+    #: granted one); the engine here follows it
+    predict_epsilon: bool = False
 
     @classmethod
     def for_method(cls, method: str, **kw) -> "RunSpec":
@@ -313,7 +317,8 @@ class SimEnvClient:
     step length later (its variable rate), as for an engine running in real time."""
 
     def __init__(self, engine, url: str, clock, *, scene: str, epsilon_m: float, max_contacts: int,
-                 delay_s: float = 0.0, misreport: Misreport | None = None, tool_lag_s: float = 0.0) -> None:
+                 delay_s: float = 0.0, misreport: Misreport | None = None, tool_lag_s: float = 0.0,
+                 advice=None) -> None:
         from hapticproxy.clients.engine import ContactBuffer
         from hapticproxy.clients.runner import hello_fields
         from hapticproxy.protocol.codec import Hello
@@ -333,6 +338,11 @@ class SimEnvClient:
         self.misreport = misreport or Misreport("", 0.0, 1)
         self.lag_ns = int(round(tool_lag_s * _NS))
         self.inbox: list = []      # ProxyStates on their way to the engine (tool_lag_s)
+        #: the server's EngineAdvice (None: a plain engine); what it says travels with each ProxyState
+        self.advice = advice
+        self.sent_pose = np.zeros(7)   # tool pose and "touching" of the newest ContactUpdate sent
+        self.sent_touching = False
+        self.epsilon_used: list = []
         self.pending: list = []
         self.next_ns = 0
         self.started = False
@@ -351,12 +361,13 @@ class SimEnvClient:
         while (got := self.tr.recv()) is not None:
             ps = ep.receive(got[0], got[1], now)
             if ps is not None:
-                self.inbox.append((now + self.lag_ns, ps))
+                adv = self.advice
+                self.inbox.append((now + self.lag_ns, ps, None if adv is None else adv.epsilon_m))
         newest = None
         while self.inbox and self.inbox[0][0] <= now:
-            newest = self.inbox.pop(0)[1]
+            newest = self.inbox.pop(0)
         if newest is not None:
-            self.drive(newest)
+            self.drive(newest[1], newest[2], newest[0])
         ep.poll(now)
         if ep.reject is not None:
             self.rejected = f"Reject {ep.reject.code}: {ep.reject.reason}"
@@ -375,6 +386,8 @@ class SimEnvClient:
             eng.tool_pose(self.pose)
             b = self.buf
             self.misreport.apply(eng.time_s, b.keys, b.normal, n)
+            self.sent_touching = bool(n and np.min(b.separation_m[:n]) <= 0.0)
+            self.sent_pose[:] = self.pose
             item = (now + self.delay_ns, eng.time_s, self.pose.copy(), b.keys[:n].copy(), b.position_m[:n].copy(),
                     b.normal[:n].copy(), b.separation_m[:n].copy(), b.v_constr_m_per_s[:n].copy())
             self.pending.append(item)
@@ -386,8 +399,12 @@ class SimEnvClient:
                 ep.send_contacts(now, t_env, pose, k, p, nrm, d, vc)
                 self.updates_sent += 1
 
-    def drive(self, ps) -> None:
-        """Drive the engine's tool towards the newest ProxyState (as the client runner does)."""
+    def drive(self, ps, advice=None, at_ns: int = 0) -> None:
+        """Drive the engine's tool towards the newest ProxyState (as the client runner does);
+        with the server's ``advice`` (the epsilon to use next): inflate the tool by it."""
+        if advice is not None and self.advice.predict:
+            self.engine.set_epsilon(advice)
+            self.epsilon_used.append(advice)
         self.engine.drive_tool(ps.proxy_pose, ps.proxy_twist, ps.wrench)
 
     def close(self) -> None:
@@ -416,10 +433,11 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
     try:
         loop.warm_up()
         loop.start()
+        advice = _advice(spec) if spec.predict_epsilon else None
         env = SimEnvClient(spec.make_engine(), url, clock, scene=spec.scene, epsilon_m=spec.epsilon_m,
                            max_contacts=spec.capacity, delay_s=spec.env_delay_s,
                            misreport=Misreport(spec.misreport, spec.misreport_from_s, spec.misreport_every),
-                           tool_lag_s=spec.tool_lag_s)
+                           tool_lag_s=spec.tool_lag_s, advice=advice)
         n_steps = int(round((spec.hand.start_s + spec.seconds) * settings.rate_hz))
         step_ns = np.zeros(n_steps, dtype=np.int64)
         hd = 3
@@ -451,6 +469,11 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
             if loop.updates != last_updates:
                 upd[i] = True
                 last_updates = loop.updates
+                if advice is not None and loop.model is not None:
+                    # what the loop does after applying an update: tell the advice (the ProxyState
+                    # of this step carries its epsilon)
+                    hs = loop.model.hand_state()
+                    advice.on_update(clock.now_ns() * 1e-9, hs[:7], hs[7:13], env.sent_pose, env.sent_touching)
             if loop.model is not None:
                 recovering[i] = loop.model.recovering
                 if pen is not None:
@@ -475,6 +498,10 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
                    "misreported_updates": env.misreport.applied,
                    "recovery_energy_j": loop.model.recovery_energy_j if loop.model is not None else 0.0,
                    "touching_contacts": int(np.sum(loop.model.proxy_separations() <= 0.0)) if loop.model else 0,
+                   "advice": None if advice is None else {
+                       "epsilon_mm": [round(min(env.epsilon_used, default=0.0) * 1e3, 3),
+                                      round(max(env.epsilon_used, default=0.0) * 1e3, 3)],
+                       "distance_mm": round(advice.distance_m * 1e3, 3)},
                    "loop_updates": loop.updates,
                    "update_errors": loop.update_errors, "model": loop.model.counters() if loop.model else {}})
         return tr
@@ -483,6 +510,22 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
             env.close()
             env.engine.close()
         loop.close()
+
+
+def _advice(spec: RunSpec):
+    """The server's EngineAdvice for this run's tool (the granted epsilon is its cap)."""
+    from hapticproxy.server.prediction import EngineAdvice, tool_radius_m
+
+    eng = spec.make_engine()
+    try:
+        tool = eng.load_scene(spec.scene).tool
+    finally:
+        eng.close()
+    ixx, iyy, izz = tool.inertia_kg_m2[:3]
+    r = tool_radius_m(tool.mass_kg, (ixx, iyy, izz) if tool.kind != "planar" else (izz,))
+    r += float(np.linalg.norm(tool.com_m))
+    cap = 0.0 if spec.policy == "lm0" else spec.epsilon_m
+    return EngineAdvice(cap, tool_radius_m=r, predict=spec.predict_epsilon)
 
 
 def _configure_models(loop, spec: RunSpec) -> None:
@@ -526,7 +569,7 @@ def _time_model_step(loop) -> tuple[float, float]:
 # ------------------------------------------------------------------------------ real time
 def run_realtime(spec: RunSpec, *, log=None, connect_timeout_s: float = 30.0) -> Trace:
     """Run ``spec`` on the real server process and a real client over UDP on 127.0.0.1."""
-    if spec.recovery or spec.misreport or spec.tool_lag_s:
+    if spec.recovery or spec.misreport or spec.tool_lag_s or spec.predict_epsilon:
         raise ValueError("recovery / misreport / tool_lag_s: simulated time only (the real-time server takes its "
                          "[model] config)")
     from hapticproxy.clients.runner import ClientRunner
