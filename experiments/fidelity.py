@@ -17,7 +17,7 @@ ProxyState reaches the engine that much later), over several engine seeds:
 Configurations (``CONFIGS``): ``paper`` (no recovery, the epsilon the method asks for, the
 engine follows the proxy as it is told), ``recovery`` (the server's deformation recovery),
 ``predicted`` (recovery off, the server tells the engine the epsilon to use next, up to a
-granted 40 mm).
+granted 40 mm), ``all`` (recovery + predicted epsilon + the lead the engine extrapolates by).
 Methods: LM0 (epsilon 0: nothing to predict) and LM5 (epsilon 5 mm asked; the predicted
 configurations grant up to ``PREDICTED_CAP_M``).
 
@@ -41,11 +41,13 @@ SEEDS = (1, 2, 3, 4, 5)
 QUICK_SEEDS = (1, 2)
 #: the epsilon the predicted configurations may grant (the prediction keeps it small when slow)
 PREDICTED_CAP_M = 0.040
-#: name -> RunSpec changes (LM0 takes only the recovery: with epsilon 0 there is nothing to predict)
+#: name -> RunSpec changes (LM0 takes only the recovery: with epsilon 0 there is nothing to predict
+#: or lead)
 CONFIGS = {
     "paper": {"recovery": RECOVERY_OFF},
     "recovery": {},
     "predicted": {"recovery": RECOVERY_OFF, "predict_epsilon": True, "epsilon_m": PREDICTED_CAP_M},
+    "all": {"predict_epsilon": True, "lead": True, "epsilon_m": PREDICTED_CAP_M},
 }
 LM0_CONFIGS = ("paper", "recovery")
 WALL_SECONDS = 5.0
@@ -55,6 +57,7 @@ def wall_spec(method: str, config: str, push_n: float, lag_s: float, seed: int):
     kw = dict(CONFIGS[config])
     if method == "LM0":
         kw.pop("predict_epsilon", None)
+        kw.pop("lead", None)
         kw.pop("epsilon_m", None)
     return F.fig14_spec(method, "simulated", False, seed=seed, contact_frame="engine").but(
         hand=Hand("constant", (0.0, push_n, 0.0), start_s=F.HAND_START_S["simulated"]), seconds=WALL_SECONDS,
@@ -76,7 +79,7 @@ def wall_rows(*, seeds=SEEDS, pushes=PUSHES_N, lags=LAGS_S, log=None) -> list[di
                 for lag in lags:
                     if log:
                         log(f"fidelity: wall {method} {config} push {push:g} N lag {lag * 1e3:g} ms")
-                    err, reached, fstep, pstep, energy, eps, first, settled = [], [], [], [], [], [], [], []
+                    err, reached, fstep, pstep, energy, eps, lead, first, settled = [], [], [], [], [], [], [], [], []
                     for seed in seeds:
                         tr = run_simulated(wall_spec(method, config, push, lag, seed))
                         f = M.felt_surface_metrics(tr, surface_m=M.WALL_Y_MM / 1e3, axis=1, push_n=push)
@@ -91,6 +94,7 @@ def wall_rows(*, seeds=SEEDS, pushes=PUSHES_N, lags=LAGS_S, log=None) -> list[di
                         adv = tr.extra.get("advice")
                         if adv:
                             eps.append(adv["epsilon_mm"][1])
+                            lead.append(adv["lead_ms"])
                     rows.append({
                         "scenario": "wall", "method": method, "config": config, "push_n": push, "lag_ms": lag * 1e3,
                         "seeds": list(seeds),
@@ -104,6 +108,7 @@ def wall_rows(*, seeds=SEEDS, pushes=PUSHES_N, lags=LAGS_S, log=None) -> list[di
                         "recovery_penalty_step_max_n": round(max(pstep), 4),
                         "recovery_energy_mj": _agg(energy),
                         "epsilon_max_mm": _agg(eps) if eps else None,
+                        "lead_ms": _agg(lead) if lead else None,
                     })
     return rows
 
@@ -182,13 +187,13 @@ def tables_md(res: dict) -> str:
     n = len(res["seeds"])
     lines = [f"Wall (Fig. 14 push, stub 30-60 Hz, 512 Hz, engine frame; {n} seeds; mean / max over seeds):", "",
              "| method | config | push (N) | lag (ms) | surface error (mm) | within 0.5 mm | reached (s) | within 2 s "
-             "| force step max (N) | recovery step max (N) | recovery energy (mJ) | epsilon max (mm) |",
-             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "| force step max (N) | recovery step max (N) | recovery energy (mJ) | epsilon max (mm) | lead (ms) |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in res["wall"]:
         lines.append(f"| {r['method']} | {r['config']} | {r['push_n']:g} | {r['lag_ms']:g} | {_cell(r['surface_error_mm'])} | "
                      f"{r['within_0_5_mm']}/{n} | {_cell(r['surface_reached_s'])} | {r['reached_within_2_s']}/{n} | "
                      f"{r['force_step_max_n']:.3f} | {r['recovery_penalty_step_max_n']:.3f} | "
-                     f"{_cell(r['recovery_energy_mj'])} | {_cell(r['epsilon_max_mm'])} |")
+                     f"{_cell(r['recovery_energy_mj'])} | {_cell(r['epsilon_max_mm'])} | {_cell(r['lead_ms'])} |")
     lines += ["", "1-DOF peg (Figs. 6/9: 5 N at 1 Hz in the exactly fitting hole, 50 Hz engine + 20 ms delay, direct "
               "coupling): how much wider than it is the hole is felt (peak |x| - 5 N / K):", "",
               "| method | config | lag (ms) | hole felt wider by (mm) | last quarter (mm) | unstable | both walls | "

@@ -153,8 +153,10 @@ class RunSpec:
     tool_lag_s: float = 0.0
     #: simulated time only: the server's advice to the engine (``server/prediction.py``), as the
     #: ProxyState would carry it: ``predict_epsilon`` the epsilon to use next (bounded by the
-    #: granted one); the engine here follows it
+    #: granted one), ``lead`` the time the engine extrapolates the proxy's pose by; the engine
+    #: here follows both
     predict_epsilon: bool = False
+    lead: bool = False
 
     @classmethod
     def for_method(cls, method: str, **kw) -> "RunSpec":
@@ -307,6 +309,28 @@ class Misreport:
             keys[:n, 2] += 1_000_000 * self._generation
 
 
+def advance_pose(pose, twist, dt: float, out: np.ndarray) -> np.ndarray:
+    """``pose`` (x y z qw qx qy qz) moved along ``twist`` (v, w: world) for ``dt`` seconds (a
+    constant twist: the translation, and the rotation about the world axis w)."""
+    out[:3] = np.asarray(pose[:3], dtype=float) + dt * np.asarray(twist[:3], dtype=float)
+    w = np.asarray(twist[3:6], dtype=float)
+    wn = float(np.linalg.norm(w))
+    q = np.asarray(pose[3:7], dtype=float)
+    if wn * dt == 0.0:
+        out[3:7] = q
+        return out
+    h = 0.5 * wn * dt
+    s = math.sin(h) / wn
+    dw, dx, dy, dz = math.cos(h), s * w[0], s * w[1], s * w[2]
+    qw, qx, qy, qz = q
+    out[3] = dw * qw - dx * qx - dy * qy - dz * qz
+    out[4] = dw * qx + dx * qw + dy * qz - dz * qy
+    out[5] = dw * qy - dx * qz + dy * qw + dz * qx
+    out[6] = dw * qz + dx * qy - dy * qx + dz * qw
+    out[3:7] /= np.linalg.norm(out[3:7])
+    return out
+
+
 class SimEnvClient:
     """An engine behind the real protocol, stepped in simulated time (one thread, no sockets).
 
@@ -340,6 +364,9 @@ class SimEnvClient:
         self.inbox: list = []      # ProxyStates on their way to the engine (tool_lag_s)
         #: the server's EngineAdvice (None: a plain engine); what it says travels with each ProxyState
         self.advice = advice
+        self._target = None        # (ProxyState, lead_s, arrival ns) the tool follows
+        self._tpose = np.zeros(7)
+        self._ttwist = np.zeros(6)
         self.sent_pose = np.zeros(7)   # tool pose and "touching" of the newest ContactUpdate sent
         self.sent_touching = False
         self.epsilon_used: list = []
@@ -362,7 +389,7 @@ class SimEnvClient:
             ps = ep.receive(got[0], got[1], now)
             if ps is not None:
                 adv = self.advice
-                self.inbox.append((now + self.lag_ns, ps, None if adv is None else adv.epsilon_m))
+                self.inbox.append((now + self.lag_ns, ps, None if adv is None else (adv.epsilon_m, adv.lead_s)))
         newest = None
         while self.inbox and self.inbox[0][0] <= now:
             newest = self.inbox.pop(0)
@@ -380,6 +407,7 @@ class SimEnvClient:
             self.next_ns = now
         if self.welcomed and now >= self.next_ns:
             eng = self.engine
+            self._follow(now)
             dt = eng.next_step_s() or 1.0 / self.info.env_rate_hz
             eng.step(dt)
             n = eng.contacts(self.buf, self.buf.capacity)
@@ -401,11 +429,25 @@ class SimEnvClient:
 
     def drive(self, ps, advice=None, at_ns: int = 0) -> None:
         """Drive the engine's tool towards the newest ProxyState (as the client runner does);
-        with the server's ``advice`` (the epsilon to use next): inflate the tool by it."""
-        if advice is not None and self.advice.predict:
-            self.engine.set_epsilon(advice)
-            self.epsilon_used.append(advice)
-        self.engine.drive_tool(ps.proxy_pose, ps.proxy_twist, ps.wrench)
+        with the server's ``advice`` (epsilon, lead): inflate the tool by that epsilon and track
+        the proxy's pose advanced by the lead (plus the time since it arrived: ``_follow``)."""
+        if advice is None:
+            self.engine.drive_tool(ps.proxy_pose, ps.proxy_twist, ps.wrench)
+            return
+        eps, lead = advice
+        if self.advice.predict:
+            self.engine.set_epsilon(eps)
+            self.epsilon_used.append(eps)
+        self._target = (ps, lead, at_ns)
+        self._follow(at_ns)
+
+    def _follow(self, now: int) -> None:
+        if self._target is None:
+            return
+        ps, lead, at = self._target
+        ahead = lead + (now - at) * 1e-9 if lead > 0 else 0.0
+        advance_pose(ps.proxy_pose, ps.proxy_twist, ahead, self._tpose)
+        self.engine.drive_tool(self._tpose, ps.proxy_twist, ps.wrench)
 
     def close(self) -> None:
         self.tr.close()
@@ -433,7 +475,7 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
     try:
         loop.warm_up()
         loop.start()
-        advice = _advice(spec) if spec.predict_epsilon else None
+        advice = _advice(spec) if (spec.predict_epsilon or spec.lead) else None
         env = SimEnvClient(spec.make_engine(), url, clock, scene=spec.scene, epsilon_m=spec.epsilon_m,
                            max_contacts=spec.capacity, delay_s=spec.env_delay_s,
                            misreport=Misreport(spec.misreport, spec.misreport_from_s, spec.misreport_every),
@@ -471,7 +513,7 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
                 last_updates = loop.updates
                 if advice is not None and loop.model is not None:
                     # what the loop does after applying an update: tell the advice (the ProxyState
-                    # of this step carries its epsilon)
+                    # of this step carries its epsilon and lead)
                     hs = loop.model.hand_state()
                     advice.on_update(clock.now_ns() * 1e-9, hs[:7], hs[7:13], env.sent_pose, env.sent_touching)
             if loop.model is not None:
@@ -501,7 +543,9 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
                    "advice": None if advice is None else {
                        "epsilon_mm": [round(min(env.epsilon_used, default=0.0) * 1e3, 3),
                                       round(max(env.epsilon_used, default=0.0) * 1e3, 3)],
-                       "distance_mm": round(advice.distance_m * 1e3, 3)},
+                       "distance_mm": round(advice.distance_m * 1e3, 3),
+                       "lead_ms": round(advice.lead_s * 1e3, 2), "lag_ms": round(advice.lag_s * 1e3, 2),
+                       "lag_samples": advice.lag_samples},
                    "loop_updates": loop.updates,
                    "update_errors": loop.update_errors, "model": loop.model.counters() if loop.model else {}})
         return tr
@@ -525,7 +569,7 @@ def _advice(spec: RunSpec):
     r = tool_radius_m(tool.mass_kg, (ixx, iyy, izz) if tool.kind != "planar" else (izz,))
     r += float(np.linalg.norm(tool.com_m))
     cap = 0.0 if spec.policy == "lm0" else spec.epsilon_m
-    return EngineAdvice(cap, tool_radius_m=r, predict=spec.predict_epsilon)
+    return EngineAdvice(cap, tool_radius_m=r, predict=spec.predict_epsilon, lead=spec.lead)
 
 
 def _configure_models(loop, spec: RunSpec) -> None:
@@ -569,7 +613,7 @@ def _time_model_step(loop) -> tuple[float, float]:
 # ------------------------------------------------------------------------------ real time
 def run_realtime(spec: RunSpec, *, log=None, connect_timeout_s: float = 30.0) -> Trace:
     """Run ``spec`` on the real server process and a real client over UDP on 127.0.0.1."""
-    if spec.recovery or spec.misreport or spec.tool_lag_s or spec.predict_epsilon:
+    if spec.recovery or spec.misreport or spec.tool_lag_s or spec.predict_epsilon or spec.lead:
         raise ValueError("recovery / misreport / tool_lag_s: simulated time only (the real-time server takes its "
                          "[model] config)")
     from hapticproxy.clients.runner import ClientRunner

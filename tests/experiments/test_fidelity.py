@@ -1,5 +1,5 @@
 """The surface is felt where it is (issue 15), on the whole server loop in simulated time: the
-deformation recovery and the predicted epsilon, each against the paper's model."""
+deformation recovery, the predicted epsilon and the lead, each against the paper's model."""
 from __future__ import annotations
 
 import json
@@ -47,12 +47,26 @@ def test_predicted_epsilon_catches_a_fast_approach_and_does_not_inflate_a_slow_o
     assert slow.extra["advice"]["epsilon_mm"][1] < eps_fast / 3
 
 
+def test_the_lead_keeps_a_lagging_engine_on_the_proxy():
+    # 1 N, the engine's tool 40 ms behind, seed 3, no recovery: the predicted epsilon alone
+    # (capped at 40 mm) still misses the wall; with the lead the engine's tool is on the proxy
+    spec = FD.wall_spec("LM5", "predicted", 1.0, 0.04, 3)
+    tr0 = run_simulated(spec)
+    tr1 = run_simulated(spec.but(lead=True))
+    e0 = M.felt_surface_metrics(tr0, surface_m=M.WALL_Y_MM / 1e3, axis=1, push_n=1.0)["surface_error_mm"]
+    e1 = M.felt_surface_metrics(tr1, surface_m=M.WALL_Y_MM / 1e3, axis=1, push_n=1.0)["surface_error_mm"]
+    assert e0 > 2.0 and abs(e1) < M.SURFACE_BAND_MM
+    adv = tr1.extra["advice"]
+    assert 30.0 < adv["lead_ms"] <= 100.0 and adv["lag_samples"] > 5
+    assert M.static_contact_metrics(tr1)["first_contact_mm"] < M.WALL_Y_MM - 5.0
+
+
 def test_quick_fidelity_writes_its_tables(tmp_path):
     res = FD.run_fidelity(tmp_path, quick=True)
     saved = json.loads((tmp_path / "fidelity.json").read_text())
-    assert len(saved["wall"]) == len(res["wall"]) == 2 * 2 + 2 * 3      # LM0: 2 configs, LM5: 3; 2 lags
+    assert len(saved["wall"]) == len(res["wall"]) == 2 * 2 + 2 * 4      # LM0: 2 configs, LM5: 4; 2 lags
     assert "| method | config |" in (tmp_path / "fidelity.md").read_text()
-    after = [r for r in res["wall"] if r["config"] == "recovery"]
+    after = [r for r in res["wall"] if r["config"] in ("recovery", "all")]
     assert all(r["within_0_5_mm"] == len(res["seeds"]) for r in after)
     paper = [r for r in res["wall"] if r["config"] == "paper"]
     assert all(r["within_0_5_mm"] < len(res["seeds"]) for r in paper)
