@@ -8,6 +8,7 @@
     hapticproxy experiment tradeoff --out out/trade  # the speed / accuracy sweep, Pareto plot
     hapticproxy experiment rates --out out/rates     # only the sweep's real-time achieved-rate runs
     hapticproxy experiment fidelity --out out/fid    # the felt surface before / after (issue 15), simulated
+    hapticproxy experiment literal --out out/lit     # the paper's eq. 6 read literally (its Fig. 14 numbers)
     hapticproxy experiment all --out out/exp         # every one of them, a folder each
 
 ``--quick``: the short version (shorter runs, fewer seeds and configurations). ``--mode``:
@@ -25,7 +26,7 @@ import os
 import sys
 import time
 
-NAMES = ("fig6", "fig9", "fig14", "fig16", "fig17", "tradeoff", "rates", "fidelity")
+NAMES = ("fig6", "fig9", "fig14", "fig16", "fig17", "tradeoff", "rates", "fidelity", "literal")
 
 
 def _summary(name: str, res: dict) -> list[str]:
@@ -56,6 +57,10 @@ def run_one(name: str, out: str, *, mode: str, quick: bool, log) -> dict:
         from .fidelity import run_fidelity
 
         return run_fidelity(out, quick=quick, log=log)
+    if name == "literal":
+        from .figures import paper_literal
+
+        return paper_literal(out, quick=quick, log=log)
     from .figures import FIGURES
 
     return FIGURES[name](out, mode=mode, quick=quick, log=log)
@@ -91,6 +96,10 @@ def main(argv: list[str] | None = None) -> int:
             from .fidelity import tables_md
 
             print(tables_md(res))
+        elif name == "literal":
+            from .figures import literal_md
+
+            print(literal_md(res["rows"]))
         elif name == "tradeoff":
             print(f"tradeoff: {len(res['rows'])} configurations; table {os.path.join(out, 'tradeoff.md')}, "
                   f"stable region {os.path.join(out, 'stable_region.md')}, Pareto plot {os.path.join(out, 'pareto.png')}")
@@ -98,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
             for line in _summary(name, res):
                 print(line)
         what = {"tradeoff": "tradeoff.json, tables", "rates": "rates.json, rates.md",
-                "fidelity": "fidelity.json, fidelity.md"}.get(name, "metrics.json")
+                "fidelity": "fidelity.json, fidelity.md", "literal": "literal.json, literal.md"}.get(name, "metrics.json")
         print(f"{name}: wrote {out}/{what} and plots ({time.perf_counter() - t0:.1f} s)")
     return status
 

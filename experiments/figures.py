@@ -556,3 +556,75 @@ def plot_peg(runs: dict, res: dict, path: Path, title: str, force: bool) -> None
 
 
 FIGURES = {"fig6": fig6, "fig9": fig9, "fig14": fig14, "fig16": fig16, "fig17": fig17}
+
+
+# --------------------------------------------------------------- the paper's eq. 6, literally
+#: The reading of eq. 6 that gives the paper's Fig. 14 numbers (``RunSpec.reading``; an
+#: experiments option, never a server setting): the epsilon-inflated tool rendered, new contacts
+#: placed by eq. 6 too. Run without deformation recovery (the paper's model) in both readings.
+LITERAL_PUSHES_N = (0.1, 0.5)
+
+
+def paper_literal(out, *, quick: bool = False, log=None) -> dict:
+    """``hapticproxy experiment literal``: Fig. 14 (0.1 and 0.5 N; IR, LM0, LM5; both contact
+    frames) and Figs. 16/17 (LM0, LM5) in simulated time over seeds, with the notes' reading of
+    the update rules (the server's) and with eq. 6 read literally. Writes ``literal.json`` and
+    ``literal.md``; returns the rows."""
+    out = Path(out)
+    seeds = QUICK_SEEDS if quick else SEEDS[:5]
+    rows = []
+    for frame in (("proxy",) if quick else ("proxy", "engine")):
+        for push in ((0.1,) if quick else LITERAL_PUSHES_N):
+            for m in METHODS:
+                for reading in ("", "paper-literal"):
+                    if m == "IR" and reading:
+                        continue                     # the IR never deforms: both readings are eq. 1
+                    _log(log, f"literal: fig14 {m} push {push:g} N, {frame} frame, {reading or 'notes'}")
+                    specs = [fig14_spec(m, "simulated", quick, seed=s, contact_frame=frame, recovery=RECOVERY_OFF,
+                                        reading=reading).but(hand=Hand("constant", (0.0, push, 0.0),
+                                                                       start_s=HAND_START_S["simulated"]))
+                             for s in seeds]
+                    st = _seed_stats(specs, M.static_contact_metrics,
+                                     ("felt_wall_mm", "limit_cycle_amplitude_mm", "settled"))
+                    rows.append({"figure": "fig14", "method": m, "reading": reading or "notes", "contact_frame": frame,
+                                 "push_n": push, **{k: st[k] for k in ("seeds", "felt_wall_mm",
+                                                                        "limit_cycle_amplitude_mm", "settled")}})
+    for stiff in ((False,) if quick else (False, True)):
+        for m in ("LM0", "LM5"):
+            for reading in ("", "paper-literal"):
+                name = "fig17" if stiff else "fig16"
+                _log(log, f"literal: {name} {m} {reading or 'notes'}")
+                specs = [hole_spec(m, "simulated", quick, stiff=stiff, seed=s, recovery=RECOVERY_OFF, reading=reading)
+                         for s in seeds]
+                st = _seed_stats(specs, M.hole_metrics, ("drift_mm", "rotation_deg", "unstable"))
+                rows.append({"figure": name, "method": m, "reading": reading or "notes", "contact_frame": "proxy",
+                             **{k: st[k] for k in ("seeds", "drift_mm", "rotation_deg", "unstable")}})
+    res = {"set_up": "simulated time, stub 30-60 Hz, 512 Hz, no deformation recovery; notes: the server's reading of "
+                     "eqs. 4/5/6; paper-literal: eq. 6 read literally (the epsilon-inflated tool rendered, new "
+                     "contacts by eq. 6)", "rows": rows}
+    write_json(out / "literal.json", res)
+    (out / "literal.md").write_text(literal_md(rows) + "\n")
+    return res
+
+
+def _mm(s: dict) -> str:
+    return f"{s['min']:.1f} / {s['mean']:.1f} / {s['max']:.1f}"
+
+
+def literal_md(rows: list[dict]) -> str:
+    lines = ["| figure | method | frame | push (N) | reading | felt wall (mm) min / mean / max | settled | cycle max (mm) |",
+             "| --- | --- | --- | ---: | --- | ---: | ---: | ---: |"]
+    for r in rows:
+        if r["figure"] == "fig14":
+            lines.append(f"| 14 | {r['method']} | {r['contact_frame']} | {r['push_n']:g} | {r['reading']} | "
+                         f"{_mm(r['felt_wall_mm'])} | {r['settled']['true']}/{r['settled']['of']} | "
+                         f"{r['limit_cycle_amplitude_mm']['max']:.1f} |")
+    lines += ["", "| figure | method | reading | drift (mm) min / mean / max | rotation max (deg) | unstable |",
+              "| --- | --- | --- | ---: | ---: | ---: |"]
+    for r in rows:
+        if r["figure"] != "fig14":
+            d = r["drift_mm"]
+            drift = _mm(d) if d["max"] < 1e4 else f"{d['min']:.1f} / - / {d['max']:.3g}"
+            lines.append(f"| {r['figure'][3:]} | {r['method']} | {r['reading']} | {drift} | "
+                         f"{r['rotation_deg']['max']:.3g} | {r['unstable']['true']}/{r['unstable']['of']} |")
+    return "\n".join(lines)

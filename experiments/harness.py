@@ -157,6 +157,10 @@ class RunSpec:
     #: here follows both
     predict_epsilon: bool = False
     lead: bool = False
+    #: reproduction only (never a server setting): "paper-literal" reads the paper's eq. 6
+    #: literally (``LocalModel.read_eq6_literally``: the epsilon-inflated tool rendered, new
+    #: contacts by eq. 6); "" the notes' reading (the server's)
+    reading: str = ""
 
     @classmethod
     def for_method(cls, method: str, **kw) -> "RunSpec":
@@ -575,13 +579,18 @@ def _advice(spec: RunSpec):
 def _configure_models(loop, spec: RunSpec) -> None:
     """Apply the spec's model options to every LocalModel the loop builds for a session (the
     loop builds it from the client's Hello; its config has no keys for these yet)."""
-    if not spec.recovery:
+    if not spec.recovery and not spec.reading:
         return
+    if spec.reading not in ("", "paper-literal"):
+        raise ValueError(f"reading: expected '' or 'paper-literal', got {spec.reading!r}")
     build = loop._new_model
     rec = dict(spec.recovery)
 
     def new_model(hello, epsilon_m, max_contacts):
         tool, model = build(hello, epsilon_m, max_contacts)
+        if spec.reading == "paper-literal":
+            model.read_eq6_literally()
+            return tool, model
         cur = model.recovery
         if "speed_m_per_s" in rec and "normal_speed_max_m_per_s" not in rec:
             cur["normal_speed_max_m_per_s"] = None      # follows the speed
@@ -613,7 +622,7 @@ def _time_model_step(loop) -> tuple[float, float]:
 # ------------------------------------------------------------------------------ real time
 def run_realtime(spec: RunSpec, *, log=None, connect_timeout_s: float = 30.0) -> Trace:
     """Run ``spec`` on the real server process and a real client over UDP on 127.0.0.1."""
-    if spec.recovery or spec.misreport or spec.tool_lag_s or spec.predict_epsilon or spec.lead:
+    if spec.recovery or spec.misreport or spec.tool_lag_s or spec.predict_epsilon or spec.lead or spec.reading:
         raise ValueError("recovery / misreport / tool_lag_s: simulated time only (the real-time server takes its "
                          "[model] config)")
     from hapticproxy.clients.runner import ClientRunner

@@ -43,8 +43,8 @@ from .layout import (
     K_FLIPS, K_RECOVERING, K_REKEYED, K_UPDATES,
     FLIP_DOT, MAX_DOF, NCOLS_F, NCOLS_I, REKEY_COS, REKEY_DISTANCE_M,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
-    P_ORIGIN, P_POLICY, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN,
-    POLICY_RIGID, PS_COLLIDING, PS_FREE, PS_RESTING,
+    P_EPS, P_ORIGIN, P_POLICY, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN,
+    POLICY_PAPER_LITERAL, POLICY_RIGID, PS_COLLIDING, PS_FREE, PS_RESTING,
     S_EREC, S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_Q, S_QD, S_T,
     TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL, TOUCH_TOL_M, UNIT_TOL,
 )
@@ -960,11 +960,15 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
         # the tool feature as the proxy carries it (xp) and its separation dj along n
         xp = W[a, _W_XP:_W_XP + 3]
         dj = _feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, xp)
+        # the separation the rules render: the real tool's, or (the paper read literally, for the
+        # reproductions only) the epsilon-inflated tool's, new contacts included (eq. 6, no eq. 4)
+        literal = policy == POLICY_PAPER_LITERAL
+        dr = dj - par[P_EPS] if literal else dj
         # offset along n of the target world point from c_p (eq. 1/6: d, eq. 5: s_p, eq. 4: 0)
         if found >= 0:
             s_p = W[found, _W_SP]
-            if policy == POLICY_RIGID or dj > 0.0 or s_p < dj:
-                off = dj
+            if policy == POLICY_RIGID or dr > 0.0 or s_p < dr:
+                off = dr
             elif s_p <= 0.0:
                 off = s_p
                 n_def += 1
@@ -980,8 +984,8 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
             newI[a, CI_AGE] = CI[found, CI_AGE] + 1
         else:
             n_new += 1
-            if policy == POLICY_RIGID or dj > 0.0:
-                off = dj
+            if policy == POLICY_RIGID or literal or dr > 0.0:
+                off = dr
             else:
                 off = 0.0
                 n_def += 1
@@ -1008,7 +1012,7 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
         for q_ in range(3):
             newF[a, C_FT + q_] = 0.0
         # what the rules put the proxy off the true geometry by (eqs. 4/5): to be recovered
-        newF[a, C_DEF] = off - dj if off > dj else 0.0
+        newF[a, C_DEF] = off - dr if off > dr else 0.0
         newF[a, C_REC] = 0.0
         # local contact point in the link frame: p = R^T (Xp + (off - s_w) n - c); with the
         # engine at the proxy's pose Xp = c_p + d n, s_w = d: p = R^T (c_p + off n - c)  (eqs. 1, 4, 5, 6)

@@ -30,6 +30,12 @@ POLICY_DEFORM = 1       # eqs. 4/5/6 rule table of the notes (LM0 when the engin
 #: geometry, any epsilon >= 0). One rule set serves both "lm0" and "lm": the engine folds epsilon
 #: into the separation it reports (d = s_eps + epsilon). "deformation" is an alias of "lm".
 POLICY_NAMES = {"rigid": POLICY_RIGID, "lm0": POLICY_DEFORM, "lm": POLICY_DEFORM, "deformation": POLICY_DEFORM}
+#: The paper's eq. 6 read literally, for reproducing its Fig. 14 numbers only (not in
+#: POLICY_NAMES: never a server setting; ``LocalModel.read_eq6_literally``): the rendered
+#: separation is ``(s - epsilon)`` with ``s`` the reported real-tool separation, i.e. the
+#: epsilon-inflated tool is rendered, and new contacts too are placed by eq. 6 (a late one keeps
+#: its penetration: no eq. 4); existing contacts follow the same case table on ``s - epsilon``.
+POLICY_PAPER_LITERAL = 2
 
 # --- local contact states (section IV-A) ------------------------------------------------------
 CS_IMPENDING = 0

@@ -28,7 +28,7 @@ from .layout import (
     K_N_PENETRATING, K_N_SEPARATING, K_NEW, K_NONFINITE, K_PROXY, K_RANK, K_SLIPPING, K_STEPS,
     K_UPDATES, NCOLS_F, NCOLS_I, NCOUNT, NPAR, NSTATE,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_EPS, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK,
-    P_MUS, P_ORIGIN, P_POLICY, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN, POLICY_NAMES, PROXY_STATE_NAMES,
+    P_MUS, P_ORIGIN, P_POLICY, POLICY_PAPER_LITERAL, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN, POLICY_NAMES, PROXY_STATE_NAMES,
     S_EREC, S_FENV, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
     TOOL_1DOF, TOOL_DIMS, TOOL_KIND_NAMES, TOOL_LINKAGE, TOOL_PLANAR, TOOL_SPATIAL, UNIT_TOL,
     JT_PRISMATIC, JT_REVOLUTE, JT_ROOT, LI_CHAIN, LI_NCHAIN, LI_PARENT, LI_TYPE,
@@ -560,6 +560,17 @@ class LocalModel:
         return {"speed_m_per_s": float(p[P_REC_V]), "force_rate_n_per_s": float(p[P_REC_FRATE]),
                 "tau_s": float(p[P_REC_TAU]), "min_age_updates": int(p[P_REC_AGE]),
                 "normal_speed_max_m_per_s": float(p[P_REC_VN])}
+
+    def read_eq6_literally(self) -> None:
+        """Reproductions of the paper's Fig. 14 numbers only (``experiments``; the server never
+        calls it): from the next update on, the update rules render the epsilon-inflated tool
+        (``s - epsilon`` of eq. 6 with ``s`` the reported real-tool separation) and place new
+        contacts by eq. 6 too (no eq. 4). Deformation recovery is turned off (the paper has none).
+        A rigid policy stays rigid."""
+        if self._par[P_POLICY] != 0.0:
+            self._par[P_POLICY] = float(POLICY_PAPER_LITERAL)
+            self.policy = "paper-literal"
+        self.set_recovery(0.0)
 
     @property
     def recovering(self) -> int:
