@@ -87,7 +87,7 @@ def wall_rows(*, seeds=SEEDS, pushes=PUSHES_N, lags=LAGS_S, log=None) -> list[di
                         err.append(abs(f["surface_error_mm"]))
                         reached.append(float(f["surface_reached_s"]))
                         fstep.append(s["force_step_max_n"])
-                        pstep.append(f["recovery_penalty_step_max_n"])
+                        pstep.append(f["recovery_force_step_max_n"])
                         energy.append(f["recovery_energy_mj"])
                         first.append(s["first_contact_mm"] - M.WALL_Y_MM if s["first_contact_mm"] is not None else math.nan)
                         settled.append(s["settled"])
@@ -105,7 +105,7 @@ def wall_rows(*, seeds=SEEDS, pushes=PUSHES_N, lags=LAGS_S, log=None) -> list[di
                         "first_contact_mm": _agg(first),
                         "settled": int(sum(settled)),
                         "force_step_max_n": round(max(fstep), 4),
-                        "recovery_penalty_step_max_n": round(max(pstep), 4),
+                        "recovery_force_step_max_n": round(max(pstep), 4),
                         "recovery_energy_mj": _agg(energy),
                         "epsilon_max_mm": _agg(eps) if eps else None,
                         "lead_ms": _agg(lead) if lead else None,
@@ -192,7 +192,7 @@ def tables_md(res: dict) -> str:
     for r in res["wall"]:
         lines.append(f"| {r['method']} | {r['config']} | {r['push_n']:g} | {r['lag_ms']:g} | {_cell(r['surface_error_mm'])} | "
                      f"{r['within_0_5_mm']}/{n} | {_cell(r['surface_reached_s'])} | {r['reached_within_2_s']}/{n} | "
-                     f"{r['force_step_max_n']:.3f} | {r['recovery_penalty_step_max_n']:.3f} | "
+                     f"{r['force_step_max_n']:.3f} | {r['recovery_force_step_max_n']:.3f} | "
                      f"{_cell(r['recovery_energy_mj'])} | {_cell(r['epsilon_max_mm'])} | {_cell(r['lead_ms'])} |")
     lines += ["", "1-DOF peg (Figs. 6/9: 5 N at 1 Hz in the exactly fitting hole, 50 Hz engine + 20 ms delay, direct "
               "coupling): how much wider than it is the hole is felt (peak |x| - 5 N / K):", "",

@@ -238,6 +238,7 @@ class Trace:
     penalty: np.ndarray | None = None         # simulated: (n, 3) penalty + friction wrench at the hand
     update_step: np.ndarray | None = None     # simulated: (n,) bool, a model update was applied this step
     recovering: np.ndarray | None = None      # simulated: (n,) contacts whose deformation was being recovered
+    recovery_step_n: np.ndarray | None = None  # simulated: (n,) penalty force the recovery added (fixed pose)
     compute_us: dict = field(default_factory=dict)   # realtime: the loop's compute-time percentiles
     lateness_us: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
@@ -490,6 +491,7 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
         pen = np.zeros((n_steps, hd)) if record_penalty else None
         upd = np.zeros(n_steps, dtype=bool)
         recovering = np.zeros(n_steps, dtype=np.int64)
+        rec_step = np.zeros(n_steps)
         numba_us: list[float] = []
         numpy_us: list[float] = []
         rows = np.zeros((n_steps, loop.shared.ring.shape[1]))
@@ -522,10 +524,11 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
                     advice.on_update(clock.now_ns() * 1e-9, hs[:7], hs[7:13], env.sent_pose, env.sent_touching)
             if loop.model is not None:
                 recovering[i] = loop.model.recovering
+                rec_step[i] = loop.model.recovery_force_step_n
                 if pen is not None:
                     pen[i] = loop.model.penalty_wrench[:hd]
         rows, step_ns, pen, upd = rows[:n_steps], step_ns[:n_steps], (None if pen is None else pen[:n_steps]), upd[:n_steps]
-        recovering = recovering[:n_steps]
+        recovering, rec_step = recovering[:n_steps], rec_step[:n_steps]
         if crash and not np.any(rows[:, TEL_UPDATES] > 0):
             raise RunFailed(f"the server loop failed before the client engaged it: {crash}", crash)
         if env.rejected and not np.any(rows[:, TEL_UPDATES] > 0):
@@ -537,7 +540,8 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
             env_rate_hz=float(snap["env_rate_hz"]), faults=int(loop.faults_total) + (1 if crash else 0),
             model_nonfinite=int(loop.model.counters()["nonfinite"]) if loop.model is not None else 0,
             rate_limited=counters["rate_limited"], saturated=counters["saturated"],
-            per_step={"step_us": step_ns / 1e3, "penalty": pen, "update_step": upd, "recovering": recovering},
+            per_step={"step_us": step_ns / 1e3, "penalty": pen, "update_step": upd, "recovering": recovering,
+                      "recovery_step_n": rec_step},
             model_numba_us=np.array(numba_us) if numba_us else None,
             model_numpy_us=np.array(numpy_us) if numpy_us else None,
             extra={"loop_exception": crash, "env_steps": env.steps, "updates_sent": env.updates_sent,

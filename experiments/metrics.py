@@ -235,10 +235,12 @@ def felt_surface_metrics(tr, *, surface_m: float, axis: int, push_n: float, sign
       beyond it (the proxy deformed and kept it).
     - ``surface_reached_s``: time from the first step with a local contact until the device is
       within 0.5 mm of that position for good (``inf``: never).
-    - ``recovery_force_step_max_n``: the largest change of the command written to the device
-      between two consecutive steps while the model was recovering a deformation (0 if it never
-      did); ``recovery_penalty_step_max_n``: the same for the model's penalty force (before the
-      controller); ``recovery_energy_mj``: the work the recovery did on the proxy.
+    - ``recovery_force_step_max_n``: the largest penalty force the recovery itself added in one
+      step (at a fixed pose: k x the distance recovered; its bound is the force rate x the
+      period); ``recovery_command_step_max_n``: the largest change of the command written to the
+      device between two steps while the model was recovering (impacts at other contacts
+      included); ``recovery_penalty_step_max_n``: the same for the model's penalty force;
+      ``recovery_energy_mj``: the work the recovery did on the proxy. 0 if it never recovered.
     """
     k = tr.spec.stiffness_n_per_m
     n_touch = max(1, int(tr.extra.get("touching_contacts", 1)))
@@ -259,10 +261,12 @@ def felt_surface_metrics(tr, *, surface_m: float, axis: int, push_n: float, sign
     fstep = np.linalg.norm(np.diff(tr.cmd[:, :2], axis=0), axis=1)
     pstep = (np.linalg.norm(np.diff(tr.penalty[:, :2], axis=0), axis=1) if tr.penalty is not None
              else np.zeros_like(fstep))
+    own = tr.recovery_step_n if tr.recovery_step_n is not None else np.zeros(len(tr.t_s))
     return {
         "surface_error_mm": round(err, 3),
         "surface_reached_s": round(reached, 3) if math.isfinite(reached) else "inf",
-        "recovery_force_step_max_n": round(float(np.max(fstep[during])) if np.any(during) else 0.0, 4),
+        "recovery_force_step_max_n": round(float(np.max(own)), 4),
+        "recovery_command_step_max_n": round(float(np.max(fstep[during])) if np.any(during) else 0.0, 4),
         "recovery_penalty_step_max_n": round(float(np.max(pstep[during])) if np.any(during) else 0.0, 4),
         "recovery_energy_mj": round(1e3 * float(tr.extra.get("recovery_energy_j", 0.0)), 3),
     }

@@ -45,7 +45,7 @@ from .layout import (
     P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
     P_EPS, P_ORIGIN, P_POLICY, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN,
     POLICY_PAPER_LITERAL, POLICY_RIGID, PS_COLLIDING, PS_FREE, PS_RESTING,
-    S_EREC, S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_Q, S_QD, S_T,
+    S_EREC, S_RECF, S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_Q, S_QD, S_T,
     TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL, TOUCH_TOL_M, UNIT_TOL,
 )
 
@@ -343,6 +343,7 @@ def _recover(par, st, C, CI, cnt, m):
     new collision, no impulse) and never pulls: the penalty force stays one-sided. Its work on the
     proxy (normal force x recovered distance) accumulates in ``S_EREC``."""
     vmax = par[P_REC_V]
+    st[S_RECF] = 0.0
     if not vmax > 0.0 or m == 0:
         cnt[K_RECOVERING] = 0
         return
@@ -363,6 +364,7 @@ def _recover(par, st, C, CI, cnt, m):
         v = fr / (k * n_r)
     tau = par[P_REC_TAU]
     e = 0.0
+    f = 0.0
     for i in range(m):
         dd = C[i, C_DEF]
         if not _recovering(C, CI, i, age, vg):
@@ -375,7 +377,9 @@ def _recover(par, st, C, CI, cnt, m):
         C[i, C_DEF] = dd - step
         C[i, C_REC] += step
         e += C[i, C_FN] * step
+        f += k * step
     st[S_EREC] += e
+    st[S_RECF] = f
 
 
 @njit(**_JIT)

@@ -125,7 +125,9 @@ S_LQ = 59           # 59..71 linkage configuration: the root link frame's pose (
                     # velocity of the root frame's origin and angular velocity, world; then joints)
 S_EREC = 72         # energy the deformation recovery gave the proxy since reset, J (sum of the
                     # normal force times the recovered distance: the moving constraint's work)
-NSTATE = 73
+S_RECF = 73         # penalty force the recovery added at this step at a fixed pose, k x sum of the
+                    # distances recovered, N (what the recovery's force-rate bound limits)
+NSTATE = 74
 
 # --- counters (int64) -------------------------------------------------------------------------
 K_M = 0             # live contacts

@@ -29,7 +29,7 @@ from .layout import (
     K_UPDATES, NCOLS_F, NCOLS_I, NCOUNT, NPAR, NSTATE,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_EPS, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK,
     P_MUS, P_ORIGIN, P_POLICY, POLICY_PAPER_LITERAL, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN, POLICY_NAMES, PROXY_STATE_NAMES,
-    S_EREC, S_FENV, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
+    S_EREC, S_RECF, S_FENV, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
     TOOL_1DOF, TOOL_DIMS, TOOL_KIND_NAMES, TOOL_LINKAGE, TOOL_PLANAR, TOOL_SPATIAL, UNIT_TOL,
     JT_PRISMATIC, JT_REVOLUTE, JT_ROOT, LI_CHAIN, LI_NCHAIN, LI_PARENT, LI_TYPE,
     LK_AXIS, LK_COM, LK_I, LK_MASS, LK_OP, LK_OR, LM_D, LM_H, LM_HELD, LM_NLINKS, LM_NQR, LM_PLANAR,
@@ -576,6 +576,12 @@ class LocalModel:
     def recovering(self) -> int:
         """Contacts whose deformation the last step was recovering."""
         return int(self._cnt[K_RECOVERING])
+
+    @property
+    def recovery_force_step_n(self) -> float:
+        """Penalty force the recovery added at the last step at a fixed pose (k x the distance
+        recovered, summed over the contacts), N: at most ``force_rate_n_per_s`` x the period."""
+        return float(self._st[S_RECF])
 
     @property
     def recovery_energy_j(self) -> float:

@@ -17,7 +17,7 @@ from .layout import (
     K_NONFINITE, K_PROXY, K_RANK, K_RECOVERING, K_SLIPPING, K_STEPS,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
     P_ORIGIN, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN, PS_COLLIDING, PS_FREE, PS_RESTING,
-    S_EREC, S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
+    S_EREC, S_RECF, S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
     TOOL_1DOF, TOOL_DIMS, TOOL_PLANAR, TOUCH_TOL_M, CI_KEY,
 )
 
@@ -274,6 +274,7 @@ def recover(par, st, C, CI, cnt, m: int) -> None:
     persisted ``P_REC_AGE`` updates and touched at the last step takes back at most
     min(v, F_rate / (k n), remaining / tau) dt of its deformation."""
     cnt[K_RECOVERING] = 0
+    st[S_RECF] = 0.0
     if not par[P_REC_V] > 0 or m == 0:
         return
     Cm = C[:m]
@@ -294,6 +295,7 @@ def recover(par, st, C, CI, cnt, m: int) -> None:
         step = np.minimum(step, left * dt / par[P_REC_TAU])
     step = np.where((step > left) | (left < 1e-9), left, step)
     st[S_EREC] += float(np.sum(Cm[elig, C_FN] * step))
+    st[S_RECF] = float(k * np.sum(step))
     Cm[elig, C_DEF] = left - step
     Cm[elig, C_REC] += step
 
