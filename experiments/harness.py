@@ -96,9 +96,9 @@ class Hand:
         of a sampled wrench file (1 kHz, linearly interpolated) for a sinusoid. Wrenches in the
         device's reduced coordinates: planar ``(fx, fy, tz)``; a ``1dof`` device along world x
         takes ``fx`` alone."""
-        cols = {"planar": 3, "1dof": 1}.get(device_kind)
+        cols = {"planar": 3, "1dof": 1, "spatial": 6}.get(device_kind)
         if cols is None:
-            raise ValueError(f"device_kind: expected planar or 1dof, got {device_kind!r}")
+            raise ValueError(f"device_kind: expected planar, 1dof or spatial, got {device_kind!r}")
         if self.kind == "constant":
             return {"type": "steps", "steps": [[0.0, [0.0] * cols], [float(self.start_s), list(self.wrench)[:cols]]]}
         if self.kind != "sinusoid":
@@ -123,7 +123,7 @@ class RunSpec:
     damping_n_s_per_m: float = 30.0
     restitution: float = 0.0
     capacity: int = 16
-    engine: str = "stub"                      # stub | pymunk | peg1d
+    engine: str = "stub"                      # stub | pymunk | peg1d | pybullet
     scene: str = "testbed"
     env_rate_hz: tuple[float, float] = (30.0, 60.0)   # stub: the range its rate wanders in; pymunk, peg1d: [0] fixed
     #: extra one-way delay of every client -> server datagram (the ContactUpdates): in real time an
@@ -134,7 +134,7 @@ class RunSpec:
     seconds: float = 5.0                      # after the hand starts
     workspace_m: float = 0.25
     device: tuple = ()                        # extra [device] keys as (key, value) pairs
-    device_kind: str = "planar"               # planar | 1dof (along world x)
+    device_kind: str = "planar"               # planar | 1dof (along world x) | spatial
     safety: tuple = ()                        # extra [safety] keys as (key, value) pairs
     #: simulated time only: the engine misreports its contacts the way real engines do, from
     #: ``misreport_from_s`` of engine time on (see :class:`Misreport`): "" (never), "flip" (the
@@ -170,7 +170,7 @@ class RunSpec:
         return replace(self, **kw)
 
     def settings_dict(self, url: str, status_port: int | None, folder: Path) -> dict:
-        nd = 3 if self.device_kind == "1dof" else 2
+        nd = 2 if self.device_kind == "planar" else 3
         dev = {"driver": "sim", "kind": self.device_kind, "workspace_min_m": [-self.workspace_m] * nd,
                "workspace_max_m": [self.workspace_m] * nd,
                "hand": self.hand.device_config(self.seconds, folder, self.device_kind)}
@@ -206,7 +206,11 @@ class RunSpec:
             from hapticproxy.clients.peg_engine import PegEngine
 
             return PegEngine(rate_hz=float(self.env_rate_hz[0]))
-        raise ValueError(f"engine: expected stub, pymunk or peg1d, got {self.engine!r}")
+        if self.engine == "pybullet":
+            from hapticproxy.clients.pybullet_engine import PybulletEngine
+
+            return PybulletEngine(rate_hz=float(self.env_rate_hz[0]))
+        raise ValueError(f"engine: expected stub, pymunk, peg1d or pybullet, got {self.engine!r}")
 
 
 @dataclass
@@ -232,6 +236,8 @@ class Trace:
     model_nonfinite: int
     rate_limited: int
     saturated: int
+    dev_xyz: np.ndarray | None = None        # (n, 3) device x, y, z [m] (spatial devices)
+    cmd_xyz: np.ndarray | None = None        # (n, 3) force written to the device fx, fy, fz [N]
     step_us: np.ndarray | None = None        # simulated: CPU time of every loop step [us]
     model_numba_us: np.ndarray | None = None  # simulated: sampled model-kernel steps [us]
     model_numpy_us: np.ndarray | None = None  # simulated: the numpy reference on the same states [us]
@@ -275,6 +281,7 @@ def trace_from_rows(spec: RunSpec, mode: str, rows: np.ndarray, **kw) -> Trace:
     extra_cols = {k: v[i0:] for k, v in kw.pop("per_step", {}).items()}
     return Trace(spec=spec, mode=mode, t_s=t, hand_start_s=float(spec.hand.start_s - t_abs[0]),
                  dev=dev, proxy=prx, dev_vel=cols("dev_vx", "dev_vy", "dev_wz"),
+                 dev_xyz=cols("dev_x", "dev_y", "dev_z"), cmd_xyz=cols("cmd_fx", "cmd_fy", "cmd_fz"),
                  cmd=cols("cmd_fx", "cmd_fy", "cmd_tz"), env=cols("env_fx", "env_fy", "env_tz"),
                  contacts=rows[:, TEL["contacts"]].copy(), updates=rows[:, TEL["updates"]].copy(),
                  state=rows[:, TEL["loop_state"]].copy(), **extra_cols, **kw)

@@ -233,8 +233,9 @@ def felt_surface_metrics(tr, *, surface_m: float, axis: int, push_n: float, sign
       surface, minus the penalty penetration the push needs (push / (k n), n the contacts
       touching at the end of the run): 0 when the wall is felt exactly where it is; positive:
       beyond it (the proxy deformed and kept it).
-    - ``surface_reached_s``: time from the first step with a local contact until the device is
-      within 0.5 mm of that position for good (``inf``: never).
+    - ``surface_reached_s``: time from the arrival (the first step after the hand started at
+      which the device is within 0.5 mm of that position, or beyond it) until it is within
+      0.5 mm for good (``inf``: never).
     - ``recovery_force_step_max_n``: the largest penalty force the recovery itself added in one
       step (at a fixed pose: k x the distance recovered; its bound is the force rate x the
       period); ``recovery_command_step_max_n``: the largest change of the command written to the
@@ -245,12 +246,13 @@ def felt_surface_metrics(tr, *, surface_m: float, axis: int, push_n: float, sign
     k = tr.spec.stiffness_n_per_m
     n_touch = max(1, int(tr.extra.get("touching_contacts", 1)))
     rest_mm = (surface_m + sign * push_n / (k * n_touch)) * 1e3
-    x = sign * (tr.dev[:, axis] * 1e3 - rest_mm)
+    pos = tr.dev_xyz if tr.dev_xyz is not None else tr.dev
+    x = sign * (pos[:, axis] * 1e3 - rest_mm)
     err = float(np.mean(x[_last(tr, FELT_WINDOW_S)]))
-    touched = np.nonzero(tr.contacts > 0)[0]
+    arrived = np.nonzero((tr.t_s >= tr.hand_start_s) & (x >= -SURFACE_BAND_MM))[0]
     reached = math.inf
-    if len(touched):
-        i0 = int(touched[0])
+    if len(arrived):
+        i0 = int(arrived[0])
         out_band = np.nonzero(np.abs(x[i0:]) > SURFACE_BAND_MM)[0]
         if not len(out_band):
             reached = 0.0
@@ -258,7 +260,8 @@ def felt_surface_metrics(tr, *, surface_m: float, axis: int, push_n: float, sign
             reached = float(tr.t_s[i0 + int(out_band[-1]) + 1] - tr.t_s[i0])
     rec = tr.recovering if tr.recovering is not None else np.zeros(len(tr.t_s), dtype=np.int64)
     during = (rec[1:] > 0)
-    fstep = np.linalg.norm(np.diff(tr.cmd[:, :2], axis=0), axis=1)
+    cmd = tr.cmd_xyz if tr.cmd_xyz is not None else tr.cmd[:, :2]
+    fstep = np.linalg.norm(np.diff(cmd, axis=0), axis=1)
     pstep = (np.linalg.norm(np.diff(tr.penalty[:, :2], axis=0), axis=1) if tr.penalty is not None
              else np.zeros_like(fstep))
     own = tr.recovery_step_n if tr.recovery_step_n is not None else np.zeros(len(tr.t_s))

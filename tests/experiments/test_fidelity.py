@@ -74,3 +74,19 @@ def test_quick_fidelity_writes_its_tables(tmp_path):
     peg = {(r["method"], r["config"]): r for r in res["peg"]}
     assert not any(r["unstable"] for r in res["peg"])
     assert peg[("LM0", "recovery")]["peg_error_mm"] < 0.5 * peg[("LM0", "paper")]["peg_error_mm"]
+
+
+@pytest.mark.slow
+def test_spatial_box_on_a_floor_is_felt_where_it_is(tmp_path):
+    pytest.importorskip("pybullet")
+    spec = FD.spatial_spec("floor", "paper", 0.02, 1.0)
+    tr0 = run_simulated(spec)
+    tr1 = run_simulated(FD.spatial_spec("floor", "all", 0.02, 1.0))
+    e = []
+    for tr in (tr0, tr1):
+        push = float(np.mean(np.abs(tr.cmd_xyz[tr.t_s >= tr.t_s[-1] - 1.0, 2])))
+        assert push == pytest.approx(0.5, abs=0.02)
+        e.append(M.felt_surface_metrics(tr, surface_m=FD.FLOOR_Z_M, axis=2, push_n=push, sign=-1.0))
+    assert e[0]["surface_error_mm"] > 5.0                  # the paper's model: felt 5+ mm too deep
+    assert abs(e[1]["surface_error_mm"]) < M.SURFACE_BAND_MM and float(e[1]["surface_reached_s"]) < 2.0
+    assert tr1.faults == 0
