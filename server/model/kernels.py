@@ -1015,8 +1015,10 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
         newF[a, C_IMP] = 0.0
         for q_ in range(3):
             newF[a, C_FT + q_] = 0.0
-        # what the rules put the proxy off the true geometry by (eqs. 4/5): to be recovered
-        newF[a, C_DEF] = off - dr if off > dr else 0.0
+        # what the rules put the proxy off the true geometry by (eqs. 4/5): to be recovered. Only
+        # known in the engine frame: with the paper's eq. 1 the reported separation is the engine
+        # tool's, not the proxy's, and "recovering" towards it only creeps after the engine's tool
+        newF[a, C_DEF] = off - dr if (off > dr and use_qe) else 0.0
         newF[a, C_REC] = 0.0
         # local contact point in the link frame: p = R^T (Xp + (off - s_w) n - c); with the
         # engine at the proxy's pose Xp = c_p + d n, s_w = d: p = R^T (c_p + off n - c)  (eqs. 1, 4, 5, 6)

@@ -522,7 +522,9 @@ class LocalModel:
                      tau_s: float = RECOVERY_TAU_S, min_age_updates: int = RECOVERY_MIN_AGE_UPDATES,
                      normal_speed_max_m_per_s: float | None = None) -> None:
         """Deformation recovery. The update rules (eqs. 4/5) keep a late contact's penetration by
-        moving the proxy's local contact point out along the normal; while such a contact persists
+        moving the proxy's local contact point out along the normal; for updates that carry the
+        engine's tool pose (the engine contact frame: where the true geometry is known relative to
+        the proxy; never with the paper's eq. 1), while such a contact persists
         (at least ``min_age_updates`` model updates) and touches, its constraint is moved back
         towards the true geometry at up to ``speed_m_per_s``, the penalty force this adds at a
         fixed pose changing by at most ``force_rate_n_per_s`` summed over the recovering contacts,

@@ -105,9 +105,9 @@ def test_fig9_epsilon_keeps_both_walls_in_the_model_and_the_peg_tight(tmp_path):
     assert lm5["peak_excursion_mm"] < 0.25 * lm0["peak_excursion_mm"]
     assert lm5["peak_excursion_mm"] < 1.0                    # K x 1 mm = 10 N > the 5 N hand: held by the walls
     assert not lm0["unstable"] and not lm5["unstable"] and res["IR"]["unstable"]
-    # with the contacts in the proxy frame the delayed separations move the walls out (measured,
-    # kept); the deformation recovery takes most of it back
-    assert lm5["peak_excursion_mm"] < lm5["proxy_frame"]["peak_excursion_mm"] < 4 * lm5["peak_excursion_mm"]
+    # with the contacts in the proxy frame the delayed separations move the walls (measured, kept;
+    # the deformation recovery needs the engine frame, so it does not act there)
+    assert lm5["proxy_frame"]["peak_excursion_mm"] > 2 * lm5["peak_excursion_mm"]
     assert (tmp_path / "fig9.png").exists() and (tmp_path / "fig9_proxy_frame.png").exists()
 
 

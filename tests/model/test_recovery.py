@@ -181,3 +181,26 @@ def test_bad_recovery_settings_are_refused_by_name(field, value):
     with pytest.raises(ValueError, match=field):
         m.set_recovery(**kw)
     assert m.recovery == before
+
+
+def test_without_the_engines_tool_pose_nothing_is_recovered():
+    # the paper's eq. 1 (no tool_q): the reported separation is the engine tool's, the model does
+    # not know where the true surface is relative to the proxy. The engine reports its tool 3 mm
+    # in while the proxy is barely touching: eq. 5 keeps the proxy's penetration, as always, and
+    # nothing is "recovered" towards the engine tool's 3 mm
+    m = _deformed(recovery_min_age_updates=0)
+    m.update(KEYS, CP, NRM, np.zeros(2))
+    for i in range(600):
+        if i % 20 == 0:
+            m.update(KEYS, CP, NRM, np.full(2, -0.003))
+        m.step([0.0, -0.5, 0.0])
+    assert m.contacts().deformation_m.max() == 0.0 and m.recovery_energy_j == 0.0
+    assert np.all(m.proxy_separations() > -0.001)
+    # the same with the engine's tool pose: a deformation of about 3 mm, recovered
+    e = _deformed(recovery_min_age_updates=0)
+    e.update(KEYS, CP, NRM, np.zeros(2), tool_q=e.q.copy())
+    for i in range(600):
+        if i % 20 == 0:
+            e.update(KEYS, CP, NRM, np.full(2, -0.003), tool_q=e.q.copy())
+        e.step([0.0, -0.5, 0.0])
+    assert e.recovery_energy_j > 0.0
