@@ -7,6 +7,8 @@
     hapticproxy experiment fig17 --out out/fig17     # the tight hole at k = 15000 N/m: stability
     hapticproxy experiment tradeoff --out out/trade  # the speed / accuracy sweep, Pareto plot
     hapticproxy experiment rates --out out/rates     # only the sweep's real-time achieved-rate runs
+    hapticproxy experiment fidelity --out out/fid    # the felt surface before / after (issue 15), simulated
+    hapticproxy experiment literal --out out/lit     # the paper's eq. 6 read literally (its Fig. 14 numbers)
     hapticproxy experiment all --out out/exp         # every one of them, a folder each
 
 ``--quick``: the short version (shorter runs, fewer seeds and configurations). ``--mode``:
@@ -24,7 +26,7 @@ import os
 import sys
 import time
 
-NAMES = ("fig6", "fig9", "fig14", "fig16", "fig17", "tradeoff", "rates")
+NAMES = ("fig6", "fig9", "fig14", "fig16", "fig17", "tradeoff", "rates", "fidelity", "literal")
 
 
 def _summary(name: str, res: dict) -> list[str]:
@@ -51,6 +53,14 @@ def run_one(name: str, out: str, *, mode: str, quick: bool, log) -> dict:
         from .tradeoff import run_rates
 
         return run_rates(out, quick=quick, log=log)
+    if name == "fidelity":
+        from .fidelity import run_fidelity
+
+        return run_fidelity(out, quick=quick, log=log)
+    if name == "literal":
+        from .figures import paper_literal
+
+        return paper_literal(out, quick=quick, log=log)
     from .figures import FIGURES
 
     return FIGURES[name](out, mode=mode, quick=quick, log=log)
@@ -82,13 +92,22 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"rates {r['rate_hz']:g} Hz: " + (f"failed: {r['error']}" if "error" in r else
                       f"achieved {r['achieved_rate_hz']:.1f} Hz, missed {r['missed_deadlines']}, compute p99 "
                       f"{r['compute_us'].get('p99')} us"))
+        elif name == "fidelity":
+            from .fidelity import tables_md
+
+            print(tables_md(res))
+        elif name == "literal":
+            from .figures import literal_md
+
+            print(literal_md(res["rows"]))
         elif name == "tradeoff":
             print(f"tradeoff: {len(res['rows'])} configurations; table {os.path.join(out, 'tradeoff.md')}, "
                   f"stable region {os.path.join(out, 'stable_region.md')}, Pareto plot {os.path.join(out, 'pareto.png')}")
         else:
             for line in _summary(name, res):
                 print(line)
-        what = {"tradeoff": "tradeoff.json, tables", "rates": "rates.json, rates.md"}.get(name, "metrics.json")
+        what = {"tradeoff": "tradeoff.json, tables", "rates": "rates.json, rates.md",
+                "fidelity": "fidelity.json, fidelity.md", "literal": "literal.json, literal.md"}.get(name, "metrics.json")
         print(f"{name}: wrote {out}/{what} and plots ({time.perf_counter() - t0:.1f} s)")
     return status
 

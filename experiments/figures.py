@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from . import metrics as M
-from .harness import METHODS, Hand, RunSpec, Trace, run
+from .harness import METHODS, RECOVERY_OFF, Hand, RunSpec, Trace, run
 
 COLORS = {"IR": "tab:red", "LM0": "tab:blue", "LM5": "tab:green"}
 #: device time at which the hand starts: after the session engaged and the force ramped in
@@ -145,8 +145,10 @@ def felt_wall_sweep(out, *, quick: bool = False, log=None) -> dict:
     went on for up to an engine period plus the engine tool's lag; the update rules then deform
     the proxy to just touch there (eq. 4) and keep that while it presses (eq. 5), so the wall is
     felt that much beyond. Predicted in time (epsilon above the travel per engine period) the
-    contact is placed at its true geometry (eq. 6). Writes ``felt_wall_sweep.json`` and
-    ``fig14_felt_wall_vs_epsilon.png``; returns the rows."""
+    contact is placed at its true geometry (eq. 6). Each row is run without deformation recovery
+    (the paper's model: ``felt_wall_mm``) and with the server's default recovery
+    (``recovered``). Writes ``felt_wall_sweep.json`` and ``fig14_felt_wall_vs_epsilon.png``;
+    returns the rows."""
     out = Path(out)
     seeds = QUICK_SEEDS if quick else SEEDS[:5]
     eps_list = (0.0, 5.0, 10.0) if quick else FELT_SWEEP_EPS_MM
@@ -155,12 +157,13 @@ def felt_wall_sweep(out, *, quick: bool = False, log=None) -> dict:
     for f in forces:
         for e in eps_list:
             _log(log, f"fig14 felt-wall sweep: push {f:g} N, epsilon {e:g} mm")
-            felt, first, speed, step_mm = [], [], [], []
+            felt, first, speed, step_mm, recovered = [], [], [], [], []
             for seed in seeds:
                 spec = fig14_spec("LM5", "simulated", True, seed=seed, contact_frame="engine").but(
                     method=f"LM{e:g}", epsilon_m=e / 1e3, policy="lm0" if e == 0 else "deformation",
                     hand=Hand("constant", (0.0, f, 0.0), start_s=HAND_START_S["simulated"]))
-                tr = run(spec, "simulated")
+                recovered.append(M.static_contact_metrics(run(spec, "simulated"))["felt_wall_mm"])
+                tr = run(spec.but(recovery=RECOVERY_OFF), "simulated")
                 m = M.static_contact_metrics(tr)
                 felt.append(m["felt_wall_mm"])
                 first.append(m["first_contact_mm"] if m["first_contact_mm"] is not None else float("nan"))
@@ -168,15 +171,20 @@ def felt_wall_sweep(out, *, quick: bool = False, log=None) -> dict:
                 speed.append(float(tr.dev_vel[i, 1]))
                 step_mm.append(float(tr.dev_vel[i, 1]) * 1e3 / max(tr.env_rate_hz, 1e-9))
             a = np.asarray(felt)
+            rc = np.asarray(recovered)
             rows.append({"push_n": f, "epsilon_mm": e, "seeds": list(seeds),
                          "felt_wall_mm": {"min": round(float(a.min()), 2), "mean": round(float(a.mean()), 2),
                                           "max": round(float(a.max()), 2)},
+                         "recovered": {"felt_wall_mm": {"min": round(float(rc.min()), 2), "mean": round(float(rc.mean()), 2),
+                                                        "max": round(float(rc.max()), 2)},
+                                       "wall_error_mm_mean": round(float(rc.mean()) - M.WALL_Y_MM, 2)},
                          "wall_error_mm_mean": round(float(a.mean()) - M.WALL_Y_MM, 2),
                          "first_contact_mm_mean": round(float(np.nanmean(first)), 2),
                          "approach_speed_m_per_s": round(float(np.mean(speed)), 3),
                          "travel_per_engine_step_mm": round(float(np.mean(step_mm)), 1)})
     res = {"set_up": "Fig. 14 (stub engine 30-60 Hz, k 4000, b 30, 512 Hz, four-channel, deformation, engine "
-                     "contact frame), simulated time; epsilon 0 is LM0", "rows": rows}
+                     "contact frame), simulated time; epsilon 0 is LM0; felt_wall_mm without deformation recovery "
+                     "(the paper's model), recovered: with the server's default recovery", "rows": rows}
     write_json(out / "felt_wall_sweep.json", res)
     plt = _plt()
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -188,6 +196,8 @@ def felt_wall_sweep(out, *, quick: bool = False, log=None) -> dict:
                     marker="o", capsize=3,
                     label=f"push {f:g} N: approach {rs[0]['approach_speed_m_per_s']:.2f} m/s, "
                           f"{rs[0]['travel_per_engine_step_mm']:.1f} mm per engine step")
+        ax.plot([r["epsilon_mm"] for r in rs], [r["recovered"]["felt_wall_mm"]["mean"] for r in rs], ls=":",
+                marker="s", label=f"push {f:g} N, with deformation recovery (the server's default)")
     ax.axhline(M.WALL_Y_MM, color="k", ls="--", lw=0.8, label="the wall (y_COM = 124 mm)")
     ax.set_xlabel("epsilon [mm]")
     ax.set_ylabel("felt wall [mm] (mean, min-max over seeds)")
@@ -546,3 +556,75 @@ def plot_peg(runs: dict, res: dict, path: Path, title: str, force: bool) -> None
 
 
 FIGURES = {"fig6": fig6, "fig9": fig9, "fig14": fig14, "fig16": fig16, "fig17": fig17}
+
+
+# --------------------------------------------------------------- the paper's eq. 6, literally
+#: The reading of eq. 6 that gives the paper's Fig. 14 numbers (``RunSpec.reading``; an
+#: experiments option, never a server setting): the epsilon-inflated tool rendered, new contacts
+#: placed by eq. 6 too. Run without deformation recovery (the paper's model) in both readings.
+LITERAL_PUSHES_N = (0.1, 0.5)
+
+
+def paper_literal(out, *, quick: bool = False, log=None) -> dict:
+    """``hapticproxy experiment literal``: Fig. 14 (0.1 and 0.5 N; IR, LM0, LM5; both contact
+    frames) and Figs. 16/17 (LM0, LM5) in simulated time over seeds, with the notes' reading of
+    the update rules (the server's) and with eq. 6 read literally. Writes ``literal.json`` and
+    ``literal.md``; returns the rows."""
+    out = Path(out)
+    seeds = QUICK_SEEDS if quick else SEEDS[:5]
+    rows = []
+    for frame in (("proxy",) if quick else ("proxy", "engine")):
+        for push in ((0.1,) if quick else LITERAL_PUSHES_N):
+            for m in METHODS:
+                for reading in ("", "paper-literal"):
+                    if m == "IR" and reading:
+                        continue                     # the IR never deforms: both readings are eq. 1
+                    _log(log, f"literal: fig14 {m} push {push:g} N, {frame} frame, {reading or 'notes'}")
+                    specs = [fig14_spec(m, "simulated", quick, seed=s, contact_frame=frame, recovery=RECOVERY_OFF,
+                                        reading=reading).but(hand=Hand("constant", (0.0, push, 0.0),
+                                                                       start_s=HAND_START_S["simulated"]))
+                             for s in seeds]
+                    st = _seed_stats(specs, M.static_contact_metrics,
+                                     ("felt_wall_mm", "limit_cycle_amplitude_mm", "settled"))
+                    rows.append({"figure": "fig14", "method": m, "reading": reading or "notes", "contact_frame": frame,
+                                 "push_n": push, **{k: st[k] for k in ("seeds", "felt_wall_mm",
+                                                                        "limit_cycle_amplitude_mm", "settled")}})
+    for stiff in ((False,) if quick else (False, True)):
+        for m in ("LM0", "LM5"):
+            for reading in ("", "paper-literal"):
+                name = "fig17" if stiff else "fig16"
+                _log(log, f"literal: {name} {m} {reading or 'notes'}")
+                specs = [hole_spec(m, "simulated", quick, stiff=stiff, seed=s, recovery=RECOVERY_OFF, reading=reading)
+                         for s in seeds]
+                st = _seed_stats(specs, M.hole_metrics, ("drift_mm", "rotation_deg", "unstable"))
+                rows.append({"figure": name, "method": m, "reading": reading or "notes", "contact_frame": "proxy",
+                             **{k: st[k] for k in ("seeds", "drift_mm", "rotation_deg", "unstable")}})
+    res = {"set_up": "simulated time, stub 30-60 Hz, 512 Hz, no deformation recovery; notes: the server's reading of "
+                     "eqs. 4/5/6; paper-literal: eq. 6 read literally (the epsilon-inflated tool rendered, new "
+                     "contacts by eq. 6)", "rows": rows}
+    write_json(out / "literal.json", res)
+    (out / "literal.md").write_text(literal_md(rows) + "\n")
+    return res
+
+
+def _mm(s: dict) -> str:
+    return f"{s['min']:.1f} / {s['mean']:.1f} / {s['max']:.1f}"
+
+
+def literal_md(rows: list[dict]) -> str:
+    lines = ["| figure | method | frame | push (N) | reading | felt wall (mm) min / mean / max | settled | cycle max (mm) |",
+             "| --- | --- | --- | ---: | --- | ---: | ---: | ---: |"]
+    for r in rows:
+        if r["figure"] == "fig14":
+            lines.append(f"| 14 | {r['method']} | {r['contact_frame']} | {r['push_n']:g} | {r['reading']} | "
+                         f"{_mm(r['felt_wall_mm'])} | {r['settled']['true']}/{r['settled']['of']} | "
+                         f"{r['limit_cycle_amplitude_mm']['max']:.1f} |")
+    lines += ["", "| figure | method | reading | drift (mm) min / mean / max | rotation max (deg) | unstable |",
+              "| --- | --- | --- | ---: | ---: | ---: |"]
+    for r in rows:
+        if r["figure"] != "fig14":
+            d = r["drift_mm"]
+            drift = _mm(d) if d["max"] < 1e4 else f"{d['min']:.1f} / - / {d['max']:.3g}"
+            lines.append(f"| {r['figure'][3:]} | {r['method']} | {r['reading']} | {drift} | "
+                         f"{r['rotation_deg']['max']:.3g} | {r['unstable']['true']}/{r['unstable']['of']} |")
+    return "\n".join(lines)

@@ -48,6 +48,9 @@ METHODS: dict[str, dict] = {
     "LM5": {"controller": "four_channel", "policy": "deformation", "epsilon_m": 0.005},
 }
 
+#: ``RunSpec.recovery`` that turns the deformation recovery off (the paper's model)
+RECOVERY_OFF = (("speed_m_per_s", 0.0),)
+
 _NS = 1_000_000_000
 _mem_names = itertools.count(1)
 TEL_UPDATES = 6  # shm.TEL["updates"]
@@ -93,9 +96,9 @@ class Hand:
         of a sampled wrench file (1 kHz, linearly interpolated) for a sinusoid. Wrenches in the
         device's reduced coordinates: planar ``(fx, fy, tz)``; a ``1dof`` device along world x
         takes ``fx`` alone."""
-        cols = {"planar": 3, "1dof": 1}.get(device_kind)
+        cols = {"planar": 3, "1dof": 1, "spatial": 6}.get(device_kind)
         if cols is None:
-            raise ValueError(f"device_kind: expected planar or 1dof, got {device_kind!r}")
+            raise ValueError(f"device_kind: expected planar, 1dof or spatial, got {device_kind!r}")
         # the experiments time the hand from the server's start (start_s is in that time base)
         if self.kind == "constant":
             return {"type": "steps", "start": "server",
@@ -122,7 +125,7 @@ class RunSpec:
     damping_n_s_per_m: float = 30.0
     restitution: float = 0.0
     capacity: int = 16
-    engine: str = "stub"                      # stub | pymunk | peg1d
+    engine: str = "stub"                      # stub | pymunk | peg1d | pybullet
     scene: str = "testbed"
     env_rate_hz: tuple[float, float] = (30.0, 60.0)   # stub: the range its rate wanders in; pymunk, peg1d: [0] fixed
     #: extra one-way delay of every client -> server datagram (the ContactUpdates): in real time an
@@ -133,8 +136,33 @@ class RunSpec:
     seconds: float = 5.0                      # after the hand starts
     workspace_m: float = 0.25
     device: tuple = ()                        # extra [device] keys as (key, value) pairs
-    device_kind: str = "planar"               # planar | 1dof (along world x)
+    device_kind: str = "planar"               # planar | 1dof (along world x) | spatial
     safety: tuple = ()                        # extra [safety] keys as (key, value) pairs
+    #: simulated time only: the engine misreports its contacts the way real engines do, from
+    #: ``misreport_from_s`` of engine time on (see :class:`Misreport`): "" (never), "flip" (the
+    #: first contact's normal reversed in every ``misreport_every``-th update), "flip-hold" (reversed
+    #: in every update), "rekey" (every key renumbered in every ``misreport_every``-th update)
+    misreport: str = ""
+    misreport_from_s: float = 0.0
+    misreport_every: int = 4
+    #: deformation recovery of the local model (``LocalModel.set_recovery`` keywords as (key,
+    #: value) pairs; () = the model's defaults; ``RECOVERY_OFF`` = the paper's eq. 5 for ever).
+    #: Simulated time only: set on the model the loop builds for the session (the real-time
+    #: server process takes the [model] config's settings)
+    recovery: tuple = ()
+    #: simulated time only: every ProxyState reaches the engine this much later (the engine's
+    #: tool lags the proxy by that much more than its own tracking and the update period)
+    tool_lag_s: float = 0.0
+    #: simulated time only: the server's advice to the engine (``server/prediction.py``), as the
+    #: ProxyState would carry it: ``predict_epsilon`` the epsilon to use next (bounded by the
+    #: granted one), ``lead`` the time the engine extrapolates the proxy's pose by; the engine
+    #: here follows both
+    predict_epsilon: bool = False
+    lead: bool = False
+    #: reproduction only (never a server setting): "paper-literal" reads the paper's eq. 6
+    #: literally (``LocalModel.read_eq6_literally``: the epsilon-inflated tool rendered, new
+    #: contacts by eq. 6); "" the notes' reading (the server's)
+    reading: str = ""
 
     @classmethod
     def for_method(cls, method: str, **kw) -> "RunSpec":
@@ -144,7 +172,7 @@ class RunSpec:
         return replace(self, **kw)
 
     def settings_dict(self, url: str, status_port: int | None, folder: Path) -> dict:
-        nd = 3 if self.device_kind == "1dof" else 2
+        nd = 2 if self.device_kind == "planar" else 3
         dev = {"driver": "sim", "kind": self.device_kind, "workspace_min_m": [-self.workspace_m] * nd,
                "workspace_max_m": [self.workspace_m] * nd,
                "hand": self.hand.device_config(self.seconds, folder, self.device_kind)}
@@ -182,7 +210,11 @@ class RunSpec:
             from hapticproxy.clients.peg_engine import PegEngine
 
             return PegEngine(rate_hz=float(self.env_rate_hz[0]))
-        raise ValueError(f"engine: expected stub, pymunk or peg1d, got {self.engine!r}")
+        if self.engine == "pybullet":
+            from hapticproxy.clients.pybullet_engine import PybulletEngine
+
+            return PybulletEngine(rate_hz=float(self.env_rate_hz[0]))
+        raise ValueError(f"engine: expected stub, pymunk, peg1d or pybullet, got {self.engine!r}")
 
 
 @dataclass
@@ -208,11 +240,15 @@ class Trace:
     model_nonfinite: int
     rate_limited: int
     saturated: int
+    dev_xyz: np.ndarray | None = None        # (n, 3) device x, y, z [m] (spatial devices)
+    cmd_xyz: np.ndarray | None = None        # (n, 3) force written to the device fx, fy, fz [N]
     step_us: np.ndarray | None = None        # simulated: CPU time of every loop step [us]
     model_numba_us: np.ndarray | None = None  # simulated: sampled model-kernel steps [us]
     model_numpy_us: np.ndarray | None = None  # simulated: the numpy reference on the same states [us]
     penalty: np.ndarray | None = None         # simulated: (n, 3) penalty + friction wrench at the hand
     update_step: np.ndarray | None = None     # simulated: (n,) bool, a model update was applied this step
+    recovering: np.ndarray | None = None      # simulated: (n,) contacts whose deformation was being recovered
+    recovery_step_n: np.ndarray | None = None  # simulated: (n,) penalty force the recovery added (fixed pose)
     compute_us: dict = field(default_factory=dict)   # realtime: the loop's compute-time percentiles
     lateness_us: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
@@ -249,12 +285,68 @@ def trace_from_rows(spec: RunSpec, mode: str, rows: np.ndarray, **kw) -> Trace:
     extra_cols = {k: v[i0:] for k, v in kw.pop("per_step", {}).items()}
     return Trace(spec=spec, mode=mode, t_s=t, hand_start_s=float(spec.hand.start_s - t_abs[0]),
                  dev=dev, proxy=prx, dev_vel=cols("dev_vx", "dev_vy", "dev_wz"),
+                 dev_xyz=cols("dev_x", "dev_y", "dev_z"), cmd_xyz=cols("cmd_fx", "cmd_fy", "cmd_fz"),
                  cmd=cols("cmd_fx", "cmd_fy", "cmd_tz"), env=cols("env_fx", "env_fy", "env_tz"),
                  contacts=rows[:, TEL["contacts"]].copy(), updates=rows[:, TEL["updates"]].copy(),
                  state=rows[:, TEL["loop_state"]].copy(), **extra_cols, **kw)
 
 
 # ------------------------------------------------------------------------------ simulated time
+class Misreport:
+    """What real engines do to a contact set that the model must survive (issue 13, section 4):
+    edge-edge normals without a fixed sign (``flip``: the first contact's normal reversed, its
+    point and depth kept, in one update out of ``every``; ``flip-hold``: in every update) and
+    feature ids that get renumbered (``rekey``: every key's feature id moved to a new number in
+    one update out of ``every``, the geometry unchanged)."""
+
+    KINDS = ("", "flip", "flip-hold", "rekey")
+
+    def __init__(self, kind: str, from_s: float, every: int) -> None:
+        if kind not in self.KINDS:
+            raise ValueError(f"misreport: expected one of {self.KINDS}, got {kind!r}")
+        if int(every) < 1:
+            raise ValueError(f"misreport_every: must be >= 1, got {every!r}")
+        self.kind, self.from_s, self.every = kind, float(from_s), int(every)
+        self.updates = 0
+        self.applied = 0
+        self._generation = 0
+
+    def apply(self, env_time_s: float, keys: np.ndarray, normal: np.ndarray, n: int) -> None:
+        if not self.kind or env_time_s < self.from_s or n == 0:
+            return
+        self.updates += 1
+        if self.kind == "flip-hold" or (self.kind == "flip" and self.updates % self.every == 0):
+            normal[0] *= -1.0
+            self.applied += 1
+        elif self.kind == "rekey" and self.updates % self.every == 0:
+            self._generation += 1
+            self.applied += 1
+        if self.kind == "rekey" and self._generation:
+            keys[:n, 2] += 1_000_000 * self._generation
+
+
+def advance_pose(pose, twist, dt: float, out: np.ndarray) -> np.ndarray:
+    """``pose`` (x y z qw qx qy qz) moved along ``twist`` (v, w: world) for ``dt`` seconds (a
+    constant twist: the translation, and the rotation about the world axis w)."""
+    out[:3] = np.asarray(pose[:3], dtype=float) + dt * np.asarray(twist[:3], dtype=float)
+    w = np.asarray(twist[3:6], dtype=float)
+    wn = float(np.linalg.norm(w))
+    q = np.asarray(pose[3:7], dtype=float)
+    if wn * dt == 0.0:
+        out[3:7] = q
+        return out
+    h = 0.5 * wn * dt
+    s = math.sin(h) / wn
+    dw, dx, dy, dz = math.cos(h), s * w[0], s * w[1], s * w[2]
+    qw, qx, qy, qz = q
+    out[3] = dw * qw - dx * qx - dy * qy - dz * qz
+    out[4] = dw * qx + dx * qw + dy * qz - dz * qy
+    out[5] = dw * qy - dx * qz + dy * qw + dz * qx
+    out[6] = dw * qz + dx * qy - dy * qx + dz * qw
+    out[3:7] /= np.linalg.norm(out[3:7])
+    return out
+
+
 class SimEnvClient:
     """An engine behind the real protocol, stepped in simulated time (one thread, no sockets).
 
@@ -265,7 +357,8 @@ class SimEnvClient:
     step length later (its variable rate), as for an engine running in real time."""
 
     def __init__(self, engine, url: str, clock, *, scene: str, epsilon_m: float, max_contacts: int,
-                 delay_s: float = 0.0) -> None:
+                 delay_s: float = 0.0, misreport: Misreport | None = None, tool_lag_s: float = 0.0,
+                 advice=None) -> None:
         from hapticproxy.clients.engine import ContactBuffer
         from hapticproxy.clients.runner import hello_fields
         from hapticproxy.protocol.codec import Hello
@@ -282,6 +375,17 @@ class SimEnvClient:
         self.buf = ContactBuffer(max_contacts)
         self.pose = np.zeros(7)
         self.delay_ns = int(round(delay_s * _NS))
+        self.misreport = misreport or Misreport("", 0.0, 1)
+        self.lag_ns = int(round(tool_lag_s * _NS))
+        self.inbox: list = []      # ProxyStates on their way to the engine (tool_lag_s)
+        #: the server's EngineAdvice (None: a plain engine); what it says travels with each ProxyState
+        self.advice = advice
+        self._target = None        # (ProxyState, lead_s, arrival ns) the tool follows
+        self._tpose = np.zeros(7)
+        self._ttwist = np.zeros(6)
+        self.sent_pose = np.zeros(7)   # tool pose and "touching" of the newest ContactUpdate sent
+        self.sent_touching = False
+        self.epsilon_used: list = []
         self.pending: list = []
         self.next_ns = 0
         self.started = False
@@ -297,13 +401,16 @@ class SimEnvClient:
         if not self.started:
             ep.start(now)
             self.started = True
-        newest = None
         while (got := self.tr.recv()) is not None:
             ps = ep.receive(got[0], got[1], now)
             if ps is not None:
-                newest = ps
+                adv = self.advice
+                self.inbox.append((now + self.lag_ns, ps, None if adv is None else (adv.epsilon_m, adv.lead_s)))
+        newest = None
+        while self.inbox and self.inbox[0][0] <= now:
+            newest = self.inbox.pop(0)
         if newest is not None:
-            self.engine.drive_tool(newest.proxy_pose, newest.proxy_twist, newest.wrench)
+            self.drive(newest[1], newest[2], newest[0])
         ep.poll(now)
         if ep.reject is not None:
             self.rejected = f"Reject {ep.reject.code}: {ep.reject.reason}"
@@ -316,11 +423,15 @@ class SimEnvClient:
             self.next_ns = now
         if self.welcomed and now >= self.next_ns:
             eng = self.engine
+            self._follow(now)
             dt = eng.next_step_s() or 1.0 / self.info.env_rate_hz
             eng.step(dt)
             n = eng.contacts(self.buf, self.buf.capacity)
             eng.tool_pose(self.pose)
             b = self.buf
+            self.misreport.apply(eng.time_s, b.keys, b.normal, n)
+            self.sent_touching = bool(n and np.min(b.separation_m[:n]) <= 0.0)
+            self.sent_pose[:] = self.pose
             item = (now + self.delay_ns, eng.time_s, self.pose.copy(), b.keys[:n].copy(), b.position_m[:n].copy(),
                     b.normal[:n].copy(), b.separation_m[:n].copy(), b.v_constr_m_per_s[:n].copy())
             self.pending.append(item)
@@ -331,6 +442,28 @@ class SimEnvClient:
             if ep.established:
                 ep.send_contacts(now, t_env, pose, k, p, nrm, d, vc)
                 self.updates_sent += 1
+
+    def drive(self, ps, advice=None, at_ns: int = 0) -> None:
+        """Drive the engine's tool towards the newest ProxyState (as the client runner does);
+        with the server's ``advice`` (epsilon, lead): inflate the tool by that epsilon and track
+        the proxy's pose advanced by the lead (plus the time since it arrived: ``_follow``)."""
+        if advice is None:
+            self.engine.drive_tool(ps.proxy_pose, ps.proxy_twist, ps.wrench)
+            return
+        eps, lead = advice
+        if self.advice.predict:
+            self.engine.set_epsilon(eps)
+            self.epsilon_used.append(eps)
+        self._target = (ps, lead, at_ns)
+        self._follow(at_ns)
+
+    def _follow(self, now: int) -> None:
+        if self._target is None:
+            return
+        ps, lead, at = self._target
+        ahead = lead + (now - at) * 1e-9 if lead > 0 else 0.0
+        advance_pose(ps.proxy_pose, ps.proxy_twist, ahead, self._tpose)
+        self.engine.drive_tool(self._tpose, ps.proxy_twist, ps.wrench)
 
     def close(self) -> None:
         self.tr.close()
@@ -353,17 +486,23 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
         settings = cfgmod.load(spec.settings_dict(url, 1, folder))
         clock = SimClock(start_ns=_NS)
         loop = HapticLoop.build(settings, clock=clock)
+    _configure_models(loop, spec)
     env = None
     try:
         loop.warm_up()
         loop.start()
+        advice = _advice(spec) if (spec.predict_epsilon or spec.lead) else None
         env = SimEnvClient(spec.make_engine(), url, clock, scene=spec.scene, epsilon_m=spec.epsilon_m,
-                           max_contacts=spec.capacity, delay_s=spec.env_delay_s)
+                           max_contacts=spec.capacity, delay_s=spec.env_delay_s,
+                           misreport=Misreport(spec.misreport, spec.misreport_from_s, spec.misreport_every),
+                           tool_lag_s=spec.tool_lag_s, advice=advice)
         n_steps = int(round((spec.hand.start_s + spec.seconds) * settings.rate_hz))
         step_ns = np.zeros(n_steps, dtype=np.int64)
         hd = 3
         pen = np.zeros((n_steps, hd)) if record_penalty else None
         upd = np.zeros(n_steps, dtype=bool)
+        recovering = np.zeros(n_steps, dtype=np.int64)
+        rec_step = np.zeros(n_steps)
         numba_us: list[float] = []
         numpy_us: list[float] = []
         rows = np.zeros((n_steps, loop.shared.ring.shape[1]))
@@ -389,9 +528,18 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
             if loop.updates != last_updates:
                 upd[i] = True
                 last_updates = loop.updates
-            if pen is not None and loop.model is not None:
-                pen[i] = loop.model.penalty_wrench[:hd]
+                if advice is not None and loop.model is not None:
+                    # what the loop does after applying an update: tell the advice (the ProxyState
+                    # of this step carries its epsilon and lead)
+                    hs = loop.model.hand_state()
+                    advice.on_update(clock.now_ns() * 1e-9, hs[:7], hs[7:13], env.sent_pose, env.sent_touching)
+            if loop.model is not None:
+                recovering[i] = loop.model.recovering
+                rec_step[i] = loop.model.recovery_force_step_n
+                if pen is not None:
+                    pen[i] = loop.model.penalty_wrench[:hd]
         rows, step_ns, pen, upd = rows[:n_steps], step_ns[:n_steps], (None if pen is None else pen[:n_steps]), upd[:n_steps]
+        recovering, rec_step = recovering[:n_steps], rec_step[:n_steps]
         if crash and not np.any(rows[:, TEL_UPDATES] > 0):
             raise RunFailed(f"the server loop failed before the client engaged it: {crash}", crash)
         if env.rejected and not np.any(rows[:, TEL_UPDATES] > 0):
@@ -403,10 +551,20 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
             env_rate_hz=float(snap["env_rate_hz"]), faults=int(loop.faults_total) + (1 if crash else 0),
             model_nonfinite=int(loop.model.counters()["nonfinite"]) if loop.model is not None else 0,
             rate_limited=counters["rate_limited"], saturated=counters["saturated"],
-            per_step={"step_us": step_ns / 1e3, "penalty": pen, "update_step": upd},
+            per_step={"step_us": step_ns / 1e3, "penalty": pen, "update_step": upd, "recovering": recovering,
+                      "recovery_step_n": rec_step},
             model_numba_us=np.array(numba_us) if numba_us else None,
             model_numpy_us=np.array(numpy_us) if numpy_us else None,
             extra={"loop_exception": crash, "env_steps": env.steps, "updates_sent": env.updates_sent,
+                   "misreported_updates": env.misreport.applied,
+                   "recovery_energy_j": loop.model.recovery_energy_j if loop.model is not None else 0.0,
+                   "touching_contacts": int(np.sum(loop.model.proxy_separations() <= 0.0)) if loop.model else 0,
+                   "advice": None if advice is None else {
+                       "epsilon_mm": [round(min(env.epsilon_used, default=0.0) * 1e3, 3),
+                                      round(max(env.epsilon_used, default=0.0) * 1e3, 3)],
+                       "distance_mm": round(advice.distance_m * 1e3, 3),
+                       "lead_ms": round(advice.lead_s * 1e3, 2), "lag_ms": round(advice.lag_s * 1e3, 2),
+                       "lag_samples": advice.lag_samples},
                    "loop_updates": loop.updates,
                    "update_errors": loop.update_errors, "model": loop.model.counters() if loop.model else {}})
         return tr
@@ -415,6 +573,48 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
             env.close()
             env.engine.close()
         loop.close()
+
+
+def _advice(spec: RunSpec):
+    """The server's EngineAdvice for this run's tool (the granted epsilon is its cap)."""
+    from hapticproxy.server.prediction import EngineAdvice, tool_radius_m
+
+    eng = spec.make_engine()
+    try:
+        tool = eng.load_scene(spec.scene).tool
+    finally:
+        eng.close()
+    ixx, iyy, izz = tool.inertia_kg_m2[:3]
+    r = tool_radius_m(tool.mass_kg, (ixx, iyy, izz) if tool.kind != "planar" else (izz,))
+    r += float(np.linalg.norm(tool.com_m))
+    cap = 0.0 if spec.policy == "lm0" else spec.epsilon_m
+    return EngineAdvice(cap, tool_radius_m=r, predict=spec.predict_epsilon, lead=spec.lead)
+
+
+def _configure_models(loop, spec: RunSpec) -> None:
+    """Apply the spec's model options to every LocalModel the loop builds for a session (the
+    loop builds it from the client's Hello; its config has no keys for these yet)."""
+    if not spec.recovery and not spec.reading:
+        return
+    if spec.reading not in ("", "paper-literal"):
+        raise ValueError(f"reading: expected '' or 'paper-literal', got {spec.reading!r}")
+    build = loop.models.build
+    rec = dict(spec.recovery)
+
+    def new_model(hello, epsilon_m, max_contacts):
+        tool, model = build(hello, epsilon_m, max_contacts)
+        if spec.reading == "paper-literal":
+            model.read_eq6_literally()
+            return tool, model
+        cur = model.recovery
+        if "speed_m_per_s" in rec and "normal_speed_max_m_per_s" not in rec:
+            cur["normal_speed_max_m_per_s"] = None      # follows the speed
+        cur.update(rec)
+        model.set_recovery(cur["speed_m_per_s"], cur["force_rate_n_per_s"], cur["tau_s"], int(cur["min_age_updates"]),
+                           cur["normal_speed_max_m_per_s"])
+        return tool, model
+
+    loop.models.build = new_model  # the check and the engagement both build through it
 
 
 def _time_model_step(loop) -> tuple[float, float]:
@@ -437,6 +637,9 @@ def _time_model_step(loop) -> tuple[float, float]:
 # ------------------------------------------------------------------------------ real time
 def run_realtime(spec: RunSpec, *, log=None, connect_timeout_s: float = 30.0) -> Trace:
     """Run ``spec`` on the real server process and a real client over UDP on 127.0.0.1."""
+    if spec.recovery or spec.misreport or spec.tool_lag_s or spec.predict_epsilon or spec.lead or spec.reading:
+        raise ValueError("recovery / misreport / tool_lag_s: simulated time only (the real-time server takes its "
+                         "[model] config)")
     from hapticproxy.clients.runner import ClientRunner
     from hapticproxy.server import config as cfgmod
     from hapticproxy.server.daemon import Supervisor

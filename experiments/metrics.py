@@ -218,3 +218,58 @@ def hole_metrics(tr) -> dict:
     out["unstable"] = bool(tr.faults > 0 or tr.model_nonfinite > 0 or endstop or out["drift_mm"] > LEFT_HOLE_MM
                            or out["energy_injected_mj"] > ACTIVE_TOLERANCE_MJ)
     return out
+
+
+#: The felt surface is "where it is" within this [mm] (issue 15's goal, after recovery).
+SURFACE_BAND_MM = 0.5
+
+
+def felt_surface_metrics(tr, *, surface_m: float, axis: int, push_n: float, sign: float = 1.0) -> dict:
+    """Where a surface pushed against by the hand's constant ``push_n`` is felt (issue 15): the
+    device's coordinate ``axis`` against the true surface, ``sign`` the direction of the push
+    (+1: the push moves the device towards +axis). Positions in mm, along the push.
+
+    - ``surface_error_mm``: the device position averaged over the last second, minus the true
+      surface, minus the penalty penetration the push needs (push / (k n), n the contacts
+      touching at the end of the run): 0 when the wall is felt exactly where it is; positive:
+      beyond it (the proxy deformed and kept it).
+    - ``surface_reached_s``: time from the arrival (the first step after the hand started at
+      which the device is within 0.5 mm of that position, or beyond it) until it is within
+      0.5 mm for good (``inf``: never).
+    - ``recovery_force_step_max_n``: the largest penalty force the recovery itself added in one
+      step (at a fixed pose: k x the distance recovered; its bound is the force rate x the
+      period); ``recovery_command_step_max_n``: the largest change of the command written to the
+      device between two steps while the model was recovering (impacts at other contacts
+      included); ``recovery_penalty_step_max_n``: the same for the model's penalty force;
+      ``recovery_energy_mj``: the work the recovery did on the proxy. 0 if it never recovered.
+    """
+    k = tr.spec.stiffness_n_per_m
+    n_touch = max(1, int(tr.extra.get("touching_contacts", 1)))
+    rest_mm = (surface_m + sign * push_n / (k * n_touch)) * 1e3
+    pos = tr.dev_xyz if tr.dev_xyz is not None else tr.dev
+    x = sign * (pos[:, axis] * 1e3 - rest_mm)
+    err = float(np.mean(x[_last(tr, FELT_WINDOW_S)]))
+    arrived = np.nonzero((tr.t_s >= tr.hand_start_s) & (x >= -SURFACE_BAND_MM))[0]
+    reached = math.inf
+    if len(arrived):
+        i0 = int(arrived[0])
+        out_band = np.nonzero(np.abs(x[i0:]) > SURFACE_BAND_MM)[0]
+        if not len(out_band):
+            reached = 0.0
+        elif i0 + int(out_band[-1]) + 1 < len(x):
+            reached = float(tr.t_s[i0 + int(out_band[-1]) + 1] - tr.t_s[i0])
+    rec = tr.recovering if tr.recovering is not None else np.zeros(len(tr.t_s), dtype=np.int64)
+    during = (rec[1:] > 0)
+    cmd = tr.cmd_xyz if tr.cmd_xyz is not None else tr.cmd[:, :2]
+    fstep = np.linalg.norm(np.diff(cmd, axis=0), axis=1)
+    pstep = (np.linalg.norm(np.diff(tr.penalty[:, :2], axis=0), axis=1) if tr.penalty is not None
+             else np.zeros_like(fstep))
+    own = tr.recovery_step_n if tr.recovery_step_n is not None else np.zeros(len(tr.t_s))
+    return {
+        "surface_error_mm": round(err, 3),
+        "surface_reached_s": round(reached, 3) if math.isfinite(reached) else "inf",
+        "recovery_force_step_max_n": round(float(np.max(own)), 4),
+        "recovery_command_step_max_n": round(float(np.max(fstep[during])) if np.any(during) else 0.0, 4),
+        "recovery_penalty_step_max_n": round(float(np.max(pstep[during])) if np.any(during) else 0.0, 4),
+        "recovery_energy_mj": round(1e3 * float(tr.extra.get("recovery_energy_j", 0.0)), 3),
+    }

@@ -8,7 +8,10 @@ stepped on its own schedule; deterministic per seed), each with several engine s
 
 - ``wall``: the Fig. 14 push (0.5 N onto the testbed's bottom wall, the peg starting at rest
   124 mm away): ``wall_error_mm`` = |felt wall - 124 mm| (mean over seeds; see
-  ``metrics.static_contact_metrics``), ``limit_cycle_mm`` (largest over seeds);
+  ``metrics.static_contact_metrics``), ``limit_cycle_mm`` (largest over seeds),
+  ``surface_reached_s`` (mean over seeds: from the first contact until the device stays within
+  0.5 mm of the true surface; see ``metrics.felt_surface_metrics``; a run that never gets there
+  counts as its remaining time), ``recovery_energy_mj`` (largest);
 - ``hole``: the Fig. 16 shaking (1 N sin(5 pi t) on the peg in the exactly fitting hole):
   ``drift_mm``, ``rotation_deg`` (mean over seeds; see ``metrics.hole_metrics``);
 
@@ -34,7 +37,8 @@ deadlines and the loop's own compute-time percentiles.
 
 Sweeps (one dimension at a time around the base: 1 kHz, stiffness 4000 N/m with the paper's
 damping ratio b = 7.5 ms x k, epsilon 5 mm, 16 contacts, the stub at 30-60 Hz, four-channel,
-deformation, the server's default ``engine`` contact frame) and a grid for the stable region
+deformation with the model's default deformation recovery, the server's default ``engine``
+contact frame, no advice to the engine; the ``recovery`` and ``advice`` dimensions vary those) and a grid for the stable region
 (the largest stable stiffness at each haptic rate for each controller, with the paper's
 damping ratio, and for the four-channel controller also with a fixed b = 30 N s/m). Writes
 ``tradeoff.json`` (every row), ``tradeoff.md`` (the table), ``stable_region.md``,
@@ -75,6 +79,12 @@ class Config:
     kernel: str = "numba"
     #: None: the paper's ratio (DAMPING_PER_STIFFNESS_S x k); a number: this damping whatever k
     damping_fixed_n_s_per_m: float | None = None
+    #: deformation recovery speed [m/s]: None = the model's default, 0 = off (the paper's eq. 5)
+    recovery_speed_m_per_s: float | None = None
+    #: what the server tells the engine (``server/prediction.py``): "none" (the paper: the engine
+    #: uses the granted epsilon, ``epsilon_m``), "epsilon" (the epsilon to use next, up to
+    #: ``epsilon_m``), "epsilon+lead" (and the lead it extrapolates the proxy's pose by)
+    advice: str = "none"
 
     @property
     def damping_n_s_per_m(self) -> float:
@@ -87,7 +97,10 @@ class Config:
                       contact_frame=self.contact_frame, rate_hz=self.rate_hz,
                       stiffness_n_per_m=self.stiffness_n_per_m, damping_n_s_per_m=self.damping_n_s_per_m,
                       capacity=self.capacity, env_rate_hz=tuple(self.env_rate_hz), seed=seed, engine="stub",
-                      method="custom")
+                      method="custom",
+                      recovery=() if self.recovery_speed_m_per_s is None else
+                      (("speed_m_per_s", float(self.recovery_speed_m_per_s)),),
+                      predict_epsilon=self.advice in ("epsilon", "epsilon+lead"), lead=self.advice == "epsilon+lead")
         if scenario == "wall":
             return RunSpec(scene="testbed", hand=Hand("constant", (0.0, 0.5, 0.0), start_s=HAND_START_S),
                            seconds=QUICK_WALL_SECONDS if quick else WALL_SECONDS, **common)
@@ -101,8 +114,10 @@ class Config:
         lo, hi = self.env_rate_hz
         env = f"{lo:g}" if lo == hi else f"{lo:g}-{hi:g}"
         b = "" if self.damping_fixed_n_s_per_m is None else f" b={self.damping_fixed_n_s_per_m:g}"
+        rec = "" if self.recovery_speed_m_per_s is None else f" rec={self.recovery_speed_m_per_s * 1e3:g}mm/s"
+        adv = "" if self.advice == "none" else f" advice={self.advice}"
         return (f"{self.controller}/{self.policy} {self.rate_hz:g} Hz k={self.stiffness_n_per_m:g}{b} "
-                f"eps={self.epsilon_m * 1e3:g}mm cap={self.capacity} env={env} Hz {self.kernel}")
+                f"eps={self.epsilon_m * 1e3:g}mm cap={self.capacity} env={env} Hz{rec}{adv} {self.kernel}")
 
 
 BASE = Config()
@@ -115,17 +130,27 @@ SWEEPS = (
     ("epsilon", "epsilon_m", (0.0, 0.001, 0.002, 0.005, 0.010)),
     ("stiffness", "stiffness_n_per_m", (1000.0, 2000.0, 4000.0, 10000.0, 20000.0, 50000.0, 100000.0)),
     ("contact cap", "capacity", (1, 2, 4, 8, 16, 32, 64)),
+    ("recovery", "recovery_speed_m_per_s", (0.0, 0.0125, None, 0.05)),
+    # the server's advice to the engine, with the epsilon it may grant (a field dict per value)
+    ("advice", None, ({"advice": "epsilon", "epsilon_m": 0.005}, {"advice": "epsilon", "epsilon_m": 0.010},
+                      {"advice": "epsilon", "epsilon_m": 0.040}, {"advice": "epsilon+lead", "epsilon_m": 0.040},
+                      {"advice": "epsilon+lead", "epsilon_m": 0.040, "recovery_speed_m_per_s": 0.0})),
 )
 QUICK_SWEEPS = (
     ("haptic rate", "rate_hz", (512.0, 2000.0)),
     ("epsilon", "epsilon_m", (0.0, 0.005)),
     ("stiffness", "stiffness_n_per_m", (4000.0, 20000.0)),
+    ("recovery", "recovery_speed_m_per_s", (0.0, None)),
+    ("advice", None, ({"advice": "epsilon+lead", "epsilon_m": 0.040},)),
 )
 #: Candidate presets (rate, contacts, epsilon): the old ones and the neighbours worth a look.
 CANDIDATES = ((512.0, 16, 0.005), (1000.0, 16, 0.005), (1000.0, 32, 0.005), (2000.0, 32, 0.005),
               (2000.0, 64, 0.005), (4000.0, 32, 0.005), (4000.0, 64, 0.005), (512.0, 16, 0.010),
               (1000.0, 32, 0.010), (2000.0, 32, 0.010), (2000.0, 64, 0.010), (4000.0, 32, 0.010),
               (4000.0, 64, 0.010))
+#: ... and with the server's advice (predicted epsilon up to the cap, the lead), recovery on
+ADVICE_CANDIDATES = ((512.0, 16, 0.040), (1000.0, 32, 0.040), (2000.0, 32, 0.040), (4000.0, 64, 0.040),
+                     (1000.0, 32, 0.020))
 #: The stable-region grid: controllers (with the model settings), rates, stiffnesses.
 REGION_CONTROLLERS = (
     ("four_channel", dict(controller="four_channel", policy="deformation", epsilon_m=0.005)),
@@ -176,8 +201,14 @@ def evaluate(cfg: Config, *, seeds=SEEDS, quick: bool = False, scenarios=("wall"
             if tr.model_numba_us is not None:
                 model_us.append(tr.model_numba_us)
                 numpy_us.append(tr.model_numpy_us)
-            (walls if sc == "wall" else holes).append(
-                M.static_contact_metrics(tr) if sc == "wall" else M.hole_metrics(tr))
+            if sc == "wall":
+                w = M.static_contact_metrics(tr)
+                w.update(M.felt_surface_metrics(tr, surface_m=M.WALL_Y_MM / 1e3, axis=1, push_n=0.5))
+                if w["surface_reached_s"] == "inf":
+                    w["surface_reached_s"] = float(tr.t_s[-1] - tr.t_s[int(np.argmax(tr.contacts > 0))])
+                walls.append(w)
+            else:
+                holes.append(M.hole_metrics(tr))
     allm = walls + holes
     if not allm:
         row.update(unstable=True, refused=any(_refusal(e) for e in failed),
@@ -190,6 +221,9 @@ def evaluate(cfg: Config, *, seeds=SEEDS, quick: bool = False, scenarios=("wall"
         row["wall_error_max_mm"] = round(float(np.max(errs)), 3)
         row["limit_cycle_mm"] = round(float(max(w["limit_cycle_amplitude_mm"] for w in walls)), 3)
         row["limit_cycle_deg"] = round(float(max(w["limit_cycle_rotation_deg"] for w in walls)), 3)
+        row["surface_reached_s"] = round(float(np.mean([w["surface_reached_s"] for w in walls])), 3)
+        row["recovery_energy_mj"] = round(float(max(w["recovery_energy_mj"] for w in walls)), 3)
+        row["recovery_force_step_max_n"] = round(float(max(w["recovery_force_step_max_n"] for w in walls)), 4)
     if holes:
         row["drift_mm"] = round(float(np.mean([h["drift_mm"] for h in holes])), 3)
         row["drift_max_mm"] = round(float(np.max([h["drift_mm"] for h in holes])), 3)
@@ -409,7 +443,7 @@ def run_tradeoff(out, *, quick: bool = False, log=None, realtime: bool = True) -
 
     for dim, fld, values in (QUICK_SWEEPS if quick else SWEEPS):
         for v in values:
-            rows.append(ev(replace(BASE, **{fld: v}), dim))
+            rows.append(ev(replace(BASE, **(v if fld is None else {fld: v})), dim))
     # numba vs numpy: every haptic-rate row again with the numpy reference's cost
     for r in [r for r in rows if r["dimension"] == "haptic rate"]:
         nr = numpy_row(r)
@@ -421,6 +455,9 @@ def run_tradeoff(out, *, quick: bool = False, log=None, realtime: bool = True) -
     if not quick:
         for rate, cap, eps in CANDIDATES:
             rows.append(ev(replace(BASE, rate_hz=rate, capacity=cap, epsilon_m=eps), "preset candidate"))
+        for rate, cap, eps in ADVICE_CANDIDATES:
+            rows.append(ev(replace(BASE, rate_hz=rate, capacity=cap, epsilon_m=eps, advice="epsilon+lead"),
+                           "preset candidate"))
     region = stable_region(quick=quick, seeds=QUICK_SEEDS if quick else REGION_SEEDS, log=log)
     rt = realtime_rates(rates=(512.0, 4000.0) if quick else REALTIME_RATES, log=log) if realtime else []
     check = numpy_matches_numba(2.0 if quick else 4.0)
@@ -438,7 +475,8 @@ def run_tradeoff(out, *, quick: bool = False, log=None, realtime: bool = True) -
 
 
 # ------------------------------------------------------------------------------ outputs
-_COLS = (("dimension", "{}"), ("label", "{}"), ("wall_error_mm", "{:.2f}"), ("limit_cycle_mm", "{:.2f}"),
+_COLS = (("dimension", "{}"), ("label", "{}"), ("wall_error_mm", "{:.2f}"), ("surface_reached_s", "{:.2f}"),
+         ("recovery_energy_mj", "{:.1f}"), ("limit_cycle_mm", "{:.2f}"),
          ("drift_mm", "{:.2f}"), ("rotation_deg", "{:.2f}"), ("force_step_max_n", "{:.3f}"),
          ("penalty_jump_max_n", "{:.2f}"), ("energy_injected_mj", "{:.2f}"), ("unstable", "{}"),
          ("step_us_p50", "{:.1f}"), ("step_us_p99", "{:.1f}"), ("model_us_p50", "{:.2f}"),
@@ -512,6 +550,11 @@ def short_label(r: dict) -> str:
         out.append(f"env {lo:g} Hz" if lo == hi else f"env {lo:g}-{hi:g} Hz")
     if r.get("kernel", "numba") != "numba":
         out.append(r["kernel"])
+    if r.get("recovery_speed_m_per_s") is not None:
+        v = r["recovery_speed_m_per_s"]
+        out.append("no recovery" if v == 0 else f"recovery {v * 1e3:g} mm/s")
+    if r.get("advice", "none") != "none":
+        out.append(r["advice"])
     return ", ".join(out) or "base (1 kHz, k 4000, eps 5 mm, cap 16, env 30-60 Hz)"
 
 

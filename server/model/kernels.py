@@ -33,19 +33,19 @@ import numpy as np
 from numba import njit
 
 from .layout import (
-    C_CP, C_D, C_FN, C_FT, C_IMP, C_N, C_P, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
+    C_CP, C_D, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
     CI_AGE, CI_KEY, CI_SLIP, CI_STATE,
     CS_COLLIDING, CS_IMPENDING, CS_PENETRATING, CS_SEPARATING,
     E_CONTACT_NONFINITE, E_DUPLICATE_KEY, E_HAND_NONFINITE, E_LINK_OUT_OF_RANGE,
     E_NORMAL_NOT_UNIT, E_NORMAL_OUT_OF_PLANE, E_OK, E_TOO_MANY,
     K_COLLISIONS, K_DEFORMED, K_DROPPED, K_LEFT, K_M, K_N_COLLIDING, K_N_IMPENDING,
     K_N_PENETRATING, K_N_SEPARATING, K_NEW, K_NONFINITE, K_PROXY, K_RANK, K_SLIPPING, K_STEPS,
-    K_UPDATES,
-    MAX_DOF, NCOLS_F, NCOLS_I,
+    K_FLIPS, K_RECOVERING, K_REKEYED, K_UPDATES,
+    FLIP_DOT, MAX_DOF, NCOLS_F, NCOLS_I, REKEY_COS, REKEY_DISTANCE_M,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
-    P_ORIGIN, P_POLICY,
-    POLICY_RIGID, PS_COLLIDING, PS_FREE, PS_RESTING,
-    S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_Q, S_QD, S_T,
+    P_EPS, P_ORIGIN, P_POLICY, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN,
+    POLICY_PAPER_LITERAL, POLICY_RIGID, PS_COLLIDING, PS_FREE, PS_RESTING,
+    S_EREC, S_RECF, S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_Q, S_QD, S_T,
     TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL, TOUCH_TOL_M, UNIT_TOL,
 )
 
@@ -326,6 +326,63 @@ def _render(d, h, L, Jh, Y, G, tau, out, V):
 
 
 @njit(**_JIT)
+def _recovering(C, CI, i, age, vg):
+    """Contact ``i`` is recovered this step: deformed, persisting, touching at the last step, and
+    the proxy resting on it (normal speed at most ``vg``; 0: any)."""
+    return (C[i, C_DEF] > 0.0 and CI[i, CI_AGE] >= age and C[i, C_S] <= TOUCH_TOL_M
+            and (vg <= 0.0 or abs(C[i, C_VN]) <= vg))
+
+
+@njit(**_JIT)
+def _recover(par, st, C, CI, cnt, m):
+    """Deformation recovery: move each deformed, persisting, touching contact's constraint back
+    towards the true geometry (its C_REC grows, its C_DEF shrinks), so the proxy is brought out
+    to the real surface. Bounds: the speed ``P_REC_V`` per contact, the summed penalty force it
+    adds at a fixed pose ``P_REC_FRATE`` (N/s, shared by the recovering contacts), an exponential
+    landing (speed <= remaining / ``P_REC_TAU``). It only deepens contacts already touching (no
+    new collision, no impulse) and never pulls: the penalty force stays one-sided. Its work on the
+    proxy (normal force x recovered distance) accumulates in ``S_EREC``."""
+    vmax = par[P_REC_V]
+    st[S_RECF] = 0.0
+    if not vmax > 0.0 or m == 0:
+        cnt[K_RECOVERING] = 0
+        return
+    age = par[P_REC_AGE]
+    vg = par[P_REC_VN]
+    n_r = 0
+    for i in range(m):
+        if _recovering(C, CI, i, age, vg):
+            n_r += 1
+    cnt[K_RECOVERING] = n_r
+    if n_r == 0:
+        return
+    dt = par[P_DT]
+    k = par[P_K]
+    v = vmax
+    fr = par[P_REC_FRATE]
+    if fr > 0.0 and k > 0.0 and fr / (k * n_r) < v:
+        v = fr / (k * n_r)
+    tau = par[P_REC_TAU]
+    e = 0.0
+    f = 0.0
+    for i in range(m):
+        dd = C[i, C_DEF]
+        if not _recovering(C, CI, i, age, vg):
+            continue
+        step = v * dt
+        if tau > 0.0 and dd * dt / tau < step:
+            step = dd * dt / tau
+        if step > dd or dd < 1e-9:
+            step = dd                          # the last nanometre: done
+        C[i, C_DEF] = dd - step
+        C[i, C_REC] += step
+        e += C[i, C_FN] * step
+        f += k * step
+    st[S_EREC] += e
+    st[S_RECF] = f
+
+
+@njit(**_JIT)
 def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V, m):
     """Everything after the kinematics. Reads qd from st, leaves the new velocity in V[_V_QD]
     and the rendered wrenches in st; returns False when the result is not finite."""
@@ -343,6 +400,7 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
     for a in range(d):
         qd0[a] = st[S_QD + a]
         qd[a] = qd0[a]
+    _recover(par, st, C, CI, cnt, m)
     if not _chol(D, L, d):
         return False
 
@@ -353,9 +411,10 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
     n_sep = 0
     for i in range(m):
         n0 = C[i, C_N]; n1 = C[i, C_N + 1]; n2 = C[i, C_N + 2]
-        # the constraint moves with v_constr along n since its update (eq. 2)
+        # the constraint moves with v_constr along n since its update (eq. 2), and towards the
+        # tool by what the recovery took back of the deformation
         s = (n0 * (X[i, 0] - C[i, C_CP]) + n1 * (X[i, 1] - C[i, C_CP + 1])
-             + n2 * (X[i, 2] - C[i, C_CP + 2]) - C[i, C_VC] * (t - C[i, C_TU]))
+             + n2 * (X[i, 2] - C[i, C_CP + 2]) - C[i, C_VC] * (t - C[i, C_TU]) - C[i, C_REC])
         vn = -C[i, C_VC]
         for a in range(d):
             jn = n0 * Jpt[i, 0, a] + n1 * Jpt[i, 1, a] + n2 * Jpt[i, 2, a]
@@ -751,19 +810,84 @@ def _pose_row(R, c, P, k):
         P[k, 9 + a] = c[a]
 
 
+# columns of the update's per-contact scratch W (cap x MAX_DOF; the step's impulse scratch Cm)
+_W_SP = 0        # existing contact i: the proxy's separation s_p at the update
+_W_TAKEN = 1     # existing contact i: 1 once an incoming contact continues it (same key, or re-keyed)
+_W_FOUND = 2     # incoming contact a: the existing contact it continues (-1: none)
+_W_FLIP = 3      # incoming contact a: 1 when its normal reversed the existing one's (kept as it was)
+_W_XP = 4        # incoming contact a: 4..6 its tool feature as the proxy carries it, world
+
+
 @njit(**_JIT)
-def apply_update(planar, par, st, C, CI, cnt, X, Zn, keys, cp, nrm, dsep, vc, n_in, nk, sel,
+def _feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, out):
+    """The reported tool feature as the proxy carries it (world, into ``out``); returns its
+    separation s_w from the reported constraint along n (the engine frame: the feature taken in
+    the engine tool's frame and put on the proxy; the paper's eq. 1: c_p + d n, s_w = d)."""
+    if use_qe:
+        fx = cp[j, 0] + dsep[j] * nrm[j, 0] - Pe[k, 9]
+        fy = cp[j, 1] + dsep[j] * nrm[j, 1] - Pe[k, 10]
+        fz = cp[j, 2] + dsep[j] * nrm[j, 2] - Pe[k, 11]
+        bx = Pe[k, 0] * fx + Pe[k, 3] * fy + Pe[k, 6] * fz
+        by = Pe[k, 1] * fx + Pe[k, 4] * fy + Pe[k, 7] * fz
+        bz = Pe[k, 2] * fx + Pe[k, 5] * fy + Pe[k, 8] * fz
+        out[0] = P[k, 9] + P[k, 0] * bx + P[k, 1] * by + P[k, 2] * bz
+        out[1] = P[k, 10] + P[k, 3] * bx + P[k, 4] * by + P[k, 5] * bz
+        out[2] = P[k, 11] + P[k, 6] * bx + P[k, 7] * by + P[k, 8] * bz
+        return nrm[j, 0] * (out[0] - cp[j, 0]) + nrm[j, 1] * (out[1] - cp[j, 1]) + nrm[j, 2] * (out[2] - cp[j, 2])
+    for q_ in range(3):
+        out[q_] = cp[j, q_] + dsep[j] * nrm[j, q_]
+    return dsep[j]
+
+
+@njit(**_JIT)
+def _same_feature(C, CI, X, t, i, k, xp, cp, nrm, j):
+    """n_old . n_new if the existing contact ``i`` (on link ``k``) sits where the reported feature
+    ``xp`` / constraint ``j`` is (REKEY_DISTANCE_M along the surface and across it), else 0."""
+    if CI[i, CI_KEY] != k:
+        return 0.0
+    dot = C[i, C_N] * nrm[j, 0] + C[i, C_N + 1] * nrm[j, 1] + C[i, C_N + 2] * nrm[j, 2]
+    if abs(dot) < REKEY_COS:
+        return 0.0
+    # the two constraint planes (the old one moved on with v_constr since its update)
+    ds = C[i, C_VC] * (t - C[i, C_TU]) + C[i, C_REC]
+    across = 0.0
+    for a in range(3):
+        across += nrm[j, a] * (cp[j, a] - C[i, C_CP + a] - ds * C[i, C_N + a])
+    if abs(across) > REKEY_DISTANCE_M:
+        return 0.0
+    # the proxy's point of the old contact against the new feature, along the surface (the
+    # deformation only moved it along n)
+    e0 = X[i, 0] - xp[0]
+    e1 = X[i, 1] - xp[1]
+    e2 = X[i, 2] - xp[2]
+    en = e0 * nrm[j, 0] + e1 * nrm[j, 1] + e2 * nrm[j, 2]
+    e0 -= en * nrm[j, 0]
+    e1 -= en * nrm[j, 1]
+    e2 -= en * nrm[j, 2]
+    if e0 * e0 + e1 * e1 + e2 * e2 > REKEY_DISTANCE_M * REKEY_DISTANCE_M:
+        return 0.0
+    return dot
+
+
+@njit(**_JIT)
+def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_in, nk, sel,
                  newF, newI, P, Pe, use_qe):
     """The rule table of the notes on a validated update (``sel[:nk]`` kept). ``P[k]``: pose row
     of tool link k (rotation link -> world row-major, then the link frame's origin, world) at the
     proxy's configuration, ``Pe[k]`` the same at the engine's (read only when ``use_qe``). A
-    contact's local point is stored in the frame of its link (key column 0). ``X``, ``Zn``:
-    scratch (m x 3)."""
+    contact's local point is stored in the frame of its link (key column 0). ``X`` (m x 3) and
+    ``W`` (cap x >= 4): scratch.
+
+    Two events real engines produce are caught before the rules (``layout.FLIP_DOT``,
+    ``REKEY_COS``, ``REKEY_DISTANCE_M``): a reported normal that reverses an existing contact's
+    is refused for this update (the contact keeps its previous geometry and state, so the force
+    is not turned round into a pull towards the surface), and a new key at the feature of a
+    contact that left in the same update continues that contact (its penetration is kept, as
+    eq. 5 keeps any existing contact's, instead of restarting at zero through eq. 4)."""
     m = cnt[K_M]
     t = st[S_T]
     policy = int(par[P_POLICY])
     # current world points and proxy separations s_p of the existing contacts
-    # Zn[:, 0] (friction scratch of the step) holds s_p here
     for i in range(m):
         k = CI[i, CI_KEY]
         for a in range(3):
@@ -771,46 +895,84 @@ def apply_update(planar, par, st, C, CI, cnt, X, Zn, keys, cp, nrm, dsep, vc, n_
             for b2 in range(3):
                 s += P[k, 3 * a + b2] * C[i, C_P + b2]
             X[i, a] = s
-        s = -C[i, C_VC] * (t - C[i, C_TU])
+        s = -C[i, C_VC] * (t - C[i, C_TU]) - C[i, C_REC]
         for a in range(3):
             s += C[i, C_N + a] * (X[i, a] - C[i, C_CP + a])
-        Zn[i, 0] = s
-    matched = 0
-    n_new = 0
-    n_def = 0
+        W[i, _W_SP] = s
+        W[i, _W_TAKEN] = 0.0
+    # pass 1: the same keys
     for a in range(nk):
         j = sel[a]
-        k = keys[j, 0]
         found = -1
         for i in range(m):
             if CI[i, CI_KEY] == keys[j, 0] and CI[i, CI_KEY + 1] == keys[j, 1] \
                     and CI[i, CI_KEY + 2] == keys[j, 2]:
                 found = i
                 break
-        # the tool feature as the proxy carries it (Xp) and its separation s_w along n
-        if use_qe:
-            fx = cp[j, 0] + dsep[j] * nrm[j, 0] - Pe[k, 9]
-            fy = cp[j, 1] + dsep[j] * nrm[j, 1] - Pe[k, 10]
-            fz = cp[j, 2] + dsep[j] * nrm[j, 2] - Pe[k, 11]
-            bx = Pe[k, 0] * fx + Pe[k, 3] * fy + Pe[k, 6] * fz
-            by = Pe[k, 1] * fx + Pe[k, 4] * fy + Pe[k, 7] * fz
-            bz = Pe[k, 2] * fx + Pe[k, 5] * fy + Pe[k, 8] * fz
-            xp0 = P[k, 9] + P[k, 0] * bx + P[k, 1] * by + P[k, 2] * bz
-            xp1 = P[k, 10] + P[k, 3] * bx + P[k, 4] * by + P[k, 5] * bz
-            xp2 = P[k, 11] + P[k, 6] * bx + P[k, 7] * by + P[k, 8] * bz
-            dj = (nrm[j, 0] * (xp0 - cp[j, 0]) + nrm[j, 1] * (xp1 - cp[j, 1])
-                  + nrm[j, 2] * (xp2 - cp[j, 2]))
-        else:
-            dj = dsep[j]
-            xp0 = cp[j, 0] + dj * nrm[j, 0]
-            xp1 = cp[j, 1] + dj * nrm[j, 1]
-            xp2 = cp[j, 2] + dj * nrm[j, 2]
-        # offset along n of the target world point from c_p (eq. 1/6: d, eq. 5: s_p, eq. 4: 0)
+        W[a, _W_FOUND] = found
+        W[a, _W_FLIP] = 0.0
+        if found >= 0:
+            W[found, _W_TAKEN] = 1.0
+            dot = C[found, C_N] * nrm[j, 0] + C[found, C_N + 1] * nrm[j, 1] + C[found, C_N + 2] * nrm[j, 2]
+            if dot < FLIP_DOT:
+                W[a, _W_FLIP] = 1.0
+    # pass 2: new keys at the feature of a contact that left (re-numbered, or reversed)
+    n_rekey = 0
+    for a in range(nk):
+        if W[a, _W_FOUND] >= 0.0:
+            continue
+        j = sel[a]
+        k = keys[j, 0]
+        xp = W[a, _W_XP:_W_XP + 3]
+        _feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, xp)
+        best = -1
+        best_dot = 0.0
+        for i in range(m):
+            if W[i, _W_TAKEN] != 0.0:
+                continue
+            dot = _same_feature(C, CI, X, t, i, k, xp, cp, nrm, j)
+            if dot != 0.0 and (best < 0 or abs(dot) > abs(best_dot)):
+                best = i
+                best_dot = dot
+        if best >= 0:
+            W[a, _W_FOUND] = best
+            W[best, _W_TAKEN] = 1.0
+            if best_dot < 0.0:
+                W[a, _W_FLIP] = 1.0
+            else:
+                n_rekey += 1
+    # pass 3: the rule table
+    matched = 0
+    n_new = 0
+    n_def = 0
+    n_flip = 0
+    for a in range(nk):
+        j = sel[a]
+        k = keys[j, 0]
+        found = int(W[a, _W_FOUND])
         if found >= 0:
             matched += 1
-            s_p = Zn[found, 0]
-            if policy == POLICY_RIGID or dj > 0.0 or s_p < dj:
-                off = dj
+        if found >= 0 and W[a, _W_FLIP] != 0.0:
+            # refused for this update: the contact stays exactly as it was (key included)
+            for q_ in range(NCOLS_F):
+                newF[a, q_] = C[found, q_]
+            for q_ in range(NCOLS_I):
+                newI[a, q_] = CI[found, q_]
+            newI[a, CI_AGE] = CI[found, CI_AGE] + 1
+            n_flip += 1
+            continue
+        # the tool feature as the proxy carries it (xp) and its separation dj along n
+        xp = W[a, _W_XP:_W_XP + 3]
+        dj = _feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, xp)
+        # the separation the rules render: the real tool's, or (the paper read literally, for the
+        # reproductions only) the epsilon-inflated tool's, new contacts included (eq. 6, no eq. 4)
+        literal = policy == POLICY_PAPER_LITERAL
+        dr = dj - par[P_EPS] if literal else dj
+        # offset along n of the target world point from c_p (eq. 1/6: d, eq. 5: s_p, eq. 4: 0)
+        if found >= 0:
+            s_p = W[found, _W_SP]
+            if policy == POLICY_RIGID or dr > 0.0 or s_p < dr:
+                off = dr
             elif s_p <= 0.0:
                 off = s_p
                 n_def += 1
@@ -826,8 +988,8 @@ def apply_update(planar, par, st, C, CI, cnt, X, Zn, keys, cp, nrm, dsep, vc, n_
             newI[a, CI_AGE] = CI[found, CI_AGE] + 1
         else:
             n_new += 1
-            if policy == POLICY_RIGID or dj > 0.0:
-                off = dj
+            if policy == POLICY_RIGID or literal or dr > 0.0:
+                off = dr
             else:
                 off = 0.0
                 n_def += 1
@@ -853,16 +1015,18 @@ def apply_update(planar, par, st, C, CI, cnt, X, Zn, keys, cp, nrm, dsep, vc, n_
         newF[a, C_IMP] = 0.0
         for q_ in range(3):
             newF[a, C_FT + q_] = 0.0
+        # what the rules put the proxy off the true geometry by (eqs. 4/5): to be recovered. Only
+        # known in the engine frame: with the paper's eq. 1 the reported separation is the engine
+        # tool's, not the proxy's, and "recovering" towards it only creeps after the engine's tool
+        newF[a, C_DEF] = off - dr if (off > dr and use_qe) else 0.0
+        newF[a, C_REC] = 0.0
         # local contact point in the link frame: p = R^T (Xp + (off - s_w) n - c); with the
         # engine at the proxy's pose Xp = c_p + d n, s_w = d: p = R^T (c_p + off n - c)  (eqs. 1, 4, 5, 6)
-        X[0, 0] = xp0 + (off - dj) * newF[a, C_N] - P[k, 9]
-        X[0, 1] = xp1 + (off - dj) * newF[a, C_N + 1] - P[k, 10]
-        X[0, 2] = xp2 + (off - dj) * newF[a, C_N + 2] - P[k, 11]
+        w0 = xp[0] + (off - dj) * newF[a, C_N] - P[k, 9]
+        w1 = xp[1] + (off - dj) * newF[a, C_N + 1] - P[k, 10]
+        w2 = xp[2] + (off - dj) * newF[a, C_N + 2] - P[k, 11]
         for q_ in range(3):
-            s = 0.0
-            for b2 in range(3):
-                s += P[k, 3 * b2 + q_] * X[0, b2]
-            newF[a, C_P + q_] = s
+            newF[a, C_P + q_] = P[k, q_] * w0 + P[k, 3 + q_] * w1 + P[k, 6 + q_] * w2
         if planar:
             newF[a, C_P + 2] = 0.0
     for a in range(nk):
@@ -876,6 +1040,8 @@ def apply_update(planar, par, st, C, CI, cnt, X, Zn, keys, cp, nrm, dsep, vc, n_
     cnt[K_NEW] += n_new
     cnt[K_DEFORMED] += n_def
     cnt[K_LEFT] += m - matched
+    cnt[K_FLIPS] += n_flip
+    cnt[K_REKEYED] += n_rekey
 
 
 @njit(**_JIT)
@@ -913,6 +1079,6 @@ def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, s
             st_e[S_Q + a] = qe[a]
         _rigid_pose(kind, par, st_e, Re, ce)
         _pose_row(Re, ce, Pe, 0)
-    apply_update(kind == TOOL_PLANAR, par, st, C, CI, cnt, X, Zn, keys, cp, nrm, dsep, vc, n_in, nk,
+    apply_update(kind == TOOL_PLANAR, par, st, C, CI, cnt, X, Cm, keys, cp, nrm, dsep, vc, n_in, nk,
                  sel, newF, newI, P, Pe, use_qe)
     return E_OK

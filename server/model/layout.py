@@ -30,6 +30,12 @@ POLICY_DEFORM = 1       # eqs. 4/5/6 rule table of the notes (LM0 when the engin
 #: geometry, any epsilon >= 0). One rule set serves both "lm0" and "lm": the engine folds epsilon
 #: into the separation it reports (d = s_eps + epsilon). "deformation" is an alias of "lm".
 POLICY_NAMES = {"rigid": POLICY_RIGID, "lm0": POLICY_DEFORM, "lm": POLICY_DEFORM, "deformation": POLICY_DEFORM}
+#: The paper's eq. 6 read literally, for reproducing its Fig. 14 numbers only (not in
+#: POLICY_NAMES: never a server setting; ``LocalModel.read_eq6_literally``): the rendered
+#: separation is ``(s - epsilon)`` with ``s`` the reported real-tool separation, i.e. the
+#: epsilon-inflated tool is rendered, and new contacts too are placed by eq. 6 (a late one keeps
+#: its penetration: no eq. 4); existing contacts follow the same case table on ``s - epsilon``.
+POLICY_PAPER_LITERAL = 2
 
 # --- local contact states (section IV-A) ------------------------------------------------------
 CS_IMPENDING = 0
@@ -59,7 +65,11 @@ C_FN = 15           # penalty normal force this step, N (>= 0: never pulling)
 C_Z = 16            # 16..18 friction bristle (stick spring elongation), world, m
 C_FT = 19           # 19..21 friction force on the proxy, world, N
 C_IMP = 22          # collision impulse at this contact this step, N s (eq. 11)
-NCOLS_F = 23
+C_DEF = 23          # deformation still to recover, m (>= 0): how far the update rules (eqs. 4/5)
+                    # put the local contact point out along n from the true feature
+C_REC = 24          # deformation recovered since the update, m (>= 0): the proxy's separation at this
+                    # contact is eq. 3 minus C_REC (the constraint moved towards the tool by it)
+NCOLS_F = 25
 
 # --- contact store, int64 columns -------------------------------------------------------------
 CI_KEY = 0          # 0..2 stable key: (tool link, environment body, feature)
@@ -85,7 +95,17 @@ P_ORIGIN = 24       # 24..26 1-DOF COM position at q = 0, world, m
 P_HAND = 27         # 27..29 hand (grasp) point, body frame, m
 P_POLICY = 30       # POLICY_* (stored as float)
 P_EPS = 31          # epsilon granted to the engine, m (metadata: the engine applies it)
-NPAR = 32
+P_REC_V = 32        # deformation recovery: largest speed at which a contact's constraint moves back
+                    # towards the true geometry, m/s (0: no recovery, the paper's eq. 5 for ever)
+P_REC_FRATE = 33    # deformation recovery: largest rate of change of the summed penalty force it
+                    # causes, N/s (the speed per contact is capped at P_REC_FRATE / (k * recovering))
+P_REC_TAU = 34      # deformation recovery: the last part is recovered exponentially with this time
+                    # constant, s (speed <= remaining / tau: the proxy lands on the surface gently)
+P_REC_AGE = 35      # deformation recovery: only contacts that survived at least this many model
+                    # updates are recovered (stored as float)
+P_REC_VN = 36       # deformation recovery: only while the proxy's normal speed at the contact is at
+                    # most this, m/s (a resting contact, not an impact or a shaken one; 0: no gate)
+NPAR = 37
 
 # --- state (float64) --------------------------------------------------------------------------
 S_T = 0             # model time, s
@@ -103,7 +123,11 @@ S_LQ = 59           # 59..71 linkage configuration: the root link frame's pose (
                     # theta; spatial: x, y, z, qw, qx, qy, qz; world) then one q per joint in link
                     # order (rad or m). Rigid tools keep q at S_Q; qd is at S_QD for both (root:
                     # velocity of the root frame's origin and angular velocity, world; then joints)
-NSTATE = 72
+S_EREC = 72         # energy the deformation recovery gave the proxy since reset, J (sum of the
+                    # normal force times the recovered distance: the moving constraint's work)
+S_RECF = 73         # penalty force the recovery added at this step at a fixed pose, k x sum of the
+                    # distances recovered, N (what the recovery's force-rate bound limits)
+NSTATE = 74
 
 # --- counters (int64) -------------------------------------------------------------------------
 K_M = 0             # live contacts
@@ -122,7 +146,10 @@ K_N_PENETRATING = 12
 K_N_SEPARATING = 13
 K_RANK = 14         # rank of the collision constraint set at the last impulse
 K_SLIPPING = 15     # contacts slipping this step
-NCOUNT = 16
+K_FLIPS = 16        # reported normals refused because they reversed an existing contact's (cumulative)
+K_REKEYED = 17      # new keys that took over a contact that left at the same feature (cumulative)
+K_RECOVERING = 18   # contacts whose deformation was being recovered this step
+NCOUNT = 19
 
 # --- linkages ---------------------------------------------------------------------------------
 JT_ROOT = 0         # joint types, the protocol's JointType values
@@ -194,3 +221,17 @@ UNIT_TOL = 1e-6
 #: put deformed contacts at exactly s = 0, which rounding turns into +-1e-19; without a margin
 #: the contact state there would flip on the last bit.
 TOUCH_TOL_M = 1e-12
+#: An existing key whose reported normal turned by more than 90 deg (n_new . n_old below this)
+#: reversed: an edge-edge normal without a fixed sign, or a feature seen from the wrong side. The
+#: update keeps that contact as it was (its previous geometry and state) instead of pushing the
+#: proxy the other way; counted in K_FLIPS.
+FLIP_DOT = 0.0
+#: A new key is the same contact under a new number (engines re-number feature ids) when a
+#: contact that left in the same update has a normal within 5 deg of it, and the proxy's point
+#: of that contact lies within REKEY_DISTANCE_M of the new feature both along the surface and
+#: across it (the two constraint planes coincide): it inherits that contact's state (its
+#: penetration, friction, age), so the force neither drops nor overshoots; counted in K_REKEYED.
+#: Reported in reverse (n_new . n_old below -REKEY_COS) at the same point, it is a flip: the old
+#: contact is kept as it was.
+REKEY_COS = 0.9961946980917455   # cos(5 deg)
+REKEY_DISTANCE_M = 0.002

@@ -422,7 +422,7 @@ def update_linkage(par, lmeta, lk, lki, st, C, CI, cnt, wk, lw, keys, cp, nrm, d
     forward_kinematics(lmeta, lk, lki, st[S_LQ:], lw)
     if use_qe:
         forward_kinematics(lmeta, lk, lki, qe, lw_e)
-    apply_update(planar == 1, par, st, C, CI, cnt, X, Zn, keys, cp, nrm, dsep, vc, n_in, nk, sel,
+    apply_update(planar == 1, par, st, C, CI, cnt, X, Cm, keys, cp, nrm, dsep, vc, n_in, nk, sel,
                  newF, newI, lw, lw_e, use_qe)
     return E_OK
 

@@ -22,14 +22,14 @@ import numpy as np
 from . import kernels as _k
 from . import linkage as _lk
 from .layout import (
-    C_CP, C_D, C_FN, C_FT, C_IMP, C_N, C_P, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
+    C_CP, C_D, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
     CI_AGE, CI_KEY, CI_SLIP, CI_STATE, CONTACT_STATE_NAMES, E_OK, ERROR_FIELDS,
-    K_COLLISIONS, K_DEFORMED, K_DROPPED, K_LEFT, K_M, K_N_COLLIDING, K_N_IMPENDING,
+    K_COLLISIONS, K_DEFORMED, K_DROPPED, K_FLIPS, K_LEFT, K_RECOVERING, K_REKEYED, K_M, K_N_COLLIDING, K_N_IMPENDING,
     K_N_PENETRATING, K_N_SEPARATING, K_NEW, K_NONFINITE, K_PROXY, K_RANK, K_SLIPPING, K_STEPS,
     K_UPDATES, NCOLS_F, NCOLS_I, NCOUNT, NPAR, NSTATE,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_EPS, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK,
-    P_MUS, P_ORIGIN, P_POLICY, POLICY_NAMES, PROXY_STATE_NAMES,
-    S_FENV, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
+    P_MUS, P_ORIGIN, P_POLICY, POLICY_PAPER_LITERAL, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN, POLICY_NAMES, PROXY_STATE_NAMES,
+    S_EREC, S_RECF, S_FENV, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
     TOOL_1DOF, TOOL_DIMS, TOOL_KIND_NAMES, TOOL_LINKAGE, TOOL_PLANAR, TOOL_SPATIAL, UNIT_TOL,
     JT_PRISMATIC, JT_REVOLUTE, JT_ROOT, LI_CHAIN, LI_NCHAIN, LI_PARENT, LI_TYPE,
     LK_AXIS, LK_COM, LK_I, LK_MASS, LK_OP, LK_OR, LM_D, LM_H, LM_HELD, LM_NLINKS, LM_NQR, LM_PLANAR,
@@ -40,6 +40,20 @@ _F64 = np.dtype(np.float64)
 DEFAULT_CAPACITY = 64
 #: Most contacts one update may carry before the capacity rule; larger sets are refused.
 DEFAULT_MAX_UPDATE_CONTACTS = 1024
+#: Deformation recovery defaults (``LocalModel(recovery_...)``; EXPERIMENTS.md, "Deformation
+#: recovery", says how they were chosen): a deformed contact that has persisted 10 model updates
+#: (0.17-0.33 s at 30-60 Hz) is brought back to the true geometry at up to 25 mm/s, the
+#: penalty force this adds at a fixed pose changing by at most 200 N/s in total (0.2 N per step
+#: at 1 kHz: a fifth of the safety layer's 1000 N/s), the last part exponentially (tau 0.1 s).
+RECOVERY_SPEED_M_PER_S = 0.025
+RECOVERY_FORCE_RATE_N_PER_S = 200.0
+RECOVERY_TAU_S = 0.1
+RECOVERY_MIN_AGE_UPDATES = 10
+#: ... and only while the proxy rests on the contact: its normal speed there at most this many
+#: times the recovery speed (it may move out as fast as the recovery moves it). Without this gate
+#: the recovery also pushed while the hand shook the 1-DOF peg of Fig. 6 against a wall (LM0),
+#: and fed the shaking: the excursion grew by 2x within 8 s at gates of 1.6x and more.
+RECOVERY_RESTING_SPEED_FACTOR = 1.2
 #: ``linkage_dynamics``: "full" includes the velocity-product (Coriolis, centripetal, gyroscopic)
 #: terms of a linkage's eq. 7; "paper" neglects them as the paper does (see ``linkage.py``).
 LINKAGE_DYNAMICS = ("full", "paper")
@@ -337,6 +351,10 @@ class ContactSnapshot:
     state: list = field(default_factory=list)
     slipping: np.ndarray | None = None
     age_updates: np.ndarray | None = None
+    #: deformation the update rules put in and the recovery has not yet taken back, m (>= 0)
+    deformation_m: np.ndarray | None = None
+    #: deformation taken back by the recovery since the contact's last update, m (>= 0)
+    recovered_m: np.ndarray | None = None
 
 
 class LocalModel:
@@ -361,6 +379,9 @@ class LocalModel:
     gravity_m_per_s2: world gravity acting on the proxy (default none: the device carries it).
     linkage_dynamics: a linkage's eq. 7 with its velocity-product terms (``"full"``, default) or
         without them as the paper writes it (``"paper"``); ignored for rigid tools.
+    recovery_speed_m_per_s, recovery_force_rate_n_per_s, recovery_tau_s, recovery_min_age_updates:
+        deformation recovery (``set_recovery``); speed 0 turns it off (the paper's eq. 5 keeps a
+        deformation for as long as the contact lasts).
     warm: compile / load the cached kernels now, not at the first haptic step.
     """
 
@@ -376,6 +397,11 @@ class LocalModel:
         gravity_m_per_s2: Sequence[float] = (0.0, 0.0, 0.0),
         max_update_contacts: int = DEFAULT_MAX_UPDATE_CONTACTS,
         linkage_dynamics: str = "full",
+        recovery_speed_m_per_s: float = RECOVERY_SPEED_M_PER_S,
+        recovery_force_rate_n_per_s: float = RECOVERY_FORCE_RATE_N_PER_S,
+        recovery_tau_s: float = RECOVERY_TAU_S,
+        recovery_min_age_updates: int = RECOVERY_MIN_AGE_UPDATES,
+        recovery_normal_speed_max_m_per_s: float | None = None,
         warm: bool = True,
     ) -> None:
         tool.validated()
@@ -431,6 +457,8 @@ class LocalModel:
         par[P_POLICY] = POLICY_NAMES[policy]
         par[P_EPS] = eps
         self._par = par
+        self.set_recovery(recovery_speed_m_per_s, recovery_force_rate_n_per_s, recovery_tau_s,
+                          recovery_min_age_updates, recovery_normal_speed_max_m_per_s)
         self._st = np.zeros(NSTATE)
         self._C = np.zeros((self.capacity, NCOLS_F))
         self._CI = np.zeros((self.capacity, NCOLS_I), dtype=np.int64)
@@ -489,6 +517,79 @@ class LocalModel:
         self._C[:] = 0.0
         self._CI[:] = 0
         self._cnt[:] = 0
+
+    def set_recovery(self, speed_m_per_s: float, force_rate_n_per_s: float = RECOVERY_FORCE_RATE_N_PER_S,
+                     tau_s: float = RECOVERY_TAU_S, min_age_updates: int = RECOVERY_MIN_AGE_UPDATES,
+                     normal_speed_max_m_per_s: float | None = None) -> None:
+        """Deformation recovery. The update rules (eqs. 4/5) keep a late contact's penetration by
+        moving the proxy's local contact point out along the normal; for updates that carry the
+        engine's tool pose (the engine contact frame: where the true geometry is known relative to
+        the proxy; never with the paper's eq. 1), while such a contact persists
+        (at least ``min_age_updates`` model updates) and touches, its constraint is moved back
+        towards the true geometry at up to ``speed_m_per_s``, the penalty force this adds at a
+        fixed pose changing by at most ``force_rate_n_per_s`` summed over the recovering contacts,
+        the last part exponentially with ``tau_s`` (0: linear to the end), and only while the
+        proxy rests on the contact: its normal speed there at most ``normal_speed_max_m_per_s``
+        (``None``: ``RECOVERY_RESTING_SPEED_FACTOR`` x ``speed_m_per_s``; 0: any speed).
+        ``speed_m_per_s`` = 0: off. Applies from the next step; ``ValueError`` naming the field,
+        nothing changed."""
+        v = _finite_float("recovery_speed_m_per_s", speed_m_per_s)
+        if not 0.0 <= v <= 1.0:
+            raise ValueError(f"recovery_speed_m_per_s: must be in [0, 1] m/s, got {v!r}")
+        fr = _finite_float("recovery_force_rate_n_per_s", force_rate_n_per_s)
+        tau = _finite_float("recovery_tau_s", tau_s)
+        vn = (RECOVERY_RESTING_SPEED_FACTOR * v if normal_speed_max_m_per_s is None
+              else _finite_float("recovery_normal_speed_max_m_per_s", normal_speed_max_m_per_s))
+        if not 0.0 <= vn <= 10.0:
+            raise ValueError(f"recovery_normal_speed_max_m_per_s: must be in [0, 10] m/s, got {vn!r}")
+        if not fr > 0.0:
+            raise ValueError(f"recovery_force_rate_n_per_s: must be positive, got {fr!r}")
+        if not 0.0 <= tau <= 10.0:
+            raise ValueError(f"recovery_tau_s: must be in [0, 10] s, got {tau!r}")
+        if not isinstance(min_age_updates, (int, np.integer)) or not 0 <= min_age_updates <= 10_000:
+            raise ValueError(f"recovery_min_age_updates: must be an integer in [0, 10000], got {min_age_updates!r}")
+        p = self._par
+        p[P_REC_V] = v
+        p[P_REC_FRATE] = fr
+        p[P_REC_TAU] = tau
+        p[P_REC_AGE] = float(min_age_updates)
+        p[P_REC_VN] = vn
+
+    @property
+    def recovery(self) -> dict:
+        """The deformation recovery settings (``set_recovery``)."""
+        p = self._par
+        return {"speed_m_per_s": float(p[P_REC_V]), "force_rate_n_per_s": float(p[P_REC_FRATE]),
+                "tau_s": float(p[P_REC_TAU]), "min_age_updates": int(p[P_REC_AGE]),
+                "normal_speed_max_m_per_s": float(p[P_REC_VN])}
+
+    def read_eq6_literally(self) -> None:
+        """Reproductions of the paper's Fig. 14 numbers only (``experiments``; the server never
+        calls it): from the next update on, the update rules render the epsilon-inflated tool
+        (``s - epsilon`` of eq. 6 with ``s`` the reported real-tool separation) and place new
+        contacts by eq. 6 too (no eq. 4). Deformation recovery is turned off (the paper has none).
+        A rigid policy stays rigid."""
+        if self._par[P_POLICY] != 0.0:
+            self._par[P_POLICY] = float(POLICY_PAPER_LITERAL)
+            self.policy = "paper-literal"
+        self.set_recovery(0.0)
+
+    @property
+    def recovering(self) -> int:
+        """Contacts whose deformation the last step was recovering."""
+        return int(self._cnt[K_RECOVERING])
+
+    @property
+    def recovery_force_step_n(self) -> float:
+        """Penalty force the recovery added at the last step at a fixed pose (k x the distance
+        recovered, summed over the contacts), N: at most ``force_rate_n_per_s`` x the period."""
+        return float(self._st[S_RECF])
+
+    @property
+    def recovery_energy_j(self) -> float:
+        """Work the deformation recovery did on the proxy since ``reset`` (sum over steps of the
+        normal force times the distance recovered), J: the energy it gave the user."""
+        return float(self._st[S_EREC])
 
     def stop(self) -> None:
         """Bring the proxy to rest where it is (its velocity to zero; contacts and pose kept): the
@@ -657,7 +758,8 @@ class LocalModel:
             "left": int(c[K_LEFT]), "impending": int(c[K_N_IMPENDING]),
             "colliding": int(c[K_N_COLLIDING]), "penetrating": int(c[K_N_PENETRATING]),
             "separating": int(c[K_N_SEPARATING]), "rank": int(c[K_RANK]),
-            "slipping": int(c[K_SLIPPING]),
+            "slipping": int(c[K_SLIPPING]), "flips_refused": int(c[K_FLIPS]), "rekeyed": int(c[K_REKEYED]),
+            "recovering": int(c[K_RECOVERING]),
         }
 
     def contacts(self) -> ContactSnapshot:
@@ -671,7 +773,7 @@ class LocalModel:
             normal_velocity_m_per_s=C[:, C_VN], normal_force_n=C[:, C_FN],
             friction_force_n=C[:, C_FT:C_FT + 3], bristle_m=C[:, C_Z:C_Z + 3], impulse_n_s=C[:, C_IMP],
             state=[CONTACT_STATE_NAMES[s] for s in CI[:, CI_STATE]], slipping=CI[:, CI_SLIP].astype(bool),
-            age_updates=CI[:, CI_AGE],
+            age_updates=CI[:, CI_AGE], deformation_m=C[:, C_DEF], recovered_m=C[:, C_REC],
         )
 
     def proxy_separations(self) -> np.ndarray:
@@ -685,7 +787,8 @@ class LocalModel:
             k = int(self._CI[i, CI_KEY])
             x = cs[k] + Rs[k] @ self._C[i, C_P:C_P + 3]
             n = self._C[i, C_N:C_N + 3]
-            out[i] = n @ (x - self._C[i, C_CP:C_CP + 3]) - self._C[i, C_VC] * (t - self._C[i, C_TU])
+            out[i] = (n @ (x - self._C[i, C_CP:C_CP + 3]) - self._C[i, C_VC] * (t - self._C[i, C_TU])
+                      - self._C[i, C_REC])
         return out
 
     def pose_matrix(self) -> tuple[np.ndarray, np.ndarray]:

@@ -11,13 +11,13 @@ from __future__ import annotations
 import numpy as np
 
 from .layout import (
-    C_CP, C_FN, C_FT, C_IMP, C_N, C_P, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
-    CI_SLIP, CI_STATE, CS_COLLIDING, CS_IMPENDING, CS_PENETRATING, CS_SEPARATING,
+    C_CP, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
+    CI_AGE, CI_SLIP, CI_STATE, CS_COLLIDING, CS_IMPENDING, CS_PENETRATING, CS_SEPARATING,
     K_COLLISIONS, K_M, K_N_COLLIDING, K_N_IMPENDING, K_N_PENETRATING, K_N_SEPARATING,
-    K_NONFINITE, K_PROXY, K_RANK, K_SLIPPING, K_STEPS,
+    K_NONFINITE, K_PROXY, K_RANK, K_RECOVERING, K_SLIPPING, K_STEPS,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
-    P_ORIGIN, PS_COLLIDING, PS_FREE, PS_RESTING,
-    S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
+    P_ORIGIN, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN, PS_COLLIDING, PS_FREE, PS_RESTING,
+    S_EREC, S_RECF, S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
     TOOL_1DOF, TOOL_DIMS, TOOL_PLANAR, TOUCH_TOL_M, CI_KEY,
 )
 
@@ -269,10 +269,42 @@ class LinkageReference:
         return q
 
 
+def recover(par, st, C, CI, cnt, m: int) -> None:
+    """Deformation recovery, in place (see ``kernels._recover``): every deformed contact that has
+    persisted ``P_REC_AGE`` updates and touched at the last step takes back at most
+    min(v, F_rate / (k n), remaining / tau) dt of its deformation."""
+    cnt[K_RECOVERING] = 0
+    st[S_RECF] = 0.0
+    if not par[P_REC_V] > 0 or m == 0:
+        return
+    Cm = C[:m]
+    elig = (Cm[:, C_DEF] > 0) & (CI[:m, CI_AGE] >= par[P_REC_AGE]) & (Cm[:, C_S] <= TOUCH_TOL_M)
+    if par[P_REC_VN] > 0:
+        elig &= np.abs(Cm[:, C_VN]) <= par[P_REC_VN]
+    n_r = int(np.count_nonzero(elig))
+    cnt[K_RECOVERING] = n_r
+    if not n_r:
+        return
+    dt, k = par[P_DT], par[P_K]
+    v = par[P_REC_V]
+    if par[P_REC_FRATE] > 0 and k > 0:
+        v = min(v, par[P_REC_FRATE] / (k * n_r))
+    left = Cm[elig, C_DEF]
+    step = np.full(n_r, v * dt)
+    if par[P_REC_TAU] > 0:
+        step = np.minimum(step, left * dt / par[P_REC_TAU])
+    step = np.where((step > left) | (left < 1e-9), left, step)
+    st[S_EREC] += float(np.sum(Cm[elig, C_FN] * step))
+    st[S_RECF] = float(k * np.sum(step))
+    Cm[elig, C_DEF] = left - step
+    Cm[elig, C_REC] += step
+
+
 def reference_step(kind, par, st, C, CI, cnt, hand, linkage: LinkageReference | None = None):
     """One haptic step in numpy. Returns new (st, C, CI, cnt); inputs are not modified.
     ``linkage``: the tool's ``LinkageReference`` for a linkage model (its q is at ``S_LQ``)."""
     st = st.copy(); C = C.copy(); CI = CI.copy(); cnt = cnt.copy()
+    recover(par, st, C, CI, cnt, int(cnt[K_M]))
     if linkage is not None:
         d, h, nq, q_at = linkage.d, linkage.h, linkage.nqr + linkage.nl - 1, S_LQ
     else:
@@ -296,7 +328,8 @@ def reference_step(kind, par, st, C, CI, cnt, hand, linkage: LinkageReference | 
 
     n = Cm[:, C_N:C_N + 3]
     vc = Cm[:, C_VC]
-    s = np.einsum("ij,ij->i", n, X - Cm[:, C_CP:C_CP + 3]) - vc * (t - Cm[:, C_TU])   # eq. 3 + eq. 2
+    s = (np.einsum("ij,ij->i", n, X - Cm[:, C_CP:C_CP + 3]) - vc * (t - Cm[:, C_TU])   # eq. 3 + eq. 2
+         - Cm[:, C_REC])                                                                 # + recovery
     Jn = np.einsum("ij,ijk->ik", n, J)
     vn = Jn @ qd0 - vc
     sprev = Cm[:, C_S].copy()
