@@ -1,7 +1,7 @@
 """``python -m hapticproxy.benchmarks.fuzz_codec``: the long decoder fuzzing run (opt-in).
 
 The default test run fuzzes the decoder with hypothesis (``tests/protocol/test_codec_fuzz.py``,
-18,000 cases). This is the long run: ``--inputs`` (default 1,000,000) inputs to
+12,600 cases). This is the long run: ``--inputs`` (default 1,000,000) inputs to
 ``Codec.try_decode``, then prints one JSON object with the figures the README reports.
 
 Engines:

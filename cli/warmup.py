@@ -9,7 +9,7 @@ import sys
 import time
 
 from hapticproxy.protocol import logs
-from hapticproxy.server.warm import SERVER_KERNEL_MODULES, cold, dispatchers, warm_server
+from hapticproxy.server.warm import SERVER_KERNEL_MODULES, cold, dispatchers, refresh_stale_caches, warm_server
 
 #: engine modules with numba kernels, each with a ``warm_up_kernels()``; skipped when the
 #: engines extra is not installed
@@ -36,6 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     log = logging.getLogger("hapticproxy.warmup")
     modules = SERVER_KERNEL_MODULES + CLIENT_KERNEL_MODULES
     t0 = time.monotonic()
+    refresh_stale_caches(modules)  # kernels compiled from older sources would run the old code
     todo = cold(modules)
     if todo:
         log.info("compiling %d kernels (first run on this machine, about a minute) ...", len(todo))

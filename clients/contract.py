@@ -94,6 +94,8 @@ class ProxyCommand:
     joint_position: np.ndarray = field(default_factory=lambda: np.zeros(0))
     joint_velocity: np.ndarray = field(default_factory=lambda: np.zeros(0))
     server_state: int = ServerState.ENGAGED
+    epsilon_m: float = 0.0  # the advice (protocol 1.2): 0 is none
+    lead_s: float = 0.0
 
 
 class ScriptedServer:
@@ -134,7 +136,8 @@ class ScriptedServer:
             if cmd is not None:
                 ep.send_proxy_state(upd.session_id, now, cmd.pose, cmd.twist, cmd.wrench,
                                     joint_position=cmd.joint_position, joint_velocity=cmd.joint_velocity,
-                                    joint_effort=np.zeros(len(cmd.joint_position)), server_state=int(cmd.server_state))
+                                    joint_effort=np.zeros(len(cmd.joint_position)), server_state=int(cmd.server_state),
+                                    epsilon_m=cmd.epsilon_m, lead_s=cmd.lead_s)
         ep.poll(now)
 
     def sleep(self, seconds: float) -> None:

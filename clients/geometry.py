@@ -218,3 +218,26 @@ def box_inertia(mass_kg: float, half_m) -> tuple[float, float, float, float, flo
     hx, hy, hz = (2.0 * float(h) for h in half_m)
     return (mass_kg * (hy * hy + hz * hz) / 12.0, mass_kg * (hx * hx + hz * hz) / 12.0,
             mass_kg * (hx * hx + hy * hy) / 12.0, 0.0, 0.0, 0.0)
+
+
+def advance_pose(pose, twist, dt: float, out: np.ndarray) -> np.ndarray:
+    """``pose`` (x y z qw qx qy qz) moved along ``twist`` (v, w: world) for ``dt`` seconds (a
+    constant twist: the translation, and the rotation about the world axis w): what an engine
+    tracks, the proxy advanced by ``ProxyState.lead_s`` (SPEC 8)."""
+    out[:3] = np.asarray(pose[:3], dtype=float) + dt * np.asarray(twist[:3], dtype=float)
+    w = np.asarray(twist[3:6], dtype=float)
+    wn = float(np.linalg.norm(w))
+    q = np.asarray(pose[3:7], dtype=float)
+    if wn * dt == 0.0:
+        out[3:7] = q
+        return out
+    h = 0.5 * wn * dt
+    s = math.sin(h) / wn
+    dw, dx, dy, dz = math.cos(h), s * w[0], s * w[1], s * w[2]
+    qw, qx, qy, qz = q
+    out[3] = dw * qw - dx * qx - dy * qy - dz * qz
+    out[4] = dw * qx + dx * qw + dy * qz - dz * qy
+    out[5] = dw * qy - dx * qz + dy * qw + dz * qx
+    out[6] = dw * qz + dx * qy - dy * qx + dz * qw
+    out[3:7] /= np.linalg.norm(out[3:7])
+    return out

@@ -66,6 +66,7 @@ from hapticproxy.protocol.session import ClientConfig, ClientEndpoint, ClientSta
 from hapticproxy.protocol.transport import TransportError, open_transport, parse_transport_url
 
 from .engine import ContactBuffer, Engine, SceneInfo
+from .geometry import advance_pose
 
 __all__ = ["ClientError", "ClientRunner", "TOOL_KINDS"]
 
@@ -76,6 +77,12 @@ _RTT_RING = 4096
 _RESYNC_NS = 250_000_000
 #: server states in which the proxy is rendered: the tool follows it
 _FOLLOW = frozenset((ServerState.ENGAGED, ServerState.UNKNOWN))
+#: the engine's epsilon follows the server's advice when it moves by more than this [m] (a
+#: change costs the engine a re-inflation of its tool's query shape)
+EPSILON_CHANGE_M = 0.0005
+#: the longest lead [s] a server's advice may ask the tool to track ahead by: an engine lags by a
+#: few of its steps, and a lead from a broken server must not throw the tool ahead
+LEAD_MAX_S = 0.25
 
 
 class ClientError(Exception):
@@ -170,11 +177,13 @@ class ClientRunner:
         self.contacts = ContactBuffer(max_contacts)
         self.tool_pose = np.zeros(7)
         self.granted_epsilon_m: float | None = None
+        self.epsilon_m = self.requested_epsilon_m  # what the engine inflates its tool by now
         self.granted_max_contacts: int | None = None
         self.last_proxy = None
         #: the tool follows the proxy (the server renders it); False while it is held
         self.following = True
         self._hold_pose = np.zeros(7)
+        self._lead_pose = np.zeros(7)
         self._hold_zeros6 = np.zeros(6)
         self._hold_zeros_j = np.zeros(len(self._joints))
         self._hold_joints = np.zeros(len(self._joints))
@@ -392,7 +401,17 @@ class ClientRunner:
             c["proxy_applied"] += 1
             if self._linkage:
                 engine.drive_joints(newest.joint_position, newest.joint_velocity, newest.joint_effort)
-            engine.drive_tool(newest.proxy_pose, newest.proxy_twist, newest.wrench)
+            # the server's advice (protocol 1.2): track the proxy advanced by its lead, and inflate
+            # the tool by the epsilon it measured (never above the granted one)
+            lead = min(float(getattr(newest, "lead_s", 0.0) or 0.0), LEAD_MAX_S)
+            target = newest.proxy_pose if lead <= 0.0 else advance_pose(newest.proxy_pose, newest.proxy_twist, lead,
+                                                                           self._lead_pose)
+            engine.drive_tool(target, newest.proxy_twist, newest.wrench)
+            eps = float(getattr(newest, "epsilon_m", 0.0) or 0.0)
+            eps = self.granted_epsilon_m if eps <= 0.0 else min(eps, self.granted_epsilon_m)  # 0: no advice
+            if abs(eps - self.epsilon_m) > EPSILON_CHANGE_M:
+                engine.set_epsilon(eps)
+                self.epsilon_m = eps
             if not self.following and self._log:
                 self._log(f"server {self.server_state}: following the proxy again")
         else:
@@ -422,6 +441,7 @@ class ClientRunner:
         self.granted_epsilon_m = w.epsilon_m
         self.granted_max_contacts = w.max_contacts
         self.engine.set_epsilon(w.epsilon_m)
+        self.epsilon_m = w.epsilon_m  # until the server advises another one
         if self.contacts.capacity != w.max_contacts:
             self.contacts = ContactBuffer(w.max_contacts)
         self._counts["sessions"] += 1

@@ -38,6 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hapticproxy.clients.geometry import advance_pose  # noqa: F401 - used below and by experiments
+
 #: The three ways of coupling the device to the environment the paper compares (section V).
 #: IR: Berkelman's intermediate representation = direct coupling, no proxy deformation (eq. 1
 #: at every update), no prediction. LM0: the local model (four-channel controller, proxy
@@ -323,28 +325,6 @@ class Misreport:
             self.applied += 1
         if self.kind == "rekey" and self._generation:
             keys[:n, 2] += 1_000_000 * self._generation
-
-
-def advance_pose(pose, twist, dt: float, out: np.ndarray) -> np.ndarray:
-    """``pose`` (x y z qw qx qy qz) moved along ``twist`` (v, w: world) for ``dt`` seconds (a
-    constant twist: the translation, and the rotation about the world axis w)."""
-    out[:3] = np.asarray(pose[:3], dtype=float) + dt * np.asarray(twist[:3], dtype=float)
-    w = np.asarray(twist[3:6], dtype=float)
-    wn = float(np.linalg.norm(w))
-    q = np.asarray(pose[3:7], dtype=float)
-    if wn * dt == 0.0:
-        out[3:7] = q
-        return out
-    h = 0.5 * wn * dt
-    s = math.sin(h) / wn
-    dw, dx, dy, dz = math.cos(h), s * w[0], s * w[1], s * w[2]
-    qw, qx, qy, qz = q
-    out[3] = dw * qw - dx * qx - dy * qy - dz * qz
-    out[4] = dw * qx + dx * qw + dy * qz - dz * qy
-    out[5] = dw * qy - dx * qz + dy * qw + dz * qx
-    out[6] = dw * qz + dx * qy - dy * qx + dz * qw
-    out[3:7] /= np.linalg.norm(out[3:7])
-    return out
 
 
 class SimEnvClient:

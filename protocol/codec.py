@@ -890,7 +890,8 @@ class Codec:
         if tid == MessageType.PROXY_STATE:
             return self.encode_proxy_state(
                 msg.session_id, msg.token, msg.seq, msg.ack_seq, msg.server_time_s, msg.proxy_pose, msg.proxy_twist,
-                msg.wrench, msg.joint_position, msg.joint_velocity, msg.joint_effort, msg.server_state)
+                msg.wrench, msg.joint_position, msg.joint_velocity, msg.joint_effort, msg.server_state,
+                epsilon_m=msg.epsilon_m, lead_s=msg.lead_s)
         lay = self._layouts.get(int(tid))
         if lay is None or not isinstance(msg, lay.cls):
             raise ValueError(f"message type {type(msg).__name__} not declared in this codec")
@@ -927,7 +928,8 @@ class Codec:
 
     def encode_proxy_state(self, session_id: int, token: int, seq: int, ack_seq: int, server_time_s: float,
                            proxy_pose, proxy_twist, wrench, joint_position=_EMPTY, joint_velocity=_EMPTY,
-                           joint_effort=_EMPTY, server_state: int = 0, *, trusted: bool = False) -> bytes:
+                           joint_effort=_EMPTY, server_state: int = 0, *, epsilon_m: float = 0.0,
+                           lead_s: float = 0.0, trusted: bool = False) -> bytes:
         """Encode a ProxyState from arrays (the server's acknowledgement). Every value rule of the
         decoder is applied (one vectorised test); ``ValueError`` names the bad field.
 
@@ -945,7 +947,7 @@ class Codec:
                           proxy_twist.tobytes(), wrench.tobytes(), joint_position.tobytes(),
                           joint_velocity.tobytes(), joint_effort.tobytes()]
                 if self._ps_has_state:
-                    fields.append(int(server_state))
+                    fields += (int(server_state), float(epsilon_m), float(lead_s))
                 packet = self._enc(fields)
                 self.counters.encoded += 1
                 return packet
@@ -982,10 +984,13 @@ class Codec:
         state = int(server_state)
         if state not in _SERVER_STATES:
             raise ValueError(f"server_state must be a ServerState, got {server_state!r}")
+        eps, lead = float(epsilon_m), float(lead_s)
+        if not (0.0 <= eps <= _MAX_ABS and 0.0 <= lead <= _MAX_ABS):
+            raise ValueError(f"epsilon_m and lead_s must be finite and >= 0, got {epsilon_m!r}, {lead_s!r}")
         fields = [PROTOCOL_MAJOR, self.minor, 5, _u(session_id, "session_id", 0xFFFF_FFFF), _u(token, "token", _U64_MAX),
                   int(seq), _u(ack_seq, "ack_seq", _U64_MAX), t, *bins]
         if self._ps_has_state:
-            fields.append(state)
+            fields += (state, eps, lead)
         packet = self._enc(fields)
         self.counters.encoded += 1
         return packet

@@ -361,6 +361,12 @@ class ProxyState(Message, kw_only=True):
     server_state: enum(ServerState, "ServerState: 1 idle, 2 engaged, 3 fading, 4 fault (0: not reported); follow "
                                     "the proxy only while engaged: otherwise it is held and not rendered",
                        since=2) = ServerState.UNKNOWN
+    epsilon_m: f64("the epsilon to inflate the tool by from the next step on: the distance the tool may travel "
+                   "before its next update is applied, measured by the server; 0 < it <= Welcome.epsilon_m "
+                   "(0: use Welcome.epsilon_m)", "m", rule="nonneg", since=2) = 0.0
+    lead_s: f64("track proxy_pose advanced along proxy_twist by lead_s plus the time since this ProxyState "
+                "arrived (the server measures the engine tool's lag behind the proxy; 0: track the pose as it "
+                "is)", "s", rule="nonneg", since=2) = 0.0
 
 
 class Heartbeat(Message, kw_only=True):

@@ -428,7 +428,8 @@ class ServerEndpoint:
 
     def send_proxy_state(self, session_id: int, now_ns: int | None, proxy_pose, proxy_twist, wrench,
                          joint_position=None, joint_velocity=None, joint_effort=None,
-                         server_time_s: float | None = None, server_state: int = 0, trusted: bool = False) -> bool:
+                         server_time_s: float | None = None, server_state: int = 0, epsilon_m: float = 0.0,
+                         lead_s: float = 0.0, trusted: bool = False) -> bool:
         """Acknowledge with the proxy state (``ack_seq`` = newest ContactUpdate accepted).
 
         Poses/twists/wrenches as in SPEC.md (world frame; pose x y z qw qx qy qz). Returns
@@ -447,7 +448,8 @@ class ServerEndpoint:
             proxy_pose, proxy_twist, wrench,
             empty if joint_position is None else joint_position,
             empty if joint_velocity is None else joint_velocity,
-            empty if joint_effort is None else joint_effort, server_state, trusted=trusted)
+            empty if joint_effort is None else joint_effort, server_state, epsilon_m=epsilon_m, lead_s=lead_s,
+            trusted=trusted)
         self._emit(packet, s.peer)
         s.last_tx_ns = now
         return True

@@ -33,7 +33,7 @@ Layout (all keys optional)::
 
 Presets trade speed for accuracy (what each costs and buys is in ``PRESETS``, EXPERIMENTS.md
 and the README): ``fast`` 512 Hz (the paper's rate), 16 contacts; ``balanced`` 1 kHz, 32
-contacts; ``accurate`` 4 kHz, 64 contacts. All let clients request epsilon up to 10 mm.
+contacts; ``accurate`` 4 kHz, 64 contacts. All let clients request epsilon up to 40 mm (the engine told what to use).
 Precedence, lowest first: the defaults, the file's ``preset``, the file's keys, a preset given
 on the command line (``serve --preset``: it wins over what the file pins for the keys the
 preset sets), then the other command-line options.
@@ -131,6 +131,22 @@ class ModelConfig(_Table):
     linkage_dynamics: _doc(Literal["full", "paper"],
                            "linkage proxy: full = with the Coriolis/centripetal terms (energy-consistent); "
                            "paper = neglected, the paper's eq. 7 as written") = "full"
+    recovery_speed_m_per_s: _num(0, 1, doc="deformation recovery: a deformed contact the proxy rests on is "
+                                 "brought back to the true geometry at up to this speed (the hand is moved out to "
+                                 "the real surface); 0: off [m/s]") = 0.025
+    recovery_force_rate_n_per_s: _num(0, 1e4, lo_open=True, doc="the largest rate of change of the penalty force "
+                                      "the recovery adds, summed over contacts (well below the safety rate) "
+                                      "[N/s]") = 200.0
+    recovery_tau_s: _num(0, 10, doc="time constant of the recovery's exponential tail [s]") = 0.1
+    recovery_min_age_updates: _num(0, 10000, integer=True, doc="only contacts that survived this many updates "
+                                   "are recovered (an incomplete contact set is not restored)") = 10
+    epsilon_prediction: _doc(bool, "tell the engine the epsilon to use next (ProxyState.epsilon_m): the "
+                             "distance its tool may travel in one engine step plus its lag, at most the "
+                             "granted epsilon") = True
+    epsilon_floor_m: _num(0, 0.1, doc="the smallest epsilon told to an engine [m]") = 0.002
+    lead: _doc(bool, "tell the engine how far to extrapolate the proxy when it tracks it (ProxyState.lead_s), "
+               "measured from its tool's lag") = True
+    lead_max_s: _num(0, 0.5, doc="the largest lead told [s]") = 0.1
     workspace_extent_m: _num(0.01, 1e4, doc="the scene's extent: contact positions and the engine's tool pose "
                              "within +- this of the origin on each axis, or the update is refused with an Error "
                              "naming the field (told to clients in Welcome) [m]") = 10.0
@@ -215,18 +231,21 @@ DOCS.update({f"device.{k}": v for k, v in schema.descriptions(DeviceHeader).item
 #: (``hapticproxy experiment tradeoff``, EXPERIMENTS.md): the loop's CPU is small at any rate
 #: (about 8 us per step); the haptic rate buys the stable stiffness band (about proportional
 #: to the rate) and smaller force steps, not wall or hole accuracy, which the environment's rate
-#: and epsilon buy. Epsilon is what clients may request (the server grants at most this): 10 mm
-#: catches a wall approached at 0.4 m/s from a 30-60 Hz engine more often than 5 mm, at no cost.
+#: and epsilon buy. Epsilon is what clients may request (the server grants at most this): with
+#: the server telling the engine the epsilon to use next (model.epsilon_prediction) a large cap
+#: costs nothing at rest, and 40 mm lets the prediction catch a fast approach; with recovery and
+#: advice on, the wall is felt where it is within about 0.27 s of contact at every rate
+#: (EXPERIMENTS.md, ``hapticproxy experiment tradeoff``).
 PRESETS: dict[str, tuple[dict, str]] = {
-    "fast": ({"loop": {"rate_hz": 512.0}, "model": {"capacity": 16, "epsilon_m": 0.010}},
-             "512 Hz (the paper's rate), 16 contacts, epsilon up to 10 mm: least CPU (0.4 % of a core); "
+    "fast": ({"loop": {"rate_hz": 512.0}, "model": {"capacity": 16, "epsilon_m": 0.040}},
+             "512 Hz (the paper's rate), 16 contacts, epsilon up to 40 mm (the engine told what to use): least CPU (0.4 % of a core); "
              "stable contacts up to about 10 kN/m with b = 7.5 ms x k; force steps limited to 1 N per step (the "
              "default force rate at 512 Hz is 512 N/s; the sweep's 1.95 N steps were measured at 1000 N/s)"),
-    "balanced": ({"loop": {"rate_hz": 1000.0}, "model": {"capacity": 32, "epsilon_m": 0.010}},
-                 "1 kHz, 32 contacts, epsilon up to 10 mm: the default (0.8 % of a core); stable contacts "
+    "balanced": ({"loop": {"rate_hz": 1000.0}, "model": {"capacity": 32, "epsilon_m": 0.040}},
+                 "1 kHz, 32 contacts, epsilon up to 40 mm (the engine told what to use): the default (0.8 % of a core); stable contacts "
                  "up to about 50 kN/m with b = 7.5 ms x k; force steps up to 1 N per step"),
-    "accurate": ({"loop": {"rate_hz": 4000.0}, "model": {"capacity": 64, "epsilon_m": 0.010}},
-                 "4 kHz, 64 contacts, epsilon up to 10 mm: 3 % of a core; stable contacts up to about "
+    "accurate": ({"loop": {"rate_hz": 4000.0}, "model": {"capacity": 64, "epsilon_m": 0.040}},
+                 "4 kHz, 64 contacts, epsilon up to 40 mm (the engine told what to use): 3 % of a core; stable contacts up to about "
                  "200 kN/m with b = 7.5 ms x k (1 MN/m with b = 30 N s/m); force steps up to 0.35 N per "
                  "step; wants SCHED_FIFO and a quiet core (a model update's step can outlast the 250 us period)"),
 }

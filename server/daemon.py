@@ -106,8 +106,9 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         loop.parent_pid = parent  # a loop whose supervisor died stops (forces fade, Bye, exit)
         llog.debug("pid %d: transport %s open, %s device %r built", os.getpid(), transport.url,
                    settings["device"]["kind"], settings["device"]["driver"])
-        from .warm import cold
+        from .warm import cold, refresh_stale_caches
 
+        refresh_stale_caches()  # kernels compiled from older sources would run the old code
         todo = cold()
         if todo:
             llog.info("compiling %d kernels before the loop starts (first run on this machine: about a minute; "

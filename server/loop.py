@@ -46,6 +46,7 @@ from .devices.base import (
     DEV_FAULT_LINK, DEV_FAULT_NAMES, DEV_FAULT_WATCHDOG, DEV_NSTATE, DS_TIME, empty_state, load_device,
 )
 from .lifecycle import LOOP_STATES, LS, SERVER_STATE_BY_CODE, TRANSITIONS, Fault, Reason
+from .prediction import EngineAdvice, tool_radius_m
 from .model.model import ContactParams, LinkSpec, LocalModel, ToolSpec, warm_up as model_warm_up
 from .rings import account, record_contacts
 from .shm import CT, ST, SharedState
@@ -149,7 +150,11 @@ class ModelFactory:
         model = LocalModel(tool, self.contact, period_s=self.period_s, policy=mcfg["policy"], epsilon_m=eps,
                            capacity=mcfg["capacity"], gravity_m_per_s2=mcfg["gravity_m_per_s2"],
                            max_update_contacts=max(mcfg["capacity"], int(max_contacts)),
-                           linkage_dynamics=mcfg["linkage_dynamics"], warm=False)
+                           linkage_dynamics=mcfg["linkage_dynamics"],
+                           recovery_speed_m_per_s=mcfg["recovery_speed_m_per_s"],
+                           recovery_force_rate_n_per_s=mcfg["recovery_force_rate_n_per_s"],
+                           recovery_tau_s=mcfg["recovery_tau_s"],
+                           recovery_min_age_updates=mcfg["recovery_min_age_updates"], warm=False)
         return tool, model
 
     def check(self, hello, epsilon_m: float, max_contacts: int) -> str:
@@ -310,6 +315,7 @@ class HapticLoop:
         self._kernels_compiled = -1
         self._kernels: list = []
         self._pending = None  # the newest ContactUpdate received, applied in the next step
+        self.advice: EngineAdvice | None = None
         self._scratch_pose = np.zeros(13)
         self._no_joints = np.zeros(0)
         # the acknowledgement's arrays: views made once (the ack encodes from them as they are)
@@ -568,7 +574,7 @@ class HapticLoop:
                         upd.keys.shape[0], self._kbuf, self._pbuf, self._nbuf, self._sbuf)
         if self.state == LS["fading"] and self.watchdog == WD_SILENT:
             self.transition("engaged", Reason.RESUMED)
-        self._ack(now)
+        self._ack(now, upd)
 
     def _engine_q(self, upd):
         """The engine's tool configuration for the update (None: the paper's eq. 1). A linkage's
@@ -605,23 +611,30 @@ class HapticLoop:
         self.last_update_ns = now
         self.last_env_time_s = upd.env_time_s
 
-    def _ack(self, now: int) -> None:
+    def _ack(self, now: int, upd) -> None:
         cs = self.ctrl.cs
         m = self.model
         state = SERVER_STATE_BY_CODE[int(self.state)]
+        adv = self.advice
         if self._linkage:
             # the root frame's pose and twist; the hand wrench as the wrench on the root frame's
             # origin plus one effort per joint (J_h^T F_h split by coordinates)
             pose, twist, wrench, effort, jq, jqd = m.joint_state(cs[ctl.CS_HAND:ctl.CS_HAND + 6])
+            adv.on_update(now * 1e-9, pose, twist, upd.tool_pose, bool((upd.separation_m <= 0.0).any()))
             if self.endpoint.send_proxy_state(self.session_id, now, pose, twist, wrench, server_time_s=m.time_s,
                                               joint_position=jq, joint_velocity=jqd, joint_effort=effort,
-                                              server_state=state, trusted=True):
+                                              server_state=state, epsilon_m=adv.epsilon_m, lead_s=adv.lead_s,
+                                              trusted=True):
                 self.acks += 1
             return
         kind, par, st_ = self._margs[0], self._margs[1], self._margs[2]
         ctl.proxy_hand_state(kind, par, st_, self._R, self._c, self._scratch_pose, 0)
+        # the engine's advice (epsilon to use next, the lead): a few float operations per update
+        adv.on_update(now * 1e-9, self._ack_pose, self._ack_twist, upd.tool_pose,
+                      bool((upd.separation_m <= 0.0).any()))
         if self.endpoint.send_proxy_state(self.session_id, now, self._ack_pose, self._ack_twist, self._ack_wrench,
-                                          server_time_s=m.time_s, server_state=state, trusted=True):
+                                          server_time_s=m.time_s, server_state=state, epsilon_m=adv.epsilon_m,
+                                          lead_s=adv.lead_s, trusted=True):
             self.acks += 1
 
     def _engage(self, upd, now: int) -> None:
@@ -674,6 +687,7 @@ class HapticLoop:
         self.session_id = upd.session_id
         self.com_m = np.asarray(hello.com_m, dtype=float)
         self._tool_axis = tool.axis
+        self.advice = self._new_advice(hello, tool, float(sess.epsilon_m))
         self.device.on_engage()  # a simulated hand's script starts with the session
         self._reindex()
         c = self.ctrl
@@ -683,6 +697,19 @@ class HapticLoop:
         self.env_rate_hz = 0.0
         if self.fault == Fault.NONE:
             self.transition("engaged", Reason.ENGAGE, self.session_id)
+
+    def _new_advice(self, hello, tool, epsilon_m: float) -> EngineAdvice:
+        """What the engine is told with every acknowledgement: the epsilon to use next and the
+        lead to extrapolate the proxy by (``server/prediction.py``), capped by the granted epsilon."""
+        mcfg = self.settings["model"]
+        radius = 0.0  # a linkage's reach is not estimated: the prediction then covers its root only
+        if not self._linkage:
+            ixx, iyy, izz = (float(v) for v in hello.inertia_kg_m2[:3])
+            radius = tool_radius_m(float(hello.mass_kg), (izz,) if tool.kind == "planar" else (ixx, iyy, izz))
+            radius += float(np.linalg.norm(np.asarray(hello.com_m, dtype=float)))
+        cap = 0.0 if mcfg["policy"] == "lm0" else epsilon_m
+        return EngineAdvice(cap, tool_radius_m=radius, predict=mcfg["epsilon_prediction"], lead=mcfg["lead"],
+                            epsilon_floor_m=min(mcfg["epsilon_floor_m"], cap), lead_max_s=mcfg["lead_max_s"])
 
     def _reindex(self) -> None:
         """Map the device onto the proxy's hand point (no jump), unless mapping is absolute. At
@@ -880,7 +907,20 @@ class HapticLoop:
         st[ST["gain"]] = self.ctrl.cs[ctl.CS_GAIN]
         st[ST["fault"]] = self.fault
         st[ST["device_fault"]] = self.device_fault
-        st[ST["model_nonfinite"]] = self.model.counters()["nonfinite"] if self.model is not None else 0
+        m = self.model
+        if m is not None:
+            mc = m.counters()
+            st[ST["model_nonfinite"]] = mc["nonfinite"]
+            st[ST["flips_refused"]] = mc["flips_refused"]
+            st[ST["rekeyed"]] = mc["rekeyed"]
+            st[ST["recovering"]] = mc["recovering"]
+            st[ST["recovery_energy_j"]] = m.recovery_energy_j
+        else:
+            st[ST["model_nonfinite"]] = 0
+            st[ST["recovering"]] = 0
+        if self.advice is not None:
+            st[ST["advised_epsilon_m"]] = self.advice.epsilon_m
+            st[ST["advised_lead_s"]] = self.advice.lead_s
         st[ST["saturated"]] = cc[ctl.CC_SATURATED]
         st[ST["rate_limited"]] = cc[ctl.CC_RATE_LIMITED]
         st[ST["speed_trips"]] = cc[ctl.CC_SPEED_TRIPS]

@@ -70,6 +70,10 @@ STATUS_LAYOUT = (
     # ContactUpdates refused before the model (answered with an Error naming the field): outside
     # the scene's bounds (Welcome), contacts the tool cannot use, a sequence number jumping ahead
     ("refused_out_of_bounds", "i"), ("refused_unusable", "i"), ("refused_seq_jump", "i"),
+    # the model: reversed normals refused, renumbered keys continued, contacts being recovered,
+    # the work the deformation recovery did on the hand [J]; the engine's advice [m, s]
+    ("flips_refused", "i"), ("rekeyed", "i"), ("recovering", "i"), ("recovery_energy_j", "f"),
+    ("advised_epsilon_m", "f"), ("advised_lead_s", "f"),
 )
 STATUS_DTYPE = np.dtype([(name, np.float64) for name, _ in STATUS_LAYOUT])
 STATUS_FIELDS = STATUS_DTYPE.names

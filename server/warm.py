@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import importlib
 import os
+from pathlib import Path
 
 #: Modules holding the server's numba kernels (imported to find them).
 SERVER_KERNEL_MODULES = (
@@ -27,6 +28,65 @@ SERVER_KERNEL_MODULES = (
     "hapticproxy.server.devices.dynamics",
     "hapticproxy.server.devices.hands",
 )
+
+
+#: Every source file whose code ends up in a cached kernel, relative to the ``hapticproxy``
+#: package root (server and client files alike: read as text, never imported from here). Numba
+#: keys each kernel's cache on its own file only, so a kernel that inlines another module's
+#: (``control.haptic_step`` calls ``model.kernels.step_rigid``) would keep running the old code
+#: after an edit there; :func:`refresh_stale_caches` drops every cache when any of these changes.
+KERNEL_SOURCES = tuple(name.removeprefix("hapticproxy.").replace(".", "/") + ".py" for name in SERVER_KERNEL_MODULES) + (
+    "clients/narrowphase.py", "clients/geometry.py")
+_STAMP = "hapticproxy-kernel-sources.sha256"
+
+
+def sources_digest() -> str:
+    """One hash of every kernel source and of the numba that compiles them."""
+    import hashlib
+
+    import numba
+
+    root = Path(__file__).resolve().parent.parent
+    h = hashlib.sha256(numba.__version__.encode())
+    for rel in KERNEL_SOURCES:
+        f = root / rel
+        h.update(rel.encode())
+        h.update(f.read_bytes() if f.exists() else b"-")
+    return h.hexdigest()
+
+
+def refresh_stale_caches(modules=SERVER_KERNEL_MODULES) -> int:
+    """Drop the cached kernels of ``modules`` compiled from other sources than today's (see
+    :data:`KERNEL_SOURCES`); returns how many were dropped (they compile at the next warm-up)."""
+    digest = sources_digest()
+    by_dir: dict[str, list] = {}
+    for d in dispatchers(modules):
+        cache = getattr(d, "_cache", None)
+        path = getattr(cache, "_cache_path", None)
+        if path:
+            by_dir.setdefault(path, []).append(d)
+    dropped = 0
+    for path, ds in by_dir.items():
+        stamp = Path(path) / _STAMP
+        try:
+            if stamp.read_text() == digest:
+                continue
+        except OSError:
+            pass
+        for d in ds:
+            index = Path(d._cache._cache_file._index_path)
+            for f in [index, *index.parent.glob(index.name[:-len(".nbi")] + ".*.nbc")]:
+                try:
+                    f.unlink()
+                    dropped += f.suffix == ".nbi"
+                except FileNotFoundError:
+                    pass
+        try:
+            Path(path).mkdir(parents=True, exist_ok=True)
+            stamp.write_text(digest)
+        except OSError:
+            pass  # a read-only cache: numba falls back to compiling in memory
+    return dropped
 
 
 def dispatchers(modules=SERVER_KERNEL_MODULES) -> list:

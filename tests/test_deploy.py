@@ -118,10 +118,12 @@ def test_container_is_built_warm_and_runs_as_its_own_user():
     assert {".venv", "out", "**/__pycache__", "**/*.nbi", "**/*.nbc"} <= set(ignored)
 
 
+@pytest.mark.slow
 def test_the_units_warm_up_fills_its_cache_and_the_server_then_compiles_nothing(tmp_path):
     """What the systemd unit does (and the container build): `hapticproxy warmup` with the
     service's NUMBA_CACHE_DIR, then `serve`: the loop process loads every kernel from that cache
-    and says nothing about compiling."""
+    and says nothing about compiling. Slow (a full compile, ~90 s on 2 cores): ``.ci/run`` runs
+    the same sequence with an empty NUMBA_CACHE_DIR on every CI run."""
     import os
 
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))

@@ -468,3 +468,34 @@ def test_start_up_time_does_not_count_against_the_connect_timeout(helpers):
                           sleep=srv.sleep)
     st = runner.run(duration_s=0.2)
     assert st["error"] is None and st["sessions"] == 1 and st["steps"] >= 15
+
+
+def test_the_servers_advice_moves_the_tools_target_ahead_and_its_epsilon_within_the_grant(helpers):
+    """Protocol 1.2: a ProxyState's lead_s advances the pose the engine tracks along the proxy's
+    twist (bounded by LEAD_MAX_S whatever the server says), and its epsilon_m re-inflates the
+    tool only on a change above EPSILON_CHANGE_M and never above the granted epsilon."""
+    from hapticproxy.clients import runner as R
+
+    clock = SimClock()
+    advice = [(0.2, 0.0, 0.0), (0.4, 0.05, 0.003), (0.6, 0.05, 0.0032), (0.8, 10.0, 0.5), (1.0, 0.0, 0.0)]
+
+    def script(t, s):
+        lead, eps = next(((lead, eps) for end, lead, eps in advice if t < end), (0.0, 0.0))
+        twist = np.zeros(6)
+        twist[1] = 0.1
+        return ProxyCommand(s.start_pose.copy(), twist, lead_s=lead, epsilon_m=eps)
+
+    srv = _scripted(clock, script)
+    engine = helpers.RecordingEngine(rate_hz=100.0)
+    runner = ClientRunner(engine, srv.url, scene="floor", epsilon_m=0.01, clock_ns=clock, sleep=srv.sleep)
+    runner.run(duration_s=1.2)
+    granted = runner.granted_epsilon_m
+    y0 = float(srv.start_pose[1])
+    ahead = sorted({round(float(p[1]) - y0, 9) for p in engine.driven})
+    # no lead, a 50 ms lead at 0.1 m/s (5 mm ahead), and a 10 s lead cut to LEAD_MAX_S
+    assert ahead == pytest.approx([0.0, 0.1 * 0.05, 0.1 * R.LEAD_MAX_S])
+    # the grant first; the first advice re-inflates; 0.2 mm more does not; 0.5 m is cut to the
+    # grant; no advice (0) is the grant (already there: no re-inflation)
+    assert engine.eps_history[-3:] == pytest.approx([granted, 0.003, granted])
+    assert engine.eps_history.count(0.003) == 1
+    assert granted == pytest.approx(0.01)

@@ -146,7 +146,7 @@ def test_a_preset_on_the_command_line_wins_over_what_the_file_pins(tmp_path):
                  'damping_n_s_per_m = 20.0\n')
     assert cfg.load(f).rate_hz == 1000.0 and cfg.load(f)["model"]["capacity"] == 8   # the file's keys win over its preset
     s = cfg.load(f, {"preset": "fast"})
-    assert (s.rate_hz, s["model"]["capacity"], s["model"]["epsilon_m"], s["preset"]) == (512.0, 16, 0.010, "fast")
+    assert (s.rate_hz, s["model"]["capacity"], s["model"]["epsilon_m"], s["preset"]) == (512.0, 16, 0.040, "fast")
     assert s["model"]["damping_n_s_per_m"] == 20.0                   # keys the preset does not set stay
     s = cfg.load(f, {"preset": "fast", "loop": {"rate_hz": 700.0}})  # an explicit option wins over the preset
     assert s.rate_hz == 700.0 and s["model"]["capacity"] == 16

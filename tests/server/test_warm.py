@@ -35,3 +35,28 @@ def test_warmup_command_leaves_nothing_cold():
     assert out.returncode == 0, out.stderr
     assert "kernels ready" in out.stderr
     assert cold(SERVER_KERNEL_MODULES) == []
+
+
+def test_a_changed_kernel_source_drops_every_cached_kernel(tmp_path):
+    """Numba keys a kernel's cache on its own file only: a kernel inlining another module's code
+    would keep the old code after an edit there. A changed source digest drops them all."""
+    import os
+
+    code = ("import json, pathlib\n"
+            "from hapticproxy.server import warm\n"
+            "stamps = lambda: sorted(pathlib.Path(d._cache._cache_path) / warm._STAMP for d in warm.dispatchers())\n"
+            "from hapticproxy.server import control\n"
+            "first = warm.refresh_stale_caches()\n"
+            "control._wrap(0.5)  # one small kernel compiled into the cache\n"
+            "index = pathlib.Path(control._wrap._cache._cache_file._index_path)\n"
+            "again = warm.refresh_stale_caches()\n"
+            "kept = index.exists()\n"
+            "for s in set(stamps()): s.write_text('an older source')\n"
+            "dropped = warm.refresh_stale_caches()\n"
+            "print(json.dumps({'again': again, 'kept': kept, 'dropped': dropped, 'gone': not index.exists()}))\n")
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=900, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert res["again"] == 0 and res["kept"]    # today's sources: nothing dropped
+    assert res["dropped"] >= 1 and res["gone"]  # an older source: the cached kernel is gone
