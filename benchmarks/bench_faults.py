@@ -43,8 +43,9 @@ nothing from that cut until the server re-arms, the first command after the re-a
 N, never above the cap (``zero_ms``: from the stop to the cut, including the device's tick).
 
 ``unstable``: a speed trip, a force at the cap, or, over the last second before the fault (or of
-the run), a force swinging by more than 1 N or a device moving by more than 1 mm while engaged at
-full gain (the static-contact experiment's settle test).
+the run) and from ``FULL_GAIN_SETTLE_S`` after the output last was below full gain, a force
+swinging by more than 1 N or a device moving by more than 1 mm while engaged at full gain (the
+static-contact experiment's settle test).
 """
 from __future__ import annotations
 
@@ -76,6 +77,9 @@ RATE_HZ = 1000.0
 DEVICE_DAMPING = 10.0
 DEVICE_WATCHDOG_S = 0.05
 WORKSPACE = ([-0.25, -0.25], [0.25, 0.25])
+#: the settle test starts this long [s] after the output was last below full gain (a ramp-in
+#: re-indexes, and the deformation recovers at [model] recovery_speed_m_per_s afterwards)
+FULL_GAIN_SETTLE_S = 0.3
 SETTLE_S = 3.0  # the hand has pushed the peg onto the wall and it rests there by then
 AFTER_S = 1.5   # observed after a fault
 SILENT_S = 0.4  # silence / link stall: past the watchdog (0.1 s) and a whole fade (0.2 s)
@@ -644,7 +648,12 @@ def analyse(rows: np.ndarray, lim: dict, ev: dict, case: Case | None = None) -> 
         mark("fade not at zero within fade_s", np.concatenate([np.zeros(i, bool), late]))
     # stability over the last second before the fault (or the end)
     t_ref = ev.get("fault_s", t[-1]) if len(t) else 0.0
-    win = (t > t_ref - 1.0) & (t <= t_ref) & (state == LS["engaged"]) & (gain >= 1.0)
+    full = (state == LS["engaged"]) & (gain >= 1.0)
+    # settled: from FULL_GAIN_SETTLE_S after the last time the output was not at full gain (a ramp's
+    # re-indexing and the deformation's recovery move the device on purpose)
+    not_full_t = t[(t <= t_ref) & ~full]
+    t_from = max(t_ref - 1.0, (not_full_t[-1] + FULL_GAIN_SETTLE_S) if len(not_full_t) else -np.inf)
+    win = (t > t_from) & (t <= t_ref) & full
     from hapticproxy.server.shm import TEL as _T
 
     dev_y = rows[:, _T["dev_y"]]
@@ -662,6 +671,7 @@ def analyse(rows: np.ndarray, lim: dict, ev: dict, case: Case | None = None) -> 
         "rate_limit_n_per_step": rate_f,
         "fade_ms": round(max(fade_ms), 1) if fade_ms else None,
         "unstable": unstable,
+        "force_ptp_n": None if force_ptp_n is None else round(force_ptp_n, 3),
         "violations": int(bad.sum()),
         "server_violations": int(bad.sum()),
         "broken": broken,

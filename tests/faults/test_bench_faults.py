@@ -119,9 +119,10 @@ def test_lifecycle_cases_keep_every_promise_on_the_real_server(name):
     row = lc.run_lifecycle_case(case, bf, engine="stub", realtime=False)
     assert "error" not in row, row
     assert row["violations"] == 0, (row["case"], row["broken"], row["transitions"])
-    assert row["peak_n"] <= row["steady_n"] + 1.0
+    assert row["peak_n"] <= row["steady_n"] + 1.0, row
     if case.kind == "stall":
-        assert row["stall_recoveries"] >= 1 and row["recover_ms"] >= 490.0  # stall_recover_s on time first (a step or so)
+        # stall_recover_s on time first (a step or so)
+        assert row["stall_recoveries"] >= 1 and row["recover_ms"] >= 490.0, row
 
 
 def test_a_killed_loop_is_cut_by_the_device_and_its_recording_loses_nothing():
