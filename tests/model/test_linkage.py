@@ -8,7 +8,9 @@ import math
 
 import numpy as np
 import pytest
-from linkage_helpers import bar_chain, bar_corners, chain_contacts, closest_on_bar, random_linkage, random_q
+from linkage_helpers import (
+    bar_chain, bar_corners, chain_contacts, closest_on_bar, random_linkage, random_normals, random_q,
+)
 
 from hapticproxy.server.model import ContactParams, LinkSpec, LocalModel, ToolSpec
 from hapticproxy.server.model import linkage as LK
@@ -150,10 +152,7 @@ def test_a_one_link_linkage_is_the_rigid_tool(planar):
     for it in range(300):
         if it % 16 == 0:
             n = 6
-            nrm = rng.normal(size=(n, 3))
-            if planar:
-                nrm[:, 2] = 0.0
-            nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+            nrm = random_normals(rng, n, "planar" if planar else "spatial")
             keys = np.c_[np.zeros(n, int), np.arange(n) + it, np.zeros(n, int)]
             cp = a.pose_matrix()[1] + rng.normal(size=(n, 3)) * 0.01
             if planar:
@@ -187,10 +186,7 @@ def test_numba_and_numpy_agree_on_random_linkage_scenes(n_links, planar, against
                        policy=str(rng.choice(["rigid", "deformation"])), warm=False)
         m.reset(random_q(rng, tool), rng.normal(size=m.dof) * 0.1)
         n = int(rng.integers(0, 40))
-        nrm = rng.normal(size=(n, 3))
-        if planar:
-            nrm[:, 2] = 0
-        nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+        nrm = random_normals(rng, n, "planar" if planar else "spatial")
         keys = np.c_[rng.integers(0, n_links, n), np.arange(n), np.zeros(n, int)]
         m.update(keys, rng.normal(size=(n, 3)) * 0.02, nrm, rng.uniform(-0.002, 0.002, n), rng.normal(size=n) * 0.01)
         ref = LinkageReference.of(tool)

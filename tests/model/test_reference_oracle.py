@@ -1,6 +1,7 @@
 """The numba step agrees with the plain-numpy reference (explicit pseudo-inverse) to 1e-9."""
 import numpy as np
 import pytest
+from linkage_helpers import random_normals
 
 from hapticproxy.server.model import ContactParams, LocalModel, ToolSpec
 from hapticproxy.server.model.layout import K_COLLISIONS, K_N_COLLIDING, K_RANK
@@ -25,13 +26,7 @@ def _scene(kind, rng):
         q = np.r_[rng.normal(size=2) * 0.01, rng.uniform(-3, 3)]
     m.reset(q=q, qd=rng.normal(size=m.dof) * 0.1)
     n = int(rng.integers(0, 40))
-    nrm = rng.normal(size=(n, 3))
-    if kind == "planar":
-        nrm[:, 2] = 0
-    if kind == "1dof":
-        nrm[:] = 0
-        nrm[:, 0] = rng.choice([-1, 1], n)
-    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    nrm = random_normals(rng, n, kind)
     keys = np.c_[np.zeros(n, int), np.arange(n), np.zeros(n, int)]
     m.update(keys, rng.normal(size=(n, 3)) * 0.02, nrm, rng.uniform(-0.002, 0.002, n), rng.normal(size=n) * 0.01)
     return m
