@@ -2,12 +2,14 @@
 environment that speaks the real protocol over the in-memory transport, and a loop factory.
 
 Everything runs in one thread on a ``SimClock``, so a test is deterministic: the environment
-steps at its own (variable) rate in simulated time, between haptic steps.
+steps at its own (variable) rate in simulated time, between haptic steps. (Also: stopping a
+command a test started, ``stop_process``.)
 """
 from __future__ import annotations
 
 import itertools
 import math
+import signal
 
 import numpy as np
 import pytest
@@ -23,8 +25,22 @@ from hapticproxy.server.devices.base import (
     empty_state,
 )
 from hapticproxy.server.loop import HapticLoop
+from hapticproxy.testing.cleanup import made_then_ended
 
 _names = itertools.count(1)
+
+
+def stop_process(proc) -> str:
+    """SIGTERM a command started with stderr piped (if it still runs), wait for it (killed if
+    it outlives 30 s of waiting); returns its stderr."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+    try:
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return err
 
 
 class PointDevice(DeviceDriver):
@@ -323,17 +339,12 @@ class Rig:
         self.loop.close()
 
 
+def _rig(settings=None, device=None, env_kwargs=None, **sections):
+    s = settings or make_settings(**sections)
+    dev = device or PointDevice(kind=s["device"]["kind"], period_s=s.period_ns * 1e-9)
+    return Rig(s, dev, env_kwargs)
+
+
 @pytest.fixture
 def rig_factory():  # re-exported by conftest.py
-    made = []
-
-    def make(settings=None, device=None, env_kwargs=None, **sections):
-        s = settings or make_settings(**sections)
-        dev = device or PointDevice(kind=s["device"]["kind"], period_s=s.period_ns * 1e-9)
-        r = Rig(s, dev, env_kwargs)
-        made.append(r)
-        return r
-
-    yield make
-    for r in made:
-        r.close()
+    yield from made_then_ended(_rig)
