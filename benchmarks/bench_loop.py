@@ -38,22 +38,21 @@ from hapticproxy.server.daemon import Supervisor
 from hapticproxy.protocol.jsonout import print_json
 
 
-def _free_port() -> int:
+def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
 
 
-def _client(url: str, stop: threading.Event, rate_hz: float, counts: dict) -> None:
-    """A 60 Hz environment: a floor under a planar box tool that follows the proxy."""
+def floor_client(url: str, stop: threading.Event, rate_hz: float, hello: Hello, pose: np.ndarray, contacts,
+                 counts: dict) -> None:
+    """An environment client until ``stop``: its tool follows the pose of every ProxyState
+    (``counts["proxy_states"]``) and at ``rate_hz`` it sends ``contacts(pose, cos, sin)`` ->
+    (keys, points, normals, separations), cos and sin of the tool's yaw
+    (``counts["updates_sent"]``)."""
     tr = open_transport(url, "client")
-    hello = Hello(client_nonce=1, engine="bench-loop floor", tool_kind=ToolKind.PLANAR, mass_kg=0.2,
-                  inertia_kg_m2=(2e-4, 2e-4, 2e-4, 0, 0, 0), max_contacts=8, epsilon_m=0.005, env_rate_hz=rate_hz)
     ep = ClientEndpoint(tr.send, hello)
     ep.start()
-    pose = np.array([0.0, 0.05, 0.0, 1.0, 0.0, 0.0, 0.0])
-    keys = np.array([[0, 1, 0], [0, 1, 1]], dtype=np.int64)
-    nrm = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
     period = 1.0 / rate_hz
     nxt = time.monotonic()
     try:
@@ -69,23 +68,36 @@ def _client(url: str, stop: threading.Event, rate_hz: float, counts: dict) -> No
             ep.poll()
             if ep.established:
                 th = 2 * math.atan2(pose[6], pose[3])
-                c, s = math.cos(th), math.sin(th)
-                pts, seps = [], []
-                for bx in (-0.02, 0.02):
-                    x = pose[0] + c * bx + s * 0.01
-                    y = pose[1] + s * bx - c * 0.01
-                    pts.append((x, 0.0, 0.0))
-                    seps.append(max(y, -0.02))
-                cp = np.array(pts)
-                d = np.array(seps)
-                k = d <= 0.005
-                ep.send_contacts(None, time.monotonic(), pose, keys[k], cp[k], nrm[k], d[k], np.zeros(int(k.sum())))
+                k, cp, nrm, d = contacts(pose, math.cos(th), math.sin(th))
+                ep.send_contacts(None, time.monotonic(), pose, k, cp, nrm, d, np.zeros(len(d)))
                 counts["updates_sent"] += 1
             nxt += period
             time.sleep(max(0.0, nxt - time.monotonic()))
         ep.close()
     finally:
         tr.close()
+
+
+def _client(url: str, stop: threading.Event, rate_hz: float, counts: dict) -> None:
+    """A 60 Hz environment: a floor under a planar box tool that follows the proxy."""
+    hello = Hello(client_nonce=1, engine="bench-loop floor", tool_kind=ToolKind.PLANAR, mass_kg=0.2,
+                  inertia_kg_m2=(2e-4, 2e-4, 2e-4, 0, 0, 0), max_contacts=8, epsilon_m=0.005, env_rate_hz=rate_hz)
+    keys = np.array([[0, 1, 0], [0, 1, 1]], dtype=np.int64)
+    nrm = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+
+    def contacts(pose, c, s):
+        pts, seps = [], []
+        for bx in (-0.02, 0.02):
+            x = pose[0] + c * bx + s * 0.01
+            y = pose[1] + s * bx - c * 0.01
+            pts.append((x, 0.0, 0.0))
+            seps.append(max(y, -0.02))
+        cp = np.array(pts)
+        d = np.array(seps)
+        k = d <= 0.005
+        return keys[k], cp[k], nrm[k], d[k]
+
+    floor_client(url, stop, rate_hz, hello, np.array([0.0, 0.05, 0.0, 1.0, 0.0, 0.0, 0.0]), contacts, counts)
 
 
 def _run(settings: cfgmod.Settings, seconds: float, naive: bool) -> dict:
@@ -121,8 +133,8 @@ def run(rate_hz: float, seconds: float, naive_seconds: float) -> dict:
     def settings():
         return cfgmod.load({
             "loop": {"rate_hz": rate_hz},
-            "transport": {"url": f"udp://127.0.0.1:{_free_port()}"},
-            "status": {"address": f"127.0.0.1:{_free_port()}"},
+            "transport": {"url": f"udp://127.0.0.1:{free_port()}"},
+            "status": {"address": f"127.0.0.1:{free_port()}"},
             "device": {"driver": "sim", "kind": "planar", "hand": {"type": "constant", "wrench": [0.0, -0.5, 0.0]}},
             "telemetry": {"ring_s": 2.0},
         })

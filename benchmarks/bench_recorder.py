@@ -16,9 +16,7 @@ a table and, with ``--json``, one JSON object.
 from __future__ import annotations
 
 import argparse
-import math
 import os
-import socket
 import sys
 import tempfile
 import threading
@@ -26,60 +24,32 @@ import time
 
 import numpy as np
 
+from hapticproxy.benchmarks.bench_loop import floor_client, free_port
 from hapticproxy.protocol.codec import Hello
 from hapticproxy.protocol.messages import ToolKind
-from hapticproxy.protocol.session import ClientEndpoint
-from hapticproxy.protocol.transport import open_transport
 from hapticproxy.server import config as cfgmod
 from hapticproxy.server.daemon import Supervisor
 from hapticproxy.protocol.jsonout import print_json
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _client(url: str, stop: threading.Event, rate_hz: float, n_contacts: int, counts: dict) -> None:
     """A floor under a planar box tool that follows the proxy, reported as ``n_contacts`` points
     along the box's bottom edge (all within epsilon: the full set every update)."""
-    tr = open_transport(url, "client")
     hello = Hello(client_nonce=1, engine="bench-recorder floor", tool_kind=ToolKind.PLANAR, mass_kg=0.2,
                   inertia_kg_m2=(2e-4, 2e-4, 2e-4, 0, 0, 0), max_contacts=n_contacts, epsilon_m=0.005,
                   env_rate_hz=rate_hz)
-    ep = ClientEndpoint(tr.send, hello)
-    ep.start()
-    pose = np.array([0.0, 0.011, 0.0, 1.0, 0.0, 0.0, 0.0])
     keys = np.column_stack([np.zeros(n_contacts), np.ones(n_contacts), np.arange(n_contacts)]).astype(np.int64)
     nrm = np.tile([0.0, 1.0, 0.0], (n_contacts, 1))
     bx = np.linspace(-0.02, 0.02, n_contacts)
-    period = 1.0 / rate_hz
-    nxt = time.monotonic()
-    try:
-        while not stop.is_set():
-            while True:
-                item = tr.recv()
-                if item is None:
-                    break
-                ps = ep.receive(item[0], item[1])
-                if ps is not None:
-                    pose = np.array(ps.proxy_pose, dtype=float)
-            ep.poll()
-            if ep.established:
-                th = 2 * math.atan2(pose[6], pose[3])
-                c, s = math.cos(th), math.sin(th)
-                x = pose[0] + c * bx + s * 0.01
-                y = pose[1] + s * bx - c * 0.01
-                cp = np.column_stack([x, np.zeros(n_contacts), np.zeros(n_contacts)])
-                d = np.clip(y, -0.002, 0.004)  # within epsilon (5 mm): every point is a contact
-                ep.send_contacts(None, time.monotonic(), pose, keys, cp, nrm, d, np.zeros(n_contacts))
-                counts["updates_sent"] += 1
-            nxt += period
-            time.sleep(max(0.0, nxt - time.monotonic()))
-        ep.close()
-    finally:
-        tr.close()
+
+    def contacts(pose, c, s):
+        x = pose[0] + c * bx + s * 0.01
+        y = pose[1] + s * bx - c * 0.01
+        cp = np.column_stack([x, np.zeros(n_contacts), np.zeros(n_contacts)])
+        d = np.clip(y, -0.002, 0.004)  # within epsilon (5 mm): every point is a contact
+        return keys, cp, nrm, d
+
+    floor_client(url, stop, rate_hz, hello, np.array([0.0, 0.011, 0.0, 1.0, 0.0, 0.0, 0.0]), contacts, counts)
 
 
 def run(rate_hz: float, seconds: float, phases: int, n_contacts: int) -> dict:
@@ -87,14 +57,14 @@ def run(rate_hz: float, seconds: float, phases: int, n_contacts: int) -> dict:
         "preset": "accurate",
         "loop": {"rate_hz": rate_hz},
         "model": {"capacity": n_contacts},
-        "transport": {"url": f"udp://127.0.0.1:{_free_port()}"},
-        "status": {"address": f"127.0.0.1:{_free_port()}"},
+        "transport": {"url": f"udp://127.0.0.1:{free_port()}"},
+        "status": {"address": f"127.0.0.1:{free_port()}"},
         "device": {"driver": "sim", "kind": "planar", "hand": {"type": "constant", "wrench": [0.0, -0.5, 0.0]}},
         "telemetry": {"ring_s": 2.0},
     })
     sup = Supervisor(settings)
     stop = threading.Event()
-    counts = {"updates_sent": 0}
+    counts = {"updates_sent": 0, "proxy_states": 0}
     th = None
     tmp = tempfile.TemporaryDirectory(prefix="hp-bench-recorder-")
     windows = []

@@ -26,7 +26,6 @@ Writes ``fidelity.json`` (every row) and ``fidelity.md`` (the tables).
 """
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -156,19 +155,9 @@ def run_fidelity(out, *, quick: bool = False, log=None, spatial: bool = True) ->
            "peg": peg_rows(lags=(0.0,) if quick else LAGS_S, quick=quick, log=log)}
     if spatial and not quick:
         res["box"] = spatial_rows(log=log)
-    (out / "fidelity.json").write_text(json.dumps(res, indent=1, default=_json) + "\n")
+    F.write_json(out / "fidelity.json", res)
     (out / "fidelity.md").write_text(tables_md(res) + "\n")
     return res
-
-
-def _json(o):
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, np.bool_):
-        return bool(o)
-    raise TypeError(type(o))
 
 
 #: The spatial rows: pybullet (``clients/pybullet_engine.py``, through its Engine interface) at

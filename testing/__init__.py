@@ -4,4 +4,5 @@
   wrapper around any transport); :mod:`.impair_tcp`: an impairing TCP proxy for stream links.
 - :mod:`.device_contract`: the contract suite every device driver passes (a lab runs it against
   its own driver, see that module).
+- :mod:`.cleanup`: the body of a factory fixture that ends everything a test made.
 """

@@ -100,6 +100,17 @@ class TransportCounters:
         """Oversize datagrams refused on send plus discarded on receive."""
         return self.dropped_oversize_send + self.dropped_oversize_recv
 
+    def drop_arrival(self, n_bytes: int, limit: int) -> bool:
+        """Whether an arrival of ``n_bytes`` is discarded, counted: longer than ``limit``
+        (``dropped_oversize_recv``) or empty (``dropped_empty``). Every backend's receive rule."""
+        if n_bytes > limit:
+            self.dropped_oversize_recv += 1
+            return True
+        if n_bytes == 0:
+            self.dropped_empty += 1
+            return True
+        return False
+
     def as_dict(self) -> dict[str, int]:
         return {name: getattr(self, name) for name in self.__slots__}
 

@@ -147,11 +147,7 @@ class MemTransport(Transport):
         while inbox:
             payload, peer = inbox.popleft()
             n = len(payload)
-            if n > limit:
-                self.counters.dropped_oversize_recv += 1
-                continue
-            if n == 0:
-                self.counters.dropped_empty += 1
+            if self.counters.drop_arrival(n, limit):
                 continue
             buffer[:n] = payload
             return n, peer

@@ -197,11 +197,7 @@ class UdpTransport(Transport):
                 # Transient or per-datagram errors alike: report nothing this call rather than spin.
                 counters.recv_errors += 1
                 return 0, None
-            if n > limit:
-                counters.dropped_oversize_recv += 1
-                continue
-            if n == 0:
-                counters.dropped_empty += 1
+            if counters.drop_arrival(n, limit):
                 continue
             if target is not buffer:
                 buffer[:n] = target[:n]

@@ -424,11 +424,7 @@ class ZenohTransport(Transport):
                 return 0, None
             zbytes = sample.payload
             n = len(zbytes)
-            if n > limit:
-                counters.dropped_oversize_recv += 1
-                continue
-            if n == 0:
-                counters.dropped_empty += 1
+            if counters.drop_arrival(n, limit):
                 continue
             if self.role == "client":
                 peer = self.server_peer

@@ -14,6 +14,7 @@ from hapticproxy.clients.engine import ContactBuffer, Engine, SceneInfo, ToolDes
 from hapticproxy.protocol.codec import Bye, Codec, ContactUpdate
 from hapticproxy.protocol.conformance import run_reference_server
 from hapticproxy.protocol.transport import open_transport
+from hapticproxy.testing.cleanup import made_then_ended
 
 
 def free_udp_port() -> int:
@@ -291,16 +292,7 @@ def make_pybullet():
 @pytest.fixture
 def client_thread():
     """Make :class:`ClientThread` s; every one is closed at the end of the test."""
-    made = []
-
-    def make(engine, url, scene="testbed", **kw) -> ClientThread:
-        c = ClientThread(engine, url, scene, **kw)
-        made.append(c)
-        return c
-
-    yield make
-    for c in made:
-        c.close()
+    yield from made_then_ended(ClientThread)
 
 
 #: generous bound of a wait for a count [s] (a cold numba cache costs the server's loop a minute)
@@ -351,31 +343,19 @@ def real_session(client_thread):
 
 @pytest.fixture
 def server_thread():
-    started = []
+    """Make :class:`ServerThread` s; every one is closed at the end of the test."""
+    yield from made_then_ended(ServerThread)
 
-    def make(url: str, **kw) -> ServerThread:
-        s = ServerThread(url, **kw)
-        started.append(s)
-        return s
 
-    yield make
-    for s in started:
-        s.close()
+def _end_runner(r: RunnerThread) -> None:
+    r.stop_event.set()  # for clean-up: never asserts (RunnerThread.stop does)
+    r.thread.join(10)
 
 
 @pytest.fixture
 def runner_thread():
-    started = []
-
-    def make(runner, **kw) -> RunnerThread:
-        r = RunnerThread(runner, **kw)
-        started.append(r)
-        return r
-
-    yield make
-    for r in started:
-        r.stop_event.set()
-        r.thread.join(10)
+    """Make :class:`RunnerThread` s; every one is stopped at the end of the test."""
+    yield from made_then_ended(RunnerThread, _end_runner)
 
 
 @pytest.fixture

@@ -118,6 +118,17 @@ _RECONNECT_MATRIX = [(e, t) if (e, t) in _DEFAULT_PAIRS else pytest.param(e, t, 
                      for e in ("stub", "pymunk", "pybullet") for t in ("udp", "zenoh")]
 
 
+def _engaged_client(sup, engine, url, client_thread):
+    """Start ``sup`` and a reconnecting client of ``engine``; serve until 20 updates arrived.
+    Returns the client (closed by ``client_thread`` at the end if the wait fails) and its
+    session count then."""
+    sup.start()
+    eng, scene = _any_engine(engine)
+    client = client_thread(eng, url, scene=scene, connect_timeout_s=_WAIT_S, reconnect_delay_s=0.3).start()
+    _serve_until(sup, lambda: sup.shared.snapshot()["updates"] >= 20, "20 updates")
+    return client, client.runner.stats()["sessions"]
+
+
 @pytest.mark.parametrize("engine,transport", _RECONNECT_MATRIX)
 def test_reconnects_after_a_server_restart(engine, transport, client_thread):
     url = _url(transport)
@@ -125,11 +136,7 @@ def test_reconnects_after_a_server_restart(engine, transport, client_thread):
     sup = Supervisor(s)
     client = None
     try:
-        sup.start()
-        eng, scene = _any_engine(engine)
-        client = client_thread(eng, url, scene=scene, connect_timeout_s=_WAIT_S, reconnect_delay_s=0.3).start()
-        _serve_until(sup, lambda: sup.shared.snapshot()["updates"] >= 20, "20 updates")
-        first_sessions = client.runner.stats()["sessions"]
+        client, first_sessions = _engaged_client(sup, engine, url, client_thread)
         sup.close()  # clean stop: forces ramp down, Bye to the client
         sup = Supervisor(s)  # same address
         sup.start()
@@ -151,11 +158,7 @@ def test_client_survives_a_server_that_vanishes(engine, transport, client_thread
     sup = Supervisor(_settings_for(engine, url))
     client = None
     try:
-        sup.start()
-        eng, scene = _any_engine(engine)
-        client = client_thread(eng, url, scene=scene, connect_timeout_s=_WAIT_S, reconnect_delay_s=0.3).start()
-        _serve_until(sup, lambda: sup.shared.snapshot()["updates"] >= 20, "20 updates")
-        first_sessions = client.runner.stats()["sessions"]
+        client, first_sessions = _engaged_client(sup, engine, url, client_thread)
         os.kill(int(sup.shared.snapshot()["pid"]), signal.SIGKILL)  # the loop process dies, no Bye
         sup.proc.join(10)
         # the client notices the silence and keeps trying

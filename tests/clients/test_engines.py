@@ -39,6 +39,15 @@ def step(e, buf=None, cap=64):
     return 0
 
 
+def driven(name: str, scene: str, target, steps: int):
+    """An engine in ``scene`` after ``steps`` steps of its tool driven towards ``target`` (x, y[, th])."""
+    e = make(name, scene)
+    drive(e, *target)
+    for _ in range(steps):
+        step(e)
+    return e
+
+
 def pose_xyt(e):
     p = e.tool_pose(np.zeros(7))
     return p[0], p[1], planar_angle(p)
@@ -82,11 +91,8 @@ def test_separation_and_normal_match_the_analytic_wall(name, target):
     """Every reported contact is a tool corner against the wall y = 134 mm: normal (0, -1) (from the
     wall towards the tool), c_p on the wall below the corner, d = wall - corner y (negative when
     pressed in); and every corner within epsilon is reported."""
-    e = make(name, "wall")
+    e = driven(name, "wall", target, 150)
     buf = ContactBuffer(16)
-    drive(e, *target)
-    for _ in range(150):
-        step(e)
     n = e.contacts(buf, 16)
     cs = corners(*pose_xyt(e))
     expected = {i for i, (_, cy) in enumerate(cs) if BOTTOM_WALL_Y_M - cy <= EPS - 1e-5}
@@ -109,22 +115,15 @@ def test_separation_and_normal_match_the_analytic_wall(name, target):
 @pytest.mark.parametrize("name", ENGINES)
 def test_wall_is_met_at_the_papers_y_com(name):
     """Fig. 14: the unrotated peg pushed towards the bottom wall stops with its centre at 124 mm."""
-    e = make(name, "wall")
-    drive(e, 0.0, 0.20)
-    for _ in range(240):
-        step(e)
-    x, y, th = pose_xyt(e)
+    x, y, th = pose_xyt(driven(name, "wall", (0.0, 0.20), 240))
     assert WALL_CONTACT_Y_COM_M == pytest.approx(0.124)
     assert y == pytest.approx(0.124, abs=0.001) and abs(th) < 0.01
 
 
 @pytest.mark.parametrize("name", ENGINES)
 def test_peg_in_hole_touches_both_sides_and_bottom_with_stable_keys(name):
-    e = make(name, "hole")
+    e = driven(name, "hole", IN_HOLE_POSE, 30)
     buf = ContactBuffer(16)
-    drive(e, *IN_HOLE_POSE)
-    for _ in range(30):
-        step(e)
     keysets = []
     for _ in range(30):
         n = step(e, buf)
@@ -148,10 +147,8 @@ def test_peg_in_hole_touches_both_sides_and_bottom_with_stable_keys(name):
 
 @pytest.mark.parametrize("name", ENGINES)
 def test_clustering_caps_the_count_and_keeps_the_deepest_of_each_direction(name):
-    e = make(name, "hole")
-    drive(e, IN_HOLE_POSE[0] + 0.002, IN_HOLE_POSE[1] + 0.01, IN_HOLE_POSE[2])  # pressed into the bottom-right
-    for _ in range(60):
-        step(e)
+    pressed = (IN_HOLE_POSE[0] + 0.002, IN_HOLE_POSE[1] + 0.01, IN_HOLE_POSE[2])  # into the bottom-right
+    e = driven(name, "hole", pressed, 60)
     full, capped = ContactBuffer(64), ContactBuffer(3)
     n_full = e.contacts(full, 64)
     assert n_full > 3
@@ -185,11 +182,7 @@ def test_no_tunnelling_when_the_proxy_jumps_deep_into_the_wall(name):
 @pytest.mark.parametrize("name", ENGINES)
 def test_no_tunnelling_through_the_testbed_shoulder(name):
     """The unrotated peg is too long for the hole: a proxy far below keeps it on the shoulders."""
-    e = make(name, "testbed")
-    drive(e, 0.0, 0.5)
-    for _ in range(300):
-        step(e)
-    x, y, th = pose_xyt(e)
+    x, y, th = pose_xyt(driven(name, "testbed", (0.0, 0.5), 300))
     assert y < WALL_CONTACT_Y_COM_M + 0.003
 
 

@@ -22,6 +22,14 @@ def _grew_while_fading(rows: np.ndarray, cmds: np.ndarray) -> int:
     return int((down & grew).sum())
 
 
+def _resting(rig_factory):
+    """A rig and its device 2 s into a resting contact: the handle pushed onto the floor by PUSH."""
+    dev = PointDevice(hand=PUSH)
+    r = rig_factory(device=dev)
+    r.run(2.0)
+    return r, dev
+
+
 def test_a_speed_trip_fade_never_pushes_harder_than_where_it_started(rig_factory):
     # resting on the wall with 0.5 N, then the hand yanks the handle away at 30 N: the speed
     # trips a fade while the device flies away from the proxy, stretching the coupling spring
@@ -45,9 +53,7 @@ def test_a_speed_trip_fade_never_pushes_harder_than_where_it_started(rig_factory
 
 
 def test_a_watchdog_fade_is_monotone_while_the_user_keeps_pushing(rig_factory):
-    dev = PointDevice(hand=PUSH)
-    r = rig_factory(device=dev)
-    r.run(2.0)
+    r, dev = _resting(rig_factory)
     r.env.alive = False
     n0 = len(dev.commands)
     rows = r.run(0.6)
@@ -59,9 +65,7 @@ def test_a_watchdog_fade_is_monotone_while_the_user_keeps_pushing(rig_factory):
 
 
 def test_a_new_session_engaging_during_a_fade_ramps_in_from_zero(rig_factory):
-    dev = PointDevice(hand=PUSH)
-    r = rig_factory(device=dev)
-    r.run(2.0)
+    r, dev = _resting(rig_factory)
     r.env.bye()  # session A ends mid-contact: its force fades
     r.run(0.05)
     assert 0.0 < r.loop.ctrl.gain < 1.0  # still fading
@@ -89,9 +93,7 @@ def test_force_comes_back_at_the_ramp_slope_after_an_interrupted_fade(rig_factor
     # the environment falls silent long enough for the watchdog to start a fade, then comes back
     # half-way through it: the gain climbs again from where it was, and the force must climb back
     # gradually (no component growing faster than cap * dt / ramp_in_s per step), not snap back
-    dev = PointDevice(hand=PUSH)
-    r = rig_factory(device=dev)
-    r.run(2.0)
+    r, dev = _resting(rig_factory)
     r.env.alive = False
     n0 = len(dev.commands)
     rows = r.run(0.2)  # watchdog at 0.1 s, then half of the 0.2 s fade
@@ -114,9 +116,7 @@ def test_force_comes_back_at_the_ramp_slope_after_an_interrupted_fade(rig_factor
 def test_a_fade_keeps_its_time_when_the_loop_skips_periods(rig_factory):
     # the loop wakes 50 ms late in the middle of a watchdog fade (a loaded machine, a stopped
     # process): the skipped periods count towards the fade, which still ends fade_s after it began
-    dev = PointDevice(hand=PUSH)
-    r = rig_factory(device=dev)
-    r.run(2.0)
+    r, dev = _resting(rig_factory)
     r.env.alive = False
     rows = r.run(0.15)  # the watchdog (0.1 s) started the fade ~50 ms ago
     assert rows[-1, TEL["gain"]] < 1.0

@@ -9,6 +9,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 
 from hapticproxy.server.model import ContactParams, LocalModel, ToolSpec
+from hapticproxy.server.model.layout import K_RANK
+from hapticproxy.server.model.reference import reference_step
 
 
 @pytest.fixture
@@ -46,3 +48,26 @@ def contacts(rows):
 @pytest.fixture
 def cs():
     return contacts
+
+
+def step_against_reference(m, hand, *, rtol, linkage=None):
+    """One numba step of ``m`` with ``hand`` against ``reference_step`` from the same arrays: +inf
+    ("just arisen") in the same places of the state and contact tables and the finite parts
+    within ``rtol`` (atol 1e-9), the integer table and every counter but the rank identical.
+    Returns the counters of both, (numba, reference)."""
+    par, st, C, CI, cnt = m.arrays()
+    rst, rC, rCI, rcnt = reference_step(m.kind, par, st, C, CI, cnt, hand, linkage=linkage)
+    m.step(hand)
+    for got, want in ((st, rst), (C, rC)):
+        assert np.array_equal(np.isinf(got), np.isinf(want))
+        g = np.where(np.isinf(got), 0.0, got)
+        w = np.where(np.isinf(want), 0.0, want)
+        np.testing.assert_allclose(g, w, rtol=rtol, atol=1e-9)
+    np.testing.assert_array_equal(CI, rCI)
+    np.testing.assert_array_equal(np.delete(cnt, K_RANK), np.delete(rcnt, K_RANK))
+    return cnt, rcnt
+
+
+@pytest.fixture
+def against_reference():
+    return step_against_reference

@@ -1,5 +1,6 @@
 """Linkages for the model tests: random trees, a planar 3-bar chain, and an analytic engine that
-reports the chain's contacts with a wall and between its own links (from the proxy's pose)."""
+reports the chain's contacts with a wall and between its own links (from the proxy's pose); and
+random contact normals a tool of each kind can feel (``random_normals``)."""
 from __future__ import annotations
 
 import math
@@ -12,6 +13,19 @@ BAR_LENGTH_M = 0.06
 BAR_WIDTH_M = 0.015
 BAR_MASS_KG = 0.08
 BAR_IZZ = BAR_MASS_KG * (BAR_LENGTH_M ** 2 + BAR_WIDTH_M ** 2) / 12.0
+
+
+def random_normals(rng, n, kind):
+    """``n`` random unit contact normals (n, 3) for a tool of ``kind``: in the x-y plane for
+    "planar", +-x for "1dof", any direction otherwise."""
+    nrm = rng.normal(size=(n, 3))
+    if kind == "planar":
+        nrm[:, 2] = 0.0
+    if kind == "1dof":
+        nrm[:] = 0.0
+        nrm[:, 0] = rng.choice([-1.0, 1.0], n)
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    return nrm
 
 
 def _random_inertia(rng, planar):

@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
+from linkage_helpers import random_normals
 
 from hapticproxy.server.model import ContactParams, LocalModel, ToolSpec
 from hapticproxy.server.model.reference import rigid_kinematics
@@ -13,13 +14,7 @@ def _touching_scene(kind, rng, n, e):
             "1dof": ToolSpec.one_dof(0.7)}[kind]
     m = LocalModel(tool, ContactParams(3000.0, 10.0, e), period_s=1e-3, capacity=64)
     m.reset(qd=rng.normal(size=m.dof) * 0.3)
-    nrm = rng.normal(size=(n, 3))
-    if kind == "planar":
-        nrm[:, 2] = 0.0
-    if kind == "1dof":
-        nrm[:] = 0.0
-        nrm[:, 0] = rng.choice([-1.0, 1.0], n)
-    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    nrm = random_normals(rng, n, kind)
     pts = rng.normal(size=(n, 3)) * 0.02
     if kind == "planar":
         pts[:, 2] = 0.0

@@ -3,6 +3,7 @@
 never moves the proxy."""
 import numpy as np
 from hypothesis import given, settings, strategies as st
+from linkage_helpers import random_normals
 
 from hapticproxy.server.model import ContactParams, LocalModel, ToolSpec
 from hapticproxy.server.model.layout import S_Q, S_QD
@@ -21,13 +22,7 @@ def _model(kind):
 def _contact_set(rng, kind, keys, epsilon):
     """Contacts as an engine with epsilon-active geometry reports them: d = s_eps + epsilon."""
     n = len(keys)
-    nrm = rng.normal(size=(n, 3))
-    if kind == "1dof":
-        nrm[:] = 0.0
-        nrm[:, 0] = rng.choice([-1.0, 1.0], n)
-    if kind == "planar":
-        nrm[:, 2] = 0.0
-    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    nrm = random_normals(rng, n, kind)
     cp = rng.normal(size=(n, 3)) * 0.02
     if kind == "planar":
         cp[:, 2] = 0.0

@@ -4,6 +4,7 @@ message, identical decoded values, identical error codes and fields for every in
 except the verdicts issue 13 section 4 changed on purpose (listed in ``CHANGED``)."""
 from __future__ import annotations
 
+import importlib.util
 import json
 from enum import IntEnum
 from pathlib import Path
@@ -17,7 +18,19 @@ from hapticproxy.protocol import codec as C
 from hapticproxy.protocol.messages import MAX_ABS_FLOAT
 from hapticproxy.protocol.session import MacFramer
 
-GOLDEN = json.loads((Path(__file__).with_name("golden") / "codec_golden.json").read_text(encoding="utf-8"))
+GOLDEN_DIR = Path(__file__).with_name("golden")
+GOLDEN = json.loads((GOLDEN_DIR / "codec_golden.json").read_text(encoding="utf-8"))
+
+
+def _load_generator():
+    """The corpus's generator, for the way it turned a ContactUpdate's JSON arguments into arrays."""
+    spec = importlib.util.spec_from_file_location("make_golden", GOLDEN_DIR / "make_golden.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+_call_cu = _load_generator().call_cu
 
 #: Verdicts changed on purpose (issue 13 section 4), with the new verdict's code and field.
 CHANGED = {
@@ -54,18 +67,6 @@ def _plain(v):
     if isinstance(v, (tuple, list)):
         return [_plain(x) for x in v]
     return v
-
-
-def _call_cu(codec, a: dict) -> bytes:
-    a = dict(a)
-    for k in ("position_m", "normal"):
-        a[k] = np.array(a[k], dtype=np.float64).reshape(-1, 3)
-    a["keys"] = np.array(a["keys"], dtype=np.int64).reshape(-1, 3)
-    for k in ("separation_m", "v_constr_m_per_s"):
-        a[k] = np.array(a[k], dtype=np.float64)
-    if a.get("tool_joint_position") is not None:
-        a["tool_joint_position"] = np.array(a["tool_joint_position"], dtype=np.float64)
-    return codec.encode_contact_update(**a)
 
 
 def _build(cls_name: str, kwargs: dict):

@@ -58,11 +58,18 @@ def _drain(t):
     return out
 
 
-def test_uniform_loss_drops_exactly_the_planned_datagrams(rig):
-    imp = Impairment(loss=0.3, seed=7)
+def _relayed(rig, imp):
+    """N datagrams pushed client -> server through a relay impairing them with ``imp``: the relay
+    and the (datagram, peer) pairs the server received, in order."""
     server, relay, client = rig(c2s=imp)
     _push_c2s(relay, client)
-    got = [_seq(d) for d, _ in _drain(server)]
+    return relay, _drain(server)
+
+
+def test_uniform_loss_drops_exactly_the_planned_datagrams(rig):
+    imp = Impairment(loss=0.3, seed=7)
+    relay, arrived = _relayed(rig, imp)
+    got = [_seq(d) for d, _ in arrived]
     plan = imp.plan([SIZE] * N)
     expected = [i for i, d in enumerate(plan) if not d.lost]
     assert got == expected
@@ -87,9 +94,8 @@ def _mean_run_length(lost_flags):
 def test_gilbert_elliott_loss_comes_in_bursts(rig):
     burst = GilbertElliott(p_good_to_bad=0.05, p_bad_to_good=0.25)
     imp = Impairment(burst=burst, seed=11)
-    server, relay, client = rig(c2s=imp)
-    _push_c2s(relay, client)
-    received = {_seq(d) for d, _ in _drain(server)}
+    relay, arrived = _relayed(rig, imp)
+    received = {_seq(d) for d, _ in arrived}
     lost_flags = [i not in received for i in range(N)]
     assert lost_flags == [d.lost for d in imp.plan([SIZE] * N)]
     assert relay.c2s.counters.lost == sum(lost_flags)
@@ -102,9 +108,8 @@ def test_gilbert_elliott_loss_comes_in_bursts(rig):
 
 def test_duplication_adds_exactly_the_planned_copies(rig):
     imp = Impairment(duplicate=0.25, seed=3)
-    server, relay, client = rig(c2s=imp)
-    _push_c2s(relay, client)
-    got = [_seq(d) for d, _ in _drain(server)]
+    relay, arrived = _relayed(rig, imp)
+    got = [_seq(d) for d, _ in arrived]
     plan = imp.plan([SIZE] * N)
     doubled = {i for i, d in enumerate(plan) if d.copies == 2}
     assert 0 < len(doubled) == relay.c2s.counters.duplicated
@@ -118,9 +123,8 @@ def test_duplication_adds_exactly_the_planned_copies(rig):
 
 def test_corruption_flips_exactly_one_planned_bit(rig):
     imp = Impairment(corrupt=0.2, seed=5)
-    server, relay, client = rig(c2s=imp)
-    _push_c2s(relay, client)
-    got = [d for d, _ in _drain(server)]
+    relay, arrived = _relayed(rig, imp)
+    got = [d for d, _ in arrived]
     assert len(got) == N  # corruption never drops
     plan = imp.plan([SIZE] * N)
     changed = 0

@@ -11,8 +11,7 @@ import numpy as np
 
 from hapticproxy.protocol.codec import Hello
 from hapticproxy.protocol.messages import ToolKind
-from hapticproxy.protocol.session import ClientEndpoint
-from hapticproxy.protocol.transport import open_transport
+from server_harness import ProtocolEnv, contact_arrays
 
 BAR_L = 0.06
 BAR_W = 0.015
@@ -50,15 +49,13 @@ def corners(R, p):
     return p + local @ R.T
 
 
-class LinkageWallEnv:
+class LinkageWallEnv(ProtocolEnv):
     """See the module docstring. ``rigid``: the engine's chain cannot enter the floor (it is
     lifted out, as a rigid engine would hold it), so it lags the proxy when the proxy presses
     in; ``send_joints``: report the engine's joint positions in every ContactUpdate (minor 1)."""
 
     def __init__(self, url, clock, *, n_links=3, held_link=None, wall_y=0.0, epsilon=0.005, rate_hz=60.0,
                  start=(-0.09, 0.03, 0.0), joints=None, rigid=False, send_joints=True):
-        self.tr = open_transport(url, "client")
-        self.clock = clock
         self.n = n_links
         self.wall_y = wall_y
         self.eps = epsilon
@@ -67,16 +64,10 @@ class LinkageWallEnv:
         self.send_joints = send_joints
         self.root = np.array(start, dtype=float)
         self.joints = np.zeros(n_links - 1) if joints is None else np.array(joints, dtype=float)
-        self.hello = Hello(client_nonce=1, engine="linkage-env", tool_kind=ToolKind.LINKAGE,
-                           mass_kg=BAR_M * n_links, max_contacts=32, epsilon_m=epsilon, env_rate_hz=rate_hz,
-                           links=bar_links(n_links), held_link=n_links - 1 if held_link is None else held_link)
-        self.ep = ClientEndpoint(self.tr.send, self.hello)
-        self.next_ns = 0
-        self.updates_sent = 0
-        self.proxy_states = 0
-        self.last_proxy = None
-        self.alive = True
-        self.started = False
+        super().__init__(url, clock, Hello(
+            client_nonce=1, engine="linkage-env", tool_kind=ToolKind.LINKAGE, mass_kg=BAR_M * n_links,
+            max_contacts=32, epsilon_m=epsilon, env_rate_hz=rate_hz, links=bar_links(n_links),
+            held_link=n_links - 1 if held_link is None else held_link))
 
     def pose7(self):
         x, y, th = self.root
@@ -97,38 +88,19 @@ class LinkageWallEnv:
                 if d <= self.eps:
                     keys.append((k, 1, i)); pos.append((c[0], self.wall_y, 0.0)); nor.append((0.0, 1.0, 0.0))
                     sep.append(d)
-        n = len(keys)
-        return (np.array(keys, dtype=np.int64).reshape(n, 3), np.array(pos, dtype=float).reshape(n, 3),
-                np.array(nor, dtype=float).reshape(n, 3), np.array(sep, dtype=float), np.zeros(n))
+        return contact_arrays(keys, pos, nor, sep)
 
-    def service(self):
-        if not self.alive:
-            return
-        now = self.clock.now_ns()
-        if not self.started:
-            self.ep.start(now)
-            self.started = True
-            self.next_ns = now
-        while True:
-            item = self.tr.recv()
-            if item is None:
-                break
-            ps = self.ep.receive(item[0], item[1], now)
-            if ps is not None:
-                self.proxy_states += 1
-                self.last_proxy = ps
-                pose = ps.proxy_pose
-                self.root = np.array([pose[0], pose[1], 2 * math.atan2(pose[6], pose[3])])
-                self.joints = np.array(ps.joint_position, dtype=float)
-                if self.rigid:
-                    self._lift_out_of_the_floor()
-        self.ep.poll(now)
-        if now >= self.next_ns and self.ep.established:
-            k, p, n, d, v = self.contacts()
-            extra = {"tool_joint_position": self.joints} if self.send_joints else {}
-            self.ep.send_contacts(now, now * 1e-9, self.pose7(), k, p, n, d, v, **extra)
-            self.updates_sent += 1
-            self.next_ns = now + int(1e9 / self.rate_hz)
+    def _follow(self, ps):
+        pose = ps.proxy_pose
+        self.root = np.array([pose[0], pose[1], 2 * math.atan2(pose[6], pose[3])])
+        self.joints = np.array(ps.joint_position, dtype=float)
+        if self.rigid:
+            self._lift_out_of_the_floor()
 
-    def close(self):
-        self.tr.close()
+    def _send(self, now):
+        k, p, n, d, v = self.contacts()
+        extra = {"tool_joint_position": self.joints} if self.send_joints else {}
+        self.ep.send_contacts(now, now * 1e-9, self.pose7(), k, p, n, d, v, **extra)
+
+    def _next_ns(self, now):
+        return now + int(1e9 / self.rate_hz)

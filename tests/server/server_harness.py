@@ -2,12 +2,14 @@
 environment that speaks the real protocol over the in-memory transport, and a loop factory.
 
 Everything runs in one thread on a ``SimClock``, so a test is deterministic: the environment
-steps at its own (variable) rate in simulated time, between haptic steps.
+steps at its own (variable) rate in simulated time, between haptic steps. (Also: stopping a
+command a test started, ``stop_process``.)
 """
 from __future__ import annotations
 
 import itertools
 import math
+import signal
 
 import numpy as np
 import pytest
@@ -23,8 +25,22 @@ from hapticproxy.server.devices.base import (
     empty_state,
 )
 from hapticproxy.server.loop import HapticLoop
+from hapticproxy.testing.cleanup import made_then_ended
 
 _names = itertools.count(1)
+
+
+def stop_process(proc) -> str:
+    """SIGTERM a command started with stderr piped (if it still runs), wait for it (killed if
+    it outlives 30 s of waiting); returns its stderr."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+    try:
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return err
 
 
 class PointDevice(DeviceDriver):
@@ -152,7 +168,68 @@ class WatchdogDevice(PointDevice):
         return self._fault
 
 
-class WallEnv:
+def contact_arrays(keys, pos, nor, sep):
+    """The (keys, points, normals, separations, normal speeds) arrays ``send_contacts`` takes, from
+    per-contact lists; every contact at rest (zero normal speed)."""
+    n = len(keys)
+    return (np.array(keys, dtype=np.int64).reshape(n, 3), np.array(pos, dtype=float).reshape(n, 3),
+            np.array(nor, dtype=float).reshape(n, 3), np.array(sep, dtype=float), np.zeros(n))
+
+
+class ProtocolEnv:
+    """An environment client speaking the real protocol over the in-memory transport, in simulated
+    time. A subclass follows each ProxyState (``_follow``), sends its ContactUpdate (``_send``) and
+    says when the next one is due (``_next_ns``)."""
+
+    def __init__(self, url, clock, hello):
+        self.tr = open_transport(url, "client")
+        self.clock = clock
+        self.hello = hello
+        self.ep = ClientEndpoint(self.tr.send, self.hello)
+        self.next_ns = 0
+        self.updates_sent = 0
+        self.proxy_states = 0
+        self.last_proxy = None
+        self.alive = True
+        self.started = False
+
+    def service(self):
+        """Receive everything waiting; on the env's own schedule, step and send contacts."""
+        if not self.alive:
+            return
+        now = self.clock.now_ns()
+        if not self.started:
+            self.ep.start(now)
+            self.started = True
+            self.next_ns = now
+        while True:
+            item = self.tr.recv()
+            if item is None:
+                break
+            ps = self.ep.receive(item[0], item[1], now)
+            if ps is not None:
+                self.proxy_states += 1
+                self.last_proxy = ps
+                self._follow(ps)
+        self.ep.poll(now)
+        if now >= self.next_ns and self.ep.established:
+            self._send(now)
+            self.updates_sent += 1
+            self.next_ns = self._next_ns(now)
+
+    def kill(self):
+        """Vanish without a Bye (a killed process)."""
+        self.alive = False
+
+    def bye(self):
+        self.ep.close(now_ns=self.clock.now_ns())
+        self.alive = False
+
+    def close(self):
+        self.tr.close()
+
+
+class WallEnv(ProtocolEnv):
     """Environment client: a planar box tool (half sizes ``hx``, ``hy``) and a floor at y = ``wall_y``
     (normal +y). The engine's tool follows the proxy pose it last received (kinematic drive).
     Reports the two bottom corners within ``epsilon`` of the floor. Steps at ``rate_hz`` with an
@@ -162,8 +239,6 @@ class WallEnv:
                  jitter=0.0, start_pose=(0.0, 0.05, 0.0), mass_kg=0.2, inertia=2e-4, kind="planar", seed=1,
                  rigid=True):
         self.rigid = rigid  # True: the engine's tool is held at the floor; False: kinematic, penetrates
-        self.tr = open_transport(url, "client")
-        self.clock = clock
         self.hx, self.hy, self.wall_y, self.eps = hx, hy, wall_y, epsilon
         self.rate_hz = rate_hz
         self.jitter = jitter
@@ -174,16 +249,9 @@ class WallEnv:
         self.hz = hx  # spatial: a box hx x hy x hx (half sizes)
         tk = {"planar": ToolKind.PLANAR, "1dof": ToolKind.ONE_DOF, "spatial": ToolKind.SPATIAL}[kind]
         axis = (0.0, 1.0, 0.0) if kind == "1dof" else (1.0, 0.0, 0.0)
-        self.hello = Hello(client_nonce=1, engine="wall-env", tool_kind=tk, mass_kg=mass_kg,
-                           inertia_kg_m2=(inertia, inertia, inertia, 0, 0, 0), axis=axis,
-                           max_contacts=8, epsilon_m=epsilon, env_rate_hz=rate_hz)
-        self.ep = ClientEndpoint(self.tr.send, self.hello)
-        self.next_ns = 0
-        self.updates_sent = 0
-        self.proxy_states = 0
-        self.last_proxy = None
-        self.alive = True
-        self.started = False
+        super().__init__(url, clock, Hello(client_nonce=1, engine="wall-env", tool_kind=tk, mass_kg=mass_kg,
+                                           inertia_kg_m2=(inertia, inertia, inertia, 0, 0, 0), axis=axis,
+                                           max_contacts=8, epsilon_m=epsilon, env_rate_hz=rate_hz))
 
     def _corners(self):
         """World (x, y, z) of the tool's bottom corners (planar/1dof: two, spatial: four)."""
@@ -213,50 +281,22 @@ class WallEnv:
                 pos.append((x, self.wall_y, z))
                 nor.append((0.0, 1.0, 0.0))
                 sep.append(d)
-        n = len(keys)
-        return (np.array(keys, dtype=np.int64).reshape(n, 3), np.array(pos, dtype=float).reshape(n, 3),
-                np.array(nor, dtype=float).reshape(n, 3), np.array(sep, dtype=float), np.zeros(n))
+        return contact_arrays(keys, pos, nor, sep)
 
-    def service(self):
-        """Receive everything waiting; on the env's own schedule, step and send contacts."""
-        if not self.alive:
-            return
-        now = self.clock.now_ns()
-        if not self.started:
-            self.ep.start(now)
-            self.started = True
-            self.next_ns = now
-        while True:
-            item = self.tr.recv()
-            if item is None:
-                break
-            ps = self.ep.receive(item[0], item[1], now)
-            if ps is not None:
-                self.proxy_states += 1
-                self.last_proxy = ps
-                self.pose = np.array(ps.proxy_pose, dtype=float)
-                if self.rigid:
-                    self._stop_at_wall()
-        self.ep.poll(now)
-        if now >= self.next_ns and self.ep.established:
-            k, p, n, d, v = self.contacts()
-            self.ep.send_contacts(now, now * 1e-9, self.pose, k, p, n, d, v)
-            self.updates_sent += 1
-            period = 1.0 / self.rate_hz
-            if self.jitter:
-                period *= 1.0 + self.jitter * (2 * self.rng.random() - 1)
-            self.next_ns = now + int(period * 1e9)
+    def _follow(self, ps):
+        self.pose = np.array(ps.proxy_pose, dtype=float)
+        if self.rigid:
+            self._stop_at_wall()
 
-    def kill(self):
-        """Vanish without a Bye (a killed process)."""
-        self.alive = False
+    def _send(self, now):
+        k, p, n, d, v = self.contacts()
+        self.ep.send_contacts(now, now * 1e-9, self.pose, k, p, n, d, v)
 
-    def bye(self):
-        self.ep.close(now_ns=self.clock.now_ns())
-        self.alive = False
-
-    def close(self):
-        self.tr.close()
+    def _next_ns(self, now):
+        period = 1.0 / self.rate_hz
+        if self.jitter:
+            period *= 1.0 + self.jitter * (2 * self.rng.random() - 1)
+        return now + int(period * 1e9)
 
 
 def make_settings(**sections):
@@ -299,17 +339,12 @@ class Rig:
         self.loop.close()
 
 
+def _rig(settings=None, device=None, env_kwargs=None, **sections):
+    s = settings or make_settings(**sections)
+    dev = device or PointDevice(kind=s["device"]["kind"], period_s=s.period_ns * 1e-9)
+    return Rig(s, dev, env_kwargs)
+
+
 @pytest.fixture
 def rig_factory():  # re-exported by conftest.py
-    made = []
-
-    def make(settings=None, device=None, env_kwargs=None, **sections):
-        s = settings or make_settings(**sections)
-        dev = device or PointDevice(kind=s["device"]["kind"], period_s=s.period_ns * 1e-9)
-        r = Rig(s, dev, env_kwargs)
-        made.append(r)
-        return r
-
-    yield make
-    for r in made:
-        r.close()
+    yield from made_then_ended(_rig)

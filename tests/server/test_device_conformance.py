@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import signal
 import socket
 import subprocess
 import sys
@@ -18,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from server_harness import stop_process
 
 from hapticproxy.protocol import device_conformance as dc
 from hapticproxy.protocol.devlink import COMMAND, STATE
@@ -294,17 +294,6 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _stop(proc) -> str:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-    try:
-        _, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    return err
-
-
 def test_hapticproxy_device_passes_check_device_over_udp():
     """Both commands in their own processes, paced in real time. The slack is wider than the
     default: two 1 kHz Python processes share this machine with the test run (the exact bound is
@@ -325,7 +314,7 @@ def test_hapticproxy_device_passes_check_device_over_udp():
         if check.poll() is None:
             check.kill()
         if dev is not None:
-            dev_err = _stop(dev)
+            dev_err = stop_process(dev)
     assert check.returncode == 0, out + err
     lines = out.strip().splitlines()
     assert lines[-1] == f"RESULT: PASS ({len(dc.DEVICE_RULES)} rules)"
@@ -359,7 +348,7 @@ def test_hapticproxy_serve_passes_check_device_server_over_udp(tmp_path):
                               "--server", f"127.0.0.1:{listen}", "--slack-s", "0.15", "--arm-timeout-s", "120"],
                              capture_output=True, text=True, timeout=400)
     finally:
-        err = _stop(serve)
+        err = stop_process(serve)
     assert out.returncode == 0, out.stdout + out.stderr + err
     lines = out.stdout.strip().splitlines()
     assert lines[-1] == f"RESULT: PASS ({len(dc.SERVER_RULES)} rules)"

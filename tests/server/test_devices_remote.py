@@ -2,7 +2,6 @@
 counted drops, the device-side watchdog and the epoch rules, link loss, and the CLI."""
 from __future__ import annotations
 
-import signal
 import socket
 import subprocess
 import sys
@@ -11,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from server_harness import stop_process
 
 from hapticproxy.protocol.devlink import COMMAND, STATE
 from hapticproxy.server.devices import base
@@ -20,6 +20,7 @@ from hapticproxy.server.devices.base import (
 from hapticproxy.server.devices import remote
 from hapticproxy.server.devices.remote import COMMAND_SIZE, STATE_SIZE, DeviceProgram, RemoteDevice
 from hapticproxy.server.devices.sim import make_sim_device
+from hapticproxy.testing.cleanup import made_then_ended
 
 DT = 1e-3
 EXE = str(Path(sys.executable).parent / "hapticproxy")
@@ -69,6 +70,12 @@ class Link:
                 st = self.srv.write(wrench)
         return st
 
+    def engage(self, n):
+        """Two periods for the link to come up, enable, then ``n`` periods writing F1."""
+        self.step(2)
+        self.srv.enable()
+        self.step(n)
+
     def close(self):
         self.prog.close()
         self.srv.close()
@@ -76,15 +83,7 @@ class Link:
 
 @pytest.fixture
 def link():
-    links = []
-
-    def make(*a, **kw):
-        lk = Link(*a, **kw)
-        links.append(lk)
-        return lk
-    yield make
-    for lk in links:
-        lk.close()
+    yield from made_then_ended(Link)
 
 
 def test_state_flows_and_the_link_fault_clears_only_through_enable(link):
@@ -101,9 +100,7 @@ def test_state_flows_and_the_link_fault_clears_only_through_enable(link):
 
 def test_commands_flow_and_move_the_device(link):
     lk = link()
-    lk.step(2)
-    lk.srv.enable()
-    lk.step(300)
+    lk.engage(300)
     assert lk.prog.armed and lk.srv.device_armed
     assert lk.sim.last_command.tolist() == F1.tolist()
     assert lk.row[7] > 0.0 and lk.row[0] > 0.0                 # the state coming back moved
@@ -200,9 +197,7 @@ def test_a_pinned_device_address_is_the_only_one_heard():
 
 def test_device_watchdog_zeroes_latches_and_only_a_new_enable_rearms(link):
     lk = link()
-    lk.step(2)
-    lk.srv.enable()
-    lk.step(20)
+    lk.engage(20)
     assert lk.prog.armed and lk.sim.enabled
     lk.step(60, server=False)                 # the server loop stalls for 60 ms > 50 ms
     assert not lk.prog.armed and lk.prog.fault == DEV_FAULT_WATCHDOG and not lk.sim.enabled
@@ -285,9 +280,7 @@ def test_device_epoch_rules_with_crafted_commands():
 
 def test_link_loss_latches_until_enable_and_zeroes_the_device(link):
     lk = link(link_timeout_s=0.1)
-    lk.step(2)
-    lk.srv.enable()
-    lk.step(10)
+    lk.engage(10)
     assert lk.prog.armed
     lk.clock.advance(0.15)                    # no state for 150 ms
     assert lk.srv.read(lk.row) == DEV_FAULT_LINK and not lk.srv.link_up
@@ -302,9 +295,7 @@ def test_link_loss_latches_until_enable_and_zeroes_the_device(link):
 
 def test_disable_zeroes_the_device_at_once(link):
     lk = link()
-    lk.step(2)
-    lk.srv.enable()
-    lk.step(10)
+    lk.engage(10)
     assert lk.prog.armed
     lk.srv.disable()
     lk.step(1, server=False)
@@ -379,12 +370,7 @@ def test_device_program_process_streams_and_obeys(tmp_path):
         srv.disable()
         assert eventually(lambda: (srv.read(row), not srv._dev_armed)[1], timeout_s=30.0)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            _, err = proc.communicate(timeout=30)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
+        err = stop_process(proc)
         srv.close()
     assert proc.returncode == 0, err
     assert "Traceback" not in err and "states_sent" in err

@@ -26,6 +26,7 @@ from hapticproxy.server import config as cfg  # noqa: E402
 from hapticproxy.server.clock import SimClock  # noqa: E402
 from hapticproxy.server.loop import HapticLoop  # noqa: E402
 from hapticproxy.server.shm import LS, TEL  # noqa: E402
+from hapticproxy.testing.cleanup import made_then_ended  # noqa: E402
 
 PUSH = lambda t: (0.0, -0.5, 0.0)  # noqa: E731
 #: The bars are light (80 g; a contact at a corner sees 24-45 g of the chain): the explicit
@@ -62,16 +63,7 @@ class LinkageRig:
 
 @pytest.fixture
 def linkage_rig():
-    made = []
-
-    def make(**kw):
-        r = LinkageRig(**kw)
-        made.append(r)
-        return r
-
-    yield make
-    for r in made:
-        r.close()
+    yield from made_then_ended(LinkageRig)
 
 
 def test_a_held_chain_falls_onto_the_floor_and_settles_balancing_the_push(linkage_rig):

@@ -23,6 +23,7 @@ from hapticproxy.server import recording
 from hapticproxy.server.clock import MonotonicClock
 from hapticproxy.server.daemon import Supervisor, jsonable
 from hapticproxy.server.shm import NTEL, TEL, TEL_DTYPE, SharedState
+from hapticproxy.testing.cleanup import made_then_ended
 
 HAPTICPROXY = [sys.executable, "-m", "hapticproxy.cli.main"]
 
@@ -71,16 +72,7 @@ class Rig:
 
 @pytest.fixture
 def rig():
-    made = []
-
-    def make(*a, **kw):
-        r = Rig(*a, **kw)
-        made.append(r)
-        return r
-
-    yield make
-    for r in made:
-        r.close()
+    yield from made_then_ended(Rig)
 
 
 # ------------------------------------------------------------------------------ live view

@@ -17,6 +17,7 @@ from server_harness import Rig, WatchdogDevice, make_settings
 from hapticproxy.server.clock import SimClock
 from hapticproxy.server.lifecycle import Fault, Reason
 from hapticproxy.server.shm import LS, TEL
+from hapticproxy.testing.cleanup import made_then_ended
 
 PUSH = lambda t: (0.0, -0.5, 0.0)  # noqa: E731 - a pure force hand pushing onto the floor
 
@@ -34,16 +35,7 @@ def _reasons(loop):
 
 @pytest.fixture
 def rig():
-    made = []
-
-    def make(**sections):
-        r = _rig(**sections)
-        made.append(r)
-        return r
-
-    yield make
-    for r in made:
-        r.close()
+    yield from made_then_ended(_rig)
 
 
 @pytest.mark.parametrize("stall_ms", [60, 120, 250])
