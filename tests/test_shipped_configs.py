@@ -37,6 +37,28 @@ def _client_args(path: Path) -> list[str]:
     return shlex.split(re.search(r"^# client: (.+)$", path.read_text(), re.M).group(1))
 
 
+#: a "-zenoh" config whose UDP twin is shipped too: the same scene over another transport
+ZENOH_TWINS = {p.name: p.with_name(p.name.replace("-zenoh", "")) for p in CONFIGS
+               if p.stem.endswith("-zenoh") and p.with_name(p.name.replace("-zenoh", "")) in CONFIGS}
+
+
+def _without_transport_and_comments(path: Path) -> dict:
+    data = cfgmod.load(path).data
+    return {k: v for k, v in data.items() if k != "transport"}
+
+
+@pytest.mark.parametrize("name", sorted(ZENOH_TWINS))
+def test_a_zenoh_twin_is_its_udp_scene_over_zenoh(name):
+    """Only the transport differs (so the twin's full run below is a slow extra: zenoh-peer.toml
+    runs by default, and the transports have their own contract suite)."""
+    zen = ROOT / "deploy" / "configs" / name
+    udp = ZENOH_TWINS[name]
+    assert _without_transport_and_comments(zen) == _without_transport_and_comments(udp)
+    assert cfgmod.load(zen)["transport"]["url"].startswith("zenoh://")
+    assert _client_args(zen) == _client_args(udp)
+    assert f"--connect {cfgmod.load(zen)['transport']['url']}" in zen.read_text()  # its header says how to connect
+
+
 def test_every_scene_family_and_transport_is_shipped():
     names = {p.name for p in CONFIGS}
     for need in ("udp-loopback.toml", "zenoh-peer.toml", "peg1d.toml", "peg1d-zenoh.toml",
@@ -46,7 +68,8 @@ def test_every_scene_family_and_transport_is_shipped():
     assert kinds == {"1dof", "planar", "spatial"}
 
 
-@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", [pytest.param(p, marks=pytest.mark.slow) if p.name in ZENOH_TWINS else p
+                                  for p in CONFIGS], ids=lambda p: p.stem)
 def test_shipped_config_makes_contact_with_its_client_and_balances_the_push(path):
     from hapticproxy.server.daemon import Supervisor
     from hapticproxy.server.shm import TEL

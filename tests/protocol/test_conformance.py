@@ -125,7 +125,7 @@ def _free_port(kind=socket.SOCK_DGRAM) -> int:
         return s.getsockname()[1]
 
 
-@pytest.mark.parametrize("device", ["planar", "spatial"])
+@pytest.mark.parametrize("device", [pytest.param("planar", marks=pytest.mark.slow), "spatial"])
 def test_the_real_server_passes_check_server(device):
     """The daemon (supervisor + loop process) on UDP loopback, as `hapticproxy serve` runs it."""
     from hapticproxy.server import config as cfgmod
@@ -470,6 +470,10 @@ def test_cli_check_server_over_zenoh_url(capsys):
         assert K.main(["check-server", "--connect", srv.url, "--duration", "0.3"]) == 0
     out = capsys.readouterr().out
     assert out.strip().endswith(f"RESULT: PASS ({len(K.SERVER_RULES)} rules)")
+
+
+@pytest.mark.slow
+def test_cli_check_server_over_zenoh_url_exits_1_for_a_failing_server():
     with Peer(naive_server, open_transport(f"zenoh://127.0.0.1:{free_tcp_port()}/cli-naive", role="server")) as p:
         assert K.main(["check-server", "--connect", p.transport.url, "--duration", "0.3"]) == 1
 
