@@ -1,0 +1,127 @@
+"""``python -m hapticproxy.benchmarks.compare --baseline DIR``: this tree's benchmarks against
+another checkout's, in one run on one machine.
+
+A restructure must not cost speed, and two benchmark runs an hour apart on a shared machine do
+not say whether it did. This runs ``hapticproxy bench NAME --json`` of both trees alternately
+(baseline, this tree, baseline, ...: ``--rounds`` each, so load that comes and goes hits both),
+takes the median of every time figure (a field ending in ``_us``) per row, and prints both with
+their ratio (this tree / baseline: below 1 is faster). Rows are matched by their text fields
+(tool, message, engine, ...) and the ``contacts`` count.
+
+``DIR`` is a checkout with its own ``.venv`` (e.g. ``git worktree add /tmp/base REV`` and
+``sh /tmp/base/run.sh warmup``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+#: the benchmarks compared by default, with the arguments both trees get (short runs: the rounds
+#: give the repetition)
+BENCHES = {
+    "model": ["--steps", "5000", "--numpy-steps", "20"],
+    "codec": ["--repeats", "21"],
+    "loop": [],
+    "clients": [],
+}
+_ID_INTS = ("contacts", "links", "n", "batch")
+
+
+def _rows(out: str) -> list[dict]:
+    """The rows of a bench's ``--json`` output: a JSON list, one object, or one object per line."""
+    text = out.strip()
+    try:
+        doc = json.loads(text)
+        docs = doc if isinstance(doc, list) else [doc]
+    except json.JSONDecodeError:
+        docs = [json.loads(line) for line in text.splitlines() if line.startswith("{")]
+    rows = []
+    for d in docs:
+        if isinstance(d, dict) and isinstance(d.get("rows"), list):
+            rows += [r for r in d["rows"] if isinstance(r, dict)]
+        elif isinstance(d, dict):
+            rows.append(d)
+    return rows
+
+
+def _label(row: dict) -> str:
+    parts = [f"{k}={v}" for k, v in row.items() if isinstance(v, str) and len(v) < 60]
+    parts += [f"{k}={row[k]}" for k in _ID_INTS if isinstance(row.get(k), int)]
+    return " ".join(parts) or "-"
+
+
+def _times(rows: list[dict]) -> dict[tuple[str, str], float]:
+    out: dict[tuple[str, str], float] = {}
+    seen: dict[str, int] = {}
+    for row in rows:
+        label = _label(row)
+        seen[label] = seen.get(label, 0) + 1
+        if seen[label] > 1:
+            label += f" #{seen[label]}"
+        for k, v in row.items():
+            if k.endswith("_us") and isinstance(v, (int, float)) and not isinstance(v, bool):
+                out[(label, k)] = float(v)
+    return out
+
+
+def run_bench(tree: Path, name: str, args: list[str], timeout_s: float) -> dict[tuple[str, str], float]:
+    exe = tree / ".venv" / "bin" / "hapticproxy"
+    p = subprocess.run([str(exe), "bench", name, "--json", *args], capture_output=True, text=True,
+                       timeout=timeout_s, cwd=tree)
+    if p.returncode != 0:
+        raise RuntimeError(f"{exe} bench {name} exited {p.returncode}: {p.stderr.strip()[-400:]}")
+    return _times(_rows(p.stdout))
+
+
+def compare(baseline: Path, here: Path, names, rounds: int, timeout_s: float, log=print) -> list[dict]:
+    rows = []
+    for name in names:
+        got: dict[str, list[dict]] = {"baseline": [], "this": []}
+        for i in range(rounds):
+            for which, tree in (("baseline", baseline), ("this", here)):
+                log(f"bench {name}: {which} round {i + 1}/{rounds}", file=sys.stderr)
+                got[which].append(run_bench(tree, name, BENCHES.get(name, []), timeout_s))
+        keys = sorted(set().union(*got["baseline"]) & set().union(*got["this"]))
+        for key in keys:
+            b = statistics.median(r[key] for r in got["baseline"] if key in r)
+            t = statistics.median(r[key] for r in got["this"] if key in r)
+            rows.append({"bench": name, "row": key[0], "figure": key[1], "baseline_us": round(b, 3),
+                         "this_us": round(t, 3), "ratio": round(t / b, 3) if b > 0 else None})
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m hapticproxy.benchmarks.compare", description=__doc__.split("\n\n")[0])
+    p.add_argument("--baseline", required=True, type=Path, help="the other checkout (with its .venv)")
+    p.add_argument("--benches", default=",".join(BENCHES), help="comma-separated (default: %(default)s)")
+    p.add_argument("--rounds", type=int, default=3, help="runs of each bench per tree (default 3)")
+    p.add_argument("--timeout", type=float, default=900.0, help="seconds per bench run")
+    p.add_argument("--json", action="store_true", help="one JSON object per row")
+    a = p.parse_args(argv)
+    here = Path(__file__).resolve().parents[1]
+    if not (a.baseline / ".venv" / "bin" / "hapticproxy").exists():
+        p.error(f"--baseline {a.baseline}: no .venv/bin/hapticproxy there")
+    if a.rounds < 1:
+        p.error("--rounds must be >= 1")
+    try:
+        rows = compare(a.baseline.resolve(), here, [n for n in a.benches.split(",") if n], a.rounds, a.timeout)
+    except (RuntimeError, subprocess.TimeoutExpired) as exc:
+        print(f"compare: {exc}", file=sys.stderr)
+        return 1
+    if a.json:
+        for r in rows:
+            print(json.dumps(r))
+        return 0
+    print(f"{'bench':8} {'row':44} {'figure':26} {'baseline us':>12} {'this us':>10} {'ratio':>6}")
+    for r in rows:
+        print(f"{r['bench']:8} {r['row'][:44]:44} {r['figure'][:26]:26} {r['baseline_us']:12.3f} {r['this_us']:10.3f} "
+              f"{r['ratio'] if r['ratio'] is not None else '-':>6}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
