@@ -340,7 +340,7 @@ class Supervisor:
 
             self.live = LiveView(self.live_address, self.settings, self.t0_epoch_ns)
         log.info("serving: %s at %.0f Hz, status on %s (rt scheduling: %s)%s%s", self.settings["transport"]["url"],
-                 self.settings.rate_hz, self.settings["status"]["address"],
+                 self.settings.rate_hz, "%s:%d" % self.sock.getsockname()[:2],  # the bound port, also for port 0
                  "yes" if self.shared.status[self._st("rt_scheduling")] else "no",
                  f", recording to {self.record}" if self.record else "",
                  f", live view on ws://{self.live.address}" if self.live else "")
