@@ -566,7 +566,7 @@ def plot_pareto(rows: list[dict], path: Path) -> None:
 
     dims = list(dict.fromkeys(r["dimension"] for r in rows))
     cmap = plt.get_cmap("tab10")
-    fig, axes = plt.subplots(1, 2, figsize=(13, 5.5))
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5.5), layout="constrained")
     for ax, err, name in ((axes[0], "wall_error_mm", "|felt wall - wall| [mm] (Fig. 14 push)"),
                           (axes[1], "drift_mm", "drift in the tight hole [mm] (Fig. 16 shaking)")):
         for i, d in enumerate(dims):
@@ -586,11 +586,11 @@ def plot_pareto(rows: list[dict], path: Path) -> None:
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("cost: CPU load of the haptic loop [% of one core] (step p50 x rate)")
-        ax.set_ylabel(name + f" (values < {FLOOR_MM:g} drawn at {FLOOR_MM:g})")
+        ax.set_ylabel(name)
+        ax.set_title(f"values below {FLOOR_MM:g} mm drawn at {FLOOR_MM:g} mm", fontsize=8)
         ax.grid(alpha=0.3, which="both")
     axes[0].legend(fontsize=7, loc="upper right")
     fig.suptitle("Speed / accuracy trade-off (simulated time; x: unstable)", fontsize=10)
-    fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
 
@@ -601,17 +601,26 @@ def plot_region(region: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7.5, 5))
-    for c in dict.fromkeys(r["controller"] for r in region):
+    from matplotlib.ticker import FixedLocator, NullLocator
+
+    fig, ax = plt.subplots(figsize=(7.5, 5), layout="constrained")
+    controllers = list(dict.fromkeys(r["controller"] for r in region))
+    for i, c in enumerate(controllers):
         es = sorted((r for r in region if r["controller"] == c), key=lambda r: r["rate_hz"])
-        ax.plot([e["rate_hz"] for e in es], [e["largest_stable_stiffness_n_per_m"] or np.nan for e in es], "o-", label=c)
+        # wide lines and big markers first, so a controller with the same region stays visible
+        ax.plot([e["rate_hz"] for e in es], [e["largest_stable_stiffness_n_per_m"] or np.nan for e in es],
+                marker="osD^v"[i % 5], ms=9 - 1.2 * i, lw=4 - 0.6 * i, alpha=0.85, label=c)
     ax.set_xscale("log")
     ax.set_yscale("log")
+    # the rates swept, as plain numbers (log minor labels overlap on this span)
+    rates = sorted({r["rate_hz"] for r in region})
+    ax.xaxis.set_major_locator(FixedLocator(rates))
+    ax.xaxis.set_minor_locator(NullLocator())
+    ax.set_xticks(rates, [f"{r:g}" for r in rates])
     ax.set_xlabel("haptic rate [Hz]")
-    ax.set_ylabel("largest stable contact stiffness [N/m] (b = 7.5 ms x k unless given)")
+    ax.set_ylabel("largest stable contact stiffness [N/m]")
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, title="controller (damping b = 7.5 ms x k unless given)", title_fontsize=7)
     ax.set_title("Stable region (simulated time, stub 30-60 Hz, wall push + 6 s of 1 N hole shaking)", fontsize=9)
-    fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
