@@ -676,7 +676,7 @@ def _zero_outputs(st):
 @njit(**_JIT)
 def commit_velocity(d, st, C, D, Zn, V, m):
     """After a finite ``_core``: store the new velocity, the friction stick points and the
-    kinetic energy qd^T D qd / 2; returns qd for the tool's own integrator (rigid or linkage)."""
+    kinetic energy qd^T D qd / 2 (qd stays in ``V[_V_QD]`` for the tool's own integrator)."""
     qd = V[_V_QD]
     for a in range(d):
         st[S_QD + a] = qd[a]
@@ -690,7 +690,47 @@ def commit_velocity(d, st, C, D, Zn, V, m):
             s += D[a, b] * qd[b]
         ke += qd[a] * s
     st[S_KE] = 0.5 * ke
-    return qd
+
+
+@njit(inline="always", **_JIT)
+def hand_to_world(planar, src, so, dst, do):
+    """The hand-space vector at ``src[so:]`` (planar: x, y and about z; spatial: all 6 of a twist
+    or wrench) as the world 6-vector ``dst[do:do + 6]``; planar leaves z, about x and about y of
+    ``dst`` as they are."""
+    if planar:
+        dst[do] = src[so]
+        dst[do + 1] = src[so + 1]
+        dst[do + 5] = src[so + 2]
+    else:
+        for j in range(6):
+            dst[do + j] = src[so + j]
+
+
+@njit(inline="always", **_JIT)
+def take_hand(h, st, hand):
+    """Store the ``h`` hand-wrench components of a step at S_FH; False (nothing stored) when
+    one is not finite."""
+    for r in range(h):
+        if not math.isfinite(hand[r]):
+            return False
+    for r in range(h):
+        st[S_FH + r] = hand[r]
+    return True
+
+
+@njit(inline="always", **_JIT)
+def end_step(ok, d, par, st, C, cnt, D, Zn, V, m):
+    """Close a step after ``_core``: a finite result is committed (``commit_velocity``), a
+    non-finite one zeroes the rendered wrench and counts K_NONFINITE; time and K_STEPS advance
+    either way. Returns ``ok``: the caller's integrator then moves q by qd = ``V[_V_QD]``."""
+    if ok:
+        commit_velocity(d, st, C, D, Zn, V, m)
+    else:
+        _zero_outputs(st)
+        cnt[K_NONFINITE] += 1
+    st[S_T] += par[P_DT]
+    cnt[K_STEPS] += 1
+    return ok
 
 
 @njit(**_JIT)
@@ -705,11 +745,8 @@ def step_rigid(kind, par, st, C, CI, cnt, wk, hand):
         d = 3; h = 3
     else:
         d = 6; h = 6
-    for r in range(h):
-        if not math.isfinite(hand[r]):
-            return E_HAND_NONFINITE
-    for r in range(h):
-        st[S_FH + r] = hand[r]
+    if not take_hand(h, st, hand):
+        return E_HAND_NONFINITE
     cap = C.shape[0]
     m = cnt[K_M]
     D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V = _views(wk, cap)
@@ -717,14 +754,8 @@ def step_rigid(kind, par, st, C, CI, cnt, wk, hand):
     c = V[_V_T1]
     _kin_rigid(kind, par, st, C, m, R, c, D, V[_V_TAUG], Jpt, X, Jh)
     ok = _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V, m)
-    if ok:
-        qd = commit_velocity(d, st, C, D, Zn, V, m)
-        _integrate_rigid(kind, st, qd, par[P_DT])
-    else:
-        _zero_outputs(st)
-        cnt[K_NONFINITE] += 1
-    st[S_T] += par[P_DT]
-    cnt[K_STEPS] += 1
+    if end_step(ok, d, par, st, C, cnt, D, Zn, V, m):
+        _integrate_rigid(kind, st, V[_V_QD], par[P_DT])
     return E_OK
 
 
@@ -786,9 +817,13 @@ def validate_contacts(kind, n_links, keys, cp, nrm, dsep, vc, n_in):
 
 
 @njit(**_JIT)
-def select_and_check(keys, dsep, n_in, cap, sel):
-    """The capacity rule and the duplicate-key check of an update: returns (E_* code, number kept);
-    ``sel[:nk]`` are the rows kept, in incoming order."""
+def check_update(kind, n_links, keys, cp, nrm, dsep, vc, n_in, cap, sel):
+    """Everything an update is checked for before anything changes: ``validate_contacts``, then
+    the capacity rule and the duplicate-key check. Returns (E_* code, number kept); ``sel[:nk]``
+    are the rows kept, in incoming order."""
+    code = validate_contacts(kind, n_links, keys, cp, nrm, dsep, vc, n_in)
+    if code != E_OK:
+        return code, 0
     if n_in > sel.shape[0]:
         return E_TOO_MANY, 0
     nk = _select_smallest(dsep, n_in, cap, sel)
@@ -1056,11 +1091,8 @@ def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, s
     point is taken in the engine tool's body frame and carried onto the proxy, and the rule table
     compares the proxy's separation against that true geometry (``s_w``) instead of ``d``. When
     the engine's tool is where the proxy is, both are the same. ``st_e``, ``Re``, ``ce``: scratch."""
-    code = validate_contacts(kind, 1, keys, cp, nrm, dsep, vc, n_in)
-    if code != E_OK:
-        return code
     cap = C.shape[0]
-    code, nk = select_and_check(keys, dsep, n_in, cap, sel)
+    code, nk = check_update(kind, 1, keys, cp, nrm, dsep, vc, n_in, cap, sel)
     if code != E_OK:
         return code
     # --- validated: from here on the update is applied ---
