@@ -259,6 +259,31 @@ def _kin_rigid(kind, par, st, C, m, R, c, D, taug, Jpt, X, Jh):
             Jpt[i, 2, 3] = ry; Jpt[i, 2, 4] = -rx; Jpt[i, 2, 5] = 0.0
 
 
+@njit(inline="always", **_JIT)
+def turn_quat(st, o, qd, dt):
+    """The unit quaternion (w x y z) at ``st[o:o + 4]`` turned by the world angular velocity
+    ``qd[3:6]`` over ``dt`` (exact for a constant rate: q <- exp(w dt / 2) (x) q), renormalised."""
+    wx = qd[3]; wy = qd[4]; wz = qd[5]
+    wn = math.sqrt(wx * wx + wy * wy + wz * wz)
+    half = 0.5 * wn * dt
+    if wn > 0.0:
+        sc = math.sin(half) / wn
+    else:
+        sc = 0.5 * dt
+    dw = math.cos(half); dx = sc * wx; dy = sc * wy; dz = sc * wz
+    qw = st[o]; qx = st[o + 1]; qy = st[o + 2]; qz = st[o + 3]
+    # world-frame angular velocity: q <- dq (x) q
+    nw = dw * qw - dx * qx - dy * qy - dz * qz
+    nx = dw * qx + dx * qw + dy * qz - dz * qy
+    ny = dw * qy - dx * qz + dy * qw + dz * qx
+    nz = dw * qz + dx * qy - dy * qx + dz * qw
+    inv = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+    st[o] = nw * inv
+    st[o + 1] = nx * inv
+    st[o + 2] = ny * inv
+    st[o + 3] = nz * inv
+
+
 @njit(**_JIT)
 def _integrate_rigid(kind, st, qd, dt):
     """Semi-implicit Euler position update with the already-updated velocity qd."""
@@ -272,25 +297,7 @@ def _integrate_rigid(kind, st, qd, dt):
         st[S_Q] += dt * qd[0]
         st[S_Q + 1] += dt * qd[1]
         st[S_Q + 2] += dt * qd[2]
-        wx = qd[3]; wy = qd[4]; wz = qd[5]
-        wn = math.sqrt(wx * wx + wy * wy + wz * wz)
-        half = 0.5 * wn * dt
-        if wn > 0.0:
-            sc = math.sin(half) / wn
-        else:
-            sc = 0.5 * dt
-        dw = math.cos(half); dx = sc * wx; dy = sc * wy; dz = sc * wz
-        qw = st[S_Q + 3]; qx = st[S_Q + 4]; qy = st[S_Q + 5]; qz = st[S_Q + 6]
-        # world-frame angular velocity: q <- dq (x) q
-        nw = dw * qw - dx * qx - dy * qy - dz * qz
-        nx = dw * qx + dx * qw + dy * qz - dz * qy
-        ny = dw * qy - dx * qz + dy * qw + dz * qx
-        nz = dw * qz + dx * qy - dy * qx + dz * qw
-        inv = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
-        st[S_Q + 3] = nw * inv
-        st[S_Q + 4] = nx * inv
-        st[S_Q + 5] = ny * inv
-        st[S_Q + 6] = nz * inv
+        turn_quat(st, S_Q + 3, qd, dt)
 
 
 # --------------------------------------------------------------------------------------------

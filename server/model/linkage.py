@@ -40,6 +40,7 @@ from numba import njit
 
 from .kernels import (
     _V_QD, _V_TAUG, _core, _views, apply_update, check_update, end_step, hand_to_world, take_hand,
+    turn_quat,
 )
 from .layout import (
     C_P, CI_KEY, E_HAND_NONFINITE, E_OK, JT_PRISMATIC, JT_REVOLUTE, K_M,
@@ -346,32 +347,10 @@ def integrate_linkage(lmeta, st, qd, dt):
     d = lmeta[LM_D]
     r = lmeta[LM_R]
     nqr = lmeta[LM_NQR]
-    if lmeta[LM_PLANAR]:
-        for a in range(3):
-            st[S_LQ + a] += dt * qd[a]
-    else:
-        for a in range(3):
-            st[S_LQ + a] += dt * qd[a]
-        wx = qd[3]; wy = qd[4]; wz = qd[5]
-        wn = math.sqrt(wx * wx + wy * wy + wz * wz)
-        half = 0.5 * wn * dt
-        if wn > 0.0:
-            sc = math.sin(half) / wn
-        else:
-            sc = 0.5 * dt
-        dw = math.cos(half); dx = sc * wx; dy = sc * wy; dz = sc * wz
-        o = S_LQ + 3
-        qw = st[o]; qx = st[o + 1]; qy = st[o + 2]; qz = st[o + 3]
-        # world-frame angular velocity: q <- dq (x) q
-        nw = dw * qw - dx * qx - dy * qy - dz * qz
-        nx = dw * qx + dx * qw + dy * qz - dz * qy
-        ny = dw * qy - dx * qz + dy * qw + dz * qx
-        nz = dw * qz + dx * qy - dy * qx + dz * qw
-        inv = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
-        st[o] = nw * inv
-        st[o + 1] = nx * inv
-        st[o + 2] = ny * inv
-        st[o + 3] = nz * inv
+    for a in range(3):
+        st[S_LQ + a] += dt * qd[a]
+    if not lmeta[LM_PLANAR]:
+        turn_quat(st, S_LQ + 3, qd, dt)
     for j in range(d - r):
         st[S_LQ + nqr + j] += dt * qd[r + j]
 
