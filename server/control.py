@@ -44,7 +44,7 @@ from numba import njit
 
 from hapticproxy.protocol.vocab import CONTROLLERS
 
-from .model.kernels import _rigid_pose, step_rigid
+from .model.kernels import _rigid_pose, hand_to_world, step_rigid
 from .model.layout import LM_PLANAR, P_AXIS, P_HAND, P_ORIGIN, S_FENV, S_Q, S_QD, TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL
 from .model.linkage import hand_state_linkage, step_linkage
 
@@ -426,13 +426,24 @@ def _env_from_state(kind, par, st, cs):
     if kind == TOOL_1DOF:
         for j in range(3):
             cs[CS_ENV + j] = st[S_FENV] * par[P_AXIS + j]
+    else:
+        hand_to_world(kind == TOOL_PLANAR, st, S_FENV, cs, CS_ENV)
+
+
+@njit(**_JIT)
+def _hand_in(kind, par, cs, hand):
+    """The hand wrench (CS_HAND, world) reduced to the tool's hand space: 1dof along the axis,
+    planar fx, fy, tau_z, spatial all six; the inverse of ``_env_from_state``."""
+    if kind == TOOL_1DOF:
+        hand[0] = (cs[CS_HAND] * par[P_AXIS] + cs[CS_HAND + 1] * par[P_AXIS + 1]
+                   + cs[CS_HAND + 2] * par[P_AXIS + 2])
     elif kind == TOOL_PLANAR:
-        cs[CS_ENV] = st[S_FENV]
-        cs[CS_ENV + 1] = st[S_FENV + 1]
-        cs[CS_ENV + 5] = st[S_FENV + 2]
+        hand[0] = cs[CS_HAND]
+        hand[1] = cs[CS_HAND + 1]
+        hand[2] = cs[CS_HAND + 5]
     else:
         for j in range(6):
-            cs[CS_ENV + j] = st[S_FENV + j]
+            hand[j] = cs[CS_HAND + j]
 
 
 @njit(**_JIT)
@@ -510,17 +521,7 @@ def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, han
                 st[S_QD + 5] = wz
         else:
             _hand_channel(cp, cs, cc, dev, ctype)
-        # reduce the hand wrench to the tool's hand space and step the model
-        if kind == TOOL_1DOF:
-            hand[0] = (cs[CS_HAND] * par[P_AXIS] + cs[CS_HAND + 1] * par[P_AXIS + 1]
-                       + cs[CS_HAND + 2] * par[P_AXIS + 2])
-        elif kind == TOOL_PLANAR:
-            hand[0] = cs[CS_HAND]
-            hand[1] = cs[CS_HAND + 1]
-            hand[2] = cs[CS_HAND + 5]
-        else:
-            for j in range(6):
-                hand[j] = cs[CS_HAND + j]
+        _hand_in(kind, par, cs, hand)
         if step_rigid(kind, par, st, C, CI, cnt, wk, hand) != 0:
             return _fault_zero(cs, cc, cmd)
         _env_from_state(kind, par, st, cs)
@@ -541,31 +542,20 @@ def haptic_step_linkage(cp, cs, cc, dev, cmd, par, lmeta, lk, lki, st, C, CI, cn
     if rc == RC_NONFINITE:
         return rc
     planar = lmeta[LM_PLANAR] == 1
+    kind = TOOL_PLANAR if planar else TOOL_SPATIAL
     ctype = int(cp[CP_TYPE])
     hand_state_linkage(lmeta, lk, lki, st, lw, cs, CS_PPOSE)
     _ramp_slide(cp, cs, dev, 1 if planar else 2, ctype)
     _coupling(cp, cs, 1 if planar else 2, 1.0, 0.0, 0.0, hand)
     if cs[CS_DRIVE] == 0.0:
-        _env_from_state(TOOL_PLANAR if planar else TOOL_SPATIAL, par, st, cs)
+        _env_from_state(kind, par, st, cs)
         return _command_out(cp, cs, cc, cmd, ctype, rc)
     _hand_channel(cp, cs, cc, dev, ctype)
     # the hand wrench in the tool's hand space, at the held link's frame origin
-    if planar:
-        hand[0] = cs[CS_HAND]
-        hand[1] = cs[CS_HAND + 1]
-        hand[2] = cs[CS_HAND + 5]
-    else:
-        for j in range(6):
-            hand[j] = cs[CS_HAND + j]
+    _hand_in(kind, par, cs, hand)
     if step_linkage(par, lmeta, lk, lki, st, C, CI, cnt, wk, lw, hand) != 0:
         return _fault_zero(cs, cc, cmd)
-    if planar:
-        cs[CS_ENV] = st[S_FENV]
-        cs[CS_ENV + 1] = st[S_FENV + 1]
-        cs[CS_ENV + 5] = st[S_FENV + 2]
-    else:
-        for j in range(6):
-            cs[CS_ENV + j] = st[S_FENV + j]
+    _env_from_state(kind, par, st, cs)
     hand_state_linkage(lmeta, lk, lki, st, lw, cs, CS_PPOSE)
     return _command_out(cp, cs, cc, cmd, ctype, rc)
 

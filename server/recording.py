@@ -387,17 +387,14 @@ class McapRecorder:
         for seq, t_ns, frm, to, reason, detail in shared.transitions_since(self._trans_seq):
             self._trans_seq = seq
             self.add_transition((t_ns - self.t_start_ns) * 1e-9, frm, to, reason, detail)
-        head = int(shared.head[0])
-        rows = shared.ring_rows
-        if head - self._read > rows:
-            self.rows_lost += head - self._read - rows
-            self._read = head - rows
+        self._read, head, lost = shared.catch_up(self._read)
+        self.rows_lost += lost
         n = head - self._read
         if n <= 0:
             return 0
         chunk = shared.rows(self._read, head)
         # rows the loop overwrote while they were copied (it runs on): counted, dropped
-        over = int(shared.head[0]) - rows - self._read
+        over = int(shared.head[0]) - shared.ring_rows - self._read
         if over > 0:
             chunk = chunk[over:]
             self.rows_lost += over

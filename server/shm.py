@@ -259,6 +259,14 @@ class SharedState:
             return None
         return self.tel[(head - 1) % self.ring_rows].copy()
 
+    def catch_up(self, read: int) -> tuple[int, int, int]:
+        """For a reader that has consumed telemetry rows up to ``read`` (absolute, as ``head``
+        counts): ``(start, head, lost)``, the oldest row it can still read (``read``, or the
+        oldest in the ring when it fell further behind), the head, and the rows it lost."""
+        head = int(self.head[0])
+        lost = max(0, head - read - self.ring_rows)
+        return read + lost, head, lost
+
     def rows(self, start: int, stop: int) -> np.ndarray:
         """Telemetry rows ``start..stop-1`` (absolute numbers, as ``head`` counts; both within the
         last ``ring_rows``), oldest first, as a structured copy."""

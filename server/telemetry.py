@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .shm import TEL_FIELDS, SharedState
+from .shm import TEL_FIELDS, SharedState, flat_rows
 
 MAGIC = b"HPTEL1\n"
 BLOCK = b"BLK1"
@@ -63,20 +63,12 @@ class TelemetryWriter:
         self._read = int(head)
 
     def drain(self, shared: SharedState) -> int:
-        head = int(shared.head[0])
-        rows = shared.ring_rows
-        if head - self._read > rows:
-            self.rows_lost += head - self._read - rows
-            self._read = head - rows
+        self._read, head, lost = shared.catch_up(self._read)
+        self.rows_lost += lost
         n = head - self._read
         if n <= 0:
             return 0
-        i0 = self._read % rows
-        i1 = i0 + n
-        if i1 <= rows:
-            chunk = shared.ring[i0:i1].copy()
-        else:
-            chunk = np.concatenate([shared.ring[i0:], shared.ring[: i1 - rows]])
+        chunk = flat_rows(shared.rows(self._read, head))
         self._read = head
         self.add(chunk)
         return n

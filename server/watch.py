@@ -50,10 +50,16 @@ def _euler_deg(q) -> tuple[float, float, float]:
     return math.degrees(roll), math.degrees(pitch), math.degrees(yaw)
 
 
-def state_panel(s: dict) -> Table:
+def _label_grid() -> Table:
+    """The panels' two-column grid: bold labels, then their values."""
     t = Table.grid(padding=(0, 1))
     t.add_column(style="bold")
     t.add_column()
+    return t
+
+
+def state_panel(s: dict) -> Table:
+    t = _label_grid()
     state = s.get("loop_state", "?")
     t.add_row("state", Text(f" {state} ", style=STATE_STYLE.get(state, "")))
     fault = s.get("fault_name") or "none"
@@ -90,9 +96,7 @@ def pose_panel(s: dict) -> Table:
 
 
 def force_panel(s: dict) -> Table:
-    t = Table.grid(padding=(0, 1))
-    t.add_column(style="bold")
-    t.add_column()
+    t = _label_grid()
     lat = s.get("latest") or {}
     cmd = lat.get("command") or [None] * 6
     fcap, tcap = s.get("force_cap_n"), s.get("torque_cap_n_m")
@@ -105,9 +109,7 @@ def force_panel(s: dict) -> Table:
 
 
 def contact_panel(s: dict) -> Table:
-    t = Table.grid(padding=(0, 1))
-    t.add_column(style="bold")
-    t.add_column()
+    t = _label_grid()
     lu = s.get("last_update") or {}
     t.add_row("contacts", str(s.get("contacts", 0)))
     pen = lu.get("penetration_m")
@@ -119,9 +121,7 @@ def contact_panel(s: dict) -> Table:
 
 
 def timing_panel(s: dict) -> Table:
-    t = Table.grid(padding=(0, 1))
-    t.add_column(style="bold")
-    t.add_column()
+    t = _label_grid()
     lat, comp = s.get("lateness_us") or {}, s.get("compute_us") or {}
     t.add_row("rate", f"{_n(s.get('achieved_rate_hz'), '.1f')} Hz of {_n(s.get('rate_hz'), '.0f')}; "
                       f"{s.get('steps', 0)} steps")

@@ -259,6 +259,31 @@ def _kin_rigid(kind, par, st, C, m, R, c, D, taug, Jpt, X, Jh):
             Jpt[i, 2, 3] = ry; Jpt[i, 2, 4] = -rx; Jpt[i, 2, 5] = 0.0
 
 
+@njit(inline="always", **_JIT)
+def turn_quat(st, o, qd, dt):
+    """The unit quaternion (w x y z) at ``st[o:o + 4]`` turned by the world angular velocity
+    ``qd[3:6]`` over ``dt`` (exact for a constant rate: q <- exp(w dt / 2) (x) q), renormalised."""
+    wx = qd[3]; wy = qd[4]; wz = qd[5]
+    wn = math.sqrt(wx * wx + wy * wy + wz * wz)
+    half = 0.5 * wn * dt
+    if wn > 0.0:
+        sc = math.sin(half) / wn
+    else:
+        sc = 0.5 * dt
+    dw = math.cos(half); dx = sc * wx; dy = sc * wy; dz = sc * wz
+    qw = st[o]; qx = st[o + 1]; qy = st[o + 2]; qz = st[o + 3]
+    # world-frame angular velocity: q <- dq (x) q
+    nw = dw * qw - dx * qx - dy * qy - dz * qz
+    nx = dw * qx + dx * qw + dy * qz - dz * qy
+    ny = dw * qy - dx * qz + dy * qw + dz * qx
+    nz = dw * qz + dx * qy - dy * qx + dz * qw
+    inv = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+    st[o] = nw * inv
+    st[o + 1] = nx * inv
+    st[o + 2] = ny * inv
+    st[o + 3] = nz * inv
+
+
 @njit(**_JIT)
 def _integrate_rigid(kind, st, qd, dt):
     """Semi-implicit Euler position update with the already-updated velocity qd."""
@@ -272,25 +297,7 @@ def _integrate_rigid(kind, st, qd, dt):
         st[S_Q] += dt * qd[0]
         st[S_Q + 1] += dt * qd[1]
         st[S_Q + 2] += dt * qd[2]
-        wx = qd[3]; wy = qd[4]; wz = qd[5]
-        wn = math.sqrt(wx * wx + wy * wy + wz * wz)
-        half = 0.5 * wn * dt
-        if wn > 0.0:
-            sc = math.sin(half) / wn
-        else:
-            sc = 0.5 * dt
-        dw = math.cos(half); dx = sc * wx; dy = sc * wy; dz = sc * wz
-        qw = st[S_Q + 3]; qx = st[S_Q + 4]; qy = st[S_Q + 5]; qz = st[S_Q + 6]
-        # world-frame angular velocity: q <- dq (x) q
-        nw = dw * qw - dx * qx - dy * qy - dz * qz
-        nx = dw * qx + dx * qw + dy * qz - dz * qy
-        ny = dw * qy - dx * qz + dy * qw + dz * qx
-        nz = dw * qz + dx * qy - dy * qx + dz * qw
-        inv = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
-        st[S_Q + 3] = nw * inv
-        st[S_Q + 4] = nx * inv
-        st[S_Q + 5] = ny * inv
-        st[S_Q + 6] = nz * inv
+        turn_quat(st, S_Q + 3, qd, dt)
 
 
 # --------------------------------------------------------------------------------------------
@@ -676,7 +683,7 @@ def _zero_outputs(st):
 @njit(**_JIT)
 def commit_velocity(d, st, C, D, Zn, V, m):
     """After a finite ``_core``: store the new velocity, the friction stick points and the
-    kinetic energy qd^T D qd / 2; returns qd for the tool's own integrator (rigid or linkage)."""
+    kinetic energy qd^T D qd / 2 (qd stays in ``V[_V_QD]`` for the tool's own integrator)."""
     qd = V[_V_QD]
     for a in range(d):
         st[S_QD + a] = qd[a]
@@ -690,7 +697,47 @@ def commit_velocity(d, st, C, D, Zn, V, m):
             s += D[a, b] * qd[b]
         ke += qd[a] * s
     st[S_KE] = 0.5 * ke
-    return qd
+
+
+@njit(inline="always", **_JIT)
+def hand_to_world(planar, src, so, dst, do):
+    """The hand-space vector at ``src[so:]`` (planar: x, y and about z; spatial: all 6 of a twist
+    or wrench) as the world 6-vector ``dst[do:do + 6]``; planar leaves z, about x and about y of
+    ``dst`` as they are."""
+    if planar:
+        dst[do] = src[so]
+        dst[do + 1] = src[so + 1]
+        dst[do + 5] = src[so + 2]
+    else:
+        for j in range(6):
+            dst[do + j] = src[so + j]
+
+
+@njit(inline="always", **_JIT)
+def take_hand(h, st, hand):
+    """Store the ``h`` hand-wrench components of a step at S_FH; False (nothing stored) when
+    one is not finite."""
+    for r in range(h):
+        if not math.isfinite(hand[r]):
+            return False
+    for r in range(h):
+        st[S_FH + r] = hand[r]
+    return True
+
+
+@njit(inline="always", **_JIT)
+def end_step(ok, d, par, st, C, cnt, D, Zn, V, m):
+    """Close a step after ``_core``: a finite result is committed (``commit_velocity``), a
+    non-finite one zeroes the rendered wrench and counts K_NONFINITE; time and K_STEPS advance
+    either way. Returns ``ok``: the caller's integrator then moves q by qd = ``V[_V_QD]``."""
+    if ok:
+        commit_velocity(d, st, C, D, Zn, V, m)
+    else:
+        _zero_outputs(st)
+        cnt[K_NONFINITE] += 1
+    st[S_T] += par[P_DT]
+    cnt[K_STEPS] += 1
+    return ok
 
 
 @njit(**_JIT)
@@ -705,11 +752,8 @@ def step_rigid(kind, par, st, C, CI, cnt, wk, hand):
         d = 3; h = 3
     else:
         d = 6; h = 6
-    for r in range(h):
-        if not math.isfinite(hand[r]):
-            return E_HAND_NONFINITE
-    for r in range(h):
-        st[S_FH + r] = hand[r]
+    if not take_hand(h, st, hand):
+        return E_HAND_NONFINITE
     cap = C.shape[0]
     m = cnt[K_M]
     D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V = _views(wk, cap)
@@ -717,14 +761,8 @@ def step_rigid(kind, par, st, C, CI, cnt, wk, hand):
     c = V[_V_T1]
     _kin_rigid(kind, par, st, C, m, R, c, D, V[_V_TAUG], Jpt, X, Jh)
     ok = _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V, m)
-    if ok:
-        qd = commit_velocity(d, st, C, D, Zn, V, m)
-        _integrate_rigid(kind, st, qd, par[P_DT])
-    else:
-        _zero_outputs(st)
-        cnt[K_NONFINITE] += 1
-    st[S_T] += par[P_DT]
-    cnt[K_STEPS] += 1
+    if end_step(ok, d, par, st, C, cnt, D, Zn, V, m):
+        _integrate_rigid(kind, st, V[_V_QD], par[P_DT])
     return E_OK
 
 
@@ -786,9 +824,13 @@ def validate_contacts(kind, n_links, keys, cp, nrm, dsep, vc, n_in):
 
 
 @njit(**_JIT)
-def select_and_check(keys, dsep, n_in, cap, sel):
-    """The capacity rule and the duplicate-key check of an update: returns (E_* code, number kept);
-    ``sel[:nk]`` are the rows kept, in incoming order."""
+def check_update(kind, n_links, keys, cp, nrm, dsep, vc, n_in, cap, sel):
+    """Everything an update is checked for before anything changes: ``validate_contacts``, then
+    the capacity rule and the duplicate-key check. Returns (E_* code, number kept); ``sel[:nk]``
+    are the rows kept, in incoming order."""
+    code = validate_contacts(kind, n_links, keys, cp, nrm, dsep, vc, n_in)
+    if code != E_OK:
+        return code, 0
     if n_in > sel.shape[0]:
         return E_TOO_MANY, 0
     nk = _select_smallest(dsep, n_in, cap, sel)
@@ -1056,11 +1098,8 @@ def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, s
     point is taken in the engine tool's body frame and carried onto the proxy, and the rule table
     compares the proxy's separation against that true geometry (``s_w``) instead of ``d``. When
     the engine's tool is where the proxy is, both are the same. ``st_e``, ``Re``, ``ce``: scratch."""
-    code = validate_contacts(kind, 1, keys, cp, nrm, dsep, vc, n_in)
-    if code != E_OK:
-        return code
     cap = C.shape[0]
-    code, nk = select_and_check(keys, dsep, n_in, cap, sel)
+    code, nk = check_update(kind, 1, keys, cp, nrm, dsep, vc, n_in, cap, sel)
     if code != E_OK:
         return code
     # --- validated: from here on the update is applied ---

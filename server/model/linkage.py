@@ -39,15 +39,15 @@ import math
 from numba import njit
 
 from .kernels import (
-    _V_T1, _V_TAUG, _core, _views, commit_velocity, _zero_outputs, apply_update, select_and_check,
-    validate_contacts,
+    _V_QD, _V_TAUG, _core, _views, apply_update, check_update, end_step, hand_to_world, take_hand,
+    turn_quat,
 )
 from .layout import (
-    C_P, CI_KEY, E_HAND_NONFINITE, E_OK, JT_PRISMATIC, JT_REVOLUTE, K_M, K_NONFINITE, K_STEPS,
+    C_P, CI_KEY, E_HAND_NONFINITE, E_OK, JT_PRISMATIC, JT_REVOLUTE, K_M,
     LI_CHAIN, LI_NCHAIN, LI_PARENT, LI_TYPE, LK_AXIS, LK_COM, LK_I, LK_MASS, LK_OP, LK_OR,
     LM_COR, LM_D, LM_H, LM_HELD, LM_NLINKS, LM_NQR, LM_PLANAR, LM_R,
     LW_A, LW_AC, LW_AL, LW_C, LW_IW, LW_JV, LW_JW, LW_P, LW_R, LW_V, LW_W,
-    P_DT, P_GRAV, S_FH, S_KE, S_LQ, S_QD, S_T, TOOL_PLANAR, TOOL_SPATIAL,
+    P_DT, P_GRAV, S_LQ, S_QD, TOOL_PLANAR, TOOL_SPATIAL,
 )
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
@@ -97,11 +97,9 @@ def forward_kinematics(lmeta, lk, lki, q, lw):
         par = lki[k, LI_PARENT]
         qk = q[nqr + k - 1]
         # Rp = R_parent R_origin (this link's frame at q_k = 0), its origin p_parent + R_parent o
+        o0 = lk[k, LK_OP]; o1 = lk[k, LK_OP + 1]; o2 = lk[k, LK_OP + 2]
         for a in range(3):
-            s = lw[par, LW_P + a]
-            for b in range(3):
-                s += lw[par, LW_R + 3 * a + b] * lk[k, LK_OP + b]
-            lw[k, LW_P + a] = s
+            lw[k, LW_P + a] = _world_point(lw, par, a, o0, o1, o2)
             for c in range(3):
                 s = 0.0
                 for b in range(3):
@@ -128,6 +126,14 @@ def forward_kinematics(lmeta, lk, lki, q, lw):
                 lw[k, LW_R + 3 * a] = p0 * r00 + p1 * r10 + p2 * r20
                 lw[k, LW_R + 3 * a + 1] = p0 * r01 + p1 * r11 + p2 * r21
                 lw[k, LW_R + 3 * a + 2] = p0 * r02 + p1 * r12 + p2 * r22
+
+
+@njit(inline="always", **_JIT)
+def _world_point(lw, k, a, p0, p1, p2):
+    """World coordinate ``a`` of the point p (p0, p1, p2) given in link k's frame: origin + R p
+    (summed in this order, as every caller did before it was shared)."""
+    return (lw[k, LW_P + a] + lw[k, LW_R + 3 * a] * p0 + lw[k, LW_R + 3 * a + 1] * p1
+            + lw[k, LW_R + 3 * a + 2] * p2)
 
 
 @njit(inline="always", **_JIT)
@@ -184,11 +190,9 @@ def _kin_linkage(lmeta, lk, lki, par, st, C, CI, m, lw, D, taug, Jpt, X, Jh):
     for k in range(nl):
         mass = lk[k, LK_MASS]
         # COM and inertia in the world
+        m0 = lk[k, LK_COM]; m1 = lk[k, LK_COM + 1]; m2 = lk[k, LK_COM + 2]
         for a in range(3):
-            s = lw[k, LW_P + a]
-            for b in range(3):
-                s += lw[k, LW_R + 3 * a + b] * lk[k, LK_COM + b]
-            lw[k, LW_C + a] = s
+            lw[k, LW_C + a] = _world_point(lw, k, a, m0, m1, m2)
         for a in range(3):
             for b in range(3):
                 s = 0.0
@@ -231,8 +235,7 @@ def _kin_linkage(lmeta, lk, lki, par, st, C, CI, m, lw, D, taug, Jpt, X, Jh):
         k = CI[i, CI_KEY]
         px = C[i, C_P]; py = C[i, C_P + 1]; pz = C[i, C_P + 2]
         for a in range(3):
-            X[i, a] = (lw[k, LW_P + a] + lw[k, LW_R + 3 * a] * px + lw[k, LW_R + 3 * a + 1] * py
-                       + lw[k, LW_R + 3 * a + 2] * pz)
+            X[i, a] = _world_point(lw, k, a, px, py, pz)
             for b in range(d):
                 Jpt[i, a, b] = 0.0
         x0 = X[i, 0]; x1 = X[i, 1]; x2 = X[i, 2]
@@ -344,32 +347,10 @@ def integrate_linkage(lmeta, st, qd, dt):
     d = lmeta[LM_D]
     r = lmeta[LM_R]
     nqr = lmeta[LM_NQR]
-    if lmeta[LM_PLANAR]:
-        for a in range(3):
-            st[S_LQ + a] += dt * qd[a]
-    else:
-        for a in range(3):
-            st[S_LQ + a] += dt * qd[a]
-        wx = qd[3]; wy = qd[4]; wz = qd[5]
-        wn = math.sqrt(wx * wx + wy * wy + wz * wz)
-        half = 0.5 * wn * dt
-        if wn > 0.0:
-            sc = math.sin(half) / wn
-        else:
-            sc = 0.5 * dt
-        dw = math.cos(half); dx = sc * wx; dy = sc * wy; dz = sc * wz
-        o = S_LQ + 3
-        qw = st[o]; qx = st[o + 1]; qy = st[o + 2]; qz = st[o + 3]
-        # world-frame angular velocity: q <- dq (x) q
-        nw = dw * qw - dx * qx - dy * qy - dz * qz
-        nx = dw * qx + dx * qw + dy * qz - dz * qy
-        ny = dw * qy - dx * qz + dy * qw + dz * qx
-        nz = dw * qz + dx * qy - dy * qx + dz * qw
-        inv = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
-        st[o] = nw * inv
-        st[o + 1] = nx * inv
-        st[o + 2] = ny * inv
-        st[o + 3] = nz * inv
+    for a in range(3):
+        st[S_LQ + a] += dt * qd[a]
+    if not lmeta[LM_PLANAR]:
+        turn_quat(st, S_LQ + 3, qd, dt)
     for j in range(d - r):
         st[S_LQ + nqr + j] += dt * qd[r + j]
 
@@ -381,24 +362,15 @@ def step_linkage(par, lmeta, lk, lki, st, C, CI, cnt, wk, lw, hand):
     non-finite result the state is kept, the rendered wrench is zero and K_NONFINITE counts it."""
     d = lmeta[LM_D]
     h = lmeta[LM_H]
-    for r in range(h):
-        if not math.isfinite(hand[r]):
-            return E_HAND_NONFINITE
-    for r in range(h):
-        st[S_FH + r] = hand[r]
+    if not take_hand(h, st, hand):
+        return E_HAND_NONFINITE
     cap = C.shape[0]
     m = cnt[K_M]
     D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V = _views(wk, cap)
     _kin_linkage(lmeta, lk, lki, par, st, C, CI, m, lw, D, V[_V_TAUG], Jpt, X, Jh)
     ok = _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V, m)
-    if ok:
-        qd = commit_velocity(d, st, C, D, Zn, V, m)
-        integrate_linkage(lmeta, st, qd, par[P_DT])
-    else:
-        _zero_outputs(st)
-        cnt[K_NONFINITE] += 1
-    st[S_T] += par[P_DT]
-    cnt[K_STEPS] += 1
+    if end_step(ok, d, par, st, C, cnt, D, Zn, V, m):
+        integrate_linkage(lmeta, st, V[_V_QD], par[P_DT])
     return E_OK
 
 
@@ -410,12 +382,9 @@ def update_linkage(par, lmeta, lk, lki, st, C, CI, cnt, wk, lw, keys, cp, nrm, d
     ``qe`` (root pose then joints, like q) is the engine's configuration at which the contacts
     were computed; its link poses go to ``lw_e``. The proxy's q and qd are never touched."""
     planar = lmeta[LM_PLANAR]
-    code = validate_contacts(TOOL_PLANAR if planar else TOOL_SPATIAL, lmeta[LM_NLINKS], keys, cp, nrm,
-                             dsep, vc, n_in)
-    if code != E_OK:
-        return code
     cap = C.shape[0]
-    code, nk = select_and_check(keys, dsep, n_in, cap, sel)
+    code, nk = check_update(TOOL_PLANAR if planar else TOOL_SPATIAL, lmeta[LM_NLINKS], keys, cp, nrm,
+                            dsep, vc, n_in, cap, sel)
     if code != E_OK:
         return code
     D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V = _views(wk, cap)
@@ -493,13 +462,7 @@ def root_state_and_efforts(lmeta, lk, lki, st, lw, wrench_hand, out_pose, out_tw
     for a in range(6):
         out_twist[a] = 0.0
         out_wrench[a] = 0.0
-    if planar:
-        out_twist[0] = st[S_QD]
-        out_twist[1] = st[S_QD + 1]
-        out_twist[5] = st[S_QD + 2]
-    else:
-        for a in range(6):
-            out_twist[a] = st[S_QD + a]
+    hand_to_world(planar, st, S_QD, out_twist, 0)
     hk = lmeta[LM_HELD]
     x0 = lw[hk, LW_P]; x1 = lw[hk, LW_P + 1]; x2 = lw[hk, LW_P + 2]
     for col in range(d):
