@@ -116,12 +116,18 @@ def main(argv: list[str] | None = None) -> int:
         for r in rows:
             print(json.dumps(r))
         return 0
-    print(f"{'bench':8} {'row':44} {'figure':26} {'baseline us':>12} {'this us':>10} {'ratio':>6}")
-    for r in rows:
-        print(f"{r['bench']:8} {r['row'][:44]:44} {r['figure'][:26]:26} {r['baseline_us']:12.3f} {r['this_us']:10.3f} "
-              f"{r['ratio'] if r['ratio'] is not None else '-':>6}")
-    return 0
+    from rich.console import Console
+    from rich.table import Table
 
+    table = Table(title=f"this tree / baseline {a.baseline} (median of {a.rounds} alternating rounds)")
+    for col, just in (("bench", "left"), ("row", "left"), ("figure", "left"), ("baseline us", "right"),
+                      ("this us", "right"), ("ratio", "right")):
+        table.add_column(col, justify=just)
+    for r in rows:
+        table.add_row(r["bench"], r["row"], r["figure"], f"{r['baseline_us']:.3f}", f"{r['this_us']:.3f}",
+                      "-" if r["ratio"] is None else f"{r['ratio']:.2f}")
+    Console(width=140).print(table)
+    return 0
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -43,3 +43,14 @@ def test_a_missing_baseline_is_a_usage_error(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         C.main(["--baseline", str(tmp_path)])
     assert e.value.code == 2 and "no .venv/bin/hapticproxy" in capsys.readouterr().err
+
+
+def test_the_table_shows_both_figures_and_the_ratio(monkeypatch, tmp_path, capsys):
+    base = tmp_path / "base"
+    (base / ".venv" / "bin").mkdir(parents=True)
+    (base / ".venv" / "bin" / "hapticproxy").write_text("")
+    monkeypatch.setattr(C, "run_bench", lambda tree, name, args, timeout_s: {
+        ("tool=planar contacts=8", "numba_median_us"): 4.0 if tree.name == "base" else 3.0})
+    assert C.main(["--baseline", str(base), "--benches", "model", "--rounds", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "tool=planar contacts=8" in out and "4.000" in out and "3.000" in out and "0.75" in out
