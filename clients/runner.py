@@ -184,6 +184,7 @@ class ClientRunner:
         self.following = True
         self._hold_pose = np.zeros(7)
         self._lead_pose = np.zeros(7)
+        self._lead_s = 0.0  # the lead followed last [s] (the server's, capped)
         self._hold_zeros6 = np.zeros(6)
         self._hold_zeros_j = np.zeros(len(self._joints))
         self._hold_joints = np.zeros(len(self._joints))
@@ -220,6 +221,7 @@ class ClientRunner:
                 state=self._state, error=self._error, end_reason=self._end_reason, url=self.url,
                 engine=self.engine.name, scene=self.scene_info.name, env_time_s=self.engine.time_s,
                 contacts_last=self._contacts_last, granted_epsilon_m=self.granted_epsilon_m,
+                epsilon_m=self.epsilon_m, lead_s=self._lead_s,
                 server_state=self.server_state, following=self.following,
                 granted_max_contacts=self.granted_max_contacts,
                 rtt_last_ms=self._rtt_last_s * 1e3,
@@ -403,7 +405,7 @@ class ClientRunner:
                 engine.drive_joints(newest.joint_position, newest.joint_velocity, newest.joint_effort)
             # the server's advice (protocol 1.2): track the proxy advanced by its lead, and inflate
             # the tool by the epsilon it measured (never above the granted one)
-            lead = min(float(getattr(newest, "lead_s", 0.0) or 0.0), LEAD_MAX_S)
+            lead = self._lead_s = min(float(getattr(newest, "lead_s", 0.0) or 0.0), LEAD_MAX_S)
             target = newest.proxy_pose if lead <= 0.0 else advance_pose(newest.proxy_pose, newest.proxy_twist, lead,
                                                                            self._lead_pose)
             engine.drive_tool(target, newest.proxy_twist, newest.wrench)

@@ -80,7 +80,13 @@ def _serve_until(sup: Supervisor, done, what: str) -> None:
                                               pytest.param("stub", "udp", marks=pytest.mark.slow),
                                               pytest.param("pymunk", "zenoh", marks=pytest.mark.slow)])
 def test_client_against_the_real_server(engine, transport, real_session):
-    snap, rows, stats, _ = real_session(_settings(_url(transport)), _engine(engine), "testbed", 3.5)
+    snap, rows, stats, last = real_session(_settings(_url(transport)), _engine(engine), "testbed", 3.5)
+    # the server's advice (protocol 1.2) reaches the client: an epsilon between the floor and the
+    # grant, a bounded lead; at rest on the wall the advised epsilon is the floor
+    assert 0.002 - 1e-12 <= last.epsilon_m <= stats["granted_epsilon_m"]
+    assert snap["advised_epsilon_m"] == pytest.approx(0.002)
+    assert abs(stats["epsilon_m"] - last.epsilon_m) <= 0.0005  # followed (re-inflated on changes above 0.5 mm)
+    assert 0.0 <= last.lead_s <= 0.1 and stats["lead_s"] == pytest.approx(last.lead_s)
     # handshake and updates both ways
     assert stats["sessions"] == 1
     assert snap["updates"] >= 50 and stats["updates_sent"] >= snap["updates"]
