@@ -199,9 +199,17 @@ def _run(cls, kwargs: dict, url: str, key, args) -> int:
     engine = None
     runner = None
     code = 0
+    stopped_by: list[str] = []  # what stopped the client from outside (the runner's last reason is not it)
+
+    def stop_for(why: str):
+        def handler(*_):
+            stopped_by.append(why)
+            stop.set()
+        return handler
+
     previous = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
     if previous is not None:
-        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        signal.signal(signal.SIGTERM, stop_for("SIGTERM"))
     try:
         try:
             engine = cls(**kwargs)
@@ -211,10 +219,10 @@ def _run(cls, kwargs: dict, url: str, key, args) -> int:
                                   transport_options=_transport_options(url, args.connect_timeout))
             window = getattr(engine, "window", None)  # the GUI (opened by load_scene) stops us when closed
             if window is not None:
-                window.on_close = stop.set
+                window.on_close = stop_for("the window was closed")
             runner.run(stop, duration_s=args.duration)
         except KeyboardInterrupt:
-            pass
+            stopped_by.append("Ctrl-C")
         except ClientError as exc:
             print(f"{PROG}: {exc}", file=sys.stderr)
             code = 1
@@ -234,13 +242,14 @@ def _run(cls, kwargs: dict, url: str, key, args) -> int:
             signal.signal(signal.SIGTERM, previous)
     if runner is not None:
         st = runner.stats()
+        why = stopped_by[0] if stopped_by else (st["end_reason"] or "interrupted")
         if code == 0 and not st["sessions"]:
             # a client that never had a session did not do its job, whatever stopped it
             print(f"{PROG}: no session with {url} before the client stopped "
-                  f"({st['end_reason'] or 'interrupted'})", file=sys.stderr)
+                  f"({why})", file=sys.stderr)
             code = 1
         elif code == 0:
-            log(f"stopped ({st['end_reason'] or 'interrupted'}): {st['steps']} steps, {st['updates_sent']} updates, "
+            log(f"stopped ({why}): {st['steps']} steps, {st['updates_sent']} updates, "
                 f"{st['proxy_applied']} proxy states applied, {st['sessions']} session(s)")
         if args.json:
             print_json(st, sort_keys=True)

@@ -294,3 +294,26 @@ def test_a_client_refused_by_tls_exits_1_in_one_line(capsys, tls_pki):
     line = one_line(err)
     assert code == 1 and "no session with" in line and "within 1 s" in line
     assert ".rs:" not in line
+
+
+def test_a_terminated_client_says_it_was_terminated_not_its_last_connect_problem():
+    """SIGTERM while it waits for a server that never answers: the line names SIGTERM as the
+    cause (not the runner's last reason)."""
+    import signal as _signal
+
+    listen = open_transport("udp://127.0.0.1:0", role="server")  # hears the Hellos, never answers
+    proc = subprocess.Popen([EXE, "client", "stub", "--connect", listen.url, "--connect-timeout", "60"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while listen.recv() is None and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.01)  # its first Hello: it is up, its SIGTERM handler installed
+        proc.send_signal(_signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        listen.close()
+    assert proc.returncode == 1, err
+    assert f"no session with {listen.url} before the client stopped (SIGTERM)" in one_line(err)
