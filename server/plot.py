@@ -146,10 +146,13 @@ def plot_recording(path: str | Path, out_dir: str | Path | None = None) -> list[
             unit = "N m" if a.startswith("t") else "N"
             fpanels.append((f"{a} [{unit}]", col(f"cmd_{a}"), col(f"env_{a}"), col(f"couple_{a}"),
                             tcap if unit == "N m" else fcap, unit))
+    # the position channel acts on the proxy only while the device drives it (engaged): idle,
+    # fading, in fault or stopping the proxy is held, and the stretch the hand builds is not applied
+    driven = col("loop_state") == LOOP_STATES.index("engaged")
     fig, axes = plt.subplots(len(fpanels), 1, figsize=(9, 2.2 * len(fpanels) + 1), sharex=True, squeeze=False)
     for ax, (label, cmd, env, cpl, cap, unit) in zip(axes[:, 0], fpanels):
         ax.plot(t, cmd, label="command to the device", lw=1.4, zorder=3)
-        ax.plot(t, cpl, ":", label="position channel on the proxy", zorder=2)
+        ax.plot(t, np.where(driven, cpl, np.nan), ":", label="position channel on the proxy (while engaged)", zorder=2)
         # the range the command and the caps need, plus a margin; the model's force keeps to it
         ref = cmd[np.isfinite(cmd)]
         lo, hi = (float(ref.min()), float(ref.max())) if len(ref) else (0.0, 0.0)
