@@ -44,8 +44,11 @@ N, never above the cap (``zero_ms``: from the stop to the cut, including the dev
 
 ``unstable``: a speed trip, a force at the cap, or, over the last second before the fault (or of
 the run) and from ``FULL_GAIN_SETTLE_S`` after the output last was below full gain, a force
-swinging by more than 1 N or a device moving by more than 1 mm while engaged at full gain (the
-static-contact experiment's settle test).
+swinging by more than 1 N or a device moving back by more than 1 mm against its net motion while
+engaged at full gain (``settle_retrace_mm``: an oscillation; the static-contact experiment's
+settle test). A monotone approach to rest is not one: after a ramp-in that a pushing hand rode
+deep into the wall, the index offset returns to where the wall was first felt at a limited
+speed, which takes longer the deeper the hand went (``settle_ptp_mm`` reports that travel).
 """
 from __future__ import annotations
 
@@ -658,10 +661,11 @@ def analyse(rows: np.ndarray, lim: dict, ev: dict, case: Case | None = None) -> 
 
     dev_y = rows[:, _T["dev_y"]]
     settle_ptp_mm = float(np.ptp(dev_y[win]) * 1e3) if win.sum() > 10 else None
+    settle_retrace_mm = float(retrace(dev_y[win]) * 1e3) if win.sum() > 10 else None
     force_ptp_n = float(np.ptp(f[win, 1])) if win.sum() > 10 else None
     at_cap = bool((af >= cap_f - 1e-6).any())
     engaged_rows = (state == LS["engaged"]) | (state == LS["fading"])
-    unstable = bool(at_cap or (settle_ptp_mm is not None and settle_ptp_mm > 1.0)
+    unstable = bool(at_cap or (settle_retrace_mm is not None and settle_retrace_mm > 1.0)
                     or (force_ptp_n is not None and force_ptp_n > 1.0))
     mean_fy = float(np.mean(f[win, 1])) if win.sum() > 10 else None
     out = {
@@ -680,11 +684,22 @@ def analyse(rows: np.ndarray, lim: dict, ev: dict, case: Case | None = None) -> 
         "fades": int(len(starts)),
         "ramps": int(len(ramp_idx)),
         "settle_ptp_mm": None if settle_ptp_mm is None else round(settle_ptp_mm, 3),
+        "settle_retrace_mm": None if settle_retrace_mm is None else round(settle_retrace_mm, 3),
         "contact_force_n": None if mean_fy is None else round(mean_fy, 3),
         "steps": int(len(rows)),
         "engaged_steps": int(engaged_rows.sum()),
     }
     return out
+
+
+def retrace(y: np.ndarray) -> float:
+    """The largest move back against the net motion of ``y`` (0 for a monotone signal; about
+    twice the amplitude for an oscillation about a level)."""
+    if len(y) < 2:
+        return 0.0
+    if y[-1] >= y[0]:
+        return float(np.max(np.maximum.accumulate(y) - y))
+    return float(np.max(y - np.minimum.accumulate(y)))
 
 
 def analyse_device(rec: np.ndarray, lim: dict, ev: dict, case: Case) -> dict:

@@ -77,10 +77,25 @@ def test_the_checker_flags_a_late_fade_and_a_jump_in_at_ramp_in():
     assert "first command after ramp-in" in res["broken"] and "force grew faster than the ramp" in res["broken"]
 
 
+def test_the_settle_test_flags_an_oscillation_not_a_return_to_rest():
+    """The index offset's return after a deep ramp-in moves the device over a millimetre
+    one way: settling. Swinging +-0.8 mm about a level is not."""
+    r = _rows(2000)
+    t = r[:, TEL["t_s"]]
+    r[:, TEL["dev_y"]] = 0.124 + 0.006 * np.exp(-t / 1.0)
+    res = bf.analyse(r, LIM, {})
+    assert res["settle_ptp_mm"] > 1.0 and res["settle_retrace_mm"] == 0.0 and not res["unstable"]
+    r[:, TEL["dev_y"]] = 0.124 + 0.0008 * np.sin(2 * np.pi * 5.0 * t)
+    res = bf.analyse(r, LIM, {})
+    assert res["settle_retrace_mm"] > 1.0 and res["unstable"]
+    assert bf.retrace(np.array([0.0, 1.0, 0.5, 2.0])) == 0.5 and bf.retrace(np.array([3.0, 1.0, 1.5, 0.0])) == 0.5
+
+
 def _check(row: dict) -> None:
     assert "error" not in row, row
     assert row["violations"] == 0, (row["case"], row["broken"], row["missed_deadlines"])
-    assert not row["unstable"], row
+    assert not row["unstable"], {k: row.get(k) for k in ("case", "settle_ptp_mm", "settle_retrace_mm", "force_ptp_n",
+                                                          "max_force_n", "fades", "ramps", "contact_force_n")}
     assert row["max_force_n"] <= row["force_cap_n"]
     assert row["max_force_step_n"] <= row["rate_limit_n_per_step"] + 1e-9
 
