@@ -102,18 +102,23 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         lcfg = settings["loop"]
         clock = SleepClock() if naive else MonotonicClock()
         transport = open_server_transport(settings["transport"]["url"])
+        bound = getattr(transport, "local_address", None)
+        st[ST["transport_port"]] = bound[1] if isinstance(bound, tuple) and len(bound) >= 2 else 0
         loop = HapticLoop.build(settings, clock=clock, transport=transport, shared=shared, hmac_key=hmac_key)
         loop.parent_pid = parent  # a loop whose supervisor died stops (forces fade, Bye, exit)
         llog.debug("pid %d: transport %s open, %s device %r built", os.getpid(), transport.url,
                    settings["device"]["kind"], settings["device"]["driver"])
-        from .warm import cold, refresh_stale_caches
+        from .warm import refresh_stale_caches
 
         refresh_stale_caches()  # kernels compiled from older sources would run the old code
-        todo = cold()
+        todo = loop.cold_kernels()
+        t_warm = time.monotonic()
         if todo:
-            llog.info("compiling %d kernels before the loop starts (first run on this machine: about a minute; "
-                      "`hapticproxy warmup` does it ahead) ...", len(todo))
+            llog.info("compiling %d kernel%s before the loop starts (not cached on this machine yet: up to a "
+                      "minute; `hapticproxy warmup` does it ahead) ...", len(todo), "s" * (len(todo) != 1))
         loop.warm_up()
+        if todo:
+            llog.info("kernels compiled in %.1f s; numba cached them for the next start", time.monotonic() - t_warm)
         llog.debug("kernels warm")
 
         def on_term(signum, frame):  # noqa: ARG001 - checked in housekeeping, never in a kernel
@@ -339,7 +344,7 @@ class Supervisor:
             from .live import LiveView
 
             self.live = LiveView(self.live_address, self.settings, self.t0_epoch_ns)
-        log.info("serving: %s at %.0f Hz, status on %s (rt scheduling: %s)%s%s", self.settings["transport"]["url"],
+        log.info("serving: %s at %.0f Hz, status on %s (rt scheduling: %s)%s%s", self.transport_url,
                  self.settings.rate_hz, "%s:%d" % self.sock.getsockname()[:2],  # the bound port, also for port 0
                  "yes" if self.shared.status[self._st("rt_scheduling")] else "no",
                  f", recording to {self.record}" if self.record else "",
@@ -384,6 +389,14 @@ class Supervisor:
         from .shm import ST
 
         return ST[name]
+
+    @property
+    def transport_url(self) -> str:
+        """The configured transport URL, with the port the loop bound where it was 0."""
+        url = self.settings["transport"]["url"]
+        port = int(self.shared.status[self._st("transport_port")])
+        m = re.match(r"^(udp://.*):0$", url)
+        return f"{m.group(1)}:{port}" if m and port > 0 else url
 
     def request_stop(self) -> None:
         if not self._stop_requested:

@@ -385,6 +385,13 @@ class HapticLoop:
         self.session_id = 0
 
     # ---------------------------------------------------------------------------- set-up
+    def cold_kernels(self) -> list[str]:
+        """The kernels :meth:`warm_up` will compile (nothing in numba's cache for them yet);
+        a rigid tool's loop never calls the linkage step, so its missing cache is not counted."""
+        from .warm import cold
+
+        return [n for n in cold() if self.kind == "linkage" or n != ctl.haptic_step_linkage.py_func.__qualname__]
+
     def warm_up(self) -> None:
         """Compile/load every kernel this loop calls, with the argument types the loop passes, on
         throw-away arrays, before the first step: nothing may compile once deadlines are armed

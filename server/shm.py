@@ -74,6 +74,8 @@ STATUS_LAYOUT = (
     # the work the deformation recovery did on the hand [J]; the engine's advice [m, s]
     ("flips_refused", "i"), ("rekeyed", "i"), ("recovering", "i"), ("recovery_energy_j", "f"),
     ("advised_epsilon_m", "f"), ("advised_lead_s", "f"),
+    # the port the loop's transport bound (a configured port 0 is the system's pick), 0: none
+    ("transport_port", "i"),
 )
 STATUS_DTYPE = np.dtype([(name, np.float64) for name, _ in STATUS_LAYOUT])
 STATUS_FIELDS = STATUS_DTYPE.names

@@ -229,6 +229,15 @@ def test_the_servers_log_lines_have_timestamps(served):
     assert all(LOG_LINE.match(ln) for ln in lines), lines
 
 
+def test_port_0_serving_line_names_the_ports_the_system_picked():
+    """``--url udp://127.0.0.1:0 --status 127.0.0.1:0``: the one line a person reads names the
+    ports to connect to, not port 0."""
+    out = run("serve", "--url", "udp://127.0.0.1:0", "--status", "127.0.0.1:0", "--duration", "0.3")
+    assert out.returncode == 0, out.stderr
+    m = re.search(r"serving: udp://127\.0\.0\.1:(\d+) at .* status on 127\.0\.0\.1:(\d+)", out.stderr)
+    assert m and int(m.group(1)) > 0 and int(m.group(2)) > 0, out.stderr
+
+
 # ----------------------------------------------------------------------------- without a server
 @pytest.mark.parametrize("which", ["transport", "status"])
 def test_an_address_this_machine_does_not_have_is_named_and_exit_2(which):

@@ -60,3 +60,26 @@ def test_a_changed_kernel_source_drops_every_cached_kernel(tmp_path):
     res = json.loads(out.stdout.strip().splitlines()[-1])
     assert res["again"] == 0 and res["kept"]    # today's sources: nothing dropped
     assert res["dropped"] >= 1 and res["gone"]  # an older source: the cached kernel is gone
+
+
+@pytest.mark.parametrize("tool, counted", [("", ["step_other"]), ("linkage", ["haptic_step_linkage", "step_other"])])
+def test_the_start_up_message_counts_only_what_this_loop_compiles(monkeypatch, tool, counted):
+    """A rigid tool's loop never calls the linkage step: its missing cache must not make every
+    start say it is compiling."""
+    sys.path.insert(0, str(HERE))
+    from server_harness import make_settings
+
+    from hapticproxy.server import warm
+    from hapticproxy.server.clock import SimClock
+    from hapticproxy.server.devices.base import load_device
+    from hapticproxy.server.loop import HapticLoop
+
+    clock = SimClock(start_ns=1_000_000_000)
+    settings = make_settings(device={"driver": "sim", "kind": "planar"}, model={"tool": tool})
+    dev = load_device("sim", dict(settings["device"]), period_s=1e-3, clock_ns=clock.now_ns)
+    loop = HapticLoop.build(settings, clock=clock, device=dev)
+    try:
+        monkeypatch.setattr(warm, "cold", lambda modules=warm.SERVER_KERNEL_MODULES: ["haptic_step_linkage", "step_other"])
+        assert loop.cold_kernels() == counted
+    finally:
+        loop.close()
