@@ -1,24 +1,28 @@
-"""pybullet, imported once without the build-date line its C extension prints on stdout at
-import (``pybullet build time: ...``): a command's stdout is its output (``--json``, a listing)."""
+"""pybullet, imported once without the build-date line its C extension prints at import
+(``pybullet build time: ...``, on stderr in the wheels we pin, on stdout in some builds): a
+command's stdout is its output (``--json``, a listing), its stderr is what a person should read.
+An import error still raises (after both are restored)."""
 from __future__ import annotations
 
 import os
 import sys
 
-try:
-    sys.stdout.flush()
-    _saved = os.dup(1)
-except (OSError, ValueError):  # no real stdout (a captured one): nothing to silence
-    _saved = None
-if _saved is not None:
-    _null = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(_null, 1)
+_saved: list[tuple[int, int]] = []
+for _fd, _stream in ((1, sys.stdout), (2, sys.stderr)):
+    try:
+        _stream.flush()
+        _saved.append((_fd, os.dup(_fd)))
+    except (AttributeError, OSError, ValueError):  # no real stream (a captured one): nothing to silence
+        pass
+_null = os.open(os.devnull, os.O_WRONLY)
+for _fd, _ in _saved:
+    os.dup2(_null, _fd)
 try:
     import pybullet as p  # noqa: E402
 finally:
-    if _saved is not None:
-        os.dup2(_saved, 1)
-        os.close(_saved)
-        os.close(_null)
+    for _fd, _copy in _saved:
+        os.dup2(_copy, _fd)
+        os.close(_copy)
+    os.close(_null)
 
 __all__ = ["p"]

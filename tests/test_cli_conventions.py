@@ -395,6 +395,14 @@ def test_plugins_lists_every_kind_with_its_package(tmp_path):
     assert not kinds[("transport", "broken")]["available"]
 
 
+def test_listing_the_engines_prints_nothing_but_the_listing():
+    """The engines' scenes are read from their classes (pybullet imported): its C extension's
+    build-date line must reach neither stream."""
+    out = run("plugins", "--kind", "engine")
+    assert out.returncode == 0 and out.stderr == "", out.stderr
+    assert any(ln.split()[:1] == ["pybullet"] for ln in out.stdout.splitlines()) and "build time" not in out.stdout
+
+
 def test_the_log_level_reaches_the_loop_process():
     """``-v`` shows the debug lines of the supervisor and of the loop process (which inherits the
     level); ``--log-level warning`` hides the info lines of both."""
