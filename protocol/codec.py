@@ -23,6 +23,7 @@ non-finite value from an out-of-range one).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 import struct
@@ -106,10 +107,10 @@ class Limits:
     max_links: int = 32
 
     def __post_init__(self) -> None:
-        for name in ("max_packet_bytes", "max_contacts", "max_str_bytes", "max_links"):
-            value = getattr(self, name)
+        for f in dataclasses.fields(self):  # every bound, so a new one is checked too
+            value = getattr(self, f.name)
             if type(value) is not int or value < 1:
-                raise ValueError(f"Limits.{name} must be a positive int, got {value!r}")
+                raise ValueError(f"Limits.{f.name} must be a positive int, got {value!r}")
         if self.max_packet_bytes > 65507:
             raise ValueError(f"Limits.max_packet_bytes must be <= 65507 (UDP), got {self.max_packet_bytes}")
         if self.max_contacts > 0xFFFF:
@@ -136,19 +137,23 @@ class ProtocolError(ValueError):
     ``Reject`` for a Hello whose nonce could be read, even a truncated one).
     """
 
+    # What the decoder could read of the packet: class-level defaults (0: not read), set on the
+    # instance only where the decoder attributes the error.
+    type_id: int = 0
+    major: int = 0
+    session_id: int = 0
+    token: int = 0
+    seq: int = 0
+    client_nonce: int = 0
+    #: a foreign-major Hello's offered version range, when readable
+    version_min: tuple[int, int] | None = None
+    version_max: tuple[int, int] | None = None
+
     def __init__(self, code: ErrorCode, field: str, detail: str) -> None:
         super().__init__(f"{code.name}: {field or 'packet'}: {detail}")
         self.code = code
         self.field = field
         self.detail = detail
-        self.type_id = 0
-        self.major = 0
-        self.session_id = 0
-        self.token = 0
-        self.seq = 0
-        self.client_nonce = 0
-        self.version_min: tuple[int, int] | None = None
-        self.version_max: tuple[int, int] | None = None
 
 
 class CodecCounters:

@@ -31,7 +31,7 @@ import os
 import secrets
 import time
 from collections.abc import Callable, Hashable
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 
 import numpy as np
 
@@ -315,34 +315,57 @@ class ServerConfig:
             raise ValueError("ServerConfig.silence_timeout_s must exceed heartbeat_interval_s")
 
 
+@dataclass(slots=True, eq=False, repr=False)
 class ServerSession:
-    """One client's session on the server. Read-only for the server loop."""
+    """One client's session on the server. Read-only for the server loop. Opened at ``now_ns``
+    (its clocks start there); its Error replies are paced at ``error_rate_per_s``."""
 
-    def __init__(self, session_id: int, token: int, peer: Peer, hello: Hello, welcome: Welcome,
-                 welcome_packet: bytes, now_ns: int, error_rate_per_s: float) -> None:
-        self.session_id = session_id
-        self.token = token
-        self.peer = peer
-        self.hello = hello
-        self.welcome = welcome
-        self.welcome_packet = welcome_packet
-        self.version = welcome.version
-        self.epsilon_m = welcome.epsilon_m
-        self.max_contacts = welcome.max_contacts
-        self.opened_ns = now_ns
-        self.last_rx_ns = now_ns
-        self.last_tx_ns = now_ns
-        self.contact_seq = _SeqWindow()  # newest ContactUpdate accepted (= what ProxyState acks)
-        self.heartbeat_seq = _SeqWindow()
-        self.proxy_seq = 0  # last ProxyState seq sent
-        self.heartbeat_tx_seq = 0
+    session_id: int
+    token: int
+    peer: Peer
+    hello: Hello
+    welcome: Welcome
+    welcome_packet: bytes
+    now_ns: InitVar[int]
+    error_rate_per_s: InitVar[float]
+    opened_ns: int = field(init=False)
+    last_rx_ns: int = field(init=False)
+    last_tx_ns: int = field(init=False)
+    #: newest ContactUpdate accepted (= what ProxyState acks)
+    contact_seq: _SeqWindow = field(init=False, default_factory=_SeqWindow)
+    heartbeat_seq: _SeqWindow = field(init=False, default_factory=_SeqWindow)
+    proxy_seq: int = field(init=False, default=0)  # last ProxyState seq sent
+    heartbeat_tx_seq: int = field(init=False, default=0)
+    errors: _RateLimit = field(init=False)
+    planar: bool = field(init=False)
+    #: links a contact may name (tool_link < this) and joint positions an update may carry
+    n_links: int = field(init=False)
+    n_joints: int = field(init=False)
+    #: (workspace_extent_m, max_constraint_speed_m_per_s, max_separation_m) of the Welcome
+    bounds: tuple[float, float, float] = field(init=False)
+
+    def __post_init__(self, now_ns: int, error_rate_per_s: float) -> None:
+        self.opened_ns = self.last_rx_ns = self.last_tx_ns = now_ns
         self.errors = _RateLimit(error_rate_per_s, error_rate_per_s, now_ns)
-        kind = hello.tool_kind
+        kind = self.hello.tool_kind
         self.planar = kind == ToolKind.PLANAR
-        #: links a contact may name (tool_link < this) and joint positions an update may carry
-        self.n_links = len(hello.links) if kind == ToolKind.LINKAGE else 1
+        self.n_links = len(self.hello.links) if kind == ToolKind.LINKAGE else 1
         self.n_joints = max(0, self.n_links - 1)
-        self.bounds = (welcome.workspace_extent_m, welcome.max_constraint_speed_m_per_s, welcome.max_separation_m)
+        w = self.welcome
+        self.bounds = (w.workspace_extent_m, w.max_constraint_speed_m_per_s, w.max_separation_m)
+
+    # the grant, as the Welcome sent it
+    @property
+    def version(self) -> tuple[int, int]:
+        return self.welcome.version
+
+    @property
+    def epsilon_m(self) -> float:
+        return self.welcome.epsilon_m
+
+    @property
+    def max_contacts(self) -> int:
+        return self.welcome.max_contacts
 
     def check_update(self, msg: ContactUpdate) -> tuple[str, str, str] | None:
         """Why the model could not take this update: ``(counter, field, detail)``, or ``None``.
@@ -709,27 +732,32 @@ class ClientEndpoint:
         self.counters = SessionCounters()
         self.hello = hello
         self.state = ClientState.IDLE
-        self.welcome: Welcome | None = None
-        self.reject: Reject | None = None
-        self.bye: Bye | None = None
         self.last_error: Error | None = None
-        self.session_id = 0
-        self.token = 0
         self.server_peer: Peer | None = None
         self._send = send
         self._mac = MacFramer(hmac_key) if hmac_key is not None else None
         self._max_datagram = self.codec.limits.max_packet_bytes + (HMAC_TAG_BYTES if self._mac else 0)
         self._hello_packet = b""
-        self._hello_sent = 0
         self._next_hello_ns = 0
-        self._opened_ns = 0
-        self.last_rx_ns = 0
         self.last_tx_ns = 0
         self._contact_tx_seq = 0
         self._heartbeat_tx_seq = 0
+        self._errors = _RateLimit(self.config.error_rate_per_s, self.config.error_rate_per_s, 0)
+        self._new_session(0)
+
+    def _new_session(self, now: int) -> None:
+        """What a session starts from (at construction, and at every ``start()``): no answer yet,
+        no ids, ProxyStates and Heartbeats numbered from 1 again, no Hello sent, heard at ``now``."""
+        self.welcome: Welcome | None = None
+        self.reject: Reject | None = None
+        self.bye: Bye | None = None
+        self.session_id = 0
+        self.token = 0
         self._proxy_seq = _SeqWindow()
         self._heartbeat_seq = _SeqWindow()
-        self._errors = _RateLimit(self.config.error_rate_per_s, self.config.error_rate_per_s, 0)
+        self._hello_sent = 0
+        self._opened_ns = now
+        self.last_rx_ns = now
 
     # ------------------------------------------------------------------------ properties
     @property
@@ -762,14 +790,7 @@ class ClientEndpoint:
         self.hello.client_nonce = nonce
         self._hello_packet = self.codec.encode(self.hello)  # ValueError names a bad tool field
         self.state = ClientState.HANDSHAKING
-        self.welcome = self.reject = self.bye = None
-        self.session_id = self.token = 0
-        # a new session numbers its ProxyStates and Heartbeats from 1 again
-        self._proxy_seq = _SeqWindow()
-        self._heartbeat_seq = _SeqWindow()
-        self._hello_sent = 0
-        self._opened_ns = now
-        self.last_rx_ns = now
+        self._new_session(now)
         self._send_hello(now)
 
     def _send_hello(self, now: int) -> None:

@@ -34,13 +34,17 @@ import signal
 import socket
 import sys
 import time
-
+from typing import TYPE_CHECKING
 
 from hapticproxy.protocol.jsonout import dumps, jsonable  # noqa: F401 - re-exported (the status replies' rule)
 
 from . import config as cfgmod
 from .lifecycle import LOOP_STATES, Reason, describe
 from .shm import SharedState
+
+if TYPE_CHECKING:
+    from .live import LiveView
+    from .recording import McapRecorder
 
 log = logging.getLogger("hapticproxy.serve")
 
@@ -244,6 +248,47 @@ def _die_with_parent() -> None:
         pass
 
 
+class StatusAuth:
+    """Who may be served on the status address: with an HMAC ``key`` only a request that carries
+    its MAC (``mac``), a time within the window (``ts``) and a nonce not seen before (``nonce``:
+    remembered for twice the window, so a replay is refused); without one, every request.
+    ``refused`` counts the requests turned away."""
+
+    def __init__(self, key: bytes | None) -> None:
+        self.key = key
+        self.refused = 0
+        self._nonces: dict[str, float] = {}
+
+    def check(self, req: dict) -> str:
+        """"" if the request may be served; why not otherwise (and counted in ``refused``)."""
+        why = self._why_not(req)
+        if why:
+            self.refused += 1
+        return why
+
+    def _why_not(self, req: dict) -> str:
+        if self.key is None:
+            return ""
+        from .status import AUTH_WINDOW_S, request_mac
+
+        mac = req.get("mac")
+        if not isinstance(mac, str):
+            return "unauthenticated: this server wants requests signed with its HMAC key (status --config/--key-file)"
+        if not hmac.compare_digest(mac, request_mac(self.key, req)):
+            return "unauthenticated: bad MAC"
+        now = time.time()
+        ts = req.get("ts")
+        if not isinstance(ts, (int, float)) or abs(now - ts) > AUTH_WINDOW_S:
+            return "unauthenticated: request time outside the window (clocks apart, or replayed)"
+        nonce = req.get("nonce")
+        if not isinstance(nonce, str) or nonce in self._nonces:
+            return "unauthenticated: nonce missing or replayed"
+        for k in [k for k, t in self._nonces.items() if now - t > 2 * AUTH_WINDOW_S]:
+            del self._nonces[k]
+        self._nonces[nonce] = now
+        return ""
+
+
 # ------------------------------------------------------------------------------ supervisor
 class Supervisor:
     """Starts the loop process and serves status; ``run()`` until the loop stops.
@@ -253,6 +298,13 @@ class Supervisor:
     ``HOST:PORT`` of a Foxglove WebSocket server, ``live``), answering ``hapticproxy status``.
     With ``transport.hmac_key_file`` set, every status request must carry its HMAC (``status``:
     stop and re-arm move a haptic device)."""
+
+    # What start() opens and close() closes again (None before and after): the loop process, the
+    # status socket, the recording and the live view.
+    proc: mp.process.BaseProcess | None = None
+    sock: socket.socket | None = None
+    writer: McapRecorder | None = None
+    live: LiveView | None = None
 
     def __init__(self, settings: cfgmod.Settings, *, record: str = "", duration_s: float | None = None,
                  ready_timeout_s: float = 120.0, naive: bool = False, live: str = "") -> None:
@@ -265,18 +317,12 @@ class Supervisor:
         self.shared = SharedState.create(rows)
         self.record = record or settings["telemetry"]["record"]
         self.live_address = live
-        self.live = None
-        self.writer = None
-        self.proc = None
-        self.sock = None
         self._stop_requested = False
         self._trans_seq = 0
         self._contact_seq = 0
         self._last_contacts = None  # the newest contact-ring row read: (header, key, pos, normal, sep)
         self._last_transition = None
-        self._key = self._hmac_key()
-        self._nonces: dict[str, float] = {}
-        self.auth_refused = 0
+        self.auth = StatusAuth(self._hmac_key())
         self.exit_code = 0
         self._closed_shared = False
         # the loop's clock is CLOCK_MONOTONIC; recordings carry Unix time
@@ -309,7 +355,7 @@ class Supervisor:
         ctx = mp.get_context("spawn")
         reports, report = ctx.Pipe(duplex=False)
         self.proc = ctx.Process(target=loop_process_main, name=LOOP_TITLE,
-                                args=(self.settings.as_dict(), self.shared.name, self.ring_rows, self._key, self.naive,
+                                args=(self.settings.as_dict(), self.shared.name, self.ring_rows, self.auth.key, self.naive,
                                       report),
                                 daemon=False)
         # The child starts with SIGINT blocked (a Ctrl-C while it imports would print a
@@ -464,9 +510,8 @@ class Supervisor:
             except ValueError:
                 self._reply({"error": "request must be a JSON object"}, addr)
                 continue
-            why = self._authenticate(req)
+            why = self.auth.check(req)
             if why:
-                self.auth_refused += 1
                 self._reply({"error": why}, addr)
                 continue
             try:
@@ -475,29 +520,6 @@ class Supervisor:
                 log.exception("status request %r failed", req.get("cmd"))
                 reply = {"error": f"{type(exc).__name__}: {exc}"}
             self._reply(reply, addr)
-
-    def _authenticate(self, req: dict) -> str:
-        """"" if the request may be served; why not otherwise. Without a key every request is."""
-        if self._key is None:
-            return ""
-        from .status import AUTH_WINDOW_S, request_mac
-
-        mac = req.get("mac")
-        if not isinstance(mac, str):
-            return "unauthenticated: this server wants requests signed with its HMAC key (status --config/--key-file)"
-        if not hmac.compare_digest(mac, request_mac(self._key, req)):
-            return "unauthenticated: bad MAC"
-        now = time.time()
-        ts = req.get("ts")
-        if not isinstance(ts, (int, float)) or abs(now - ts) > AUTH_WINDOW_S:
-            return "unauthenticated: request time outside the window (clocks apart, or replayed)"
-        nonce = req.get("nonce")
-        if not isinstance(nonce, str) or nonce in self._nonces:
-            return "unauthenticated: nonce missing or replayed"
-        for k in [k for k, t in self._nonces.items() if now - t > 2 * AUTH_WINDOW_S]:
-            del self._nonces[k]
-        self._nonces[nonce] = now
-        return ""
 
     def _reply(self, obj: dict, addr) -> None:
         try:
@@ -520,7 +542,7 @@ class Supervisor:
         snap["device_kind"] = self.settings["device"]["kind"]
         snap["tool_kind"] = self.settings.tool_kind
         snap["live"] = f"ws://{self.live.address}" if self.live else ""
-        snap["authenticated"] = self._key is not None
+        snap["authenticated"] = self.auth.key is not None
         span = ((snap["t_last_ns"] or 0) - (snap["t_start_ns"] or 0)) * 1e-9
         snap["achieved_rate_hz"] = (snap["steps"] - 1) / span if span > 0 and snap["steps"] > 1 else 0.0
         try:

@@ -60,7 +60,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import MISSING, dataclass, field, fields
 
 from hapticproxy.protocol.transport.base import Peer, Transport
 
@@ -86,18 +86,36 @@ def _check_nonnegative(name: str, value: float) -> float:
     return v
 
 
+def _probability(default=MISSING):
+    """A field holding a probability in [0, 1] (checked by :func:`_check_fields`)."""
+    return field(default=default, metadata={"check": _check_probability})
+
+
+def _nonnegative(default=MISSING):
+    """A field holding a number >= 0 (checked by :func:`_check_fields`)."""
+    return field(default=default, metadata={"check": _check_nonnegative})
+
+
+def _check_fields(obj, prefix: str = "") -> None:
+    """Run the check each field of the dataclass ``obj`` declares, in field order; the
+    ``ValueError`` names the field (after ``prefix``)."""
+    for f in fields(obj):
+        check = f.metadata.get("check")
+        if check is not None:
+            check(prefix + f.name, getattr(obj, f.name))
+
+
 @dataclass(frozen=True)
 class GilbertElliott:
     """Two-state bursty loss: a good and a bad state with their own loss probabilities."""
 
-    p_good_to_bad: float
-    p_bad_to_good: float
-    loss_in_good: float = 0.0
-    loss_in_bad: float = 1.0
+    p_good_to_bad: float = _probability()
+    p_bad_to_good: float = _probability()
+    loss_in_good: float = _probability(0.0)
+    loss_in_bad: float = _probability(1.0)
 
     def __post_init__(self) -> None:
-        for name in ("p_good_to_bad", "p_bad_to_good", "loss_in_good", "loss_in_bad"):
-            _check_probability(f"burst.{name}", getattr(self, name))
+        _check_fields(self, "burst.")
 
     @property
     def mean_loss(self) -> float:
@@ -124,21 +142,18 @@ class Decision:
 class Impairment:
     """What to do to one direction of traffic. All probabilities are per datagram."""
 
-    loss: float = 0.0
+    loss: float = _probability(0.0)
     burst: GilbertElliott | None = None
-    corrupt: float = 0.0
-    duplicate: float = 0.0
-    reorder: float = 0.0
-    reorder_hold_s: float = 0.05
-    delay_s: float = 0.0
-    jitter_s: float = 0.0
+    corrupt: float = _probability(0.0)
+    duplicate: float = _probability(0.0)
+    reorder: float = _probability(0.0)
+    reorder_hold_s: float = _nonnegative(0.05)
+    delay_s: float = _nonnegative(0.0)
+    jitter_s: float = _nonnegative(0.0)
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("loss", "corrupt", "duplicate", "reorder"):
-            _check_probability(name, getattr(self, name))
-        for name in ("reorder_hold_s", "delay_s", "jitter_s"):
-            _check_nonnegative(name, getattr(self, name))
+        _check_fields(self)
         if self.burst is not None and self.loss:
             raise ValueError("give either loss (uniform) or burst (Gilbert-Elliott), not both")
 

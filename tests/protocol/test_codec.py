@@ -8,22 +8,18 @@ import numpy as np
 import pytest
 
 from hapticproxy.protocol import messages as M
-from hapticproxy.protocol.codec import (
+from hapticproxy.protocol.codec import Codec, Limits, ProtocolError, decode, encode
+from hapticproxy.protocol.messages import (
     Bye,
-    Codec,
     ContactUpdate,
     Error,
+    ErrorCode,
     Heartbeat,
     Hello,
-    Limits,
-    ProtocolError,
     ProxyState,
     Reject,
     Welcome,
-    decode,
-    encode,
 )
-from hapticproxy.protocol.messages import ErrorCode
 
 IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 

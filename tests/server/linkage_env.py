@@ -6,6 +6,7 @@ reports every bar corner within epsilon of the floor, keyed (link, 1, corner).""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -49,25 +50,39 @@ def corners(R, p):
     return p + local @ R.T
 
 
-class LinkageWallEnv(ProtocolEnv):
-    """See the module docstring. ``rigid``: the engine's chain cannot enter the floor (it is
-    lifted out, as a rigid engine would hold it), so it lags the proxy when the proxy presses
-    in; ``send_joints``: report the engine's joint positions in every ContactUpdate (minor 1)."""
+@dataclass(frozen=True)
+class LinkageParams:
+    """A :class:`LinkageWallEnv`'s chain, floor and engine. ``held_link`` None: the last bar;
+    ``start``: the root's (x, y, theta); ``joints`` None: a straight chain; ``rigid``: the engine's
+    chain cannot enter the floor (it is lifted out, as a rigid engine would hold it), so it lags
+    the proxy when the proxy presses in; ``send_joints``: report the engine's joint positions in
+    every ContactUpdate (minor 1)."""
 
-    def __init__(self, url, clock, *, n_links=3, held_link=None, wall_y=0.0, epsilon=0.005, rate_hz=60.0,
-                 start=(-0.09, 0.03, 0.0), joints=None, rigid=False, send_joints=True):
-        self.n = n_links
-        self.wall_y = wall_y
-        self.eps = epsilon
-        self.rate_hz = rate_hz
-        self.rigid = rigid
-        self.send_joints = send_joints
-        self.root = np.array(start, dtype=float)
-        self.joints = np.zeros(n_links - 1) if joints is None else np.array(joints, dtype=float)
-        super().__init__(url, clock, Hello(
-            client_nonce=1, engine="linkage-env", tool_kind=ToolKind.LINKAGE, mass_kg=BAR_M * n_links,
-            max_contacts=32, epsilon_m=epsilon, env_rate_hz=rate_hz, links=bar_links(n_links),
-            held_link=n_links - 1 if held_link is None else held_link))
+    n_links: int = 3
+    held_link: int | None = None
+    wall_y: float = 0.0
+    epsilon: float = 0.005
+    rate_hz: float = 60.0
+    start: tuple[float, float, float] = (-0.09, 0.03, 0.0)
+    joints: tuple[float, ...] | None = None
+    rigid: bool = False
+    send_joints: bool = True
+
+    def hello(self) -> Hello:
+        n = self.n_links
+        return Hello(client_nonce=1, engine="linkage-env", tool_kind=ToolKind.LINKAGE, mass_kg=BAR_M * n,
+                     max_contacts=32, epsilon_m=self.epsilon, env_rate_hz=self.rate_hz, links=bar_links(n),
+                     held_link=n - 1 if self.held_link is None else self.held_link)
+
+
+class LinkageWallEnv(ProtocolEnv):
+    """See the module docstring; ``params``: the keywords of :class:`LinkageParams`."""
+
+    def __init__(self, url, clock, **params):
+        p = self.params = LinkageParams(**params)
+        self.root = np.array(p.start, dtype=float)
+        self.joints = np.zeros(p.n_links - 1) if p.joints is None else np.array(p.joints, dtype=float)
+        super().__init__(url, clock, p.hello())
 
     def pose7(self):
         x, y, th = self.root
@@ -76,17 +91,17 @@ class LinkageWallEnv(ProtocolEnv):
     def _lift_out_of_the_floor(self):
         Rs, ps = chain_frames(self.root, self.joints)
         low = min(corners(R, p)[:, 1].min() for R, p in zip(Rs, ps))
-        if low < self.wall_y:
-            self.root[1] += self.wall_y - low
+        if low < self.params.wall_y:
+            self.root[1] += self.params.wall_y - low
 
     def contacts(self):
         Rs, ps = chain_frames(self.root, self.joints)
         keys, pos, nor, sep = [], [], [], []
         for k, (R, p) in enumerate(zip(Rs, ps)):
             for i, c in enumerate(corners(R, p)):
-                d = c[1] - self.wall_y
-                if d <= self.eps:
-                    keys.append((k, 1, i)); pos.append((c[0], self.wall_y, 0.0)); nor.append((0.0, 1.0, 0.0))
+                d = c[1] - self.params.wall_y
+                if d <= self.params.epsilon:
+                    keys.append((k, 1, i)); pos.append((c[0], self.params.wall_y, 0.0)); nor.append((0.0, 1.0, 0.0))
                     sep.append(d)
         return contact_arrays(keys, pos, nor, sep)
 
@@ -94,13 +109,13 @@ class LinkageWallEnv(ProtocolEnv):
         pose = ps.proxy_pose
         self.root = np.array([pose[0], pose[1], 2 * math.atan2(pose[6], pose[3])])
         self.joints = np.array(ps.joint_position, dtype=float)
-        if self.rigid:
+        if self.params.rigid:
             self._lift_out_of_the_floor()
 
     def _send(self, now):
         k, p, n, d, v = self.contacts()
-        extra = {"tool_joint_position": self.joints} if self.send_joints else {}
+        extra = {"tool_joint_position": self.joints} if self.params.send_joints else {}
         self.ep.send_contacts(now, now * 1e-9, self.pose7(), k, p, n, d, v, **extra)
 
     def _next_ns(self, now):
-        return now + int(1e9 / self.rate_hz)
+        return now + int(1e9 / self.params.rate_hz)

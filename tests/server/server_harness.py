@@ -10,6 +10,7 @@ from __future__ import annotations
 import itertools
 import math
 import signal
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -43,11 +44,30 @@ def stop_process(proc) -> str:
     return err
 
 
+@dataclass(frozen=True)
+class PointMass:
+    """A :class:`PointDevice`'s handle: mass and inertia, viscous damping of translation [N s/m]
+    and of rotation [N m s/rad]."""
+
+    mass_kg: float = 0.5
+    inertia_kg_m2: float = 5e-4
+    damping: float = 2.0
+    rot_damping: float = 0.002
+
+    def acceleration(self, force, v):
+        """(ax, ay, alpha) of the handle moving at ``v`` under the net wrench ``force`` (fx, fy, tz):
+        M a = F - B v."""
+        return np.array([(force[0] - self.damping * v[0]) / self.mass_kg,
+                         (force[1] - self.damping * v[1]) / self.mass_kg,
+                         (force[2] - self.rot_damping * v[2]) / self.inertia_kg_m2])
+
+
 class PointDevice(DeviceDriver):
     """A point-mass device (1dof along x, or planar x, y, theta) with a scripted hand force.
 
-    ``hand(t) -> (fx, fy, tz)`` is the user's wrench; the device integrates
-    M a = F_hand + F_cmd - B v with semi-implicit Euler at ``period_s``.
+    ``hand(t) -> (fx, fy, tz)`` is the user's wrench; the device integrates the handle's
+    :class:`PointMass` dynamics (``mass_kg`` ... ``rot_damping``) with semi-implicit Euler at
+    ``period_s``.
     """
 
     name = "point"
@@ -55,10 +75,7 @@ class PointDevice(DeviceDriver):
     def __init__(self, kind="planar", mass_kg=0.5, inertia_kg_m2=5e-4, damping=2.0, rot_damping=0.002,
                  period_s=1e-3, hand=None, pose=(0.0, 0.0, 0.0), limits=None):
         self.kind = kind
-        self.m = mass_kg
-        self.I = inertia_kg_m2
-        self.b = damping
-        self.br = rot_damping
+        self.body = PointMass(mass_kg, inertia_kg_m2, damping, rot_damping)
         self.dt = period_s
         self.hand = hand or (lambda t: (0.0, 0.0, 0.0))
         self.x = np.array(pose, dtype=float)  # x, y, theta
@@ -113,9 +130,7 @@ class PointDevice(DeviceDriver):
         h = np.array([fx, fy, tz])
         if self.kind == "1dof":
             h[1] = h[2] = 0.0
-        acc = np.array([(h[0] + f[0] - self.b * self.v[0]) / self.m,
-                        (h[1] + f[1] - self.b * self.v[1]) / self.m,
-                        (h[2] + f[2] - self.br * self.v[2]) / self.I])
+        acc = self.body.acceleration(h + f, self.v)
         self.v += self.dt * acc
         self.x += self.dt * self.v
         self.t += self.dt
