@@ -64,7 +64,7 @@ import sys
 import tempfile
 import threading
 import time
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -366,16 +366,11 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
 
     tmp = tempfile.TemporaryDirectory(prefix="hp-faults-", dir=workdir)
     events: dict = {}
-    relay = proxy = client = dev_proc = None
-    sup = None
-    dev_rec = None
+    relay = proxy = client = dev_proc = patch = None
     rec_path = Path(tmp.name) / "run.mcap"
     crash_info: dict = {}
     extra: dict = {}
-    loop_pid = 0
-    stopped = False
-    patch = None
-    try:
+    with ExitStack() as opened:  # closes what this run opened, the last first, also after an error
         if case.transport == "udp":
             url = f"udp://127.0.0.1:{_port()}"
         else:
@@ -385,7 +380,9 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
                          device_watchdog_s=device_watchdog_s, flush_rows=64 if case.kind == "crash" else 512)
         if case.device == "remote":
             dev_proc = DeviceProcess(dev_port, tmp.name, seconds + 60)
+            opened.callback(dev_proc.close)
         sup = Supervisor(s, record=str(rec_path))
+        opened.callback(sup.close)
         sup.start()
         rec_start = sup.writer._read  # the ring row the recording starts at
         loop_pid = int(sup.shared.status[sup._st("pid")])
@@ -394,6 +391,7 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
         if case.transport == "udp" and case.kind not in ("stall", "crash"):
             relay = ImpairingRelay(("127.0.0.1", int(url.rsplit(":", 1)[1])),
                                    c2s=Impairment(**case.c2s), s2c=Impairment(**case.s2c))
+            opened.callback(relay.close)
             if case.kind == "silent":
                 relay.c2s.decide = _Silencer(relay.c2s.decide)
             relay.start()
@@ -403,16 +401,18 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
 
             zport = int(url.split(":")[2].split("/")[0])
             proxy = ImpairingTcpProxy(("127.0.0.1", zport), delay_s=case.tcp_delay_s, seed=5).start()
+            opened.callback(proxy.close)
             client_url = f"zenoh://127.0.0.1:{proxy.address[1]}/faults{os.getpid()}"
             topts = {"connect_timeout_s": 10.0}
         if case.kind == "kill":
             client = _ProcessClient(engine, client_url + ("?connect_timeout_s=10" if case.transport == "zenoh" else ""))
         elif case.c2s and case.transport == "zenoh":
             patch = _impaired_runner_transport(case.c2s, case.s2c)
-            patch.__enter__()
+            opened.enter_context(patch)
             client = _ThreadClient(engine, client_url, topts).start()
         else:
             client = _ThreadClient(engine, client_url, topts).start()
+        opened.callback(client.close)
         # the session opens; the hand pushes the peg onto the wall
         if not _serve(sup, 90.0, lambda: sup.shared.get("updates") > 0):
             raise RuntimeError("the client never engaged the server")
@@ -432,12 +432,10 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
             client.thread.join(10)
         elif case.kind == "stall":
             os.kill(loop_pid, signal.SIGSTOP)
-            stopped = True
             try:
                 time.sleep(0.1)
             finally:
                 os.kill(loop_pid, signal.SIGCONT)
-                stopped = False
             events["fault_end_s"] = time.monotonic()
             _serve(sup, 0.25)
             events["state_after_stall"] = sup.shared.snapshot()["loop_state"]  # in fault: recovers by itself
@@ -476,22 +474,7 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
             rec = [t_ns for _, t_ns, _f, _t, r, _d in sup.shared.transitions_since(0) if r == Reason.RECOVERED]
             if rec:
                 events["rearm_s"] = rec[0] * 1e-9
-    finally:
-        if stopped:
-            os.kill(loop_pid, signal.SIGCONT)
-        if client is not None:
-            client.close()
-        if patch is not None:
-            patch.__exit__(None, None, None)
-        if relay is not None:
-            relay.close()
-        if proxy is not None:
-            proxy.close()
-        if sup is not None:
-            sup.close()
-        if dev_proc is not None:
-            dev_proc.close()
-            dev_rec = dev_proc.record()
+    dev_rec = dev_proc.record() if dev_proc is not None else None
     if case.kind == "crash":
         meta, file_rows = telemetry.read(rec_path)
         crash_info.update(file_rows=len(file_rows), torn_bytes=meta["torn_bytes"])

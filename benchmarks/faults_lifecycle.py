@@ -35,7 +35,7 @@ import signal
 import tempfile
 import threading
 import time
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -244,25 +244,26 @@ def run_lifecycle_case(case: LifecycleCase, bf, *, engine: str = "pymunk", realt
         data["loop"]["realtime"] = False
         from hapticproxy.server import config as cfgmod
         s = cfgmod.load({k: v for k, v in data.items() if k != "preset"})
-    sup = None
     clients: list = []
     dev_proc = None
     events: dict = {}
     extra: dict = {}
     same = None
-    same_ctx = None
-    try:
+    with ExitStack() as opened:  # closes what this run opened, the last first, also after an error
+        opened.callback(tmp.cleanup)
         if remote:
             dev_proc = bf.DeviceProcess(dev_port, tmp.name, 120.0, hand=HAND[case.hand])
+            opened.callback(dev_proc.close)
         t_start = time.monotonic()
         with _env("NUMBA_CACHE_DIR", os.path.join(tmp.name, "numba") if case.kind == "cold" else None):
             sup = Supervisor(s)
+            opened.callback(sup.close)
             sup.start()
         extra["compile_s"] = round(time.monotonic() - t_start, 1) if case.kind == "cold" else None
         loop_pid = int(sup.shared.status[sup._st("pid")])
         if case.kind == "restart":
-            same_ctx = _same_socket_runners()
-            same = same_ctx.__enter__()
+            same = opened.enter_context(_same_socket_runners())
+        opened.callback(_close_each, clients)  # the runners, in the order they started
 
         # the re-engagement cases engage with the peg already resting in contact (the hole
         # scene: in the bottom hole), so what they measure is the engagement, not an approach
@@ -336,16 +337,6 @@ def run_lifecycle_case(case: LifecycleCase, bf, *, engine: str = "pymunk", realt
         rows = bf._ring(sup)
         trans = _transitions(sup)
         t0_s = snap["t_start_ns"] * 1e-9
-    finally:
-        for c in clients:
-            c.close()
-        if same_ctx is not None:
-            same_ctx.__exit__(None, None, None)
-        if sup is not None:
-            sup.close()
-        if dev_proc is not None:
-            dev_proc.close()
-        tmp.cleanup()
     limits = bf.limits_from(s, snap)
     ev_rel = {k: v - t0_s for k, v in events.items() if k.endswith("_s")}
     row = bf.analyse(rows, limits, ev_rel)
@@ -357,6 +348,11 @@ def run_lifecycle_case(case: LifecycleCase, bf, *, engine: str = "pymunk", realt
     row.update({k: v for k, v in extra.items() if v is not None})
     _judge(case, row, rows, trans, ev_rel)
     return row
+
+
+def _close_each(items: list) -> None:
+    for c in items:
+        c.close()
 
 
 def _stall(pid: int, ms: float) -> None:

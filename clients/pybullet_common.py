@@ -21,9 +21,9 @@ import math
 import numpy as np
 from ._pybullet import p
 
-from .engine import Engine, checked_epsilon
+from .engine import Engine, SceneInfo, checked_epsilon, checked_positive
 from .geometry import quat_angle, slerp, wxyz_from_xyzw, xyzw_from_wxyz
-from .narrowphase import E_ANG, E_HALF, E_LIN, E_POS, E_QUAT, warm_up_kernels
+from .narrowphase import E_ANG, E_HALF, E_LIN, E_POS, E_QUAT, BoxNarrowPhase, warm_up_kernels
 
 __all__ = ["PYBULLET_VERSION", "GRAVITY_M_PER_S2", "connect", "reset_world", "show_world", "close_world", "base_pose",
            "fill_env_row", "make_box", "make_sphere", "PoseDrive", "PybulletBase"]
@@ -115,13 +115,39 @@ class PybulletBase(Engine):
     _cid = -1
     _tool = -1
     _epsilon = 0.0
-    _scene = None
+    _scene: SceneInfo | None = None
     #: the GUI's view (``gui=True``, after ``load_scene``): ``window.update(runner)`` draws
     window = None
 
     @classmethod
     def scenes(cls) -> tuple[str, ...]:
         return cls._SCENES
+
+    def _init_drive(self, *, gui: bool, rate_hz: float, max_drive_force_n: float, drive_erp: float,
+                    max_speed_m_per_s: float, max_angular_speed_rad_per_s: float, solver_iterations: int,
+                    **positive: float) -> None:
+        """Check and keep the settings both engines take (the tool's drive, Bullet's step; each
+        engine's own ``positive`` ones are checked with them), then open the physics client."""
+        checked_positive(rate_hz=rate_hz, max_drive_force_n=max_drive_force_n, max_speed_m_per_s=max_speed_m_per_s,
+                         max_angular_speed_rad_per_s=max_angular_speed_rad_per_s, **positive)
+        if not (isinstance(drive_erp, (int, float)) and math.isfinite(drive_erp)
+                and 0.0 < drive_erp <= 1.0):
+            raise ValueError(f"drive_erp: must be in (0, 1], got {drive_erp!r}")
+        if int(solver_iterations) < 1:
+            raise ValueError(f"solver_iterations: must be >= 1, got {solver_iterations!r}")
+        self.gui = bool(gui)
+        self.max_drive_force_n = float(max_drive_force_n)
+        self.drive_erp = float(drive_erp)
+        self.max_speed_m_per_s = float(max_speed_m_per_s)
+        self.max_angular_speed_rad_per_s = float(max_angular_speed_rad_per_s)
+        self.solver_iterations = int(solver_iterations)
+        #: the nominal step (``rate_hz``) and the one in use (a ``step`` with another dt changes it)
+        self._default_dt = 1.0 / float(rate_hz)
+        self._dt = self._default_dt
+        self._cid = connect(self.gui)
+        self._scene = None
+        self.contacts_found = 0
+        self._nph = BoxNarrowPhase()
 
     @property
     def client_id(self) -> int:

@@ -72,11 +72,11 @@ import numpy as np
 from ._pybullet import p
 
 from .contacts import EDGE_EDGE, NORMAL_WEIGHT_M
-from .engine import ContactBuffer, SceneInfo, ToolDescription, checked_positive, checked_step
+from .engine import ContactBuffer, SceneInfo, ToolDescription, checked_step
 from .geometry import box_inertia, check_pose, quat_to_matrix, wxyz_from_xyzw, xyzw_from_wxyz
-from .narrowphase import E_HALF, KIND_BOX, KIND_SPHERE, BoxNarrowPhase, env_table
-from .pybullet_common import (GRAVITY_M_PER_S2, PYBULLET_VERSION, PoseDrive, PybulletBase, connect, fill_env_row,
-                              make_box, make_sphere, reset_world, show_world)
+from .narrowphase import E_HALF, KIND_BOX, KIND_SPHERE, env_table
+from .pybullet_common import (GRAVITY_M_PER_S2, PYBULLET_VERSION, PoseDrive, PybulletBase, fill_env_row, make_box,
+                              make_sphere, reset_world, show_world)
 
 __all__ = ["PybulletEngine", "EDGE_EDGE"]
 
@@ -107,36 +107,20 @@ class PybulletEngine(PybulletBase):
                  max_drive_force_n: float = 50.0, drive_erp: float = 0.8,
                  max_speed_m_per_s: float = 0.5, max_angular_speed_rad_per_s: float = 5.0,
                  solver_iterations: int = 20, cluster_normal_weight_m: float = NORMAL_WEIGHT_M) -> None:
-        checked_positive(rate_hz=rate_hz, max_drive_force_n=max_drive_force_n, max_speed_m_per_s=max_speed_m_per_s,
-                         max_angular_speed_rad_per_s=max_angular_speed_rad_per_s,
-                         cluster_normal_weight_m=cluster_normal_weight_m)
-        if not (isinstance(drive_erp, (int, float)) and math.isfinite(drive_erp)
-                and 0.0 < drive_erp <= 1.0):
-            raise ValueError(f"drive_erp: must be in (0, 1], got {drive_erp!r}")
-        if int(solver_iterations) < 1:
-            raise ValueError(f"solver_iterations: must be >= 1, got {solver_iterations!r}")
-        self.gui = bool(gui)
-        self.max_drive_force_n = float(max_drive_force_n)
-        self.drive_erp = float(drive_erp)
-        self.max_speed_m_per_s = float(max_speed_m_per_s)
-        self.max_angular_speed_rad_per_s = float(max_angular_speed_rad_per_s)
-        self.solver_iterations = int(solver_iterations)
+        self._init_drive(gui=gui, rate_hz=rate_hz, max_drive_force_n=max_drive_force_n, drive_erp=drive_erp,
+                         max_speed_m_per_s=max_speed_m_per_s, max_angular_speed_rad_per_s=max_angular_speed_rad_per_s,
+                         solver_iterations=solver_iterations, cluster_normal_weight_m=cluster_normal_weight_m)
         self.cluster_normal_weight_m = float(cluster_normal_weight_m)
-        self._default_dt = 1.0 / float(rate_hz)
-        self._cid = connect(self.gui)
         self._epsilon = 0.0
-        self._scene: SceneInfo | None = None
         #: the last ProxyState wrench (kept, not applied: see the module docstring)
         self.last_wrench = np.zeros(6)
-        #: last ``contacts`` call: epsilon-active contacts before clustering, and all contacts
-        #: within the guard's reach; how often the raw array overflowed (extra contacts are
-        #: dropped); how often the drive's guard could not satisfy every static contact (its
-        #: translation was frozen for that step)
-        self.contacts_found = 0
+        #: last ``contacts`` call (``contacts_found``: epsilon-active contacts before clustering):
+        #: all contacts within the guard's reach; how often the raw array overflowed (extra
+        #: contacts are dropped); how often the drive's guard could not satisfy every static
+        #: contact (its translation was frozen for that step)
         self.raw_contacts = 0
         self.raw_overflows = 0
         self.guard_freezes = 0
-        self._nph = BoxNarrowPhase()
         self._guard_buf = ContactBuffer(1)
         self._reset_state()
 

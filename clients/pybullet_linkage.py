@@ -42,11 +42,11 @@ import numpy as np
 from ._pybullet import p
 
 from .contacts import reduce_contacts
-from .engine import ContactBuffer, LinkDescription, SceneInfo, ToolDescription, checked_positive, checked_step
+from .engine import ContactBuffer, LinkDescription, SceneInfo, ToolDescription, checked_step
 from .geometry import IDENTITY_WXYZ, compose, inverse, quat_to_matrix, wxyz_from_xyzw
-from .narrowphase import E_HALF, KIND_BOX, RAW_CAPACITY, BoxNarrowPhase, env_table
-from .pybullet_common import (GRAVITY_M_PER_S2, PYBULLET_VERSION, PoseDrive, PybulletBase, connect, fill_env_row,
-                              make_box, reset_world, show_world)
+from .narrowphase import E_HALF, KIND_BOX, RAW_CAPACITY, env_table
+from .pybullet_common import (GRAVITY_M_PER_S2, PYBULLET_VERSION, PoseDrive, PybulletBase, fill_env_row, make_box,
+                              reset_world, show_world)
 
 __all__ = ["PybulletLinkageEngine", "links_from_body", "DEFAULT_URDF", "SELF_BODY_BASE"]
 
@@ -107,26 +107,16 @@ class PybulletLinkageEngine(PybulletBase):
                  held_link: int | None = None, max_drive_force_n: float = 50.0, max_joint_effort: float = 2.0,
                  max_speed_m_per_s: float = 0.5, max_angular_speed_rad_per_s: float = 5.0,
                  drive_erp: float = 0.8, solver_iterations: int = 20) -> None:
-        checked_positive(rate_hz=rate_hz, max_drive_force_n=max_drive_force_n, max_joint_effort=max_joint_effort,
-                         max_speed_m_per_s=max_speed_m_per_s, max_angular_speed_rad_per_s=max_angular_speed_rad_per_s)
         if not Path(urdf).is_file():
             raise ValueError(f"urdf: no such file: {urdf}")
-        self.gui = bool(gui)
+        self._init_drive(gui=gui, rate_hz=rate_hz, max_drive_force_n=max_drive_force_n, drive_erp=drive_erp,
+                         max_speed_m_per_s=max_speed_m_per_s, max_angular_speed_rad_per_s=max_angular_speed_rad_per_s,
+                         solver_iterations=solver_iterations, max_joint_effort=max_joint_effort)
         self.urdf = Path(urdf)
         self._held = held_link
-        self.max_drive_force_n = float(max_drive_force_n)
         self.max_joint_effort = float(max_joint_effort)
-        self.max_speed_m_per_s = float(max_speed_m_per_s)
-        self.max_angular_speed_rad_per_s = float(max_angular_speed_rad_per_s)
-        self.drive_erp = float(drive_erp)
-        self.solver_iterations = int(solver_iterations)
-        self._dt = 1.0 / float(rate_hz)
-        self._cid = connect(self.gui)
         self._time = 0.0
-        self._scene: SceneInfo | None = None
-        self.contacts_found = 0
         self._raw = ContactBuffer(RAW_CAPACITY)
-        self._nph = BoxNarrowPhase()
 
     # ------------------------------------------------------------------ Engine
     def load_scene(self, name: str) -> SceneInfo:

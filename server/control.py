@@ -44,9 +44,11 @@ from numba import njit
 
 from hapticproxy.protocol.vocab import CONTROLLERS
 
+from .readonly import ArrayBool, ArrayFloat, ArrayInt
 from .model.kernels import _rigid_pose, hand_to_world, step_rigid
 from .model.layout import LM_PLANAR, P_AXIS, P_HAND, P_ORIGIN, S_FENV, S_Q, S_QD, TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL
 from .model.linkage import hand_state_linkage, step_linkage
+from .model.model import quat_to_matrix
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -662,17 +664,9 @@ class Controller:
         self.cs[CS_DPOSE + 3] = 1.0
         self.cs[CS_PPOSE + 3] = 1.0
 
-    @property
-    def controller_type(self) -> int:
-        return int(self.cp[CP_TYPE])
-
-    @property
-    def force_cap_n(self) -> float:
-        return float(self.cp[CP_FMAX])
-
-    @property
-    def force_rate_n_per_step(self) -> float:
-        return float(self.cp[CP_FRATE])
+    controller_type = ArrayInt("cp", CP_TYPE, doc="The controller's id (``CONTROLLER_IDS``).")
+    force_cap_n = ArrayFloat("cp", CP_FMAX, doc="Force cap per axis, N (the device's limit when lower).")
+    force_rate_n_per_step = ArrayFloat("cp", CP_FRATE, doc="Largest force change per step, N.")
 
     def set_offset(self, R_off: np.ndarray, p_off: np.ndarray, q_off: np.ndarray) -> None:
         self.cp[CP_ROFF:CP_ROFF + 9] = np.asarray(R_off, dtype=float).reshape(9)
@@ -697,9 +691,7 @@ class Controller:
         cs[CS_DRIVE] = 0.0
         cs[CS_SLIDE] = 0.0
 
-    @property
-    def driving(self) -> bool:
-        return bool(self.cs[CS_DRIVE])
+    driving = ArrayBool("cs", CS_DRIVE, doc="The device drives the proxy (``engage``), or it is held.")
 
     def skip(self, steps: int) -> None:
         """The loop woke ``steps`` whole periods late and skipped them: the gain moves on as if
@@ -710,9 +702,7 @@ class Controller:
         ramp's slope per command, and a fade still never pushes harder)."""
         self.cs[CS_SKIPPED] += steps
 
-    @property
-    def gain(self) -> float:
-        return float(self.cs[CS_GAIN])
+    gain = ArrayFloat("cs", CS_GAIN, doc="Gain of the rendered force, 0..1 (fades and ramps in).")
 
     def counters(self) -> dict[str, int]:
         names = ("steps", "saturated", "rate_limited", "speed_trips", "nonfinite", "hand_missing")
@@ -720,15 +710,6 @@ class Controller:
 
 
 # ------------------------------------------------------------------------------ mapping
-def quat_to_matrix(q) -> np.ndarray:
-    w, x, y, z = (float(v) for v in q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
-
-
 def quat_mul(a, b) -> np.ndarray:
     """Hamilton product (w x y z). Plain Python: it runs at engagement, where calling a kernel
     with a new signature would compile inside the loop."""

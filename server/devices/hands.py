@@ -66,6 +66,7 @@ import numpy as np
 from msgspec import Meta, Struct
 from numba import njit
 
+from ..readonly import ArrayFloat
 from . import _check as ck
 from .layout import HO_B, HO_BR, HO_I, HO_K, HO_KR, HO_M, HO_VT, HO_W, HO_XT, NHO, ST_TIME
 
@@ -296,13 +297,8 @@ class Hand:
     tab: np.ndarray
     config: dict = field(default_factory=dict)
 
-    @property
-    def mass_kg(self) -> float:
-        return float(self.hp[HP_M])
-
-    @property
-    def inertia_kg_m2(self) -> float:
-        return float(self.hp[HP_I])
+    mass_kg = ArrayFloat("hp", HP_M, doc="Mass of a gripping hand (it moves with the handle), kg.")
+    inertia_kg_m2 = ArrayFloat("hp", HP_I, doc="Rotational inertia of a gripping hand, kg m^2.")
 
 
 def _first_unit(kind: str, axis: np.ndarray, value: float) -> np.ndarray:

@@ -63,6 +63,7 @@ from hapticproxy.protocol import devlink as dl
 from hapticproxy.protocol.devlink import COMMAND, F_ARMED, F_ENABLE, PREFIX_BYTES, STATE, new_session
 from hapticproxy.protocol.transport import Transport, UdpTransport
 
+from ..readonly import ReadOnly
 from . import _check as ck
 from . import sim as _sim
 from .base import (
@@ -123,13 +124,43 @@ def _resolve(key: str, address: tuple[str, int]) -> tuple[str, int]:
     return info[0][4][:2]
 
 
-def _merge_transport_counters(cnt: dict, tr: Transport) -> dict:
-    """The link's counters with what the transport dropped before the link saw it."""
-    out = dict(cnt)
-    tc = tr.counters
-    out["malformed"] += tc.dropped_oversize_recv + tc.dropped_empty
-    out["recv_errors"] += tc.recv_errors
-    return out
+class _LinkEnd:
+    """What both ends of the device link share: the transport they own (``_tr``), the receive
+    buffer (``_rx``), the counters (``_cnt``) and the drain of the socket (each end's
+    ``_accept(n, peer, now)`` takes one datagram)."""
+
+    _tr: Transport
+    _rx: bytearray
+    _cnt: dict[str, int]
+
+    transport = ReadOnly[Transport]("_tr", doc="The transport this end owns (``close`` closes it).")
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        """The UDP address of this end's socket (the server's: what ``hapticproxy device --server``
+        is given)."""
+        return tuple(self._tr.local_address[:2])
+
+    def counters(self) -> dict[str, int]:
+        """The link's counters with what the transport dropped before the link saw it."""
+        out = dict(self._cnt)
+        tc = self._tr.counters
+        out["malformed"] += tc.dropped_oversize_recv + tc.dropped_empty
+        out["recv_errors"] += tc.recv_errors
+        return out
+
+    def _drain(self, now: int) -> None:
+        # (an ICMP port-unreachable while the other end does not listen is counted by the transport)
+        recv_into = self._tr.recv_into
+        rx = self._rx
+        for _ in range(MAX_DRAIN):
+            n, peer = recv_into(rx)
+            if peer is None:
+                return
+            self._accept(n, peer, now)
+
+    def _accept(self, n: int, peer, now: int) -> None:
+        raise NotImplementedError
 
 
 # =============================================================================== server side
@@ -138,7 +169,7 @@ REMOTE_COUNTERS = ("states", "stale", "duplicate", "malformed", "foreign", "old_
                    "commands_sent", "send_errors", "unsent", "nonfinite_refused", "recv_errors")
 
 
-class RemoteDevice(DeviceDriver):
+class RemoteDevice(DeviceDriver, _LinkEnd):
     """The server side of a remote device: ``read`` drains the transport (non-blocking) and keeps
     the newest state; ``write`` sends one COMMAND datagram.
 
@@ -193,17 +224,9 @@ class RemoteDevice(DeviceDriver):
         self._dev_key = (0, 0)
 
     # -- DeviceDriver ------------------------------------------------------------------------
-    @property
-    def limits(self) -> DeviceLimits:
-        return self._limits
-
-    @property
-    def enabled(self) -> bool:
-        return self._enabled
-
-    @property
-    def fault(self) -> int:
-        return self._fault
+    limits = ReadOnly[DeviceLimits]("_limits", doc="The device's limits (as configured).")
+    enabled = ReadOnly[bool]("_enabled", doc="Armed by ``enable`` (the device re-arms on the next command).")
+    fault = ReadOnly[int]("_fault", doc="Latched ``DEV_FAULT_*`` code (``DEV_OK`` if none).")
 
     def on_engage(self) -> None:
         """A new session engaged: told to the device program in every later command."""
@@ -257,27 +280,11 @@ class RemoteDevice(DeviceDriver):
         finally:
             self._tr.close()
 
-    # -- extras --------------------------------------------------------------------------------
-    @property
-    def transport(self) -> Transport:
-        return self._tr
-
-    @property
-    def local_address(self) -> tuple[str, int]:
-        """The UDP address the driver listens on (what ``hapticproxy device --server`` is given)."""
-        return tuple(self._tr.local_address[:2])
-
-    @property
-    def device_address(self):
-        return self._dev_addr
-
-    @property
-    def device_session(self) -> int:
-        return self._dev_session
-
-    @property
-    def epoch(self) -> int:
-        return self._epoch
+    # -- extras (and ``_LinkEnd``'s) ----------------------------------------------------------
+    device_address = ReadOnly[object]("_dev_addr", doc="The device program's peer id: the pinned one, else the "
+                                      "current device session's (None before any state).")
+    device_session = ReadOnly[int]("_dev_session", doc="Boot session of the device whose state is used (0: none yet).")
+    epoch = ReadOnly[int]("_epoch", doc="Arming epoch: ``enable`` starts a new one (sent in every COMMAND).")
 
     @property
     def link_up(self) -> bool:
@@ -288,9 +295,6 @@ class RemoteDevice(DeviceDriver):
     def device_armed(self) -> bool:
         """The device reports its output armed under this driver's current key."""
         return self._dev_armed and self._dev_key == (self.session, self._epoch)
-
-    def counters(self) -> dict[str, int]:
-        return _merge_transport_counters(self._cnt, self._tr)
 
     def status_text(self) -> str:
         return DEV_FAULT_NAMES.get(self._status(), f"fault {self._status()}")
@@ -339,16 +343,8 @@ class RemoteDevice(DeviceDriver):
         else:
             self._cnt["send_errors"] += 1
 
-    def _drain(self, now: int) -> None:
-        recv_into = self._tr.recv_into
-        rx = self._rx
-        for _ in range(MAX_DRAIN):
-            n, peer = recv_into(rx)
-            if peer is None:
-                return
-            self._accept(n, _peer_id(peer), now)
-
-    def _accept(self, n: int, addr, now: int) -> None:
+    def _accept(self, n: int, peer, now: int) -> None:
+        addr = _peer_id(peer)
         cnt = self._cnt
         if n != STATE_SIZE:
             cnt["malformed"] += 1
@@ -467,7 +463,7 @@ PROGRAM_COUNTERS = ("ticks", "states_sent", "send_errors", "commands", "stale", 
                     "nonfinite_refused", "driver_faults", "overruns", "recv_errors")
 
 
-class DeviceProgram:
+class DeviceProgram(_LinkEnd):
     """The device side: runs a local :class:`DeviceDriver` (``driver``) and bridges it to the
     server at ``server`` (host, port). One :meth:`tick` per device period: drain commands, the
     watchdog, ``driver.write``, ``driver.read``, one STATE datagram. :meth:`run` paces ticks.
@@ -524,34 +520,14 @@ class DeviceProgram:
         self.driver.disable()
 
     # -- state ---------------------------------------------------------------------------------
-    @property
-    def armed(self) -> bool:
-        return self._armed
-
-    @property
-    def fault(self) -> int:
-        return self._fault
-
-    @property
-    def key(self) -> tuple[int, int]:
-        return self._key
-
-    @property
-    def local_address(self) -> tuple[str, int]:
-        """The UDP address of the program's socket."""
-        return tuple(self._tr.local_address[:2])
-
-    @property
-    def transport(self) -> Transport:
-        return self._tr
+    armed = ReadOnly[bool]("_armed", doc="The output is armed (by a COMMAND with the enable flag under ``key``).")
+    fault = ReadOnly[int]("_fault", doc="Latched ``DEV_FAULT_*`` code of the program or its driver (``DEV_OK``: none).")
+    key = ReadOnly[tuple]("_key", doc="(server session, epoch) of the newest COMMAND's key.")
 
     @property
     def command(self) -> np.ndarray:
         """The wrench being rendered (zero when disarmed)."""
         return (self._cmd if self._armed else self._zero).copy()
-
-    def counters(self) -> dict[str, int]:
-        return _merge_transport_counters(self._cnt, self._tr)
 
     def close(self) -> None:
         self._disarm()
@@ -620,20 +596,11 @@ class DeviceProgram:
         else:
             self._cnt["send_errors"] += 1
 
-    def _drain(self, now: int) -> None:
-        # (an ICMP port-unreachable while no server listens is counted by the transport)
-        recv_into = self._tr.recv_into
+    def _accept(self, n: int, peer, now: int) -> None:
         want = self._peer
-        for _ in range(MAX_DRAIN):
-            n, peer = recv_into(self._rx)
-            if peer is None:
-                return
-            if want is not None and _peer_id(peer) != want:
-                self._cnt["foreign"] += 1
-                continue
-            self._accept(n, now)
-
-    def _accept(self, n: int, now: int) -> None:
+        if want is not None and _peer_id(peer) != want:
+            self._cnt["foreign"] += 1
+            return
         cnt = self._cnt
         if n != COMMAND_SIZE:
             cnt["malformed"] += 1

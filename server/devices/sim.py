@@ -84,6 +84,7 @@ import msgspec
 import numpy as np
 from msgspec import Meta, Struct
 
+from ..readonly import ArrayBool, ArrayFloat, ArrayInt
 from . import _check as ck
 from . import dynamics as _dyn
 from . import hands as _hands
@@ -430,13 +431,8 @@ class SimDevice(DeviceDriver):
         self._ctl[C_ENABLED] = 0
         self._st[ST_CMD:ST_CMD + 6] = 0.0
 
-    @property
-    def enabled(self) -> bool:
-        return bool(self._ctl[C_ENABLED])
-
-    @property
-    def fault(self) -> int:
-        return int(self._ctl[C_FAULT])
+    enabled = ArrayBool("_ctl", C_ENABLED, doc="The output is armed (``enable``).")
+    fault = ArrayInt("_ctl", C_FAULT, doc="The latched ``DEV_FAULT_*`` code (0: none).")
 
     def read(self, state_out: np.ndarray) -> int:
         return _dyn.sim_read(self._st, self._ctl, self._cnt, state_out, self._clock())
@@ -517,9 +513,7 @@ class SimDevice(DeviceDriver):
     def period_s(self) -> float:
         return self.spec.period_s
 
-    @property
-    def time_s(self) -> float:
-        return float(self._st[19])
+    time_s = ArrayFloat("_st", ST_TIME, doc="Device clock, s (0 at ``reset``).")
 
     @property
     def state(self) -> np.ndarray:

@@ -19,6 +19,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..readonly import ArrayFloat, ArrayInt
 from . import kernels as _k
 from . import linkage as _lk
 from .layout import (
@@ -114,7 +115,8 @@ def linkage_dims(n_links: int, planar: bool) -> tuple[int, int, int]:
     return (3 + j, 3, 3 + j) if planar else (6 + j, 6, 7 + j)
 
 
-def _quat_matrix(q) -> np.ndarray:
+def quat_to_matrix(q) -> np.ndarray:
+    """Rotation matrix of a unit quaternion (w x y z). Plain Python, for set-up code."""
     w, x, y, z = (float(v) for v in q)
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -698,13 +700,8 @@ class LocalModel:
         return np.ascontiguousarray(a)
 
     # -- read-outs -----------------------------------------------------------------------------
-    @property
-    def period_s(self) -> float:
-        return float(self._par[P_DT])
-
-    @property
-    def time_s(self) -> float:
-        return float(self._st[S_T])
+    period_s = ArrayFloat("_par", P_DT, doc="Haptic step, s.")
+    time_s = ArrayFloat("_st", S_T, doc="Model time, s.")
 
     @property
     def q(self) -> np.ndarray:
@@ -732,18 +729,14 @@ class LocalModel:
         """Jc^T p of the last step, configuration space (N s, N m s)."""
         return self._st[S_GIMP:S_GIMP + self.dof]
 
-    @property
-    def kinetic_energy_j(self) -> float:
-        return float(self._st[S_KE])
+    kinetic_energy_j = ArrayFloat("_st", S_KE, doc="Proxy kinetic energy after the last step, J.")
 
     @property
     def collision_energy_j(self) -> tuple[float, float]:
         """Kinetic energy just before and just after the last step's collision impulse."""
         return float(self._st[S_KE_PRE]), float(self._st[S_KE_POST])
 
-    @property
-    def contact_count(self) -> int:
-        return int(self._cnt[K_M])
+    contact_count = ArrayInt("_cnt", K_M, doc="Live contacts.")
 
     @property
     def proxy_state(self) -> str:
@@ -906,7 +899,7 @@ def linkage_arrays(tool: ToolSpec, velocity_terms: bool = True) -> tuple[np.ndar
             origin = np.array([origin[0], origin[1], 0.0])
         lk[k, LK_AXIS:LK_AXIS + 3] = axis / np.linalg.norm(axis)
         lk[k, LK_OP:LK_OP + 3] = origin
-        lk[k, LK_OR:LK_OR + 9] = _quat_matrix(quat / np.linalg.norm(quat)).ravel()
+        lk[k, LK_OR:LK_OR + 9] = quat_to_matrix(quat / np.linalg.norm(quat)).ravel()
         lki[k, LI_PARENT] = int(ln.parent)
         lki[k, LI_TYPE] = JOINT_TYPES[ln.joint]
         chain = list(range(r))

@@ -54,33 +54,33 @@ def _put64(buf, name, v):
 class AnySession(DeviceProgram):
     """Obeys commands addressed to any device session."""
 
-    def _accept(self, n, now):
+    def _accept(self, n, peer, now):
         _put64(self._rx, "device_session", self.session)
-        super()._accept(n, now)
+        super()._accept(n, peer, now)
 
 
 class OlderServerSessionObeyed(DeviceProgram):
     """Takes a command of an older server session as one of the newest."""
 
-    def _accept(self, n, now):
+    def _accept(self, n, peer, now):
         if n == COMMAND.size and 0 < _u64(self._rx, "server_session") < self._key[0]:
             _put64(self._rx, "server_session", self._key[0])
-        super()._accept(n, now)
+        super()._accept(n, peer, now)
 
 
 class StaleObeyed(DeviceProgram):
     """No newest-wins within a key: any seq is taken."""
 
-    def _accept(self, n, now):
+    def _accept(self, n, peer, now):
         self._cmd_seq = 0
-        super()._accept(n, now)
+        super()._accept(n, peer, now)
 
 
 class SameKeyRearms(DeviceProgram):
     """Re-arms on an enabled command of the key it was cut under."""
 
-    def _accept(self, n, now):
-        super()._accept(n, now)
+    def _accept(self, n, peer, now):
+        super()._accept(n, peer, now)
         key = (_u64(self._rx, "server_session"), int.from_bytes(self._rx[_CMD["epoch"]:_CMD["epoch"] + 4], "little"))
         if (n == COMMAND.size and self._rx[_CMD["flags"]] & 1 and not self._armed and key == self._key
                 and np.isfinite(self._rx_wrench).all()):
@@ -94,18 +94,18 @@ class SameKeyRearms(DeviceProgram):
 class DisableIgnored(DeviceProgram):
     """Treats an enable-clear command as an enabled one."""
 
-    def _accept(self, n, now):
+    def _accept(self, n, peer, now):
         self._rx[_CMD["flags"]] |= 1
-        super()._accept(n, now)
+        super()._accept(n, peer, now)
 
 
 class NonFiniteDropped(DeviceProgram):
     """Drops a non-finite command silently and goes on rendering the previous wrench."""
 
-    def _accept(self, n, now):
+    def _accept(self, n, peer, now):
         if n == COMMAND.size and not np.isfinite(self._rx_wrench).all():
             return
-        super()._accept(n, now)
+        super()._accept(n, peer, now)
 
 
 class NoEngagement(DeviceProgram):
@@ -136,13 +136,18 @@ def check_device(cls=DeviceProgram, *, hand=True, **kw) -> dc.Report:
     return check.report
 
 
+def assert_every_rule_passes(rep: dc.Report, rules) -> None:
+    """One PASS line per rule, in the rules' order, then the result line that counts them."""
+    lines = rep.lines()
+    assert rep.passed, "\n".join(lines)
+    assert len(lines) == len(rules) + 1 and lines[-1] == f"RESULT: PASS ({len(rules)} rules)"
+    for line, rule in zip(lines, rules):
+        assert line.startswith(f"PASS  {rule} ")
+
+
 def test_the_device_program_passes_check_device():
     rep = check_device()
-    assert rep.passed, "\n".join(rep.lines())
-    lines = rep.lines()
-    assert len(lines) == len(dc.DEVICE_RULES) + 1 and lines[-1] == f"RESULT: PASS ({len(dc.DEVICE_RULES)} rules)"
-    for line, rule in zip(lines, dc.DEVICE_RULES):
-        assert line.startswith(f"PASS  {rule} ")
+    assert_every_rule_passes(rep, dc.DEVICE_RULES)
     assert "cut 52 ms after the last command" in rep.results["watchdog"][1]   # 50 ms + the device's tick
 
 
@@ -265,12 +270,7 @@ def check_server(cls=RemoteDevice) -> dc.Report:
 
 
 def test_the_haptic_loop_with_the_server_driver_passes_check_device_server():
-    rep = check_server()
-    assert rep.passed, "\n".join(rep.lines())
-    lines = rep.lines()
-    assert lines[-1] == f"RESULT: PASS ({len(dc.SERVER_RULES)} rules)"
-    for line, rule in zip(lines, dc.SERVER_RULES):
-        assert line.startswith(f"PASS  {rule} ")
+    assert_every_rule_passes(check_server(), dc.SERVER_RULES)
 
 
 @pytest.mark.parametrize("cls,broken", [
