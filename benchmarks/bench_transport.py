@@ -51,26 +51,40 @@ SPIN_BEFORE_NS = 200_000  # paced mode: busy-wait the last 0.2 ms before each se
 SEQ_BYTES = 8
 
 
-def _pin_this_thread(cpu: int | None) -> None:
+def pin_this_thread(cpu: int | None) -> None:
     # Pin only the calling (polling) thread: on Linux sched_setaffinity(0) applies to the
     # calling thread, so backend I/O threads started earlier (Zenoh's) still float.
     if cpu is not None and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {cpu})
 
 
-def _place_io_threads(policy: str, poll_cpu: int | None) -> None:
-    """Pin this process's Zenoh runtime threads: ``other`` = every CPU but the poller's,
-    ``same`` = the poller's CPU, ``float`` = leave them to the scheduler."""
-    if policy == "float" or poll_cpu is None or not hasattr(os, "sched_setaffinity"):
-        return
+def set_io_thread_affinity(cpus) -> None:
+    """Pin this process's Zenoh runtime threads to ``cpus`` (also to unpin them again: Zenoh's
+    threads outlive a session)."""
     from hapticproxy.protocol.transport.zenoh_backend import zenoh_thread_ids
 
-    cpus = {poll_cpu} if policy == "same" else set(range(os.cpu_count() or 1)) - {poll_cpu}
     for tid in zenoh_thread_ids():
         try:
             os.sched_setaffinity(tid, cpus)
         except OSError:  # ended meanwhile, or a CPU outside our cgroup
             pass
+
+
+def place_io_threads(policy: str, poll_cpu: int | None) -> None:
+    """Pin this process's Zenoh runtime threads: ``other`` = every CPU but the poller's,
+    ``same`` = the poller's CPU, ``float`` = leave them to the scheduler."""
+    if policy == "float" or poll_cpu is None or not hasattr(os, "sched_setaffinity"):
+        return
+    set_io_thread_affinity({poll_cpu} if policy == "same" else set(range(os.cpu_count() or 1)) - {poll_cpu})
+
+
+def selected(parser: argparse.ArgumentParser, text: str, known, what: str) -> list[str]:
+    """The comma-separated names of ``text``; one not in ``known`` is a usage error."""
+    names = [t.strip() for t in text.split(",") if t.strip()]
+    for t in names:
+        if t not in known:
+            parser.error(f"unknown {what} {t!r} (choose from {', '.join(known)})")
+    return names
 
 
 def _make_idle(idle_every: int, idle_sleep_us: float):
@@ -87,27 +101,37 @@ def _make_idle(idle_every: int, idle_sleep_us: float):
     return lambda: time.sleep(sleep_s)
 
 
+def _poll(transport, buf: bytearray, idle, idle_every: int, deadline_ns: int | None = None,
+          clock=time.perf_counter_ns) -> tuple[int, object]:
+    """Poll ``transport`` until a datagram is in ``buf``: its length and sender; ``(0, None)`` once
+    ``clock()`` passes ``deadline_ns``. ``idle`` (see :func:`_make_idle`) runs after every
+    ``idle_every`` empty polls in a row."""
+    empty = 0
+    while True:
+        n, peer = transport.recv_into(buf)
+        if peer is not None:
+            return n, peer
+        empty += 1
+        if idle is not None and empty >= idle_every:
+            idle()
+            empty = 0
+        if deadline_ns is not None and clock() > deadline_ns:
+            return 0, None
+
+
 def _echo_server(url: str, options: dict, conn, idle_every: int, idle_sleep_us: float, cpu: int | None,
                  io_threads: str = "float") -> None:
     """Child process: answer every update with an ack carrying the update's sequence bytes."""
     server = open_transport(url, role="server", **options)
-    _pin_this_thread(cpu)
-    _place_io_threads(io_threads, cpu)
+    pin_this_thread(cpu)
+    place_io_threads(io_threads, cpu)
     try:
         conn.send(server.url)
         buf = bytearray(server.max_packet_bytes)
         ack = bytearray(random.Random(2).randbytes(ACK_BYTES))
         idle = _make_idle(idle_every, idle_sleep_us)
-        empty = 0
         while True:
-            n, peer = server.recv_into(buf)
-            if peer is None:
-                empty += 1
-                if idle is not None and empty >= idle_every:
-                    idle()
-                    empty = 0
-                continue
-            empty = 0
+            n, peer = _poll(server, buf, idle, idle_every)
             if buf[:n] == STOP:
                 server.send(STOP, peer)
                 break
@@ -159,8 +183,8 @@ def run_one(
         client = open_transport(server_url, role="client", **options)
         if pin:
             saved_affinity = os.sched_getaffinity(0)
-            _pin_this_thread(parent_cpu)
-            _place_io_threads(io_threads, parent_cpu)
+            pin_this_thread(parent_cpu)
+            place_io_threads(io_threads, parent_cpu)
         rng = random.Random(1)
         update = bytearray(rng.randbytes(UPDATE_BYTES))
         buf = bytearray(client.max_packet_bytes)
@@ -185,25 +209,18 @@ def run_one(
             update[:SEQ_BYTES] = seq
             t0 = clock()
             client.send(update)
-            empty = 0
             while True:
-                n, peer = client.recv_into(buf)
+                n, peer = _poll(client, buf, idle, idle_every, t0 + timeout_ns, clock)
+                t1 = clock()
                 if peer is None:
-                    empty += 1
-                    if idle is not None and empty >= idle_every:
-                        idle()
-                        empty = 0
-                else:
-                    if buf[:SEQ_BYTES] == seq:
-                        t1 = clock()
-                        if i >= warmup:
-                            rtts_ns.append(t1 - t0)
-                        break
-                    continue  # a late ack of an earlier, already-counted-lost update
-                if clock() - t0 > timeout_ns:
                     if i >= warmup:
                         lost += 1
                     break
+                if buf[:SEQ_BYTES] == seq:
+                    if i >= warmup:
+                        rtts_ns.append(t1 - t0)
+                    break
+                # else a late ack of an earlier, already-counted-lost update
             if paced and clock() > next_send_ns + 10 * period_ns:
                 next_send_ns = clock() + period_ns  # do not burst to catch up after a stall
         client.send(STOP)
@@ -216,13 +233,7 @@ def run_one(
         if saved_affinity is not None:
             os.sched_setaffinity(0, saved_affinity)
             if io_threads != "float":  # Zenoh's threads outlive the client: unpin them again
-                from hapticproxy.protocol.transport.zenoh_backend import zenoh_thread_ids
-
-                for tid in zenoh_thread_ids():
-                    try:
-                        os.sched_setaffinity(tid, saved_affinity)
-                    except OSError:
-                        pass
+                set_io_thread_affinity(saved_affinity)
         if client is not None:
             client.close()
         child.join(10)
@@ -315,10 +326,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error("--zenoh-runtime must not be empty")
         # Inherited by the spawned echo process; read by Zenoh when its runtime first starts.
         os.environ["ZENOH_RUNTIME"] = args.zenoh_runtime
-    variants = [t.strip() for t in args.transports.split(",") if t.strip()]
-    for t in variants:
-        if t not in VARIANTS:
-            parser.error(f"unknown transport {t!r} (choose from {', '.join(VARIANTS)})")
+    variants = selected(parser, args.transports, VARIANTS, "transport")
     if args.exchanges < 1 or args.warmup < 0:
         parser.error("--exchanges must be >= 1 and --warmup >= 0")
     schedules = {"both": (True, False), "paced": (True,), "back-to-back": (False,)}[args.schedule]

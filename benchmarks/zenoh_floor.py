@@ -38,29 +38,14 @@ import statistics
 import sys
 import time
 
-from hapticproxy.protocol.transport.zenoh_backend import DEFAULT_ZENOH_RUNTIME, zenoh_thread_ids
+from hapticproxy.benchmarks.bench_transport import pin_this_thread, place_io_threads, selected, set_io_thread_affinity
+from hapticproxy.protocol.transport.zenoh_backend import DEFAULT_ZENOH_RUNTIME
 
 PAYLOAD = 1300
 REPLY = 200
 SEQ = 8
 VARIANTS = ("raw-udp", "raw-tcp", "zenoh-poll", "zenoh-poll-lowlatency", "zenoh-poll-udp",
             "zenoh-poll-lowlatency-udp", "zenoh-block", "zenoh-callback", "zenoh-callback-lowlatency")
-
-
-def _pin(cpu: int | None) -> None:
-    if cpu is not None and hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {cpu})
-
-
-def _place_io_threads(policy: str, poll_cpu: int | None) -> None:
-    if policy == "float" or poll_cpu is None:
-        return
-    cpus = {poll_cpu} if policy == "same" else set(range(os.cpu_count() or 1)) - {poll_cpu}
-    for tid in zenoh_thread_ids():
-        try:
-            os.sched_setaffinity(tid, cpus)
-        except OSError:
-            pass
 
 
 def _free_port(kind: int) -> int:
@@ -77,7 +62,7 @@ def _raw_pong(variant: str, port: int, conn, cpu) -> None:
         s.bind(("127.0.0.1", port))
         s.setblocking(False)
         conn.send("ready")
-        _pin(cpu)
+        pin_this_thread(cpu)
         while True:
             try:
                 data, addr = s.recvfrom(65536)
@@ -97,7 +82,7 @@ def _raw_pong(variant: str, port: int, conn, cpu) -> None:
     ls.close()
     s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     s.setblocking(False)
-    _pin(cpu)
+    pin_this_thread(cpu)
     buf = bytearray()
     while True:
         try:
@@ -125,7 +110,7 @@ def _raw_ping(variant: str, port: int, n: int, warmup: int, cpu) -> list[int]:
         s = socket.create_connection(("127.0.0.1", port))
         s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     s.setblocking(False)
-    _pin(cpu)
+    pin_this_thread(cpu)
     buf = bytearray()
     for i in range(warmup + n):
         msg[:SEQ] = i.to_bytes(SEQ, "little")
@@ -222,8 +207,8 @@ def _zenoh_pong(variant: str, port: int, conn, cpu, idle_every: int, io_threads:
     else:
         sub = session.declare_subscriber("floor/ping", zenoh.handlers.RingChannel(64))
         conn.send("ready")
-        _pin(cpu)
-        _place_io_threads(io_threads, cpu)
+        pin_this_thread(cpu)
+        place_io_threads(io_threads, cpu)
         recv = _receiver(variant, sub.handler, idle_every)
         while True:
             data = recv().payload.to_bytes()
@@ -247,8 +232,8 @@ def _zenoh_ping(variant: str, port: int, n: int, warmup: int, cpu, idle_every: i
             raise RuntimeError("the pong's subscriber never matched")
         time.sleep(0.001)
     time.sleep(0.2)  # the pong's publisher must also have seen our subscriber
-    _pin(cpu)
-    _place_io_threads(io_threads, cpu)
+    pin_this_thread(cpu)
+    place_io_threads(io_threads, cpu)
     recv = _receiver(variant, sub.handler, idle_every)
     msg = bytearray(PAYLOAD)
     clock = time.perf_counter_ns
@@ -300,11 +285,7 @@ def run(variant: str, n: int, warmup: int, idle_every: int = 10, pin: bool = Tru
     finally:
         if saved is not None:
             os.sched_setaffinity(0, saved)
-            for tid in zenoh_thread_ids():
-                try:
-                    os.sched_setaffinity(tid, saved)
-                except OSError:
-                    pass
+            set_io_thread_affinity(saved)
         child.join(10)
         if child.is_alive():
             child.terminate()
@@ -330,10 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--zenoh-runtime", default=None, metavar="RON",
                    help=f"ZENOH_RUNTIME for both processes (default {DEFAULT_ZENOH_RUNTIME!r})")
     args = p.parse_args(argv)
-    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
-    for v in variants:
-        if v not in VARIANTS:
-            p.error(f"unknown variant {v!r}")
+    variants = selected(p, args.variants, VARIANTS, "variant")
     if args.exchanges < 1 or args.warmup < 0:
         p.error("--exchanges must be >= 1 and --warmup >= 0")
     # Before any Zenoh use in this process: Zenoh reads it when its runtime starts.

@@ -117,6 +117,23 @@ def _feature(px: float, py: float, ux: float, uy: float, vx, vy, nx, ny) -> tupl
     return False, face
 
 
+def _add_tool_part(space, mass_kg: float, izz_kg_m2: float, local: list, position: tuple[float, float],
+                   angle_rad: float, center_of_gravity: tuple[float, float] | None = None):
+    """A dynamic tool body (the rigid tool or one link) with its polygon ``local`` (body frame), in
+    the tool's collision group (tool parts never collide with each other), added to ``space``."""
+    body = pymunk.Body(mass_kg, izz_kg_m2)
+    if center_of_gravity is not None:
+        body.center_of_gravity = center_of_gravity
+    body.position = position
+    body.angle = angle_rad
+    shape = pymunk.Poly(body, local)
+    shape.friction = 0.5
+    shape.elasticity = 0.0
+    shape.filter = pymunk.ShapeFilter(group=_TOOL_GROUP)
+    space.add(body, shape)
+    return body, shape
+
+
 class PymunkEngine(Engine):
     """pymunk 7 world with the peg as the tool (see the module docstring)."""
 
@@ -189,15 +206,8 @@ class PymunkEngine(Engine):
         # The tool and its driver.
         half_l, half_w = TOOL_LENGTH_M / 2, TOOL_WIDTH_M / 2
         self._tool_local = [(-half_l, -half_w), (half_l, -half_w), (half_l, half_w), (-half_l, half_w)]
-        tool = pymunk.Body(TOOL_MASS_KG, TOOL_IZZ_KG_M2)
         x, y, th = sc.tool_start
-        tool.position = (x, y)
-        tool.angle = th
-        tool_shape = pymunk.Poly(tool, self._tool_local)
-        tool_shape.friction = 0.5
-        tool_shape.elasticity = 0.0
-        tool_shape.filter = pymunk.ShapeFilter(group=_TOOL_GROUP)
-        space.add(tool, tool_shape)
+        tool, tool_shape = _add_tool_part(space, TOOL_MASS_KG, TOOL_IZZ_KG_M2, self._tool_local, (x, y), th)
         control = self._drive(space, tool, x, y, th)
         self.space, self.tool, self.tool_shape, self.control = space, tool, tool_shape, control
         self._target = (x, y, th, 0.0, 0.0, 0.0)
@@ -245,15 +255,9 @@ class PymunkEngine(Engine):
         self.links, self.link_shapes, self.controls = [], [], []
         self._self_env: dict[pymunk.Shape, tuple[int, _EnvShape]] = {}
         for k in range(LINK_COUNT):
-            body = pymunk.Body(LINK_MASS_KG, LINK_IZZ_KG_M2)
-            body.center_of_gravity = (L / 2, 0.0)  # body position = the link frame's origin (its pivot)
-            body.position = (x + k * L * math.cos(th), y + k * L * math.sin(th))
-            body.angle = th
-            shape = pymunk.Poly(body, self._link_local)
-            shape.friction = 0.5
-            shape.elasticity = 0.0
-            shape.filter = pymunk.ShapeFilter(group=_TOOL_GROUP)
-            space.add(body, shape)
+            body, shape = _add_tool_part(space, LINK_MASS_KG, LINK_IZZ_KG_M2, self._link_local,
+                                         (x + k * L * math.cos(th), y + k * L * math.sin(th)), th,
+                                         center_of_gravity=(L / 2, 0.0))  # position = the link's pivot
             if k:
                 space.add(pymunk.PivotJoint(self.links[-1], body, (L, 0.0), (0.0, 0.0)))
             self.controls.append(self._drive(space, body, body.position.x, body.position.y, th))

@@ -295,13 +295,9 @@ class StubEngine(Engine):
             fx += self._wrench[0]
             fy += self._wrench[1]
             ft += self._wrench[2]
-        # Stiffness and damping matrices (symmetric 3x3: xx xy xt yy yt tt).
-        kxx = kyy = kc
-        ktt = kr
-        kxy = kxt = kyt = 0.0
-        bxx = byy = bc
-        btt = br
-        bxy = bxt = byt = 0.0
+        # The penetrating contacts' geometry G = sum of J J^T, J = (nx, ny, jt) (symmetric 3x3: xx xy
+        # xt yy yt tt); their penalty springs and dampers add ke G and be G to the coupling's.
+        gxx = gxy = gxt = gyy = gyt = gtt = 0.0
         for _body, _feature, cx, cy, nx, ny, d, _vc in self._contacts_here(0.0):
             if d >= 0.0:
                 continue
@@ -314,18 +310,14 @@ class StubEngine(Engine):
                 fx += lam * nx
                 fy += lam * ny
                 ft += lam * jt
-            kxx += ke * nx * nx
-            kxy += ke * nx * ny
-            kxt += ke * nx * jt
-            kyy += ke * ny * ny
-            kyt += ke * ny * jt
-            ktt += ke * jt * jt
-            bxx += be * nx * nx
-            bxy += be * nx * ny
-            bxt += be * nx * jt
-            byy += be * ny * ny
-            byt += be * ny * jt
-            btt += be * jt * jt
+            gxx += nx * nx
+            gxy += nx * ny
+            gxt += nx * jt
+            gyy += ny * ny
+            gyt += ny * jt
+            gtt += jt * jt
+        kxx, kxy, kxt, kyy, kyt, ktt = kc + ke * gxx, ke * gxy, ke * gxt, kc + ke * gyy, ke * gyt, kr + ke * gtt
+        bxx, bxy, bxt, byy, byt, btt = bc + be * gxx, be * gxy, be * gxt, bc + be * gyy, be * gyt, br + be * gtt
         m, iz, h2 = self.mass_kg, self.izz_kg_m2, h * h
         a11 = m + h * bxx + h2 * kxx
         a12 = h * bxy + h2 * kxy

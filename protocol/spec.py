@@ -72,6 +72,18 @@ def _field_rows(fields: tuple[FieldDoc, ...], first_index: int) -> list[list[obj
 
 
 _FIELD_HEAD = ["#", "field", "wire type", "unit", "frame", "sign", "rule", "since", "default", "meaning"]
+_DEFAULTS_HEAD = ["name", "default", "meaning"]
+
+
+def _enum_table(enum: type[IntEnum], head: list[str], docs: dict, name=lambda v: v.name.lower()) -> str:
+    """One row per member of ``enum``, in order: its value, ``name(member)`` and its ``docs`` entry
+    (a member without one is a KeyError, so a new member cannot go undocumented)."""
+    return _table(head, [[int(v), name(v), docs[v]] for v in enum])
+
+
+def _attribute_rows(defaults: object, docs: dict[str, str]) -> list[list[object]]:
+    """Rows of a defaults table: each attribute named in ``docs``, its value in ``defaults``, its meaning."""
+    return [[name, getattr(defaults, name), doc] for name, doc in docs.items()]
 
 
 def render_tables() -> str:
@@ -101,45 +113,53 @@ def render_tables() -> str:
         offset += c.width
     parts.append(_table(["block", "first float64 (index)", "shape", "unit", "frame", "sign", "meaning"], rows))
     parts += ["", "### Enumerations", ""]
-    parts.append(_table(["tool_kind", "name", "meaning"], [
-        [int(k), f"`{TOOL_KIND_NAMES[k]}`", {ToolKind.ONE_DOF: "translation along Hello.axis only",
-                                             ToolKind.PLANAR: "translation in world x-y, rotation about +z",
-                                             ToolKind.SPATIAL: "free rigid body (6 DOF)",
-                                             ToolKind.LINKAGE: "kinematic tree in Hello.links; the hand holds Hello.held_link"}[k]]
-        for k in ToolKind]))
+    parts.append(_enum_table(ToolKind, ["tool_kind", "name", "meaning"], _TOOL_KIND_DOCS,
+                             lambda k: f"`{TOOL_KIND_NAMES[k]}`"))
     parts += [""]
-    parts.append(_table(["joint_type", "name", "q"], [
-        [int(j), j.name.lower(), {JointType.ROOT: "none (link 0 only, floating base = tool pose)",
-                                  JointType.REVOLUTE: "rad, right-handed about joint_axis",
-                                  JointType.PRISMATIC: "m, along joint_axis"}[j]] for j in JointType]))
+    parts.append(_enum_table(JointType, ["joint_type", "name", "q"], _JOINT_TYPE_DOCS))
     parts += [""]
-    parts.append(_table(["server_state", "name", "meaning"], [
-        [int(v), v.name.lower(), _STATE_DOCS[v]] for v in ServerState]))
+    parts.append(_enum_table(ServerState, ["server_state", "name", "meaning"], _STATE_DOCS))
     parts += ["", "### Error codes (Error.code, Reject.code, Bye.code)", ""]
-    parts.append(_table(["code", "name", "meaning"], [[int(c), f"`{c.name}`", _CODE_DOCS[c]] for c in ErrorCode]))
-    lim, scfg, ccfg = Limits(), ServerConfig(), ClientConfig()
+    parts.append(_enum_table(ErrorCode, ["code", "name", "meaning"], _CODE_DOCS, lambda c: f"`{c.name}`"))
     parts += ["", "### Limits and defaults (this implementation; a peer may choose its own limits)", ""]
-    parts.append(_table(["name", "default", "meaning"], [
-        ["max_packet_bytes", lim.max_packet_bytes, "larger datagrams are dropped before any unpacking (plus the HMAC tag in HMAC mode)"],
-        ["max_contacts", lim.max_contacts, "decoder bound on contact_count; the granted capacity is <= this"],
-        ["max_str_bytes", lim.max_str_bytes, "longest UTF-8 string (msgpack max_str_len)"],
-        ["max_links", lim.max_links, "most links in Hello.links and values in a joint array"],
-        ["max_bin_bytes", lim.max_bin_bytes, "msgpack max_bin_len (derived)"],
-        ["max_array_len", lim.max_array_len, "msgpack max_array_len (derived); maps and ext types: none allowed"],
+    parts.append(_table(_DEFAULTS_HEAD, _attribute_rows(Limits(), {
+        "max_packet_bytes": "larger datagrams are dropped before any unpacking (plus the HMAC tag in HMAC mode)",
+        "max_contacts": "decoder bound on contact_count; the granted capacity is <= this",
+        "max_str_bytes": "longest UTF-8 string (msgpack max_str_len)",
+        "max_links": "most links in Hello.links and values in a joint array",
+        "max_bin_bytes": "msgpack max_bin_len (derived)",
+        "max_array_len": "msgpack max_array_len (derived); maps and ext types: none allowed",
+    }) + [
         ["unit tolerance", f"{UNIT_TOLERANCE:g}", "| \\|x\\| - 1 | for normals, axes, quaternions"],
         ["float bound", f"{MAX_ABS_FLOAT:g}", "every float must be finite with \\|x\\| <= this"],
         ["HMAC tag", f"{HMAC_TAG_BYTES} bytes", "truncated HMAC-SHA256 appended in shared-secret mode"],
-        ["haptic_rate_hz", scfg.haptic_rate_hz, "server default, reported in Welcome"],
-        ["heartbeat_interval_s", scfg.heartbeat_interval_s, "server default, granted in Welcome"],
-        ["silence_timeout_s", scfg.silence_timeout_s, "server default, granted in Welcome"],
-        ["error_rate_per_s", scfg.error_rate_per_s, "Error replies per session (token bucket, same burst)"],
-        ["workspace_extent_m", scfg.workspace_extent_m, "server default scene bound, granted in Welcome (1.2)"],
-        ["max_constraint_speed_m_per_s", scfg.max_constraint_speed_m_per_s, "server default scene bound, granted in Welcome (1.2)"],
-        ["max_separation_m", scfg.max_separation_m, "server default scene bound, granted in Welcome (1.2)"],
-        ["max_seq_jump", scfg.max_seq_jump, "largest forward jump of a seq the server accepts (else Error SEQ_JUMP)"],
-        ["hello_retry_s", ccfg.hello_retry_s, "client resends Hello this often while handshaking"],
-    ]))
+    ] + _attribute_rows(ServerConfig(), {
+        "haptic_rate_hz": "server default, reported in Welcome",
+        "heartbeat_interval_s": "server default, granted in Welcome",
+        "silence_timeout_s": "server default, granted in Welcome",
+        "error_rate_per_s": "Error replies per session (token bucket, same burst)",
+        "workspace_extent_m": "server default scene bound, granted in Welcome (1.2)",
+        "max_constraint_speed_m_per_s": "server default scene bound, granted in Welcome (1.2)",
+        "max_separation_m": "server default scene bound, granted in Welcome (1.2)",
+        "max_seq_jump": "largest forward jump of a seq the server accepts (else Error SEQ_JUMP)",
+    }) + _attribute_rows(ClientConfig(), {
+        "hello_retry_s": "client resends Hello this often while handshaking",
+    })))
     return "\n".join(parts)
+
+
+_TOOL_KIND_DOCS = {
+    ToolKind.ONE_DOF: "translation along Hello.axis only",
+    ToolKind.PLANAR: "translation in world x-y, rotation about +z",
+    ToolKind.SPATIAL: "free rigid body (6 DOF)",
+    ToolKind.LINKAGE: "kinematic tree in Hello.links; the hand holds Hello.held_link",
+}
+
+_JOINT_TYPE_DOCS = {
+    JointType.ROOT: "none (link 0 only, floating base = tool pose)",
+    JointType.REVOLUTE: "rad, right-handed about joint_axis",
+    JointType.PRISMATIC: "m, along joint_axis",
+}
 
 
 _STATE_DOCS = {
@@ -267,6 +287,13 @@ DEVLINK_EXAMPLE = dict(flags=dl.F_ENABLE, device_session=1_700_000_000_500_000_0
                        wrench=(0.5, -0.25, 0.0, 0.0, 0.0, 0.01))
 
 
+_DEVICE_KIND_DOCS = {
+    dl.DeviceKind.ONE_DOF: "translation along the device's axis only",
+    dl.DeviceKind.PLANAR: "translation in world x-y, rotation about +z",
+    dl.DeviceKind.SPATIAL: "6 DOF",
+}
+
+
 def render_devlink() -> str:
     """SPEC's tables of the remote-device link, from :mod:`.devlink`'s declaration."""
     parts = [f"Layout version of these tables: **{dl.VERSION}** (magic `{dl.MAGIC.decode()}`); every integer and "
@@ -288,15 +315,12 @@ def render_devlink() -> str:
         [f"{c.start}" if c.width == 1 else f"{c.start}-{c.start + c.width - 1}", f"`{c.name}`", c.unit, c.doc]
         for c in dl.ROW_COLUMNS]))
     parts += ["", "#### Enumerations", ""]
-    parts.append(_table(["kind", "name", "meaning"], [
-        [int(k), f"`{dl.KIND_NAMES[k]}`", {dl.DeviceKind.ONE_DOF: "translation along the device's axis only",
-                                           dl.DeviceKind.PLANAR: "translation in world x-y, rotation about +z",
-                                           dl.DeviceKind.SPATIAL: "6 DOF"}[k]] for k in dl.DeviceKind]))
+    parts.append(_enum_table(dl.DeviceKind, ["kind", "name", "meaning"], _DEVICE_KIND_DOCS,
+                             lambda k: f"`{dl.KIND_NAMES[k]}`"))
     parts += [""]
-    parts.append(_table(["fault", "name", "meaning"], [
-        [int(f), f.name.lower(), dl.FAULT_DOCS[f]] for f in dl.DeviceFault]))
+    parts.append(_enum_table(dl.DeviceFault, ["fault", "name", "meaning"], dl.FAULT_DOCS))
     parts += ["", "#### Defaults (this implementation)", ""]
-    parts.append(_table(["name", "default", "meaning"], [
+    parts.append(_table(_DEFAULTS_HEAD, [
         ["listen port", dl.DEFAULT_PORT, "UDP port of the server driver (`[device] listen`)"],
         ["link_timeout_s", dl.DEFAULT_LINK_TIMEOUT_S, "server driver: no STATE for this long -> link fault"],
         ["watchdog_s", dl.DEFAULT_WATCHDOG_S, "device program: armed and no command accepted for this long -> zero, latched"],

@@ -19,15 +19,15 @@ GOLDEN_DIR = Path(__file__).with_name("golden")
 GOLDEN = json.loads((GOLDEN_DIR / "devlink_golden.json").read_text(encoding="utf-8"))
 
 
-def _state_values(f: dict) -> dict:
-    f = dict(f)
-    f["flags"] = dl.F_ARMED if f.pop("armed") else 0
-    return f
+#: Each golden set: its datagram, the JSON key of its one flag and that flag's bit, its float64 array.
+_SETS = {"state": (STATE, "armed", dl.F_ARMED, "state"), "command": (COMMAND, "enable", dl.F_ENABLE, "wrench")}
 
 
-def _command_values(f: dict) -> dict:
+def _values(kind: str, f: dict) -> dict:
+    """A golden case's fields as ``pack`` takes them (the flag as its bit in ``flags``)."""
+    _, flag_key, bit, _ = _SETS[kind]
     f = dict(f)
-    f["flags"] = dl.F_ENABLE if f.pop("enable") else 0
+    f["flags"] = bit if f.pop(flag_key) else 0
     return f
 
 
@@ -40,27 +40,19 @@ def test_the_declared_layouts_are_the_hand_written_ones():
     assert COMMAND.offsets["engagements"] == 28 and STATE.offsets["kind"] == 48
 
 
-@pytest.mark.parametrize("i", range(len(GOLDEN["state"])))
-def test_state_bytes_match_the_golden_set(i):
-    case = GOLDEN["state"][i]
-    data = STATE.pack(**_state_values(case["fields"]))
+@pytest.mark.parametrize(("kind", "i"), [(kind, i) for kind in _SETS for i in range(len(GOLDEN[kind]))])
+def test_datagram_bytes_match_the_golden_set(kind, i):
+    datagram, _, _, array_field = _SETS[kind]
+    case = GOLDEN[kind][i]
+    values = _values(kind, case["fields"])
+    data = datagram.pack(**values)
     assert data.hex() == case["hex"]
-    back = STATE.unpack(data)
-    for k, v in _state_values(case["fields"]).items():
-        if k == "state":
-            np.testing.assert_array_equal(back.state, np.array(v))
+    back = datagram.unpack(data)
+    for k, v in values.items():
+        if k == array_field:
+            np.testing.assert_array_equal(getattr(back, k), np.array(v))
         else:
             assert getattr(back, k) == v, k
-
-
-@pytest.mark.parametrize("i", range(len(GOLDEN["command"])))
-def test_command_bytes_match_the_golden_set(i):
-    case = GOLDEN["command"][i]
-    data = COMMAND.pack(**_command_values(case["fields"]))
-    assert data.hex() == case["hex"]
-    back = COMMAND.unpack(data)
-    assert back.engagements == case["fields"]["engagements"] and back.seq == case["fields"]["seq"]
-    np.testing.assert_array_equal(back.wrench, np.array(case["fields"]["wrench"]))
 
 
 def test_a_recorded_exchange_replays_byte_for_byte():

@@ -23,14 +23,16 @@ GOLDEN = json.loads((GOLDEN_DIR / "codec_golden.json").read_text(encoding="utf-8
 
 
 def _load_generator():
-    """The corpus's generator, for the way it turned a ContactUpdate's JSON arguments into arrays."""
+    """The corpus's generator, for the way it turned a ContactUpdate's JSON arguments into arrays
+    and an error into a verdict."""
     spec = importlib.util.spec_from_file_location("make_golden", GOLDEN_DIR / "make_golden.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
 
 
-_call_cu = _load_generator().call_cu
+_GENERATOR = _load_generator()
+_call_cu, _error_verdict = _GENERATOR.call_cu, _GENERATOR.error_verdict
 
 #: Verdicts changed on purpose (issue 13 section 4), with the new verdict's code and field.
 CHANGED = {
@@ -89,10 +91,7 @@ def _encode(codec, build: dict) -> bytes:
 def _verdict(codec, data: bytes) -> dict:
     out = codec.try_decode(data)
     if isinstance(out, C.ProtocolError):
-        return {"error": out.code.name, "field": out.field, "type_id": out.type_id, "session_id": out.session_id,
-                "token": out.token, "seq": out.seq, "client_nonce": out.client_nonce,
-                "version_min": list(out.version_min) if out.version_min else None,
-                "version_max": list(out.version_max) if out.version_max else None}
+        return _error_verdict(out)
     return {"ok": out}
 
 

@@ -334,13 +334,18 @@ def decoded(msg) -> dict:
     return {"type": type(msg).__name__, "attrs": attrs}
 
 
+def error_verdict(err: C.ProtocolError) -> dict:
+    """A refused packet's verdict: the error code and field, and what the codec read of the packet."""
+    return {"error": err.code.name, "field": err.field, "type_id": err.type_id, "session_id": err.session_id,
+            "token": err.token, "seq": err.seq, "client_nonce": err.client_nonce,
+            "version_min": list(err.version_min) if err.version_min else None,
+            "version_max": list(err.version_max) if err.version_max else None}
+
+
 def verdict(codec, data: bytes) -> dict:
     out = codec.try_decode(data)
     if isinstance(out, C.ProtocolError):
-        return {"error": out.code.name, "field": out.field, "type_id": out.type_id, "session_id": out.session_id,
-                "token": out.token, "seq": out.seq, "client_nonce": out.client_nonce,
-                "version_min": list(out.version_min) if out.version_min else None,
-                "version_max": list(out.version_max) if out.version_max else None}
+        return error_verdict(out)
     return {"ok": decoded(out)}
 
 
