@@ -11,15 +11,18 @@ protocol's 7-number pose and 6-number twist here only: :func:`planar_pose` / :fu
 :func:`axis_pose` / :func:`axis_coordinate`, :func:`planar_chain` (a planar linkage's links from
 its root and joints).
 
-:func:`quat_to_matrix_into` is written so that numba compiles it too: the narrow phase
-(:mod:`.narrowphase`) jits this very function rather than keeping a second copy. No numba here,
-so the planar engines do not pay for importing it.
+:func:`quat_to_matrix_into` is the protocol's own (:mod:`hapticproxy.protocol.quaternion`), written
+so that numba compiles it too: the narrow phase (:mod:`.narrowphase`) and the server's model
+kernels jit that very function rather than keeping copies. No numba here, so the planar engines
+do not pay for importing it.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
+
+from hapticproxy.protocol.quaternion import quat_to_matrix_into
 
 __all__ = [
     "IDENTITY_WXYZ", "xyzw_from_wxyz", "wxyz_from_xyzw", "quat_to_matrix_into", "quat_to_matrix",
@@ -43,22 +46,6 @@ def wxyz_from_xyzw(q) -> tuple[float, float, float, float]:
 
 
 # ------------------------------------------------------------------------ quaternions (w, x, y, z)
-def quat_to_matrix_into(q, R):
-    """Rotation matrix (body to world) of the unit quaternion ``q = (w, x, y, z)`` into ``R``
-    (3x3). Plain indexing and arithmetic only: numba compiles it as it is (:mod:`.narrowphase`)."""
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    R[0, 1] = 2.0 * (x * y - z * w)
-    R[0, 2] = 2.0 * (x * z + y * w)
-    R[1, 0] = 2.0 * (x * y + z * w)
-    R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    R[1, 2] = 2.0 * (y * z - x * w)
-    R[2, 0] = 2.0 * (x * z - y * w)
-    R[2, 1] = 2.0 * (y * z + x * w)
-    R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
-    return R
-
-
 def quat_to_matrix(q) -> np.ndarray:
     """A new 3x3 rotation matrix of ``q = (w, x, y, z)``."""
     return quat_to_matrix_into(q, np.empty((3, 3)))

@@ -50,8 +50,10 @@ What counts as a contact
 
 Every kernel is called through :class:`BoxNarrowPhase`, which fixes the argument types, so each
 has exactly one signature; :func:`warm_up_kernels` compiles them all (``hapticproxy warmup``).
-The quaternion-to-matrix kernel is :func:`.geometry.quat_to_matrix_into`, jitted here (numba's
-cache does not see edits to geometry.py: clear ``__pycache__`` after changing it).
+The quaternion-to-matrix kernel is the protocol's :func:`~hapticproxy.protocol.quaternion.quat_to_matrix_into`
+(re-exported by :mod:`.geometry`), jitted here as in the server's model kernels. Numba's cache
+does not see edits to that file; ``server.warm.KERNEL_SOURCES`` lists it, so a changed source drops
+the cached kernels at the next warm-up.
 """
 from __future__ import annotations
 

@@ -36,7 +36,7 @@ SERVER_KERNEL_MODULES = (
 #: (``control.haptic_step`` calls ``model.kernels.step_rigid``) would keep running the old code
 #: after an edit there; :func:`refresh_stale_caches` drops every cache when any of these changes.
 KERNEL_SOURCES = tuple(name.removeprefix("hapticproxy.").replace(".", "/") + ".py" for name in SERVER_KERNEL_MODULES) + (
-    "clients/narrowphase.py", "clients/geometry.py")
+    "clients/narrowphase.py", "clients/geometry.py", "protocol/quaternion.py")
 _STAMP = "hapticproxy-kernel-sources.sha256"
 
 

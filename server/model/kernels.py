@@ -32,6 +32,8 @@ import math
 import numpy as np
 from numba import njit
 
+from hapticproxy.protocol.quaternion import quat_to_matrix_into
+
 from .layout import (
     C_CP, C_D, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
     CI_AGE, CI_KEY, CI_SLIP, CI_STATE,
@@ -138,17 +140,9 @@ def _bwd(L, b, x, n):
         x[i] = s / L[i, i]
 
 
-@njit(**_JIT)
-def _quat_to_rot(qw, qx, qy, qz, R):
-    R[0, 0] = 1.0 - 2.0 * (qy * qy + qz * qz)
-    R[0, 1] = 2.0 * (qx * qy - qw * qz)
-    R[0, 2] = 2.0 * (qx * qz + qw * qy)
-    R[1, 0] = 2.0 * (qx * qy + qw * qz)
-    R[1, 1] = 1.0 - 2.0 * (qx * qx + qz * qz)
-    R[1, 2] = 2.0 * (qy * qz - qw * qx)
-    R[2, 0] = 2.0 * (qx * qz - qw * qy)
-    R[2, 1] = 2.0 * (qy * qz + qw * qx)
-    R[2, 2] = 1.0 - 2.0 * (qx * qx + qy * qy)
+#: the protocol's quaternion (w, x, y, z) -> rotation matrix, jitted here (the clients' narrow
+#: phase jits the same function)
+_quat_to_mat = njit(inline="always", error_model="numpy")(quat_to_matrix_into)
 
 
 # --------------------------------------------------------------------------------------------
@@ -172,7 +166,7 @@ def _rigid_pose(kind, par, st, R, c):
         R[1, 0] = sn; R[1, 1] = ct
         c[0] = st[S_Q]; c[1] = st[S_Q + 1]; c[2] = 0.0
     else:
-        _quat_to_rot(st[S_Q + 3], st[S_Q + 4], st[S_Q + 5], st[S_Q + 6], R)
+        _quat_to_mat(st[S_Q + 3:S_Q + 7], R)
         c[0] = st[S_Q]; c[1] = st[S_Q + 1]; c[2] = st[S_Q + 2]
 
 
