@@ -937,12 +937,14 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
     contact that left in the same update continues that contact (its penetration is kept, as
     eq. 5 keeps any existing contact's, instead of restarting at zero through eq. 4).
 
-    Cost O(n + m) for the keys (a key table in W once m > _SCAN_MAX_M) plus, for the keys that
-    are new, a scan of the contacts still untaken on the same link with the cheapest test (the
-    normals' cosine) first; none at all when every key was kept or every contact continued.
-    The result is the one of the plain rule (each key against every contact in order, the first
-    with that key; each new key in order against every untaken contact, the best |cos| first in
-    order): ``tests/model/test_update_matching.py`` checks it bit for bit."""
+    Cost: O(n + m) for the keys (a key table in W once m > _SCAN_MAX_M); then, for each new key
+    only, the contacts left in the <= 2 x 2 buckets of normals near its own (``_NB``), the
+    cheapest test (the normals' cosine) first, the feature point computed only for a candidate
+    that passes the planes' test; nothing when every key was kept or every contact continued.
+    The result is the plain rule's, bit for bit (each key against every contact in order, the
+    first with that key; each new key, in order, against every contact not yet continued, the
+    largest |cos| winning, the lowest index on a tie): ``tests/model/test_update_matching.py``
+    runs that rule as first written on copies and compares."""
     m = cnt[K_M]
     t = st[S_T]
     policy = int(par[P_POLICY])
