@@ -9,6 +9,9 @@ chains of 3 and 6 revolute joints, held by the last link, d = 9 and 12, with the
 velocity-product terms) spread their contacts over all links, at 8 and 32 contacts by default. Both implementations are timed on the same states in the
 same run: the numba step as the server calls it (``LocalModel.step``), and the plain-numpy
 reference step (``reference_step``). The garbage collector is off while timing, as in the loop.
+Each update (``LocalModel.update``: the Python checks and the kernel) is timed too (median, p99):
+half of its keys are new, so it exercises the re-key matching of every new key against the
+contacts that left.
 
 Prints a JSON list of rows (``--json``) or a table; the warm start (import + load of the cached
 kernels in a fresh process) goes to stderr.
@@ -141,6 +144,7 @@ def bench_row(kind: str, n: int, steps: int, numpy_steps: int, seed: int) -> dic
         "numpy_median_us": round(numpy_med, 3),
         "speedup": round(numpy_med / numba_med, 1) if numpy_ns else None,
         "update_median_us": round(float(np.median(update_ns)) / 1e3, 3) if update_ns else None,
+        "update_p99_us": round(float(np.percentile(update_ns, 99)) / 1e3, 3) if update_ns else None,
         "steps": steps,
         "numpy_steps": len(numpy_ns),
         "collision_steps": counters["collisions"],

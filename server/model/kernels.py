@@ -852,13 +852,50 @@ _W_TAKEN = 1     # existing contact i: 1 once an incoming contact continues it (
 _W_FOUND = 2     # incoming contact a: the existing contact it continues (-1: none)
 _W_FLIP = 3      # incoming contact a: 1 when its normal reversed the existing one's (kept as it was)
 _W_XP = 4        # incoming contact a: 4..6 its tool feature as the proxy carries it, world
+_W_DS = 7        # existing contact i: how far its constraint plane moved along n since its update
+_W_TABLE = 8     # 8..11: pass 1's open-addressing key table, slot s at row s >> 2, column 8 + (s & 3);
+                 # holds i + 1 for existing contact i, 0 when empty
+_W_LEFT = 8      # 8..11, then pass 2's: row r holds a contact i not continued by its key, and n_i
+#: Up to this many existing contacts, pass 1 scans them for each key: cheaper than filling the
+#: key table (both find the same contact: the first with that key).
+_SCAN_MAX_M = 8
 
 
-@njit(**_JIT)
-def _feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, out):
-    """The reported tool feature as the proxy carries it (world, into ``out``); returns its
-    separation s_w from the reported constraint along n (the engine frame: the feature taken in
-    the engine tool's frame and put on the proxy; the paper's eq. 1: c_p + d n, s_w = d)."""
+#: Pass 2 sorts the contacts left into _NB x _NB buckets by (|n_x|, |n_y|), each 1 / _NB wide: two
+#: normals whose |cos| reaches REKEY_COS differ by at most _NB_REACH in |n_x| and in |n_y|
+#: (|a - b|^2 = |a|^2 + |b|^2 - 2 |a . b| for b turned the right way round, with the squared
+#: lengths within _NB_NORM2_TOL of 1, which the kernel checks: a normal that is not is matched
+#: against every bucket), so a new key looks only into the <= 2 x 2 buckets around its own.
+#: Below _NB_MIN_PAIRS (contacts left x new keys) one bucket is cheaper.
+_NB = 5
+_NB_NORM2_TOL = 1e-5
+_NB_REACH = math.sqrt(2.0 + 2.0 * _NB_NORM2_TOL - 2.0 * (REKEY_COS - 1e-12)) + 1e-9
+_NB_MIN_PAIRS = 64
+assert 2.0 * _NB_REACH <= 1.0 / _NB and _NB * _NB <= NCOLS_F
+
+
+@njit(inline="always", **_JIT)
+def _nb_coord(v, nb):
+    """Bucket coordinate of a normal's |component| v >= 0 (the last one takes v >= 1 too)."""
+    c = int(v * nb)
+    return c if c < nb else nb - 1
+
+
+@njit(inline="always", **_JIT)
+def _key_slot(k0, k1, k2, mask):
+    """Home slot of a contact key in a key table of mask + 1 (a power of two) slots. int64
+    multiplications wrap, which is all a hash needs."""
+    h = k0 * 0x5851F42D4C957F2D + k1 * 0x27D4EB2F165667C5 + k2 * 0x165667B19E3779F9
+    h ^= h >> 29
+    return h & mask
+
+
+@njit(inline="always", **_JIT)
+def _feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, W, a):
+    """The reported tool feature as the proxy carries it (world, into ``W[a, _W_XP:_W_XP + 3]``);
+    returns its separation s_w from the reported constraint along n (the engine frame: the
+    feature taken in the engine tool's frame and put on the proxy; the paper's eq. 1: c_p + d n,
+    s_w = d)."""
     if use_qe:
         fx = cp[j, 0] + dsep[j] * nrm[j, 0] - Pe[k, 9]
         fy = cp[j, 1] + dsep[j] * nrm[j, 1] - Pe[k, 10]
@@ -866,43 +903,16 @@ def _feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, out):
         bx = Pe[k, 0] * fx + Pe[k, 3] * fy + Pe[k, 6] * fz
         by = Pe[k, 1] * fx + Pe[k, 4] * fy + Pe[k, 7] * fz
         bz = Pe[k, 2] * fx + Pe[k, 5] * fy + Pe[k, 8] * fz
-        out[0] = P[k, 9] + P[k, 0] * bx + P[k, 1] * by + P[k, 2] * bz
-        out[1] = P[k, 10] + P[k, 3] * bx + P[k, 4] * by + P[k, 5] * bz
-        out[2] = P[k, 11] + P[k, 6] * bx + P[k, 7] * by + P[k, 8] * bz
-        return nrm[j, 0] * (out[0] - cp[j, 0]) + nrm[j, 1] * (out[1] - cp[j, 1]) + nrm[j, 2] * (out[2] - cp[j, 2])
+        x0 = P[k, 9] + P[k, 0] * bx + P[k, 1] * by + P[k, 2] * bz
+        x1 = P[k, 10] + P[k, 3] * bx + P[k, 4] * by + P[k, 5] * bz
+        x2 = P[k, 11] + P[k, 6] * bx + P[k, 7] * by + P[k, 8] * bz
+        W[a, _W_XP] = x0
+        W[a, _W_XP + 1] = x1
+        W[a, _W_XP + 2] = x2
+        return nrm[j, 0] * (x0 - cp[j, 0]) + nrm[j, 1] * (x1 - cp[j, 1]) + nrm[j, 2] * (x2 - cp[j, 2])
     for q_ in range(3):
-        out[q_] = cp[j, q_] + dsep[j] * nrm[j, q_]
+        W[a, _W_XP + q_] = cp[j, q_] + dsep[j] * nrm[j, q_]
     return dsep[j]
-
-
-@njit(**_JIT)
-def _same_feature(C, CI, X, t, i, k, xp, cp, nrm, j):
-    """n_old . n_new if the existing contact ``i`` (on link ``k``) sits where the reported feature
-    ``xp`` / constraint ``j`` is (REKEY_DISTANCE_M along the surface and across it), else 0."""
-    if CI[i, CI_KEY] != k:
-        return 0.0
-    dot = C[i, C_N] * nrm[j, 0] + C[i, C_N + 1] * nrm[j, 1] + C[i, C_N + 2] * nrm[j, 2]
-    if abs(dot) < REKEY_COS:
-        return 0.0
-    # the two constraint planes (the old one moved on with v_constr since its update)
-    ds = C[i, C_VC] * (t - C[i, C_TU]) + C[i, C_REC]
-    across = 0.0
-    for a in range(3):
-        across += nrm[j, a] * (cp[j, a] - C[i, C_CP + a] - ds * C[i, C_N + a])
-    if abs(across) > REKEY_DISTANCE_M:
-        return 0.0
-    # the proxy's point of the old contact against the new feature, along the surface (the
-    # deformation only moved it along n)
-    e0 = X[i, 0] - xp[0]
-    e1 = X[i, 1] - xp[1]
-    e2 = X[i, 2] - xp[2]
-    en = e0 * nrm[j, 0] + e1 * nrm[j, 1] + e2 * nrm[j, 2]
-    e0 -= en * nrm[j, 0]
-    e1 -= en * nrm[j, 1]
-    e2 -= en * nrm[j, 2]
-    if e0 * e0 + e1 * e1 + e2 * e2 > REKEY_DISTANCE_M * REKEY_DISTANCE_M:
-        return 0.0
-    return dot
 
 
 @njit(**_JIT)
@@ -912,14 +922,23 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
     of tool link k (rotation link -> world row-major, then the link frame's origin, world) at the
     proxy's configuration, ``Pe[k]`` the same at the engine's (read only when ``use_qe``). A
     contact's local point is stored in the frame of its link (key column 0). ``X`` (m x 3) and
-    ``W`` (cap x >= 4): scratch.
+    ``W`` (cap x 12): scratch.
 
     Two events real engines produce are caught before the rules (``layout.FLIP_DOT``,
     ``REKEY_COS``, ``REKEY_DISTANCE_M``): a reported normal that reverses an existing contact's
     is refused for this update (the contact keeps its previous geometry and state, so the force
     is not turned round into a pull towards the surface), and a new key at the feature of a
     contact that left in the same update continues that contact (its penetration is kept, as
-    eq. 5 keeps any existing contact's, instead of restarting at zero through eq. 4)."""
+    eq. 5 keeps any existing contact's, instead of restarting at zero through eq. 4).
+
+    Cost: O(n + m) for the keys (a key table in W once m > _SCAN_MAX_M); then, for each new key
+    only, the contacts left in the <= 2 x 2 buckets of normals near its own (``_NB``), the
+    cheapest test (the normals' cosine) first, the feature point computed only for a candidate
+    that passes the planes' test; nothing when every key was kept or every contact continued.
+    The result is the plain rule's, bit for bit (each key against every contact in order, the
+    first with that key; each new key, in order, against every contact not yet continued, the
+    largest |cos| winning, the lowest index on a tie): ``tests/model/test_update_matching.py``
+    runs that rule as first written on copies and compares."""
     m = cnt[K_M]
     t = st[S_T]
     policy = int(par[P_POLICY])
@@ -936,47 +955,188 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
             s += C[i, C_N + a] * (X[i, a] - C[i, C_CP + a])
         W[i, _W_SP] = s
         W[i, _W_TAKEN] = 0.0
-    # pass 1: the same keys
+        # the old constraint plane moved on with v_constr since its update (and by the recovery)
+        W[i, _W_DS] = C[i, C_VC] * (t - C[i, C_TU]) + C[i, C_REC]
+    # pass 1: the same keys (the first existing contact with the key, as a scan finds it)
+    size = 4
+    while size < 2 * m:                       # load factor <= 1/2
+        size *= 2
+    table = m > _SCAN_MAX_M and size <= 4 * W.shape[0]
+    mask = size - 1
+    if table:
+        for s_ in range(size):
+            W[s_ >> 2, _W_TABLE + (s_ & 3)] = 0.0
+        for i in range(m):
+            s_ = _key_slot(CI[i, CI_KEY], CI[i, CI_KEY + 1], CI[i, CI_KEY + 2], mask)
+            while True:
+                e = int(W[s_ >> 2, _W_TABLE + (s_ & 3)])
+                if e == 0:
+                    W[s_ >> 2, _W_TABLE + (s_ & 3)] = i + 1
+                    break
+                e -= 1
+                if CI[e, CI_KEY] == CI[i, CI_KEY] and CI[e, CI_KEY + 1] == CI[i, CI_KEY + 1] \
+                        and CI[e, CI_KEY + 2] == CI[i, CI_KEY + 2]:
+                    break                     # a repeated key: the first one answers
+                s_ = (s_ + 1) & mask
+    n_found = 0
     for a in range(nk):
         j = sel[a]
+        k0 = keys[j, 0]
+        k1 = keys[j, 1]
+        k2 = keys[j, 2]
         found = -1
-        for i in range(m):
-            if CI[i, CI_KEY] == keys[j, 0] and CI[i, CI_KEY + 1] == keys[j, 1] \
-                    and CI[i, CI_KEY + 2] == keys[j, 2]:
-                found = i
-                break
+        if table:
+            s_ = _key_slot(k0, k1, k2, mask)
+            while True:
+                e = int(W[s_ >> 2, _W_TABLE + (s_ & 3)])
+                if e == 0:
+                    break
+                e -= 1
+                if CI[e, CI_KEY] == k0 and CI[e, CI_KEY + 1] == k1 and CI[e, CI_KEY + 2] == k2:
+                    found = e
+                    break
+                s_ = (s_ + 1) & mask
+        else:
+            for i in range(m):
+                if CI[i, CI_KEY] == k0 and CI[i, CI_KEY + 1] == k1 and CI[i, CI_KEY + 2] == k2:
+                    found = i
+                    break
         W[a, _W_FOUND] = found
         W[a, _W_FLIP] = 0.0
         if found >= 0:
+            n_found += 1
             W[found, _W_TAKEN] = 1.0
             dot = C[found, C_N] * nrm[j, 0] + C[found, C_N + 1] * nrm[j, 1] + C[found, C_N + 2] * nrm[j, 2]
             if dot < FLIP_DOT:
                 W[a, _W_FLIP] = 1.0
-    # pass 2: new keys at the feature of a contact that left (re-numbered, or reversed)
+    # pass 2: new keys at the feature of a contact that left (re-numbered, or reversed): the
+    # existing contact i on the same link whose normal is within REKEY_COS of the new one (either
+    # way round) and whose constraint plane and proxy point are within REKEY_DISTANCE_M of the
+    # new feature (across the surface, and along it: the deformation only moved it along n);
+    # the largest |n_old . n_new| wins, the lowest i of those on a tie
     n_rekey = 0
-    for a in range(nk):
-        if W[a, _W_FOUND] >= 0.0:
-            continue
-        j = sel[a]
-        k = keys[j, 0]
-        xp = W[a, _W_XP:_W_XP + 3]
-        _feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, xp)
-        best = -1
-        best_dot = 0.0
+    n_left = m - n_found                      # distinct keys found distinct contacts
+    if n_left > 0 and n_found < nk:
+        # the contacts left, packed by bucket (pass 1's key table is done with): row r of
+        # W[:, _W_LEFT:] holds i and n_i; bucket b's rows start at newF[0, b], newF[1, b] of them
+        # (newF is written only by pass 3)
+        nb = _NB if (newF.shape[0] >= 2 and n_left * (nk - n_found) >= _NB_MIN_PAIRS) else 1
+        if nb > 1:
+            for b in range(nb * nb):
+                newF[1, b] = 0.0
+            for i in range(m):
+                if W[i, _W_TAKEN] == 0.0:
+                    nn = C[i, C_N] * C[i, C_N] + C[i, C_N + 1] * C[i, C_N + 1] + C[i, C_N + 2] * C[i, C_N + 2]
+                    if abs(nn - 1.0) > _NB_NORM2_TOL:
+                        nb = 1                # the buckets' bound needs unit normals
+                        break
+                    newF[1, _nb_coord(abs(C[i, C_N]), nb) * nb + _nb_coord(abs(C[i, C_N + 1]), nb)] += 1.0
+        if nb > 1:
+            s = 0.0
+            for b in range(nb * nb):
+                newF[0, b] = s
+                s += newF[1, b]
+                newF[1, b] = 0.0
+        nc = 0
         for i in range(m):
-            if W[i, _W_TAKEN] != 0.0:
+            if W[i, _W_TAKEN] == 0.0:
+                r = nc
+                if nb > 1:
+                    b = _nb_coord(abs(C[i, C_N]), nb) * nb + _nb_coord(abs(C[i, C_N + 1]), nb)
+                    r = int(newF[0, b] + newF[1, b])
+                    newF[1, b] += 1.0
+                W[r, _W_LEFT] = i
+                W[r, _W_LEFT + 1] = C[i, C_N]
+                W[r, _W_LEFT + 2] = C[i, C_N + 1]
+                W[r, _W_LEFT + 3] = C[i, C_N + 2]
+                nc += 1
+        for a in range(nk):
+            if W[a, _W_FOUND] >= 0.0:
                 continue
-            dot = _same_feature(C, CI, X, t, i, k, xp, cp, nrm, j)
-            if dot != 0.0 and (best < 0 or abs(dot) > abs(best_dot)):
-                best = i
-                best_dot = dot
-        if best >= 0:
-            W[a, _W_FOUND] = best
-            W[best, _W_TAKEN] = 1.0
-            if best_dot < 0.0:
-                W[a, _W_FLIP] = 1.0
-            else:
-                n_rekey += 1
+            j = sel[a]
+            k = keys[j, 0]
+            xp0 = 0.0                         # the new feature, once a candidate needs it
+            xp1 = 0.0
+            xp2 = 0.0
+            have_xp = False
+            n0 = nrm[j, 0]
+            n1 = nrm[j, 1]
+            n2 = nrm[j, 2]
+            # the buckets a normal within arccos(REKEY_COS) of n (either way round) can be in
+            bx0 = 0
+            bx1 = nb - 1
+            by0 = 0
+            by1 = nb - 1
+            if nb > 1 and abs(n0 * n0 + n1 * n1 + n2 * n2 - 1.0) <= _NB_NORM2_TOL:
+                bx0 = _nb_coord(max(abs(n0) - _NB_REACH, 0.0), nb)
+                bx1 = _nb_coord(abs(n0) + _NB_REACH, nb)
+                by0 = _nb_coord(max(abs(n1) - _NB_REACH, 0.0), nb)
+                by1 = _nb_coord(abs(n1) + _NB_REACH, nb)
+            best = -1
+            best_r = -1
+            best_b = 0
+            best_dot = 0.0
+            for bx in range(bx0, bx1 + 1):
+                for by in range(by0, by1 + 1):
+                    b = bx * nb + by
+                    r0 = 0
+                    r1 = nc
+                    if nb > 1:
+                        r0 = int(newF[0, b])
+                        r1 = r0 + int(newF[1, b])
+                    for r in range(r0, r1):
+                        # the cheapest test first: the normals' cosine (the same products, in
+                        # the same order, as C[i, C_N:C_N + 3] . n would give)
+                        dot = W[r, _W_LEFT + 1] * n0 + W[r, _W_LEFT + 2] * n1 + W[r, _W_LEFT + 3] * n2
+                        if abs(dot) < REKEY_COS:
+                            continue
+                        i = int(W[r, _W_LEFT])
+                        if CI[i, CI_KEY] != k:
+                            continue
+                        ds = W[i, _W_DS]
+                        across = 0.0
+                        for q_ in range(3):
+                            across += nrm[j, q_] * (cp[j, q_] - C[i, C_CP + q_] - ds * C[i, C_N + q_])
+                        if abs(across) > REKEY_DISTANCE_M:
+                            continue
+                        if not have_xp:
+                            _feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, W, a)
+                            xp0 = W[a, _W_XP]
+                            xp1 = W[a, _W_XP + 1]
+                            xp2 = W[a, _W_XP + 2]
+                            have_xp = True
+                        e0 = X[i, 0] - xp0
+                        e1 = X[i, 1] - xp1
+                        e2 = X[i, 2] - xp2
+                        en = e0 * n0 + e1 * n1 + e2 * n2
+                        e0 -= en * n0
+                        e1 -= en * n1
+                        e2 -= en * n2
+                        if e0 * e0 + e1 * e1 + e2 * e2 > REKEY_DISTANCE_M * REKEY_DISTANCE_M:
+                            continue
+                        # the scan's order is the buckets', not i's: the lowest i wins a tie
+                        if best < 0 or abs(dot) > abs(best_dot) or (abs(dot) == abs(best_dot) and i < best):
+                            best = i
+                            best_r = r
+                            best_b = b
+                            best_dot = dot
+            if best >= 0:
+                W[a, _W_FOUND] = best
+                W[best, _W_TAKEN] = 1.0
+                if best_dot < 0.0:
+                    W[a, _W_FLIP] = 1.0
+                else:
+                    n_rekey += 1
+                # out of the candidates: the last row of its bucket takes its place
+                last = nc - 1
+                if nb > 1:
+                    last = int(newF[0, best_b] + newF[1, best_b]) - 1
+                    newF[1, best_b] -= 1.0
+                for q_ in range(4):
+                    W[best_r, _W_LEFT + q_] = W[last, _W_LEFT + q_]
+                nc -= 1
+                if nc == 0:                   # the later new keys can only be new contacts
+                    break
     # pass 3: the rule table
     matched = 0
     n_new = 0
@@ -998,8 +1158,10 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
             n_flip += 1
             continue
         # the tool feature as the proxy carries it (xp) and its separation dj along n
-        xp = W[a, _W_XP:_W_XP + 3]
-        dj = _feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, xp)
+        dj = _feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, W, a)
+        xp0 = W[a, _W_XP]
+        xp1 = W[a, _W_XP + 1]
+        xp2 = W[a, _W_XP + 2]
         # the separation the rules render: the real tool's, or (the paper read literally, for the
         # reproductions only) the epsilon-inflated tool's, new contacts included (eq. 6, no eq. 4)
         literal = policy == POLICY_PAPER_LITERAL
@@ -1058,9 +1220,9 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
         newF[a, C_REC] = 0.0
         # local contact point in the link frame: p = R^T (Xp + (off - s_w) n - c); with the
         # engine at the proxy's pose Xp = c_p + d n, s_w = d: p = R^T (c_p + off n - c)  (eqs. 1, 4, 5, 6)
-        w0 = xp[0] + (off - dj) * newF[a, C_N] - P[k, 9]
-        w1 = xp[1] + (off - dj) * newF[a, C_N + 1] - P[k, 10]
-        w2 = xp[2] + (off - dj) * newF[a, C_N + 2] - P[k, 11]
+        w0 = xp0 + (off - dj) * newF[a, C_N] - P[k, 9]
+        w1 = xp1 + (off - dj) * newF[a, C_N + 1] - P[k, 10]
+        w2 = xp2 + (off - dj) * newF[a, C_N + 2] - P[k, 11]
         for q_ in range(3):
             newF[a, C_P + q_] = P[k, q_] * w0 + P[k, 3 + q_] * w1 + P[k, 6 + q_] * w2
         if planar:
