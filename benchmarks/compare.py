@@ -25,7 +25,7 @@ from pathlib import Path
 BENCHES = {
     "model": ["--steps", "5000", "--numpy-steps", "20"],
     "codec": ["--repeats", "21"],
-    "loop": [],
+    "loop": ["--seconds", "20", "--naive-seconds", "5"],
     "clients": [],
 }
 _ID_INTS = ("contacts", "links", "n", "batch")
@@ -45,6 +45,10 @@ def _rows(out: str) -> list[dict]:
             rows += [r for r in d["rows"] if isinstance(r, dict)]
         elif isinstance(d, dict):
             rows.append(d)
+            # a report with row lists inside (bench loop's ``update_steps``): those rows too
+            for v in d.values():
+                if isinstance(v, list):
+                    rows += [r for r in v if isinstance(r, dict)]
     return rows
 
 
@@ -63,8 +67,12 @@ def _times(rows: list[dict]) -> dict[tuple[str, str], float]:
         if seen[label] > 1:
             label += f" #{seen[label]}"
         for k, v in row.items():
-            if k.endswith("_us") and isinstance(v, (int, float)) and not isinstance(v, bool):
-                out[(label, k)] = float(v)
+            if not k.endswith("_us"):
+                continue
+            # a figure, or a distribution of one ({"p50": ..., "p99": ...}: bench loop's)
+            for fig, x in ([(k, v)] if not isinstance(v, dict) else [(f"{k}.{q}", x) for q, x in v.items() if q != "n"]):
+                if isinstance(x, (int, float)) and not isinstance(x, bool):
+                    out[(label, fig)] = float(x)
     return out
 
 

@@ -23,6 +23,16 @@ def test_times_are_keyed_by_label_and_repeated_labels_stay_apart():
                  ("tool=1dof contacts=8 #2", "numba_median_us"): 5.0}
 
 
+def test_a_report_with_distributions_and_row_lists_gives_every_figure():
+    """bench loop prints one report: distributions of the real loop, and a list of update-step rows."""
+    report = {"rate_hz": 1000.0, "lateness_us": {"p50": 1.0, "p99": 40.0}, "steps": 100,
+              "update_steps": [{"tool": "planar", "contacts": 8, "apply_us": {"n": 30, "p99": 90.0}}]}
+    t = C._times(C._rows(json.dumps(report)))
+    assert t[("-", "lateness_us.p99")] == 40.0 and t[("-", "lateness_us.p50")] == 1.0
+    assert t[("tool=planar contacts=8", "apply_us.p99")] == 90.0 and ("-", "steps") not in t
+    assert ("tool=planar contacts=8", "apply_us.n") not in t  # a count, not a time
+
+
 def test_compare_takes_medians_of_alternating_rounds(monkeypatch, tmp_path):
     calls = []
     figures = {"base": iter([10.0, 30.0, 20.0]), "this": iter([5.0, 6.0, 100.0])}
