@@ -29,6 +29,8 @@ BENCHES = {
     "clients": [],
 }
 _ID_INTS = ("contacts", "links", "n", "batch")
+#: text fields that describe a run rather than name a row (the machine, the clock used)
+_NOT_IDS = ("machine", "clock")
 
 
 def _rows(out: str) -> list[dict]:
@@ -53,7 +55,7 @@ def _rows(out: str) -> list[dict]:
 
 
 def _label(row: dict) -> str:
-    parts = [f"{k}={v}" for k, v in row.items() if isinstance(v, str) and len(v) < 60]
+    parts = [f"{k}={v}" for k, v in row.items() if isinstance(v, str) and len(v) < 60 and k not in _NOT_IDS]
     parts += [f"{k}={row[k]}" for k in _ID_INTS if isinstance(row.get(k), int)]
     return " ".join(parts) or "-"
 

@@ -25,7 +25,8 @@ def test_times_are_keyed_by_label_and_repeated_labels_stay_apart():
 
 def test_a_report_with_distributions_and_row_lists_gives_every_figure():
     """bench loop prints one report: distributions of the real loop, and a list of update-step rows."""
-    report = {"rate_hz": 1000.0, "lateness_us": {"p50": 1.0, "p99": 40.0}, "steps": 100,
+    report = {"rate_hz": 1000.0, "lateness_us": {"p50": 1.0, "p99": 40.0}, "steps": 100, "machine": "x86_64",
+              "clock": "thread CPU time",
               "update_steps": [{"tool": "planar", "contacts": 8, "apply_us": {"n": 30, "p99": 90.0}}]}
     t = C._times(C._rows(json.dumps(report)))
     assert t[("-", "lateness_us.p99")] == 40.0 and t[("-", "lateness_us.p50")] == 1.0
