@@ -58,6 +58,13 @@ def tool_radius_m(mass_kg: float, inertia_diag_kg_m2) -> float:
     return math.sqrt(3.0 * i_max / m)
 
 
+def _floats(v, n: int) -> list[float]:
+    """The first ``n`` values of a numpy array or a sequence, as Python floats."""
+    tolist = getattr(v, "tolist", None)
+    out = tolist() if tolist is not None else [float(x) for x in v]
+    return out[:n] if len(out) != n else out
+
+
 class EngineAdvice:
     """The epsilon and the lead to tell the engine (see the module docstring).
 
@@ -100,8 +107,11 @@ class EngineAdvice:
         world), ``engine_tool_pose`` the update's ``tool_pose``, ``tool_touching``: some contact of
         the update has separation <= 0 (the engine's tool touches something)."""
         now = float(now_s)
-        vx, vy, vz = float(proxy_twist[0]), float(proxy_twist[1]), float(proxy_twist[2])
-        wx, wy, wz = float(proxy_twist[3]), float(proxy_twist[4]), float(proxy_twist[5])
+        # one conversion per vector (numpy arrays in the loop, sequences elsewhere): reading a
+        # numpy element at a time costs more than the arithmetic below
+        vx, vy, vz, wx, wy, wz = _floats(proxy_twist, 6)
+        px, py, pz, pqw, pqx, pqy, pqz = _floats(proxy_pose, 7)
+        ex, ey, ez, eqw, eqx, eqy, eqz = _floats(engine_tool_pose, 7)
         v_lin = math.sqrt(vx * vx + vy * vy + vz * vz)
         speed = v_lin + math.sqrt(wx * wx + wy * wy + wz * wz) * self.radius
         if not math.isfinite(speed):
@@ -115,10 +125,10 @@ class EngineAdvice:
         self._v_last = speed
         self._speed = max(speed, self._speed * decay)
         # how far the engine's tool (where the contacts are computed) is from the proxy
-        dx = float(proxy_pose[0]) - float(engine_tool_pose[0])
-        dy = float(proxy_pose[1]) - float(engine_tool_pose[1])
-        dz = float(proxy_pose[2]) - float(engine_tool_pose[2])
-        dot = abs(sum(float(proxy_pose[3 + i]) * float(engine_tool_pose[3 + i]) for i in range(4)))
+        dx = px - ex
+        dy = py - ey
+        dz = pz - ez
+        dot = abs(((pqw * eqw + pqx * eqx) + pqy * eqy) + pqz * eqz)
         angle = 2.0 * math.acos(min(1.0, dot))
         dist = math.sqrt(dx * dx + dy * dy + dz * dz) + angle * self.radius
         if not math.isfinite(dist):

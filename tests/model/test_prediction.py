@@ -118,3 +118,15 @@ def test_a_tool_held_by_a_wall_is_not_lag():
 def test_the_lead_can_be_switched_off():
     adv = _feed(EngineAdvice(0.04, lead=False), v=0.2, period=0.02, lag=0.03)
     assert adv.lead_s == 0.0 and adv.lag_s == pytest.approx(0.03, rel=1e-6)
+
+
+def test_arrays_and_plain_sequences_give_the_same_advice():
+    """The loop passes numpy views, other callers tuples: one advice, bit for bit."""
+    a, b = EngineAdvice(0.04, tool_radius_m=0.05), EngineAdvice(0.04, tool_radius_m=0.05)
+    rng = np.random.default_rng(3)
+    for k in range(40):
+        pose, twist, eng = _pose(0.01 * k, 0.002 * k, 0.1 * k), rng.normal(size=6) * 0.1, _pose(0.01 * k - 0.003)
+        a.on_update(k / 60, pose, twist, eng, k % 7 == 0)
+        b.on_update(k / 60, tuple(pose.tolist()), tuple(twist.tolist()), list(eng.tolist()), k % 7 == 0)
+        assert (a.epsilon_m, a.lead_s, a.lag_s, a.distance_m) == (b.epsilon_m, b.lead_s, b.lag_s, b.distance_m)
+    assert a.lag_samples > 0
