@@ -437,10 +437,10 @@ def _hellos() -> list[bytes]:
 def test_a_flood_of_datagrams_slow_to_refuse_does_not_stretch_the_steps(live, kind):
     """Datagrams that are slow to refuse: 1 kB msgpack packets of 1,000 nested arrays (~40 us
     each to unpack, ten times other junk), or valid Hellos while the one session slot is taken
-    (each checked by building the model it asks for, ~0.3 ms, then refused SERVER_FULL). Read 32
-    per step, nested arrays stretched steps to milliseconds. The poll's time budget leaves the
-    rest for the next step: the loop keeps its rate (counts of steps, missed deadlines and budget
-    cuts, never timings)."""
+    (each decoded, then refused SERVER_FULL before any model check). Read 32 per step, nested
+    arrays stretched steps to milliseconds. The poll's time budget leaves the rest for the next
+    step: the loop keeps its rate (counts of steps, missed deadlines and budget cuts, never
+    timings)."""
     pool = [b"\x91" * 1023 + b"\x01"] if kind == "nested arrays" else _hellos()
     with live._lock:
         b = _settled(live)
@@ -468,7 +468,10 @@ def test_a_flood_of_datagrams_slow_to_refuse_does_not_stretch_the_steps(live, ki
     stepped = a["steps"] - b["steps"]
     missed = a["missed_deadlines"] - b["missed_deadlines"]
     assert a["poll_budget_cuts"] > b["poll_budget_cuts"]  # the budget did the bounding
-    assert stepped / (stepped + missed) >= 0.9, (stepped, missed)
+    # Unbounded, 32 refusals of ~40 us per step take over a period: every step misses a
+    # deadline, so at most half are kept (<= 0.5). Bounded, the loop kept 0.86 (491 of 573) on a
+    # 2-core CI box where the unpaced sender itself holds a core; 0.75 separates the two.
+    assert stepped / (stepped + missed) >= 0.75, (stepped, missed)
     s = live.wait(lambda s: s["updates"] >= a["updates"] + 10 and s["loop_state"] == "engaged" and s["gain"] == 1.0)
     assert s["session_id"] == b["session_id"] and s["faults_total"] == 0
     print(f"{kind} flood: sent {sent}, read by the server {int(a['datagrams_received'] - b['datagrams_received'])}, "
