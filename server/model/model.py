@@ -19,6 +19,8 @@ from typing import Sequence
 
 import numpy as np
 
+from hapticproxy.protocol.quaternion import quat_to_matrix_into
+
 from ..readonly import ArrayFloat, ArrayInt
 from . import kernels as _k
 from . import linkage as _lk
@@ -116,13 +118,9 @@ def linkage_dims(n_links: int, planar: bool) -> tuple[int, int, int]:
 
 
 def quat_to_matrix(q) -> np.ndarray:
-    """Rotation matrix of a unit quaternion (w x y z). Plain Python, for set-up code."""
-    w, x, y, z = (float(v) for v in q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    """Rotation matrix of a unit quaternion (w x y z), for set-up code: the protocol's one
+    convention (:func:`hapticproxy.protocol.quaternion.quat_to_matrix_into`)."""
+    return quat_to_matrix_into(np.asarray(q, dtype=np.float64), np.empty((3, 3)))
 
 
 def _validate_links(links, held_link, planar: bool) -> None:
