@@ -5,7 +5,9 @@ environment on the in-memory transport that sends a ContactUpdate with ``contact
 every ``every`` steps (60 Hz at 1 kHz) and follows the ProxyState it gets back, like an engine.
 Each step is timed with the thread's CPU clock (``time.thread_time_ns``: preemption by other
 processes is not counted) and classified: the step that *receives* an update (decode and
-validation), the step that *applies* it (the model update and the ProxyState), and the others.
+validation), the step that *applies* it (the model update, the engine's advice, the ProxyState),
+the steps that run the loop's housekeeping (every 10 ms: session timeouts, the status block;
+never in a step that handles an update), and the others.
 The loop does the same work in the real server; what differs there is only the waiting.
 """
 from __future__ import annotations
@@ -69,7 +71,7 @@ def measure(kind: str, *, steps: int = 6000, every: int = 16, contacts: int = 8,
         vc = np.zeros(n)
         pose = np.array([0.0, 0.05, 0.0, 1.0, 0.0, 0.0, 0.0])
         joints = np.zeros(2) if kind.startswith("linkage") else None
-        t = {"receive": [], "apply": [], "other": []}
+        t = {"receive": [], "apply": [], "housekeeping": [], "other": []}
         t_env = 0.0
         for i in range(steps):
             now = clock.now_ns()
@@ -88,6 +90,7 @@ def measure(kind: str, *, steps: int = 6000, every: int = 16, contacts: int = 8,
                 sent = True
             pending = loop._pending is not None
             u0 = loop.updates
+            h0 = loop._hk_n
             c0 = time.thread_time_ns()
             loop.step()
             dt = (time.thread_time_ns() - c0) * 1e-3
@@ -95,6 +98,8 @@ def measure(kind: str, *, steps: int = 6000, every: int = 16, contacts: int = 8,
                 t["apply"].append(dt)
             elif sent and loop._pending is not None:
                 t["receive"].append(dt)
+            elif loop._hk_n != h0:
+                t["housekeeping"].append(dt)
             else:
                 t["other"].append(dt)
         out = {"tool": kind, "contacts": n, "updates": loop.updates, "faults": loop.faults_total}

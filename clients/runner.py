@@ -36,7 +36,8 @@ What it does, in one thread (its own, or a background thread of another program)
   transport (a restarted Zenoh peer or mem bus needs a new link). ``reconnect=False`` makes
   :meth:`ClientRunner.run` return instead.
 - **Giving up**: :class:`ClientError` (one line, for the CLI) when the server refuses the
-  ``Hello`` (``Reject``: version, tool kind, units, full), or when no session could be opened
+  ``Hello`` (``Reject``: version, tool kind, units; full, before a first session: after one, a
+  full server is retried, counted as ``server_full``), or when no session could be opened
   within ``connect_timeout_s`` of the first connection attempt (``None``: keep trying). The time
   before it (building the engine, loading its scene, opening a GUI, ``Engine.warm_up``'s
   compilation) does not count. After a first session the runner keeps trying for as long as it
@@ -199,7 +200,7 @@ class ClientRunner:
             "steps", "updates_sent", "proxy_states", "proxy_applied", "proxy_superseded", "proxy_held", "holds",
             "sessions",
             "sessions_ended", "connect_attempts", "transport_errors", "steps_clustered", "contacts_max",
-            "stale", "duplicate", "hellos_sent", "heartbeats_sent", "send_failures"), 0)
+            "stale", "duplicate", "hellos_sent", "heartbeats_sent", "send_failures", "server_full"), 0)
         self._contacts_last = 0
         self._rtt_last_s = math.nan
         self._rtt_sum_s = 0.0
@@ -338,6 +339,18 @@ class ClientRunner:
         if ep.state == ClientState.REJECTED:
             r = ep.reject
             code = ErrorCode(r.code).name if r.code in ErrorCode._value2member_map_ else str(r.code)
+            if r.code == ErrorCode.SERVER_FULL and self._ever_connected and self.reconnect:
+                # After a first session the slot is most likely held by this client's own ghost:
+                # a Hello of an earlier attempt (another socket) that waited in the server's queue
+                # while it restarted. That session times out unheard; try again after the delay.
+                self._counts["server_full"] += 1
+                self._end_reason = f"server full ({r.reason}); retrying"
+                if self._log:
+                    self._log(f"server {self.url} is full ({r.reason}); retrying in {self.reconnect_delay_s:g} s")
+                self._drop_endpoint()
+                self._state = "waiting"
+                self._next_attempt = clock() + int(self.reconnect_delay_s * _NS)
+                return 0.0
             raise ClientError(f"server {self.url} refused the session: {code}: {r.reason} "
                               f"(server speaks {r.version_min[0]}.{r.version_min[1]}-"
                               f"{r.version_max[0]}.{r.version_max[1]})")

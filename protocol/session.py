@@ -343,6 +343,10 @@ class ServerSession:
     n_joints: int = field(init=False)
     #: (workspace_extent_m, max_constraint_speed_m_per_s, max_separation_m) of the Welcome
     bounds: tuple[float, float, float] = field(init=False)
+    #: ``fast(cols, normal, keys, extent_m, speed_m_per_s, separation_m, n_links, planar) -> bool``:
+    #: may vouch for an update's contacts before :meth:`check_update`'s own rules (the server's
+    #: kernel, ``ServerEndpoint(update_check=...)``); ``False`` leaves the decision to them
+    update_check: Callable | None = None
 
     def __post_init__(self, now_ns: int, error_rate_per_s: float) -> None:
         self.opened_ns = self.last_rx_ns = self.last_tx_ns = now_ns
@@ -352,7 +356,8 @@ class ServerSession:
         self.n_links = len(self.hello.links) if kind == ToolKind.LINKAGE else 1
         self.n_joints = max(0, self.n_links - 1)
         w = self.welcome
-        self.bounds = (w.workspace_extent_m, w.max_constraint_speed_m_per_s, w.max_separation_m)
+        # floats, whatever the config held: the server's bounds kernel has one signature
+        self.bounds = (float(w.workspace_extent_m), float(w.max_constraint_speed_m_per_s), float(w.max_separation_m))
 
     # the grant, as the Welcome sent it
     @property
@@ -370,7 +375,8 @@ class ServerSession:
     def check_update(self, msg: ContactUpdate) -> tuple[str, str, str] | None:
         """Why the model could not take this update: ``(counter, field, detail)``, or ``None``.
         A fixed handful of ufunc reductions whatever n is (each column block's extremes; the
-        tool links'; a planar tool's normal z)."""
+        tool links'; a planar tool's normal z), unless :attr:`update_check` vouches for the
+        contacts first."""
         extent, speed, sep = self.bounds
         x, y, z = msg.tool_pose.tolist()[:3]
         if not (-extent <= x <= extent and -extent <= y <= extent and -extent <= z <= extent):
@@ -385,6 +391,9 @@ class ServerSession:
         # the decoder's (column blocks, n) view of contact_data: rows 0-2 hold the 3n position
         # values, 3-5 the normals, 6 separation, 7 v_constr (then any blocks of a later minor)
         cols = msg.separation_m.base
+        fast = self.update_check
+        if fast is not None and fast(cols, msg.normal, msg.keys, extent, speed, sep, self.n_links, self.planar):
+            return None
         if cols.shape[0] != 8:
             cols = cols[:8]
         top = _max_reduce(_abs(cols), 1).tolist()  # per block: the largest magnitude
@@ -430,9 +439,11 @@ class ServerEndpoint:
     """
 
     def __init__(self, send: Callable[[bytes, Peer], object], config: ServerConfig | None = None, *,
-                 hmac_key: bytes | None = None, codec: Codec | None = None) -> None:
+                 hmac_key: bytes | None = None, codec: Codec | None = None, update_check=None) -> None:
         self.config = config or ServerConfig()
         self.codec = codec or Codec(self.config.limits)
+        #: may vouch for a ContactUpdate's contacts (see ``ServerSession.check_update``)
+        self._update_check = update_check
         self.counters = SessionCounters()
         self.sessions: dict[int, ServerSession] = {}
         self._send = send
@@ -695,7 +706,7 @@ class ServerEndpoint:
             update_watchdog_s=float(cfg.update_watchdog_s), session_id=session_id, token=token)
         packet = self.codec.encode(welcome)
         self.sessions[session_id] = ServerSession(session_id, token, peer, hello, welcome, packet, now,
-                                                  cfg.error_rate_per_s)
+                                                  cfg.error_rate_per_s, self._update_check)
         c.sessions_opened += 1
         self._emit(packet, peer)
         c.welcomes_sent += 1

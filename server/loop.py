@@ -39,14 +39,16 @@ import time
 import numpy as np
 
 from hapticproxy.protocol.vocab import JOINT_TYPE_NAMES, TOOL_KIND_NAMES, TOOL_KINDS_BY_NAME
+from hapticproxy.protocol.codec import Codec
 from hapticproxy.protocol.session import ServerConfig, ServerEndpoint
 
 from . import control as ctl
+from . import ingest
 from .devices.base import (
     DEV_FAULT_LINK, DEV_FAULT_NAMES, DEV_FAULT_WATCHDOG, DEV_NSTATE, DS_TIME, empty_state, load_device,
 )
 from .lifecycle import LOOP_STATES, LS, SERVER_STATE_BY_CODE, TRANSITIONS, Fault, Reason
-from .prediction import EngineAdvice, tool_radius_m
+from .prediction import EngineAdvice, tool_radius_m, warm_up as advice_warm_up
 from .model.model import ContactParams, LinkSpec, LocalModel, ToolSpec, warm_up as model_warm_up
 from .rings import account, record_contacts
 from .shm import CT, ST, SharedState
@@ -68,6 +70,12 @@ POLL_BUDGET = 0.25
 WD_OK = 0
 WD_SILENT = 1
 WD_SESSION_ENDED = 2
+
+#: steps housekeeping may wait for a step that handles no update (receives or applies one)
+_HK_MAX_DEFER = 3
+#: datagrams start() discards at most (what a socket buffer holds of small ones)
+_START_DRAIN_MAX = 100_000
+
 
 def tool_from_hello(hello, planar: bool | None = None) -> ToolSpec:
     """The proxy's ToolSpec from a client's Hello; the hand holds a rigid tool at its tool-frame
@@ -265,7 +273,12 @@ class HapticLoop:
             max_separation_m=mcfg["max_separation_m"],
             update_watchdog_s=scfg["watchdog_s"],
         )
-        self.endpoint = endpoint or ServerEndpoint(self.transport.send, self.server_config, hmac_key=hmac_key)
+        # the protocol's value rules, vouched for by one kernel each (``ingest``): receiving an
+        # update costs a few us instead of a dozen numpy calls
+        self.endpoint = endpoint or ServerEndpoint(
+            self.transport.send, self.server_config, hmac_key=hmac_key,
+            codec=Codec(self.server_config.limits, contact_check=ingest.contacts_surely_valid),
+            update_check=ingest.update_surely_in_bounds)
         self.ctrl = controller or ctl.Controller(settings, self.device.kind, self.device.limits)
         if self.ctrl.device_kind != self.device.kind:
             raise ValueError(f"controller: made for a {self.ctrl.device_kind} device, the device is {self.device.kind}")
@@ -323,6 +336,7 @@ class HapticLoop:
         self._kernels_compiled = -1
         self._kernels: list = []
         self._pending = None  # the newest ContactUpdate received, applied in the next step
+        self.dropped_at_start = 0  # datagrams that queued before start() (counted, not read)
         self.advice: EngineAdvice | None = None
         self._scratch_pose = np.zeros(13)
         self._no_joints = np.zeros(0)
@@ -397,6 +411,8 @@ class HapticLoop:
         throw-away arrays, before the first step: nothing may compile once deadlines are armed
         (a compile takes seconds; ``status.late_compiles`` counts any that still happens)."""
         model_warm_up()
+        ingest.warm_up()
+        advice_warm_up()
         s = self.settings
         c = ctl.Controller(s, self.device.kind, self.device.limits)
         dev_kind = self.device.kind
@@ -439,7 +455,16 @@ class HapticLoop:
         self._kernels_compiled = sum(len(d.overloads) for d in self._kernels)
 
     def start(self) -> None:
-        """Arm the device and set the first deadline one period from now."""
+        """Drop what queued while the loop was built and warmed, arm the device and set the first
+        deadline one period from now."""
+        # Datagrams that waited through the warm-up (a cold cache: a minute) are stale: a client
+        # retried its Hello since, maybe from another socket, and a session opened for an old one
+        # would hold the slot for a peer that is gone (the client would hear SERVER_FULL).
+        tr, buf = self.transport, self.rxbuf
+        for _ in range(_START_DRAIN_MAX):
+            if tr.recv_into(buf)[1] is None:
+                break
+            self.dropped_at_start += 1
         self.device.enable()
         now = self.clock.now_ns()
         self._t0 = now
@@ -475,11 +500,13 @@ class HapticLoop:
             self._stall_at = wake
             self._ontime_since = wake
         # 1: apply the ContactUpdate the previous step received, and acknowledge it. Receiving
-        # (decode, validation) and applying (model update, ProxyState) are each a few tens of
-        # us of Python: in two consecutive steps, no step pays for both.
+        # (decode, validation) and applying (model update, ProxyState) each cost some us of
+        # Python: in two consecutive steps, no step pays for both (nor for housekeeping).
+        busy = False
         upd = self._pending
         if upd is not None:
             self._pending = None
+            busy = True
             try:
                 self._on_update(upd, wake)
             except Exception:  # noqa: BLE001 - e.g. a finite but absurd proxy state the codec refuses
@@ -504,6 +531,7 @@ class HapticLoop:
             m = ep.receive(buf[:n], peer, wake)  # bytearray slice: a copy the update may keep
             if m is not None:
                 self._pending = m
+                busy = True
             if now_ns() > poll_end:
                 self.poll_cut += 1
                 break
@@ -540,7 +568,10 @@ class HapticLoop:
         self._account_step(sh.tel, sh.head, sh.hist_late, sh.hist_step, sh.stat, late, end - wake, wake - self._t0,
                            c.cs, dev, c.cmd)
         self._hk_count += 1
-        if self._hk_count >= self._hk_every:
+        if self._hk_count >= self._hk_every and (not busy or self._hk_count >= self._hk_every + _HK_MAX_DEFER):
+            # not in a step that received or applied an update (each costs some us, as
+            # housekeeping does), unless updates arrive in every step (a flood): then at most
+            # _HK_MAX_DEFER steps late
             self._hk_count = 0
             self._housekeeping(end)
         return not self.stopped
@@ -627,26 +658,26 @@ class HapticLoop:
         self.last_env_time_s = upd.env_time_s
 
     def _ack(self, now: int, upd) -> None:
-        cs = self.ctrl.cs
+        """The engine's advice (epsilon to use next, the lead; one kernel) and the ProxyState."""
         m = self.model
         state = SERVER_STATE_BY_CODE[int(self.state)]
         adv = self.advice
         if self._linkage:
             # the root frame's pose and twist; the hand wrench as the wrench on the root frame's
             # origin plus one effort per joint (J_h^T F_h split by coordinates)
-            pose, twist, wrench, effort, jq, jqd = m.joint_state(cs[ctl.CS_HAND:ctl.CS_HAND + 6])
-            adv.on_update(now * 1e-9, pose, twist, upd.tool_pose, bool((upd.separation_m <= 0.0).any()))
+            js = self._jstate
+            m.joint_state_into(self._ack_wrench, js)
+            pose, twist, wrench, effort, jq, jqd = js
+            adv.on_update(now * 1e-9, pose, twist, upd.tool_pose, False, upd.separation_m)
             if self.endpoint.send_proxy_state(self.session_id, now, pose, twist, wrench, server_time_s=m.time_s,
                                               joint_position=jq, joint_velocity=jqd, joint_effort=effort,
                                               server_state=state, epsilon_m=adv.epsilon_m, lead_s=adv.lead_s,
                                               trusted=True):
                 self.acks += 1
             return
-        kind, par, st_ = self._margs[0], self._margs[1], self._margs[2]
-        ctl.proxy_hand_state(kind, par, st_, self._R, self._c, self._scratch_pose, 0)
-        # the engine's advice (epsilon to use next, the lead): a few float operations per update
-        adv.on_update(now * 1e-9, self._ack_pose, self._ack_twist, upd.tool_pose,
-                      bool((upd.separation_m <= 0.0).any()))
+        mg = self._margs
+        ctl.proxy_hand_state(mg[0], mg[1], mg[2], self._R, self._c, self._scratch_pose, 0)
+        adv.on_update(now * 1e-9, self._ack_pose, self._ack_twist, upd.tool_pose, False, upd.separation_m)
         if self.endpoint.send_proxy_state(self.session_id, now, self._ack_pose, self._ack_twist, self._ack_wrench,
                                           server_time_s=m.time_s, server_state=state, epsilon_m=adv.epsilon_m,
                                           lead_s=adv.lead_s, trusted=True):
@@ -677,6 +708,9 @@ class HapticLoop:
             model.reset(q_from_tool_pose(tool.kind, upd.tool_pose, hello.com_m, hello.axis))
         self._linkage = linkage
         self._largs = model.linkage_args() if linkage else None
+        if linkage:  # the acknowledgement's arrays (``_ack``), written in place at every update
+            nj = len(tool.links) - 1
+            self._jstate = (np.zeros(7), np.zeros(6), np.zeros(6), np.zeros(nj), np.zeros(nj), np.zeros(nj))
         cap = max(mcfg["capacity"], sess.max_contacts)
         self._kbuf = np.zeros((cap, 3), dtype=np.int64)
         self._pbuf = np.zeros((cap, 3))
@@ -982,6 +1016,7 @@ class HapticLoop:
         d = {
             "updates": self.updates, "acks": self.acks, "update_errors": self.update_errors,
             "engagements": self.engagements, "faults_total": self.faults_total,
+            "dropped_at_start": self.dropped_at_start,
             "stall_trips": self.stall_trips, "stall_recoveries": self.stall_recoveries,
             "state": self.state_name, "fault": Fault(self.fault).name.lower(),
             "device_fault": DEV_FAULT_NAMES.get(self.device_fault, str(self.device_fault)),

@@ -24,6 +24,8 @@ SERVER_KERNEL_MODULES = (
     "hapticproxy.server.model.linkage",
     "hapticproxy.server.control",
     "hapticproxy.server.loop",
+    "hapticproxy.server.ingest",
+    "hapticproxy.server.prediction",
     "hapticproxy.server.rings",
     "hapticproxy.server.devices.dynamics",
     "hapticproxy.server.devices.hands",

@@ -839,11 +839,22 @@ class LocalModel:
         if not self.is_linkage:
             raise ValueError("joint_state: only a linkage has joints")
         nj = len(self.tool.links) - 1
-        pose, twist, wrench, effort = np.zeros(7), np.zeros(6), np.zeros(6), np.zeros(nj)
-        _lk.root_state_and_efforts(self._lmeta, self._lk, self._lki, self._st, self._lw,
-                                   np.asarray(hand_wrench_world, dtype=np.float64), pose, twist, wrench, effort)
-        r = self.dof - nj
-        return pose, twist, wrench, effort, self.q[self.nq - nj:].copy(), self.qd[r:].copy()
+        out = (np.zeros(7), np.zeros(6), np.zeros(6), np.zeros(nj), np.zeros(nj), np.zeros(nj))
+        self.joint_state_into(np.asarray(hand_wrench_world, dtype=np.float64), out)
+        return out
+
+    def joint_state_into(self, hand_wrench_world: np.ndarray, out) -> None:
+        """:meth:`joint_state` into ``out`` = (pose, twist, wrench, effort, joint positions, joint
+        rates), float64 arrays of those sizes (the loop's, allocated at engagement); the hand
+        wrench a float64 array of 6. For the step that acknowledges an update."""
+        pose, twist, wrench, effort, jq, jqd = out
+        _lk.root_state_and_efforts(self._lmeta, self._lk, self._lki, self._st, self._lw, hand_wrench_world, pose,
+                                   twist, wrench, effort)
+        nj = jq.shape[0]
+        end = self._q_at + self.nq
+        jq[:] = self._st[end - nj:end]
+        end = S_QD + self.dof
+        jqd[:] = self._st[end - nj:end]
 
     # -- raw arrays (for the reference implementation and for tests) --------------------------
     def arrays(self):

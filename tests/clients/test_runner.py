@@ -499,3 +499,54 @@ def test_the_servers_advice_moves_the_tools_target_ahead_and_its_epsilon_within_
     assert engine.eps_history[-3:] == pytest.approx([granted, 0.003, granted])
     assert engine.eps_history.count(0.003) == 1
     assert granted == pytest.approx(0.01)
+
+
+def _ghost_hello() -> Hello:
+    return Hello(client_nonce=99, tool_kind=ToolKind.PLANAR, mass_kg=0.2, inertia_kg_m2=(0.0, 0.0, 2e-4, 0.0, 0.0, 0.0),
+                 engine="ghost", max_contacts=4, epsilon_m=0.005, env_rate_hz=60.0)
+
+
+@pytest.mark.parametrize("had_a_session", [True, False])
+def test_a_full_server_is_retried_after_a_first_session_and_refused_before(had_a_session):
+    """A server restart can leave the slot to this client's own ghost: a Hello of an earlier
+    attempt (another socket) that waited in the server's queue. After a first session the runner
+    retries a full server (the ghost's session times out unheard) instead of giving up; before
+    one, a full server is somebody else's and the runner says so."""
+    from hapticproxy.protocol.session import ClientEndpoint
+
+    clock = SimClock()
+    srv = ScriptedServer(clock, lambda t, s: None, config=ServerConfig(max_sessions=1, silence_timeout_s=0.5))
+    ghost_tr = open_transport(srv.url, role="client")
+    ghost = ClientEndpoint(ghost_tr.send, _ghost_hello())
+    runner = ClientRunner(StubEngine(), srv.url, scene="wall", realtime=False, reconnect_delay_s=0.1,
+                          connect_timeout_s=5.0, clock_ns=clock, sleep=srv.sleep)
+    try:
+        def run_for(seconds):
+            end = clock() + int(seconds * 1e9)
+            while clock() < end:
+                srv.sleep(runner.poll() or 0.001)
+
+        if had_a_session:
+            run_for(0.2)
+            assert runner.stats()["sessions"] == 1 and srv.updates
+            # the session ends (the server restarts); before the runner is back, the ghost's Hello
+            # takes the only slot
+            sid = next(iter(srv.endpoint.sessions))
+            srv.endpoint.close(sid, now_ns=clock())
+        ghost.start(clock())
+        srv.service()
+        assert len(srv.endpoint.sessions) == 1
+        if not had_a_session:
+            with pytest.raises(ClientError, match="refused the session: SERVER_FULL"):
+                run_for(1.0)
+            return
+        n0 = len(srv.updates)
+        run_for(2.0)
+        st = runner.stats()
+        assert st["error"] is None and st["state"] == "established"
+        assert st["server_full"] >= 1 and st["sessions"] == 2
+        assert len(srv.updates) > n0  # the second session's updates arrive
+    finally:
+        ghost_tr.close()
+        runner.close()
+        srv.close()

@@ -130,3 +130,20 @@ def test_arrays_and_plain_sequences_give_the_same_advice():
         b.on_update(k / 60, tuple(pose.tolist()), tuple(twist.tolist()), list(eng.tolist()), k % 7 == 0)
         assert (a.epsilon_m, a.lead_s, a.lag_s, a.distance_m) == (b.epsilon_m, b.lead_s, b.lag_s, b.distance_m)
     assert a.lag_samples > 0
+
+
+def test_a_contact_at_or_below_zero_separation_counts_as_touching():
+    """The loop hands the update's separations to the kernel instead of a flag: any <= 0 is the
+    engine's tool touching something (no lag measured), all > 0 is free motion."""
+    touching = _feed(EngineAdvice(0.04), v=0.2, period=0.02, lag=0.03, touching=True)
+    for seps, like in (([0.003, 0.0, 0.01], touching), ([0.003, 0.001], None)):
+        adv = EngineAdvice(0.04)
+        sep = np.array(seps)
+        for k in range(30):
+            t, x = k * 0.02, 0.2 * k * 0.02
+            adv.on_update(t, _pose(x), np.array([0.2, 0, 0, 0, 0, 0.0]), _pose(x - 0.2 * 0.03), False, sep)
+        if like is None:
+            assert adv.lag_samples == 30 and adv.lead_s > 0
+        else:
+            assert (adv.lag_samples, adv.lead_s, adv.epsilon_m) == (like.lag_samples, like.lead_s, like.epsilon_m)
+

@@ -112,8 +112,8 @@ def test_a_hello_the_model_cannot_hold_is_refused_by_name():
         links[2]["joint_axis"] = [1.0, 0.0, 0.0]  # turns out of the plane: not a planar linkage
         ep = ClientEndpoint(tr.send, Hello(client_nonce=1, tool_kind=ToolKind.LINKAGE, mass_kg=0.24, max_contacts=8,
                                            links=links, held_link=2))
+        loop.start()  # (what waited before start() is dropped: stale by then)
         ep.start(clock.now_ns())
-        loop.start()
         for _ in range(50):
             loop.step()
             while (item := tr.recv()) is not None:

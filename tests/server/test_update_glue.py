@@ -30,14 +30,21 @@ class MovingFloorEnv(WallEnv):
         return k, p, n, d, v
 
 
-@pytest.mark.parametrize("kind", ["1dof", "planar", "spatial"])
-def test_every_column_of_every_update_reaches_the_model(kind):
+def _rig_with(env_class, kind: str) -> Rig:
+    """The harness's rig (simulated time, a sim device of ``kind``) with ``env_class`` as its
+    environment, its tool 11 mm above the floor."""
     clock = SimClock(start_ns=1_000_000_000)
     s = make_settings(device={"driver": "sim", "kind": kind})
     dev = load_device("sim", dict(s["device"]), period_s=1e-3, clock_ns=clock.now_ns)
     r = Rig(s, dev, clock=clock)
     r.env.close()
-    r.env = MovingFloorEnv(s["transport"]["url"], clock, kind=kind, start_pose=(0.0, 0.011, 0.0), epsilon=0.005)
+    r.env = env_class(s["transport"]["url"], clock, kind=kind, start_pose=(0.0, 0.011, 0.0), epsilon=0.005)
+    return r
+
+
+@pytest.mark.parametrize("kind", ["1dof", "planar", "spatial"])
+def test_every_column_of_every_update_reaches_the_model(kind):
+    r = _rig_with(MovingFloorEnv, kind)
     try:
         checked = 0
         for _ in range(3000):
@@ -61,3 +68,85 @@ def test_every_column_of_every_update_reaches_the_model(kind):
         assert checked > 100
     finally:
         r.close()
+
+
+class BurstyFloorEnv(WallEnv):
+    """The harness's floor at 60 Hz, but every fourth update is followed one haptic step later by
+    another: that one arrives while the loop applies the first. Records the ack_seq of every
+    ProxyState it gets."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.acked = []
+
+    def _follow(self, ps):
+        self.acked.append(ps.ack_seq)
+        super()._follow(ps)
+
+    def _next_ns(self, now):
+        return now + (1_000_000 if self.updates_sent % 4 == 1 else int(1e9 / self.rate_hz))
+
+
+@pytest.mark.parametrize("kind", ["planar", "spatial"])
+def test_an_update_is_applied_and_acknowledged_in_a_step_without_housekeeping(kind):
+    """The step that applies an update (and acknowledges it, ack_seq its seq) never runs the
+    loop's housekeeping as well (each costs some us of Python: a step paying for both would
+    overrun a 4 kHz period); housekeeping waits for the next step that handles no update."""
+    r = _rig_with(BurstyFloorEnv, kind)
+    loop = r.loop
+    try:
+        applied_seqs, steps = [], []
+        for _ in range(3000):
+            r.env.service()
+            pending = loop._pending
+            u0, a0, h0 = loop.updates, loop.acks, loop._hk_n
+            loop.step()
+            applied, acked, hk = loop.updates != u0, loop.acks != a0, loop._hk_n != h0
+            if applied:
+                applied_seqs.append(pending.seq)
+            steps.append((applied, acked, hk))
+        assert loop.faults_total == 0
+        # housekeeping every 10 ms, a few steps later when it waited for a step without an update
+        assert len(applied_seqs) > 150 and sum(s[2] for s in steps) >= 0.9 * len(steps) / loop._hk_every
+        for i, (applied, acked, hk) in enumerate(steps):
+            assert applied == acked, (i, steps[i])
+            assert not (applied and hk), f"step {i} applied an update and ran housekeeping"
+        r.env.service()
+        # back-to-back updates happened (one arrived in the step that applied the previous one)
+        assert any(b - a == 1 for a, b in zip(applied_seqs, applied_seqs[1:]))
+        assert r.env.acked == applied_seqs[:len(r.env.acked)] and len(r.env.acked) >= len(applied_seqs) - 1
+    finally:
+        r.close()
+
+
+def test_datagrams_that_waited_through_the_warm_up_are_dropped_at_start():
+    """A client started before the server sends Hellos while the loop compiles its kernels (a
+    minute on a cold cache), from a new socket at each attempt; a session opened for one of
+    those would hold the only slot for a peer that is gone. ``start()`` drops them (counted)."""
+    from hapticproxy.benchmarks.update_steps import _hello
+    from hapticproxy.protocol.session import ClientEndpoint
+    from hapticproxy.protocol.transport import open_transport
+    from hapticproxy.server.loop import HapticLoop
+
+    clock = SimClock(start_ns=1_000_000_000)
+    s = make_settings()
+    loop = HapticLoop.build(s, clock=clock)
+    stale = [open_transport(s["transport"]["url"], "client") for _ in range(3)]
+    try:
+        for tr in stale:  # three attempts' Hellos, queued before the loop runs
+            ClientEndpoint(tr.send, _hello("planar", 4)).start(clock.now_ns())
+        loop.warm_up()
+        loop.start()
+        assert loop.dropped_at_start == 3
+        for _ in range(50):
+            loop.step()
+        assert not loop.endpoint.sessions  # no session for a peer that is gone
+        ep = ClientEndpoint(stale[-1].send, _hello("planar", 4))  # the attempt that is still there
+        ep.start(clock.now_ns())
+        for _ in range(5):
+            loop.step()
+        assert len(loop.endpoint.sessions) == 1 and loop.dropped_at_start == 3
+    finally:
+        for tr in stale:
+            tr.close()
+        loop.close()
