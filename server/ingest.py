@@ -15,8 +15,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ..protocol.messages import MAX_ABS_FLOAT, UNIT_TOLERANCE
+from ..protocol.messages import CONTACT_FLOATS, MAX_ABS_FLOAT, UNIT_TOLERANCE
 
+# the codec's window for |n|^2 (``| |n| - 1 | <= UNIT_TOLERANCE``)
 _LO = (1.0 - UNIT_TOLERANCE) ** 2
 _HI = (1.0 + UNIT_TOLERANCE) ** 2
 #: how far inside the unit window |n|^2 must be for the kernel to decide alone: well above the
@@ -27,7 +28,7 @@ _SURE_HI = _HI - _SURE
 #: keys are compared pairwise up to this many contacts (n^2 / 2 comparisons); above it the
 #: codec's set of keys decides
 _PAIRWISE_MAX = 64
-_BLOCKS = 8  # the v1 column blocks: position (3), normal (3), separation, v_constr
+_BLOCKS = CONTACT_FLOATS  # the v1 column blocks: position (3), normal (3), separation, v_constr
 
 
 @njit(cache=True)
@@ -83,7 +84,7 @@ def update_surely_in_bounds(cols, normal, keys, extent_m, speed_m_per_s, separat
 def warm_up(n: int = 2) -> None:
     """Compile / load both kernels with the types the decoder hands them (read-only views of a
     packet's bytes)."""
-    buf = np.zeros(8 * n).tobytes()
+    buf = np.zeros(_BLOCKS * n).tobytes()
     cols = np.frombuffer(buf, np.dtype((np.float64, (n,))))
     normal = np.frombuffer(buf, np.dtype((np.float64, (n, 3))), 2)[1]
     keys = np.frombuffer(np.arange(3 * n, dtype=np.int64).tobytes(), np.dtype((np.int64, (3,))))
