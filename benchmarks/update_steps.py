@@ -8,10 +8,12 @@ processes is not counted) and classified: the step that *receives* an update (de
 validation), the step that *applies* it (the model update, the engine's advice, the ProxyState),
 the steps that run the loop's housekeeping (every 10 ms: session timeouts, the status block;
 never in a step that handles an update), and the others.
-The loop does the same work in the real server; what differs there is only the waiting.
+The loop does the same work in the real server, and here too the cyclic garbage collector is
+frozen and off while it steps (as the loop process has it); what differs there is only the waiting.
 """
 from __future__ import annotations
 
+import gc
 import time
 
 import numpy as np
@@ -56,8 +58,14 @@ def measure(kind: str, *, steps: int = 6000, every: int = 16, contacts: int = 8,
     clock = SimClock(start_ns=1_000_000_000)
     loop = HapticLoop.build(settings, clock=clock)
     tr = open_transport(url, "client")
+    gc_was_enabled = gc.isenabled()
     try:
         loop.warm_up()
+        # as the loop process does before it arms (server/daemon.py): no cyclic collection
+        # can land in a haptic step
+        gc.collect()
+        gc.freeze()
+        gc.disable()
         loop.start()
         ep = ClientEndpoint(tr.send, _hello(kind, contacts))
         ep.start(clock.now_ns())
@@ -110,6 +118,9 @@ def measure(kind: str, *, steps: int = 6000, every: int = 16, contacts: int = 8,
                               if len(a) else None)
         return out
     finally:
+        gc.unfreeze()
+        if gc_was_enabled:
+            gc.enable()
         tr.close()
         loop.close()
 

@@ -1091,6 +1091,10 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
                         if abs(dot) < REKEY_COS:
                             continue
                         i = int(W[r, _W_LEFT])
+                        # one that cannot beat the best so far needs no more tests (the result
+                        # is the same; with many parallel normals, as a 1-DOF tool's, most stop here)
+                        if best >= 0 and (abs(dot) < abs(best_dot) or (abs(dot) == abs(best_dot) and i > best)):
+                            continue
                         if CI[i, CI_KEY] != k:
                             continue
                         ds = W[i, _W_DS]
@@ -1114,12 +1118,12 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
                         e2 -= en * n2
                         if e0 * e0 + e1 * e1 + e2 * e2 > REKEY_DISTANCE_M * REKEY_DISTANCE_M:
                             continue
-                        # the scan's order is the buckets', not i's: the lowest i wins a tie
-                        if best < 0 or abs(dot) > abs(best_dot) or (abs(dot) == abs(best_dot) and i < best):
-                            best = i
-                            best_r = r
-                            best_b = b
-                            best_dot = dot
+                        # it beats the best so far (tested first; the scan's order is the
+                        # buckets', not i's: the lowest i wins a tie)
+                        best = i
+                        best_r = r
+                        best_b = b
+                        best_dot = dot
             if best >= 0:
                 W[a, _W_FOUND] = best
                 W[best, _W_TAKEN] = 1.0

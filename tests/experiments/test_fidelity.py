@@ -48,17 +48,22 @@ def test_predicted_epsilon_catches_a_fast_approach_and_does_not_inflate_a_slow_o
 
 
 def test_the_lead_keeps_a_lagging_engine_on_the_proxy():
-    # 1 N, the engine's tool 40 ms behind, seed 3, no recovery: the predicted epsilon alone
-    # (capped at 40 mm) still misses the wall; with the lead the engine's tool is on the proxy
-    spec = FD.wall_spec("LM5", "predicted", 1.0, 0.04, 3)
-    tr0 = run_simulated(spec)
-    tr1 = run_simulated(spec.but(lead=True))
-    e0 = M.felt_surface_metrics(tr0, surface_m=M.WALL_Y_MM / 1e3, axis=1, push_n=1.0)["surface_error_mm"]
-    e1 = M.felt_surface_metrics(tr1, surface_m=M.WALL_Y_MM / 1e3, axis=1, push_n=1.0)["surface_error_mm"]
-    assert e0 > 2.0 and abs(e1) < M.SURFACE_BAND_MM
-    adv = tr1.extra["advice"]
-    assert 30.0 < adv["lead_ms"] <= 100.0 and adv["lag_samples"] > 5
-    assert M.static_contact_metrics(tr1)["first_contact_mm"] < M.WALL_Y_MM - 5.0
+    # 1 N, the engine's tool 80 ms behind, no recovery, every seed of the experiment: the
+    # predicted epsilon alone (capped at 40 mm) misses the wall in each run; with the lead the
+    # engine's tool is on the proxy and each run feels the wall where it is. (At 40 ms the
+    # predicted epsilon alone misses in one seed of five, 3, and that miss hangs on the timing of
+    # a single step: a claim about the lead needs a lag it cannot cover alone in any run.)
+    for seed in FD.SEEDS:
+        spec = FD.wall_spec("LM5", "predicted", 1.0, 0.08, seed)
+        tr0 = run_simulated(spec)
+        tr1 = run_simulated(spec.but(lead=True))
+        e0 = M.felt_surface_metrics(tr0, surface_m=M.WALL_Y_MM / 1e3, axis=1, push_n=1.0)["surface_error_mm"]
+        e1 = M.felt_surface_metrics(tr1, surface_m=M.WALL_Y_MM / 1e3, axis=1, push_n=1.0)["surface_error_mm"]
+        assert e0 > 5.0 and abs(e1) < M.SURFACE_BAND_MM, (seed, e0, e1)
+        assert tr0.extra["advice"]["lead_ms"] == 0.0
+        adv = tr1.extra["advice"]
+        assert 30.0 < adv["lead_ms"] <= 100.0 and adv["lag_samples"] > 5, (seed, adv)
+        assert M.static_contact_metrics(tr1)["first_contact_mm"] < M.WALL_Y_MM - 5.0, seed
 
 
 def test_quick_fidelity_writes_its_tables(tmp_path):
