@@ -12,9 +12,10 @@ write), ``missed_fraction`` (steps that finished after the next deadline / steps
 ``missed_deadlines`` (whole periods skipped), ``rt_scheduling``, ``spin_us``, ``updates``,
 ``faults``, ``naive_lateness_us`` (``p50``, ``p99``, ``p999``, ``max``), ``naive_missed_fraction``,
 ``p99_ratio_naive_over_loop``, ``machine``; then ``update_steps`` (per tool kind: the CPU time of
-the steps that receive, apply, or do neither with a model update; ``benchmarks/update_steps.py``),
-``apply_p99_max_us``, ``receive_p99_max_us``, ``budget_us`` (a quarter of a 4 kHz period) and
-``within_budget``.
+the steps that receive, apply, acknowledge, or do none of these with a model update;
+``benchmarks/update_steps.py``), ``apply_p99_max_us``, ``receive_p99_max_us``,
+``ack_p99_max_us``, ``p50_over_plain_max`` (the costliest update step's p50 over a plain step's
+in the same run), ``budget_us`` (a quarter of a 4 kHz period) and ``within_budget``.
 """
 from __future__ import annotations
 

@@ -337,8 +337,8 @@ class ContactUpdate(Message, kw_only=True):
 
 
 class ProxyState(Message, kw_only=True):
-    """Acknowledges a ContactUpdate with the proxy state, sent in the haptic step that applied it
-    (at most one per accepted ContactUpdate)."""
+    """Acknowledges a ContactUpdate with the proxy state, sent in the haptic step after the one that
+    applied it (at most one per accepted ContactUpdate)."""
 
     TYPE_ID = MessageType.PROXY_STATE
     DIRECTION = "server -> client"

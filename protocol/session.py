@@ -463,8 +463,10 @@ class ServerEndpoint:
     def send_proxy_state(self, session_id: int, now_ns: int | None, proxy_pose, proxy_twist, wrench,
                          joint_position=None, joint_velocity=None, joint_effort=None,
                          server_time_s: float | None = None, server_state: int = 0, epsilon_m: float = 0.0,
-                         lead_s: float = 0.0, trusted: bool = False) -> bool:
-        """Acknowledge with the proxy state (``ack_seq`` = newest ContactUpdate accepted).
+                         lead_s: float = 0.0, ack_seq: int | None = None, trusted: bool = False) -> bool:
+        """Acknowledge with the proxy state: ``ack_seq`` the seq of the ContactUpdate it answers
+        (default: the newest accepted; a server that answers an update a step after applying it
+        passes that update's seq, as newer ones may have arrived meanwhile).
 
         Poses/twists/wrenches as in SPEC.md (world frame; pose x y z qw qx qy qz). Returns
         ``False`` if the session does not exist (e.g. it just timed out). Raises ``ValueError``
@@ -477,7 +479,7 @@ class ServerEndpoint:
         s.proxy_seq += 1
         empty = _NO_JOINTS
         packet = self.codec.encode_proxy_state(
-            s.session_id, s.token, s.proxy_seq, s.contact_seq.newest,
+            s.session_id, s.token, s.proxy_seq, s.contact_seq.newest if ack_seq is None else ack_seq,
             (now - s.opened_ns) / _NS if server_time_s is None else server_time_s,
             proxy_pose, proxy_twist, wrench,
             empty if joint_position is None else joint_position,

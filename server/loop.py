@@ -1,13 +1,14 @@
-"""The haptic loop: a fixed-rate schedule of update/ack -> poll -> read -> control+model -> write.
+"""The haptic loop: a fixed-rate schedule of ack/update -> poll -> read -> control+model -> write.
 
 ``HapticLoop`` knows no engine and no particular device: it owns a transport (any backend), the
 protocol's ``ServerEndpoint``, a device driver, the controller/safety arrays and, once a client
 has engaged it, a ``LocalModel`` built from the client's ``Hello``. Each step, in this order:
 
 1. wait for the absolute deadline (``deadline += period_ns``; the clock is injected);
-2. if the previous step received a ContactUpdate: update the local model and acknowledge with a
-   ``ProxyState`` (receiving and applying an update fall in two consecutive steps, so no step
-   pays for both: the step that applies one costs the model update and the acknowledgement);
+2. if the previous step applied a ContactUpdate: acknowledge it with a ``ProxyState``; if it
+   received one: update the local model (receiving, applying and acknowledging an update fall in
+   three consecutive steps, so no step pays for two of them while updates come at most every
+   other step);
 3. poll the transport without blocking (at most ``max_packets_per_step`` datagrams and at most
    ``POLL_BUDGET`` of the period, so a flood cannot stretch a step, even of datagrams that are
    slow to refuse); the session layer keeps the newest ContactUpdate for the next step;
@@ -336,6 +337,7 @@ class HapticLoop:
         self._kernels_compiled = -1
         self._kernels: list = []
         self._pending = None  # the newest ContactUpdate received, applied in the next step
+        self._ack_due = None  # the ContactUpdate applied in the previous step, acknowledged in this one
         self.dropped_at_start = 0  # datagrams that queued before start() (counted, not read)
         self.advice: EngineAdvice | None = None
         self._scratch_pose = np.zeros(13)
@@ -499,10 +501,21 @@ class HapticLoop:
             self._stall_ns = gap
             self._stall_at = wake
             self._ontime_since = wake
-        # 1: apply the ContactUpdate the previous step received, and acknowledge it. Receiving
-        # (decode, validation) and applying (model update, ProxyState) each cost some us of
-        # Python: in two consecutive steps, no step pays for both (nor for housekeeping).
+        # 1: acknowledge the ContactUpdate the previous step applied, then apply the one it
+        # received. Receiving (decode, validation), applying (the model update) and acknowledging
+        # (the engine's advice, the ProxyState's encoding) each cost some us of Python: spread
+        # over three consecutive steps, no step pays for two of them (nor for housekeeping),
+        # unless updates arrive in consecutive steps.
         busy = False
+        upd = self._ack_due
+        if upd is not None:
+            self._ack_due = None
+            busy = True
+            try:
+                self._ack(wake, upd)
+            except Exception:  # noqa: BLE001 - as an update's (below): never die with force on
+                self.update_errors += 1
+                self._on_fault(ctl.RC_NONFINITE, 0, wake, Reason.UPDATE_ERROR)
         upd = self._pending
         if upd is not None:
             self._pending = None
@@ -620,7 +633,7 @@ class HapticLoop:
                         upd.keys.shape[0], self._kbuf, self._pbuf, self._nbuf, self._sbuf)
         if self.state == LS["fading"] and self.watchdog == WD_SILENT:
             self.transition("engaged", Reason.RESUMED)
-        self._ack(now, upd)
+        self._ack_due = upd  # acknowledged in the next step, with the proxy state the update led to
 
     def _engine_q(self, upd):
         """The engine's tool configuration for the update (None: the paper's eq. 1). A linkage's
@@ -658,8 +671,12 @@ class HapticLoop:
         self.last_env_time_s = upd.env_time_s
 
     def _ack(self, now: int, upd) -> None:
-        """The engine's advice (epsilon to use next, the lead; one kernel) and the ProxyState."""
+        """The engine's advice (epsilon to use next, the lead; one kernel) and the ProxyState that
+        acknowledges ``upd`` (applied in the previous step; ``ack_seq`` its seq, not the newest
+        received since). Nothing if its session no longer owns the model (closed, timed out)."""
         m = self.model
+        if m is None or upd.session_id != self.session_id:
+            return
         state = SERVER_STATE_BY_CODE[int(self.state)]
         adv = self.advice
         if self._linkage:
@@ -672,7 +689,7 @@ class HapticLoop:
             if self.endpoint.send_proxy_state(self.session_id, now, pose, twist, wrench, server_time_s=m.time_s,
                                               joint_position=jq, joint_velocity=jqd, joint_effort=effort,
                                               server_state=state, epsilon_m=adv.epsilon_m, lead_s=adv.lead_s,
-                                              trusted=True):
+                                              ack_seq=upd.seq, trusted=True):
                 self.acks += 1
             return
         mg = self._margs
@@ -680,7 +697,7 @@ class HapticLoop:
         adv.on_update(now * 1e-9, self._ack_pose, self._ack_twist, upd.tool_pose, False, upd.separation_m)
         if self.endpoint.send_proxy_state(self.session_id, now, self._ack_pose, self._ack_twist, self._ack_wrench,
                                           server_time_s=m.time_s, server_state=state, epsilon_m=adv.epsilon_m,
-                                          lead_s=adv.lead_s, trusted=True):
+                                          lead_s=adv.lead_s, ack_seq=upd.seq, trusted=True):
             self.acks += 1
 
     def _engage(self, upd, now: int) -> None:

@@ -21,9 +21,9 @@ deformation (eqs. 4/5). Two things the server can measure close the gap:
   ``L`` its residual, so the lead integrates it (``lead += gain L``, bounded by ``lead_max_s``).
 
 Everything runs once per model update (30-60 Hz), nothing per haptic step, in one numba kernel
-(``advice_update``) over a state array: the step that applies an update pays about 1 us for
-it (in Python floats it was 12 us). The loop calls :meth:`EngineAdvice.on_update` after
-applying a ContactUpdate and puts :attr:`epsilon_m` and :attr:`lead_s` into the ProxyState it
+(``advice_update``) over a state array: the step that acknowledges an update pays about 1 us
+for it (in Python floats it was 12 us). The loop calls :meth:`EngineAdvice.on_update` in the
+step after the one that applied a ContactUpdate and puts :attr:`epsilon_m` and :attr:`lead_s` into the ProxyState it
 acknowledges with.
 """
 from __future__ import annotations

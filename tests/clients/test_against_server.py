@@ -90,7 +90,8 @@ def test_client_against_the_real_server(engine, transport, real_session):
     # handshake and updates both ways
     assert stats["sessions"] == 1
     assert snap["updates"] >= 50 and stats["updates_sent"] >= snap["updates"]
-    assert snap["acks_sent"] == snap["updates"]
+    # every applied update acknowledged: the last perhaps in the step after the snapshot
+    assert 0 <= snap["updates"] - snap["acks_sent"] <= 1
     assert stats["proxy_applied"] >= 0.5 * snap["acks_sent"]
     assert snap["faults_total"] == 0, (snap["fault"], snap["device_fault"], snap["speed_trips"])
     eng = rows[rows[:, TEL["updates"]] > 0]
@@ -190,7 +191,7 @@ def test_pybullet_client_against_the_real_server(transport, real_session):
     from hapticproxy.clients.pybullet_engine import PybulletEngine
 
     snap, rows, stats, _ = real_session(_settings(_url(transport), SPATIAL_PUSH), PybulletEngine(), "loose", 4.0)
-    assert stats["sessions"] == 1 and snap["updates"] >= 50 and snap["acks_sent"] == snap["updates"]
+    assert stats["sessions"] == 1 and snap["updates"] >= 50 and 0 <= snap["updates"] - snap["acks_sent"] <= 1
     assert snap["faults_total"] == 0, (snap["fault"], snap["device_fault"], snap["speed_trips"])
     eng = rows[rows[:, TEL["updates"]] > 0]
     last = eng[-300:]

@@ -45,7 +45,8 @@ def test_pymunk_linkage_against_the_real_server_settles_on_the_wall(real_session
                                "workspace_max_m": [0.25, 0.25],
                                "hand": {"type": "constant", "wrench": [0.0, PUSH_N, 0.0]}})
     snap, rows, stats, last = real_session(settings, PymunkEngine(), "linkage", 5.0, max_contacts=32)
-    assert stats["sessions"] == 1 and snap["updates"] >= 100 and snap["acks_sent"] == snap["updates"]
+    # every applied update acknowledged: the last perhaps in the step after the snapshot
+    assert stats["sessions"] == 1 and snap["updates"] >= 100 and 0 <= snap["updates"] - snap["acks_sent"] <= 1
     assert snap["faults_total"] == 0, (snap["fault"], snap["device_fault"], snap["speed_trips"])
     assert len(last.joint_position) == 2 and len(last.joint_effort) == 2
     eng = rows[rows[:, TEL["updates"]] > 0]
@@ -65,7 +66,7 @@ def test_pybullet_linkage_against_the_real_server_engages_a_spatial_device(real_
     url = f"udp://127.0.0.1:{_port()}"
     settings = _settings(url, {"kind": "spatial", "hand": {"type": "constant", "wrench": [0.0, 0.0, -0.3, 0.0, 0.0, 0.0]}})
     snap, rows, stats, last = real_session(settings, PybulletLinkageEngine(), "chain", 3.0, max_contacts=32)
-    assert stats["sessions"] == 1 and snap["updates"] >= 100 and snap["acks_sent"] == snap["updates"]
+    assert stats["sessions"] == 1 and snap["updates"] >= 100 and 0 <= snap["updates"] - snap["acks_sent"] <= 1
     assert snap["faults_total"] == 0, (snap["fault"], snap["device_fault"], snap["speed_trips"])
     assert len(last.joint_position) == 3
     eng = rows[rows[:, TEL["updates"]] > 0]

@@ -110,7 +110,8 @@ def test_box2d_client_against_the_real_server_rests_on_the_floor_and_balances_th
         sup.close()
     assert snap["updates"] >= 180, err
     assert snap["faults_total"] == 0, (snap["fault"], snap["device_fault"])
-    assert snap["acks_sent"] == snap["updates"]
+    # every applied update acknowledged: the last perhaps in the step after the snapshot
+    assert 0 <= snap["updates"] - snap["acks_sent"] <= 1
     eng = rows[rows[:, TEL["updates"]] > 0]
     assert np.max(eng[:, TEL["contacts"]]) >= 2  # the box's two bottom corners on the floor
     last = eng[-500:]  # the last 0.5 s

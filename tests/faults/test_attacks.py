@@ -166,7 +166,8 @@ def _unaffected(live: Live, before: dict, head0: int) -> dict:
     s = live.wait(lambda s: s["updates"] >= before["updates"] + 10)
     assert s["session_id"] == before["session_id"] and s["sessions_opened"] == before["sessions_opened"] == 1
     assert s["faults_total"] == 0 and s["fault"] == 0
-    assert s["acks_sent"] == s["updates"]
+    # every applied update acknowledged: the last perhaps in the step after the snapshot
+    assert 0 <= s["updates"] - s["acks_sent"] <= 1
     assert s["steps"] > before["steps"]
     rows = live.rows_since(head0)
     assert len(rows) > 0

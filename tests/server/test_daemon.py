@@ -102,7 +102,8 @@ def test_real_time_run_with_a_client_completes_without_a_fault(server, tmp_path)
         assert s["fault"] == 0 and s["faults_total"] == 0
         assert s["steps"] > 1000
         assert s["updates"] >= 60  # a 60 Hz client for about 3 s, minus the handshake
-        assert s["acks_sent"] == s["updates"]
+        # every applied update acknowledged: the last perhaps in the step after the snapshot
+        assert 0 <= s["updates"] - s["acks_sent"] <= 1
         assert env.proxy_states >= 0.9 * s["updates"]
         assert s["session_id"] != 0 and s["contacts"] >= 1
         assert s["lateness_us"]["count"] == s["steps"] or s["lateness_us"]["count"] >= s["steps"] - 10
