@@ -4,7 +4,8 @@ Runs the real server (supervisor + loop process, simulated planar device pushed 
 0.5 N hand, the default controller and model) with an environment client sending a ContactUpdate
 at 60 Hz over UDP loopback, for ``--seconds``; then, for comparison, the same loop doing the same
 work but paced by ``time.sleep`` alone, with none of the tuning (no spin phase, no timer slack,
-no real-time scheduling, garbage collector left on). Prints one JSON object:
+no real-time scheduling, garbage collector left on). Prints a summary and a table of the update
+steps, or with ``--json`` one JSON object:
 
 ``rate_hz``, ``seconds``, ``steps``, ``lateness_us`` (``p50``, ``p99``, ``p999``, ``max``: wake-up time
 minus the absolute deadline, 1 us bins, upper edges), ``step_us`` (``p50``, ``p99``: poll to device
@@ -173,7 +174,7 @@ def run(rate_hz: float, seconds: float, naive_seconds: float) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="hapticproxy bench loop", description=__doc__.splitlines()[0])
-    ap.add_argument("--json", action="store_true", help="print JSON (the default output is JSON too)")
+    ap.add_argument("--json", action="store_true", help="print one JSON object (default: a summary and a table)")
     ap.add_argument("--rate", type=float, default=1000.0, help="haptic rate [Hz] (default 1000)")
     ap.add_argument("--seconds", type=float, default=60.0, help="measured seconds of the real loop (default 60)")
     ap.add_argument("--naive-seconds", type=float, default=None,
@@ -195,5 +196,47 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     # the steps that receive and apply a model update, per tool kind (in-process, CPU time)
     res.update(update_steps.run(steps=args.update_steps, rate_hz=args.rate))
-    print_json(res, indent=1)
+    if args.json:
+        print_json(res, indent=1)
+    else:
+        print_report(res)
     return 0
+
+
+def _us(d: dict | None, k: str) -> str:
+    v = None if d is None else d.get(k)
+    return "-" if v is None else f"{v:.1f}"
+
+
+def print_report(res: dict) -> None:
+    """What a person at a terminal reads: the real loop's deadlines, then one row per tool kind
+    and step type of the update-step measurement, with its p50 over a plain step's."""
+    if "steps" in res:
+        lat, st = res["lateness_us"], res["step_us"]
+        print(f"real loop   {res['rate_hz']:g} Hz for {res['seconds']:g} s: {res['steps']} steps, {res['updates']} updates, "
+              f"faults {res['faults']}, real-time scheduling {'yes' if res['rt_scheduling'] else 'no'}")
+        print(f"  lateness us  p50 {_us(lat, 'p50')}  p99 {_us(lat, 'p99')}  p99.9 {_us(lat, 'p999')}  "
+              f"max {_us(lat, 'max')};  missed {100 * res['missed_fraction']:.3f} %")
+        print(f"  step us      p50 {_us(st, 'p50')}  p99 {_us(st, 'p99')}  max {_us(st, 'max')}")
+        if "naive_lateness_us" in res:
+            nl = res["naive_lateness_us"]
+            print(f"  naive loop   lateness p99 {_us(nl, 'p99')} us, missed {100 * res['naive_missed_fraction']:.3f} % "
+                  f"(p99 {res['p99_ratio_naive_over_loop']:.1f}x the tuned loop's)")
+        print(f"  machine      {res['machine']}")
+    rows = res.get("update_steps") or []
+    if not rows:
+        return
+    print(f"update steps (thread CPU time, us; {rows[0]['contacts']} contacts every 16 steps, simulated time):")
+    print(f"  {'tool':<16} {'step':<13} {'n':>5} {'p50':>7} {'p99':>7} {'max':>7} {'p50 / plain':>11}")
+    for r in rows:
+        for k in ("receive", "apply", "ack", "housekeeping", "other"):
+            d = r.get(f"{k}_us")
+            if d is None:
+                continue
+            ratio = r.get("p50_over_plain", {}).get(k)
+            name = "plain" if k == "other" else k
+            print(f"  {r['tool']:<16} {name:<13} {d['n']:>5} {_us(d, 'p50'):>7} {_us(d, 'p99'):>7} {_us(d, 'max'):>7} "
+                  f"{'' if ratio is None else f'{ratio:.2f}':>11}")
+    worst = max(res["apply_p99_max_us"], res["receive_p99_max_us"], res.get("ack_p99_max_us") or 0.0)
+    print(f"  the costliest update step's p99: {worst:.1f} us; the budget (a quarter of a 4 kHz period): "
+          f"{res['budget_us']:g} us: {'within' if res['within_budget'] else 'over'}")

@@ -39,7 +39,10 @@ def main(argv: list[str] | None = None) -> int:
     refresh_stale_caches(modules)  # kernels compiled from older sources would run the old code
     todo = cold(modules)
     if todo:
-        log.info("compiling %d kernels (first run on this machine, about a minute) ...", len(todo))
+        total = len(dispatchers(modules))
+        why = ("first run on this machine, about a minute" if len(todo) == total
+               else f"not in numba's cache: new or changed sources; {total - len(todo)} cached")
+        log.info("compiling %d kernels (%s) ...", len(todo), why)
     loops = warm_server()
     engines = warm_clients()
     left = cold(modules)

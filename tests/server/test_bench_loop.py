@@ -23,3 +23,16 @@ def test_bench_loop_rejects_bad_arguments():
     out = subprocess.run([sys.executable, "-m", "hapticproxy.cli.main", "bench", "loop", "--rate", "5"],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "Traceback" not in out.stderr
+
+
+def test_bench_loop_prints_a_table_for_a_person():
+    """Without --json: one line per tool kind and step type, each with its p50 over a plain step's."""
+    out = subprocess.run([sys.executable, "-m", "hapticproxy.cli.main", "bench", "loop", "--update-steps-only",
+                          "--update-steps", "400"], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    assert lines[0].startswith("update steps") and not out.stdout.lstrip().startswith("{")
+    for tool in ("1dof", "planar", "spatial", "linkage-planar", "linkage-spatial"):
+        kinds = {ln.split()[1] for ln in lines if ln.split()[:1] == [tool]}
+        assert {"receive", "apply", "ack", "plain"} <= kinds, (tool, kinds)
+    assert "budget" in lines[-1]
