@@ -805,12 +805,14 @@ class HapticLoop:
     def _stalled_recently(self, now: int) -> bool:
         """The loop stalled long enough (and recently enough) to explain the device's watchdog.
         A stall inside this step (between its wake-up and its device write) shows only now: the
-        time since the previous step's end."""
-        gap = self.clock.now_ns() - self._last_write_ns  # one period and one step's compute when on time
+        time since the previous step's end, and it ended just now, not at the step's wake-up (the
+        recovery counts its time on time from here)."""
+        t = self.clock.now_ns()
+        gap = t - self._last_write_ns  # one period and one step's compute when on time
         if gap > self._stall_gap_ns:
             self._stall_ns = gap
-            self._stall_at = now
-            self._ontime_since = now
+            self._stall_at = t
+            self._ontime_since = t
         wd = self._dev_wd_ns if self._dev_wd_ns > 0 else 50_000_000
         return self._stall_at > 0 and now - self._stall_at <= 1_000_000_000 and 2 * self._stall_ns >= wd
 

@@ -99,6 +99,38 @@ def test_the_stall_recovery_waits_until_the_loop_is_on_time(rig):
     assert r.loop.state_name == "engaged"
 
 
+class MidStepStallDevice(WatchdogDevice):
+    """The loop process stopped inside a step, between its wake-up and the device read (where a
+    SIGSTOP lands when steps are long, as on a loaded machine)."""
+
+    stall_in_read_ns = 0
+
+    def read(self, s):
+        if self.stall_in_read_ns:
+            self.clock.advance(self.stall_in_read_ns)
+            self.stall_in_read_ns = 0
+        return super().read(s)
+
+
+def test_a_stall_inside_a_step_is_on_time_only_from_its_end():
+    clock = SimClock(start_ns=1_000_000_000)
+    settings = make_settings()
+    dev = MidStepStallDevice(clock, hand=PUSH, period_s=settings.period_ns * 1e-9)
+    r = Rig(settings, dev, {"start_pose": (0.0, 0.012, 0.0)}, clock=clock)
+    try:
+        r.run(2.0)
+        assert r.loop.state_name == "engaged"
+        dev.stall_in_read_ns = 120_000_000
+        r.run(0.01)
+        assert r.loop.state_name == "fault" and r.loop.fault == Fault.STALL
+        r.run(0.47)                                 # 0.48 s after the stall's end: not yet
+        assert r.loop.state_name == "fault"
+        r.run(0.05)
+        assert r.loop.state_name == "engaged" and r.loop.stall_recoveries == 1
+    finally:
+        r.close()
+
+
 def test_repeated_stalls_latch_until_rearmed(rig):
     r = rig(safety={"stall_trips_max": 2, "stall_window_s": 10.0})
     r.run(2.0)
