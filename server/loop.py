@@ -510,23 +510,11 @@ class HapticLoop:
         upd = self._ack_due
         if upd is not None:
             self._ack_due = None
-            busy = True
-            try:
-                self._ack(wake, upd)
-            except Exception:  # noqa: BLE001 - as an update's (below): never die with force on
-                self.update_errors += 1
-                self._on_fault(ctl.RC_NONFINITE, 0, wake, Reason.UPDATE_ERROR)
+            busy = self._survive(self._ack, upd, wake)
         upd = self._pending
         if upd is not None:
             self._pending = None
-            busy = True
-            try:
-                self._on_update(upd, wake)
-            except Exception:  # noqa: BLE001 - e.g. a finite but absurd proxy state the codec refuses
-                # The loop must outlive anything an update can raise: treat it like a non-finite
-                # value (zero wrench, device disabled, re-arm needed), never die with force on.
-                self.update_errors += 1
-                self._on_fault(ctl.RC_NONFINITE, 0, wake, Reason.UPDATE_ERROR)
+            busy = self._survive(self._on_update, upd, wake)
         elif self.state == LS["engaged"] and wake - max(self.last_update_ns, self._stall_at) > self.watchdog_ns:
             # (the environment's silence is counted from the end of this loop's own last stall:
             # while the loop did not run, the environment's updates waited in the socket)
@@ -588,6 +576,17 @@ class HapticLoop:
             self._hk_count = 0
             self._housekeeping(end)
         return not self.stopped
+
+    def _survive(self, handler, upd, now: int) -> bool:
+        """``handler(upd, now)``, outlived: the loop must survive anything an update can raise (e.g.
+        a finite but absurd proxy state the codec refuses). Treated like a non-finite value (zero
+        wrench, device disabled, re-arm needed), never dying with force on. True: the step was busy."""
+        try:
+            handler(upd, now)
+        except Exception:  # noqa: BLE001 - see above
+            self.update_errors += 1
+            self._on_fault(ctl.RC_NONFINITE, 0, now, Reason.UPDATE_ERROR)
+        return True
 
     def _account_step(self, tel, head, hist_late, hist_step, stat, late_ns, comp_ns, since_start_ns, cs, dev,
                       cmd) -> None:
@@ -670,7 +669,7 @@ class HapticLoop:
         self.last_update_ns = now
         self.last_env_time_s = upd.env_time_s
 
-    def _ack(self, now: int, upd) -> None:
+    def _ack(self, upd, now: int) -> None:
         """The engine's advice (epsilon to use next, the lead; one kernel) and the ProxyState that
         acknowledges ``upd`` (applied in the previous step; ``ack_seq`` its seq, not the newest
         received since). Nothing if its session no longer owns the model (closed, timed out)."""
