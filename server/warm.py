@@ -32,18 +32,26 @@ SERVER_KERNEL_MODULES = (
 )
 
 
+#: Modules of :data:`SERVER_KERNEL_MODULES` that import kernels but define none (glue: an edit
+#: there changes no compiled code, so it must not cost a minute of compiling).
+GLUE_MODULES = ("hapticproxy.server.loop",)
+
 #: Every source file whose code ends up in a cached kernel, relative to the ``hapticproxy``
 #: package root (server and client files alike: read as text, never imported from here). Numba
 #: keys each kernel's cache on its own file only, so a kernel that inlines another module's
 #: (``control.haptic_step`` calls ``model.kernels.step_rigid``) would keep running the old code
 #: after an edit there; :func:`refresh_stale_caches` drops every cache when any of these changes.
-KERNEL_SOURCES = tuple(name.removeprefix("hapticproxy.").replace(".", "/") + ".py" for name in SERVER_KERNEL_MODULES) + (
-    "clients/narrowphase.py", "clients/geometry.py", "protocol/quaternion.py")
+#: The clients' narrow phase reads constants of ``clients/contacts.py`` too (its server-side
+#: counterpart, the constants the server's kernels read, is :func:`kernel_constants`).
+KERNEL_SOURCES = tuple(name.removeprefix("hapticproxy.").replace(".", "/") + ".py" for name in SERVER_KERNEL_MODULES
+                       if name not in GLUE_MODULES) + (
+    "clients/narrowphase.py", "clients/geometry.py", "clients/contacts.py", "protocol/quaternion.py")
 _STAMP = "hapticproxy-kernel-sources.sha256"
 
 
 def sources_digest() -> str:
-    """One hash of every kernel source and of the numba that compiles them."""
+    """One hash of every kernel source, of the constants the server's kernels read and of the
+    numba that compiles them."""
     import hashlib
 
     import numba
@@ -54,7 +62,64 @@ def sources_digest() -> str:
         f = root / rel
         h.update(rel.encode())
         h.update(f.read_bytes() if f.exists() else b"-")
+    h.update(kernel_constants())
     return h.hexdigest()
+
+
+def _frozen(v) -> bytes | None:
+    """The bytes of a value numba would freeze into a kernel (a number, a string, a tuple or an
+    array of them), or ``None`` for anything else (functions, modules, types)."""
+    import numpy as np
+
+    if v is None or isinstance(v, (bool, int, float, complex, str, bytes)):
+        return repr(v).encode()
+    if isinstance(v, np.generic):
+        return repr(v.item()).encode()
+    if isinstance(v, np.ndarray):
+        return f"{v.dtype.str}{v.shape}".encode() + v.tobytes()
+    if isinstance(v, tuple):
+        parts = [_frozen(x) for x in v]
+        return None if any(p is None for p in parts) else b"(" + b",".join(parts) + b")"
+    return None
+
+
+def kernel_constants(modules=SERVER_KERNEL_MODULES) -> bytes:
+    """The value of every module-level constant the kernels of ``modules`` read, by name.
+
+    Numba freezes a global's value into the compiled code, and its cache checks only the kernel's
+    own file: a changed ``model/layout.py`` offset, protocol limit or controller id would
+    otherwise keep running with the old value (seen: after ``K = 1`` -> ``K = 2`` in another
+    file, a cached ``return K`` still returned 1). Values, not files: an edited docstring there
+    recompiles nothing."""
+    import types
+
+    from numba.core.registry import CPUDispatcher
+
+    found = {}
+    for name in modules:  # every dispatcher, the inlined and the imported ones too (unlike dispatchers())
+        try:
+            mod = importlib.import_module(name)
+        except ImportError:
+            continue
+        found.update((id(o), o) for o in vars(mod).values() if isinstance(o, CPUDispatcher))
+    parts = []
+    for d in sorted(found.values(), key=lambda d: (d.py_func.__module__, d.py_func.__qualname__)):
+        f = d.py_func
+        g = f.__globals__
+        names, stack = set(), [f.__code__]
+        while stack:
+            co = stack.pop()
+            names.update(co.co_names)
+            stack.extend(c for c in co.co_consts if isinstance(c, types.CodeType))
+        mods = [v for v in (g.get(n) for n in names) if isinstance(v, types.ModuleType)
+                and v.__name__.startswith("hapticproxy.")]
+        for name in sorted(names):
+            for owner, v in [(f.__module__, g[name])] if name in g else [(m.__name__, getattr(m, name)) for m in mods
+                                                                          if hasattr(m, name)]:
+                b = _frozen(v)
+                if b is not None:
+                    parts.append(f"{f.__module__}.{f.__qualname__}:{owner}.{name}=".encode() + b)
+    return b"\n".join(parts)
 
 
 def refresh_stale_caches(modules=SERVER_KERNEL_MODULES) -> int:

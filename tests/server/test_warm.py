@@ -83,3 +83,31 @@ def test_the_start_up_message_counts_only_what_this_loop_compiles(monkeypatch, t
         assert loop.cold_kernels() == counted
     finally:
         loop.close()
+
+
+def test_a_changed_constant_of_another_file_changes_the_digest(monkeypatch):
+    """Numba freezes a global's value into the kernel and checks only the kernel's own file: a
+    changed offset in model/layout.py must drop the cached kernels that read it."""
+    from hapticproxy.server import warm
+    from hapticproxy.server.model import kernels
+
+    before = warm.sources_digest()
+    monkeypatch.setattr(kernels, "C_N", kernels.C_N + 1)  # as a new layout.py would bind it
+    assert warm.sources_digest() != before
+    monkeypatch.undo()
+    assert warm.sources_digest() == before
+
+
+def test_glue_modules_define_no_kernels_and_the_others_do():
+    """An edit to glue (the loop) recompiles nothing; every other listed module holds kernels."""
+    import importlib
+
+    from numba.core.registry import CPUDispatcher
+
+    from hapticproxy.server import warm
+
+    for name in warm.SERVER_KERNEL_MODULES:
+        mod = importlib.import_module(name)
+        own = [o for o in vars(mod).values() if isinstance(o, CPUDispatcher) and o.py_func.__module__ == name]
+        assert bool(own) == (name not in warm.GLUE_MODULES), name
+    assert "server/loop.py" not in warm.KERNEL_SOURCES
