@@ -338,6 +338,9 @@ class HapticLoop:
         self._kernels: list = []
         self._pending = None  # the newest ContactUpdate received, applied in the next step
         self._ack_due = None  # the ContactUpdate applied in the previous step, acknowledged in this one
+        # the two stages, bound once: a bound method made in the step would be an allocation there
+        self._ack_stage = self._ack
+        self._apply_stage = self._on_update
         self.dropped_at_start = 0  # datagrams that queued before start() (counted, not read)
         self.advice: EngineAdvice | None = None
         self._scratch_pose = np.zeros(13)
@@ -510,11 +513,11 @@ class HapticLoop:
         upd = self._ack_due
         if upd is not None:
             self._ack_due = None
-            busy = self._survive(self._ack, upd, wake)
+            busy = self._survive(self._ack_stage, upd, wake)
         upd = self._pending
         if upd is not None:
             self._pending = None
-            busy = self._survive(self._on_update, upd, wake)
+            busy = self._survive(self._apply_stage, upd, wake)
         elif self.state == LS["engaged"] and wake - max(self.last_update_ns, self._stall_at) > self.watchdog_ns:
             # (the environment's silence is counted from the end of this loop's own last stall:
             # while the loop did not run, the environment's updates waited in the socket)

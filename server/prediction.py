@@ -23,8 +23,8 @@ deformation (eqs. 4/5). Two things the server can measure close the gap:
 Everything runs once per model update (30-60 Hz), nothing per haptic step, in one numba kernel
 (``advice_update``) over a state array: the step that acknowledges an update pays about 1 us
 for it (in Python floats it was 12 us). The loop calls :meth:`EngineAdvice.on_update` in the
-step after the one that applied a ContactUpdate and puts :attr:`epsilon_m` and :attr:`lead_s` into the ProxyState it
-acknowledges with.
+step after the one that applied a ContactUpdate and puts :attr:`epsilon_m` and :attr:`lead_s`
+into the ProxyState it acknowledges with.
 """
 from __future__ import annotations
 
