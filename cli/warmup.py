@@ -41,7 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     if todo:
         total = len(dispatchers(modules))
         why = ("first run on this machine, about a minute" if len(todo) == total
-               else f"not in numba's cache: new or changed sources; {total - len(todo)} cached")
+               else f"{total - len(todo)} already cached; these changed or no start needed"
+                  " them yet")
         log.info("compiling %d kernels (%s) ...", len(todo), why)
     loops = warm_server()
     engines = warm_clients()
