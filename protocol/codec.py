@@ -372,6 +372,8 @@ _EMPTY_3 = np.zeros((0, 3))
 _EMPTY_3.flags.writeable = False
 _EMPTY_K = np.zeros((0, 3), dtype=np.int64)
 _EMPTY_K.flags.writeable = False
+_EMPTY_COLS = np.zeros((CONTACT_FLOATS, 0))
+_EMPTY_COLS.flags.writeable = False
 _SERVER_STATES = frozenset(int(v) for v in ServerState)
 
 
@@ -543,8 +545,13 @@ class Codec:
     """
 
     def __init__(self, limits: Limits | None = None, *, messages=None, minor: int = PROTOCOL_MINOR,
-                 contact_check=None) -> None:
+                 contact_check=None, proxy_state_packer=None) -> None:
         self.limits = limits or Limits()
+        #: ``proxy_state_packer(minor, session_id, token, seq, ack_seq, server_time_s, pose, twist,
+        #: wrench, joint_position, joint_velocity, joint_effort, server_state, epsilon_m, lead_s,
+        #: has_state) -> bytes | None``: may pack a trusted ProxyState (the same bytes as this
+        #: codec's; ``None``: not sure, and this codec packs it, naming any bad field)
+        self._ps_packer = proxy_state_packer
         #: ``contact_check(cols, normal, keys) -> bool``: may vouch that a ContactUpdate's
         #: contacts keep every value rule (then the numpy rules are skipped); ``False`` means
         #: "not sure", never "invalid" (see :meth:`_check_contacts`)
@@ -776,6 +783,7 @@ class Codec:
             msg.normal = _EMPTY_3
             msg.separation_m = _EMPTY
             msg.v_constr_m_per_s = _EMPTY
+            msg.contact_columns = _EMPTY_COLS
             self.counters.decoded += 1
             return msg
         plan = self._cu_local.plans[n] or self._cu_plan(n)
@@ -796,6 +804,7 @@ class Codec:
         msg.normal = normal
         msg.separation_m = cols[6]
         msg.v_constr_m_per_s = cols[7]
+        msg.contact_columns = cols
         self.counters.decoded += 1
         return msg
 
@@ -957,6 +966,13 @@ class Codec:
         loop's kernel output: its pose quaternion is unit by construction, the session ids and
         sequence numbers its own); only finiteness and the float bound are checked, so the haptic
         step that acknowledges an update pays for packing, not for re-validating what it built."""
+        if trusted and self._ps_packer is not None:
+            packet = self._ps_packer(self.minor, session_id, token, seq, ack_seq, server_time_s, proxy_pose,
+                                     proxy_twist, wrench, joint_position, joint_velocity, joint_effort,
+                                     int(server_state), epsilon_m, lead_s, self._ps_has_state)
+            if packet is not None:
+                self.counters.encoded += 1
+                return packet
         if trusted:
             bins = (proxy_pose.tobytes(), proxy_twist.tobytes(), wrench.tobytes(), joint_position.tobytes(),
                     joint_velocity.tobytes(), joint_effort.tobytes())

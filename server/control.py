@@ -49,6 +49,7 @@ from .model.kernels import _rigid_pose, hand_to_world, step_rigid
 from .model.layout import LM_PLANAR, P_AXIS, P_HAND, P_ORIGIN, S_FENV, S_Q, S_QD, TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL
 from .model.linkage import hand_state_linkage, step_linkage
 from .model.model import quat_to_matrix
+from .prediction import advice_update
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -174,6 +175,15 @@ def proxy_hand_state(kind, par, st, R, c, out, o):
         out[o + 10] = wx
         out[o + 11] = wy
         out[o + 12] = wz
+
+
+@njit(**_JIT)
+def ack_state(kind, par, st, R, c, out, adv_a, adv_p, now_s, engine_tool_pose, separation_m):
+    """What acknowledges an update of a rigid tool, in one call: the proxy's hand-point pose
+    and twist (``proxy_hand_state`` into ``out[0:13]``) and the engine's advice from them
+    (``prediction.advice_update``; ``adv_a`` / ``adv_p``: ``EngineAdvice.kernel_arrays``)."""
+    proxy_hand_state(kind, par, st, R, c, out, 0)
+    advice_update(adv_a, adv_p, now_s, out[0:7], out[7:13], engine_tool_pose, separation_m, False)
 
 
 @njit(**_JIT)

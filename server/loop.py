@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 
 import numpy as np
@@ -44,12 +45,12 @@ from hapticproxy.protocol.codec import Codec
 from hapticproxy.protocol.session import ServerConfig, ServerEndpoint
 
 from . import control as ctl
-from . import ingest
+from . import egress, ingest
 from .devices.base import (
     DEV_FAULT_LINK, DEV_FAULT_NAMES, DEV_FAULT_WATCHDOG, DEV_NSTATE, DS_TIME, empty_state, load_device,
 )
 from .lifecycle import LOOP_STATES, LS, SERVER_STATE_BY_CODE, TRANSITIONS, Fault, Reason
-from .prediction import EngineAdvice, tool_radius_m, warm_up as advice_warm_up
+from .prediction import EngineAdvice, advice_update, tool_radius_m, warm_up as advice_warm_up
 from .model.model import ContactParams, LinkSpec, LocalModel, ToolSpec, warm_up as model_warm_up
 from .rings import account, record_contacts
 from .shm import CT, ST, SharedState
@@ -274,12 +275,17 @@ class HapticLoop:
             max_separation_m=mcfg["max_separation_m"],
             update_watchdog_s=scfg["watchdog_s"],
         )
-        # the protocol's value rules, vouched for by one kernel each (``ingest``): receiving an
-        # update costs a few us instead of a dozen numpy calls
+        # the protocol's value rules, vouched for by kernels (``ingest``: a session's updates read
+        # and checked whole by one call) and the ProxyState packed by one (``egress``): receiving
+        # and acknowledging an update cost a kernel call each instead of dozens of Python and
+        # numpy calls. Both read and write little-endian float64 bytes as the wire has them.
         self.endpoint = endpoint or ServerEndpoint(
             self.transport.send, self.server_config, hmac_key=hmac_key,
-            codec=Codec(self.server_config.limits, contact_check=ingest.contacts_surely_valid),
-            update_check=ingest.update_surely_in_bounds)
+            codec=Codec(self.server_config.limits, contact_check=ingest.contacts_surely_valid,
+                        proxy_state_packer=(egress.ProxyStatePacker(self.server_config.limits.max_links)
+                                            if sys.byteorder == "little" else None)),
+            update_check=ingest.update_surely_in_bounds,
+            update_parser=ingest.ContactParser(self.server_config.limits) if sys.byteorder == "little" else None)
         self.ctrl = controller or ctl.Controller(settings, self.device.kind, self.device.limits)
         if self.ctrl.device_kind != self.device.kind:
             raise ValueError(f"controller: made for a {self.ctrl.device_kind} device, the device is {self.device.kind}")
@@ -343,6 +349,7 @@ class HapticLoop:
         self._apply_stage = self._on_update
         self.dropped_at_start = 0  # datagrams that queued before start() (counted, not read)
         self.advice: EngineAdvice | None = None
+        self._adv_arrays: tuple = ()  # the advice's kernel arrays (EngineAdvice.kernel_arrays)
         self._scratch_pose = np.zeros(13)
         self._no_joints = np.zeros(0)
         # the acknowledgement's arrays: views made once (the ack encodes from them as they are)
@@ -417,6 +424,7 @@ class HapticLoop:
         (a compile takes seconds; ``status.late_compiles`` counts any that still happens)."""
         model_warm_up()
         ingest.warm_up()
+        egress.warm_up()
         advice_warm_up()
         s = self.settings
         c = ctl.Controller(s, self.device.kind, self.device.limits)
@@ -453,6 +461,10 @@ class HapticLoop:
         for qk in ctl.Q_KINDS.values():
             ctl.tool_q_from_pose(qk, pose, np.zeros(3), np.array([1.0, 0.0, 0.0]), joints, np.zeros(9))
             ctl.tool_q_from_pose(qk, pose, np.zeros(3), np.array([1.0, 0.0, 0.0]), self._no_joints, np.zeros(9))
+        adv_a, adv_p = EngineAdvice(0.01).kernel_arrays
+        for sep in (joints, joints[:0]):  # the update's separation column: read-only, empty or not
+            ctl.ack_state(tmp.kind, tmp.kernel_args()[1], tmp.kernel_args()[2], c.R, c.c, self._scratch_pose, adv_a,
+                          adv_p, 0.0, pose, sep)
         warm = getattr(self.device, "warm_up", None)
         if callable(warm):
             warm()
@@ -687,7 +699,7 @@ class HapticLoop:
             js = self._jstate
             m.joint_state_into(self._ack_wrench, js)
             pose, twist, wrench, effort, jq, jqd = js
-            adv.on_update(now * 1e-9, pose, twist, upd.tool_pose, False, upd.separation_m)
+            advice_update(*self._adv_arrays, now * 1e-9, pose, twist, upd.tool_pose, upd.separation_m, False)
             if self.endpoint.send_proxy_state(self.session_id, now, pose, twist, wrench, server_time_s=m.time_s,
                                               joint_position=jq, joint_velocity=jqd, joint_effort=effort,
                                               server_state=state, epsilon_m=adv.epsilon_m, lead_s=adv.lead_s,
@@ -695,8 +707,8 @@ class HapticLoop:
                 self.acks += 1
             return
         mg = self._margs
-        ctl.proxy_hand_state(mg[0], mg[1], mg[2], self._R, self._c, self._scratch_pose, 0)
-        adv.on_update(now * 1e-9, self._ack_pose, self._ack_twist, upd.tool_pose, False, upd.separation_m)
+        ctl.ack_state(mg[0], mg[1], mg[2], self._R, self._c, self._scratch_pose, *self._adv_arrays, now * 1e-9,
+                      upd.tool_pose, upd.separation_m)
         if self.endpoint.send_proxy_state(self.session_id, now, self._ack_pose, self._ack_twist, self._ack_wrench,
                                           server_time_s=m.time_s, server_state=state, epsilon_m=adv.epsilon_m,
                                           lead_s=adv.lead_s, ack_seq=upd.seq, trusted=True):
@@ -756,6 +768,7 @@ class HapticLoop:
         self.com_m = np.asarray(hello.com_m, dtype=float)
         self._tool_axis = tool.axis
         self.advice = self._new_advice(hello, tool, float(sess.epsilon_m))
+        self._adv_arrays = self.advice.kernel_arrays
         self.device.on_engage()  # a simulated hand's script starts with the session
         self._reindex()
         c = self.ctrl

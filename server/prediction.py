@@ -182,6 +182,12 @@ class EngineAdvice:
                       _f8(engine_tool_pose, 7), separation_m, bool(tool_touching))
 
     @property
+    def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(a, p)`` for :func:`advice_update` called from another kernel (the loop's
+        acknowledgement: the proxy's state and the advice in one call)."""
+        return self._a, self._p
+
+    @property
     def lag_s(self) -> float:
         """The last residual lag of the engine's tool behind the proxy measured in free motion, s."""
         return float(self._a[A_LAG])

@@ -25,6 +25,7 @@ SERVER_KERNEL_MODULES = (
     "hapticproxy.server.control",
     "hapticproxy.server.loop",
     "hapticproxy.server.ingest",
+    "hapticproxy.server.egress",
     "hapticproxy.server.prediction",
     "hapticproxy.server.rings",
     "hapticproxy.server.devices.dynamics",

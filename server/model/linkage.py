@@ -448,6 +448,18 @@ def _link_pose(lw, k, out, o):
 
 
 @njit(**_JIT)
+def joint_state(lmeta, lk, lki, st, lw, wrench_hand, out_pose, out_twist, out_wrench, out_effort, out_q, out_qd,
+                q_end, qd_end):
+    """``root_state_and_efforts`` and the joint positions and rates (the last ``len(out_q)``
+    coordinates before ``st[q_end]`` / ``st[qd_end]``), in one call: the linkage's ProxyState."""
+    root_state_and_efforts(lmeta, lk, lki, st, lw, wrench_hand, out_pose, out_twist, out_wrench, out_effort)
+    nj = out_q.shape[0]
+    for j in range(nj):
+        out_q[j] = st[q_end - nj + j]
+        out_qd[j] = st[qd_end - nj + j]
+
+
+@njit(**_JIT)
 def root_state_and_efforts(lmeta, lk, lki, st, lw, wrench_hand, out_pose, out_twist, out_wrench,
                            out_effort):
     """What a ProxyState says about a linkage: the root frame's pose (7) and twist (6), world; and

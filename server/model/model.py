@@ -848,13 +848,8 @@ class LocalModel:
         rates), float64 arrays of those sizes (the loop's, allocated at engagement); the hand
         wrench a float64 array of 6. For the step that acknowledges an update."""
         pose, twist, wrench, effort, jq, jqd = out
-        _lk.root_state_and_efforts(self._lmeta, self._lk, self._lki, self._st, self._lw, hand_wrench_world, pose,
-                                   twist, wrench, effort)
-        nj = jq.shape[0]
-        end = self._q_at + self.nq
-        jq[:] = self._st[end - nj:end]
-        end = S_QD + self.dof
-        jqd[:] = self._st[end - nj:end]
+        _lk.joint_state(self._lmeta, self._lk, self._lki, self._st, self._lw, hand_wrench_world, pose, twist, wrench,
+                        effort, jq, jqd, self._q_at + self.nq, S_QD + self.dof)
 
     # -- raw arrays (for the reference implementation and for tests) --------------------------
     def arrays(self):

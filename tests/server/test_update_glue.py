@@ -117,6 +117,16 @@ def test_an_update_is_applied_and_acknowledged_in_steps_without_housekeeping(kin
         # back-to-back updates happened (one arrived in the step that applied the previous one)
         assert any(b - a == 1 for a, b in zip(applied_seqs, applied_seqs[1:]))
         assert r.env.acked == applied_seqs[:len(r.env.acked)] and len(r.env.acked) >= len(applied_seqs) - 1
+        # the kernels did that work (``server/ingest.py``, ``server/egress.py``): every update but
+        # the session's first was read whole by the parser, even the one that arrived while its
+        # predecessor waited to be applied, and every ProxyState packed by the packer; none of
+        # their specialisations compiled after warm_up
+        ep = loop.endpoint
+        sent = r.env.updates_sent  # (the last may still be in flight)
+        assert sent - 2 <= ep._parser.parsed <= sent - 1 and ep._parser.all_held == 0
+        assert ep.codec._ps_packer.packed == loop.acks
+        from hapticproxy.server.loop import kernels_compiled
+        assert kernels_compiled() == loop._kernels_compiled
     finally:
         r.close()
 
