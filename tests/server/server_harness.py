@@ -363,3 +363,48 @@ def _rig(settings=None, device=None, env_kwargs=None, **sections):
 @pytest.fixture
 def rig_factory():  # re-exported by conftest.py
     yield from made_then_ended(_rig)
+
+
+def random_contacts(rng, n, planar=False, links=1):
+    """n valid contacts: keys (tool link below ``links``, body, feature), positions, unit normals
+    (in the x-y plane if ``planar``), separations, constraint velocities."""
+    keys = np.zeros((n, 3), dtype=np.int64)
+    if links > 1:
+        keys[:, 0] = rng.integers(0, links, n)
+    keys[:, 1] = rng.integers(0, 5, n)
+    keys[:, 2] = np.arange(n)
+    normal = rng.normal(size=(n, 3))
+    if planar:
+        normal[:, 2] = 0.0
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    pos = rng.uniform(-0.2, 0.2, (n, 3))
+    sep = rng.uniform(-0.005, 0.01, n)
+    vc = rng.uniform(-0.5, 0.5, n)
+    return keys, pos, normal, sep, vc
+
+
+def break_contact_rule(case: str, rng, i: int, keys, pos, normal, sep, vc) -> bool:
+    """Make contact ``i`` break the codec's rule that ``case`` names, or sit at its edge
+    (``at_max``, ``unit_edge_in``: still valid); ``False`` if ``case`` names no such rule."""
+    from hapticproxy.protocol.messages import MAX_ABS_FLOAT, UNIT_TOLERANCE
+
+    if case == "nan":
+        [pos, normal, sep, vc][int(rng.integers(0, 4))].reshape(-1)[0] = np.nan
+    elif case == "inf":
+        vc[i] = -np.inf
+    elif case == "big":
+        sep[i] = MAX_ABS_FLOAT * (1 + 1e-15)
+    elif case == "at_max":
+        pos[i, 0] = MAX_ABS_FLOAT
+    elif case == "not_unit":
+        normal[i] *= 1.01
+    elif case == "unit_edge_in":
+        normal[i] *= 1.0 + UNIT_TOLERANCE * (1 - 1e-9)
+    elif case == "unit_edge_out":
+        normal[i] *= 1.0 - UNIT_TOLERANCE * (1 + 1e-9)
+    elif case in ("duplicate", "many_duplicate"):
+        if len(keys) > 1:
+            keys[-1] = keys[0]
+    else:
+        return False
+    return True

@@ -4,26 +4,13 @@ give the same verdict (the same arrays, or the same error code, field and detail
 them, on valid updates and on each way an update can break a rule, at the edges of the rules."""
 import numpy as np
 import pytest
+from server_harness import break_contact_rule, random_contacts as _contacts
 
 from hapticproxy.protocol.codec import Codec, Limits, ProtocolError
-from hapticproxy.protocol.messages import MAX_ABS_FLOAT, UNIT_TOLERANCE
+from hapticproxy.protocol.messages import UNIT_TOLERANCE
 from hapticproxy.server import ingest
 
 POSE = np.array([0.0, 0.05, 0.0, 1.0, 0.0, 0.0, 0.0])
-
-
-def _contacts(rng, n, planar=False):
-    keys = np.zeros((n, 3), dtype=np.int64)
-    keys[:, 1] = rng.integers(0, 5, n)
-    keys[:, 2] = np.arange(n)
-    normal = rng.normal(size=(n, 3))
-    if planar:
-        normal[:, 2] = 0.0
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    pos = rng.uniform(-0.2, 0.2, (n, 3))
-    sep = rng.uniform(-0.005, 0.01, n)
-    vc = rng.uniform(-0.5, 0.5, n)
-    return keys, pos, normal, sep, vc
 
 
 def _broken(rng, n):
@@ -33,23 +20,7 @@ def _broken(rng, n):
                  "duplicate", "many_unique", "many_duplicate", "zero"):
         m = 80 if case.startswith("many") else (0 if case == "zero" else n)
         keys, pos, normal, sep, vc = _contacts(rng, m)
-        i = int(rng.integers(0, max(m, 1)))
-        if case == "nan":
-            [pos, normal, sep, vc][int(rng.integers(0, 4))].reshape(-1)[0] = np.nan
-        elif case == "inf":
-            vc[i] = -np.inf
-        elif case == "big":
-            sep[i] = MAX_ABS_FLOAT * (1 + 1e-15)
-        elif case == "at_max":
-            pos[i, 0] = MAX_ABS_FLOAT
-        elif case == "not_unit":
-            normal[i] *= 1.01
-        elif case == "unit_edge_in":
-            normal[i] *= 1.0 + UNIT_TOLERANCE * (1 - 1e-9)
-        elif case == "unit_edge_out":
-            normal[i] *= 1.0 - UNIT_TOLERANCE * (1 + 1e-9)
-        elif case in ("duplicate", "many_duplicate"):
-            keys[-1] = keys[0]
+        break_contact_rule(case, rng, int(rng.integers(0, max(m, 1))), keys, pos, normal, sep, vc)
         out.append((case, keys, pos, normal, sep, vc))
     return out
 

@@ -12,9 +12,10 @@ import struct
 import numba
 import numpy as np
 import pytest
+from server_harness import break_contact_rule, random_contacts as _contacts
 
 from hapticproxy.protocol.codec import Codec, Limits
-from hapticproxy.protocol.messages import MAX_ABS_FLOAT, UNIT_TOLERANCE, Hello, ToolKind
+from hapticproxy.protocol.messages import Hello, ToolKind
 from hapticproxy.protocol.session import ClientEndpoint, ServerConfig, ServerEndpoint
 from hapticproxy.server import ingest
 
@@ -57,18 +58,6 @@ class Pair:
         self.sid, self.token = s.session_id, s.token
 
 
-def _rng_contacts(rng, n, planar, links=1):
-    keys = np.zeros((n, 3), dtype=np.int64)
-    keys[:, 0] = rng.integers(0, links, n)
-    keys[:, 1] = rng.integers(0, 5, n)
-    keys[:, 2] = np.arange(n)
-    normal = rng.normal(size=(n, 3))
-    if planar:
-        normal[:, 2] = 0.0
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    return keys, rng.uniform(-0.2, 0.2, (n, 3)), normal, rng.uniform(-0.005, 0.01, n), rng.uniform(-0.5, 0.5, n)
-
-
 def _uint(v: int, width: int = 0) -> bytes:
     """msgpack unsigned int: the smallest form, or a given width (a form other encoders use)."""
     if width == 0:
@@ -109,33 +98,21 @@ def _cases(rng, kind, sid, token, state):
     planar = kind == "planar"
     for trial in range(12):
         for case in ("valid", "valid_zero", "valid_wide", "valid_array16", "valid_bin16", "nan", "inf", "big",
-                     "not_unit", "unit_edge_in", "unit_edge_out", "duplicate_key", "pose_not_unit", "pose_far",
+                     "not_unit", "unit_edge_in", "unit_edge_out", "duplicate", "pose_not_unit", "pose_far",
                      "pose_nan", "oob_position", "at_extent", "oob_speed", "oob_separation", "bad_link",
                      "planar_z", "too_many", "wrong_token", "wrong_session", "stale", "duplicate_seq", "jump",
                      "env_f32", "env_int", "env_nan", "trailing", "truncated", "unknown_field", "joints_wrong",
                      "joints_nan", "keys_short", "data_short", "major2", "wrong_type", "token_wide"):
             n = 0 if case == "valid_zero" else 17 if case == "too_many" else int(rng.integers(1, 12))
-            keys, pos, normal, sep, vc = _rng_contacts(rng, n, planar, 3 if kind == "linkage" else 1)
+            keys, pos, normal, sep, vc = _contacts(rng, n, planar, 3 if kind == "linkage" else 1)
             seq = state["newest"]
             joints = rng.uniform(-1.0, 1.0, 2) if kind == "linkage" else None
             pose = np.array([0.0, 0.05, 0.0, 1.0, 0.0, 0.0, 0.0])
             i = int(rng.integers(0, max(n, 1)))
             kw: dict = {}
             seq_here = seq + int(rng.integers(1, 3))  # now and then one lost on the way
-            if case == "nan":
-                [pos, normal, sep, vc][int(rng.integers(0, 4))].reshape(-1)[0] = np.nan
-            elif case == "inf":
-                vc[i] = np.inf
-            elif case == "big":
-                pos[i, 1] = MAX_ABS_FLOAT * 2
-            elif case == "not_unit":
-                normal[i] *= 1.01
-            elif case == "unit_edge_in":
-                normal[i] *= 1.0 + UNIT_TOLERANCE * (1 - 1e-9)
-            elif case == "unit_edge_out":
-                normal[i] *= 1.0 - UNIT_TOLERANCE * (1 + 1e-9)
-            elif case == "duplicate_key" and n > 1:
-                keys[-1] = keys[0]
+            if break_contact_rule(case, rng, i, keys, pos, normal, sep, vc):
+                pass  # a codec rule of the contacts (shared with test_ingest.py)
             elif case == "pose_not_unit":
                 pose[3] = 1.01
             elif case == "pose_far":
@@ -274,7 +251,7 @@ def test_a_slot_is_never_written_over_while_its_update_is_kept():
     seq = 0
     # the first update is accepted by the codec; from then on the parser takes them
     for k in range(12):
-        keys, pos, normal, sep, vc = _rng_contacts(rng, 5, False)
+        keys, pos, normal, sep, vc = _contacts(rng, 5, False)
         seq += 1
         msg = p.server.receive(bytearray(_packet(p.sid, p.token, seq, [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], keys, pos,
                                                  normal, sep, vc)), PEER, 1000)
@@ -285,7 +262,7 @@ def test_a_slot_is_never_written_over_while_its_update_is_kept():
     # every slot was held: the rest went to the codec, counted
     assert p.parser.all_held == 12 - 1 - ingest.ContactParser.SLOTS
     kept.clear()  # the loop keeps at most two: slots are free again, and reused
-    keys, pos, normal, sep, vc = _rng_contacts(rng, 5, False)
+    keys, pos, normal, sep, vc = _contacts(rng, 5, False)
     p.server.receive(bytearray(_packet(p.sid, p.token, seq + 1, [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], keys, pos,
                                        normal, sep, vc)), PEER, 1000)
     assert p.parser.reused == 1
@@ -299,7 +276,7 @@ def test_the_parsers_arrays_have_the_codecs_types():
     pose = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
     msgs = []
     for seq in (1, 2):
-        keys, pos, normal, sep, vc = _rng_contacts(rng, 4, False)
+        keys, pos, normal, sep, vc = _contacts(rng, 4, False)
         msgs.append(p.server.receive(bytearray(_packet(p.sid, p.token, seq, pose, keys, pos, normal, sep, vc,
                                                        np.array([0.1, 0.2]))), PEER, 1000))
     by_codec, by_parser = msgs
