@@ -969,7 +969,7 @@ class Codec:
         if trusted and self._ps_packer is not None:
             packet = self._ps_packer(self.minor, session_id, token, seq, ack_seq, server_time_s, proxy_pose,
                                      proxy_twist, wrench, joint_position, joint_velocity, joint_effort,
-                                     int(server_state), epsilon_m, lead_s, self._ps_has_state)
+                                     server_state, epsilon_m, lead_s, self._ps_has_state)
             if packet is not None:
                 self.counters.encoded += 1
                 return packet

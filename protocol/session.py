@@ -548,15 +548,9 @@ class ServerEndpoint:
         if s is not None and self._rx_len <= self._max_datagram:
             msg = self._parser(data)
             if msg is not None and peer == s.peer and self.sessions.get(s.session_id) is s:
-                # every rule below held (the kernel checked them): what accepting it changes
-                seq = msg.seq
-                c.lost += seq - s.contact_seq.newest - 1
-                s.contact_seq.newest = seq
-                self._parser.accepted(seq)
-                s.last_rx_ns = now
-                c.accepted += 1
+                # every rule below held (the kernel checked them)
                 self.codec.counters.decoded += 1
-                return msg
+                return self._accept_update(s, msg, now)
         msg = _unwrap(self, data)
         if msg is None:
             return None
@@ -597,14 +591,7 @@ class ServerEndpoint:
                 self._error(s, now, ErrorCode.OUT_OF_BOUNDS if group == "out_of_bounds" else ErrorCode.UNUSABLE,
                             field_name, detail, tid, msg.seq)
                 return None
-            if not s.contact_seq.accept(msg.seq, c):
-                return None
-            s.last_rx_ns = now
-            c.accepted += 1
-            if self._parser is not None:
-                self._expected = s  # its next updates take the parser's path
-                self._parser.expect(s, self.config.max_seq_jump)
-            return msg
+            return self._accept_update(s, msg, now)
         if tid == MessageType.HEARTBEAT:
             if s.heartbeat_seq.jumps(msg.seq, self.config.max_seq_jump):
                 c.seq_jump += 1
@@ -629,6 +616,22 @@ class ServerEndpoint:
         c.unexpected += 1  # Welcome, Reject, ProxyState: server-to-client only
         self._error(s, now, ErrorCode.UNEXPECTED, "type_id", f"{type(msg).__name__} is not sent to a server", tid, 0)
         return None
+
+    def _accept_update(self, s: ServerSession, msg: ContactUpdate, now: int) -> ContactUpdate | None:
+        """A ContactUpdate that kept every rule: newest wins (else ``None``, counted stale or
+        duplicate); the parser, if any, expects this session's next ones."""
+        if not s.contact_seq.accept(msg.seq, self.counters):
+            return None
+        s.last_rx_ns = now
+        self.counters.accepted += 1
+        parser = self._parser
+        if parser is not None:
+            if self._expected is s:
+                parser.accepted(msg.seq)
+            else:
+                self._expected = s  # its next updates take the parser's path
+                parser.expect(s, self.config.max_seq_jump)
+        return msg
 
     def _error(self, s: ServerSession, now: int, code: ErrorCode, field_name: str, detail: str,
                ref_type: int, ref_seq: int) -> None:

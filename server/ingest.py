@@ -281,32 +281,15 @@ def parse_contact_update(p, lim, lim_f, out_i, out_f):
                 return _NOT_SURE
     if i != end:  # trailing bytes: not one msgpack object
         return _NOT_SURE
-    # the contacts: finite and bounded, unit normals (with the margin), unique keys
-    for k in range(8 * n):
-        x = out_f[F_DATA + k]
-        if not (-MAX_ABS_FLOAT <= x <= MAX_ABS_FLOAT):
-            return _NOT_SURE
-    nrm = F_DATA + 3 * n
-    for c in range(n):
-        a = out_f[nrm + 3 * c]
-        e = out_f[nrm + 3 * c + 1]
-        f = out_f[nrm + 3 * c + 2]
-        s = a * a + e * e + f * f
-        if not (_SURE_LO <= s <= _SURE_HI):
-            return _NOT_SURE
-    if n > _PAIRWISE_MAX:
+    # the contacts: the codec's rules and the session's, by the two kernels above
+    cols = out_f[F_DATA:F_DATA + 8 * n].reshape(8, n)
+    normal = out_f[F_DATA + 3 * n:F_DATA + 6 * n].reshape(n, 3)
+    keys = out_i[I_KEYS:I_KEYS + 3 * n].reshape(n, 3)
+    if not contacts_surely_valid(cols, normal, keys):
         return _NOT_SURE
-    if not update_surely_in_bounds(out_f[F_DATA:F_DATA + 8 * n].reshape(8, n), out_f[nrm:nrm + 3 * n].reshape(n, 3),
-                                   out_i[I_KEYS:I_KEYS + 3 * n].reshape(n, 3), extent, lim_f[LF_SPEED],
-                                   lim_f[LF_SEPARATION], lim[L_N_LINKS], lim[L_PLANAR] != 0):
+    if not update_surely_in_bounds(cols, normal, keys, extent, lim_f[LF_SPEED], lim_f[LF_SEPARATION], lim[L_N_LINKS],
+                                   lim[L_PLANAR] != 0):
         return _NOT_SURE
-    for c in range(n):
-        a0 = out_i[I_KEYS + 3 * c]
-        a1 = out_i[I_KEYS + 3 * c + 1]
-        a2 = out_i[I_KEYS + 3 * c + 2]
-        for d in range(c + 1, n):
-            if out_i[I_KEYS + 3 * d] == a0 and out_i[I_KEYS + 3 * d + 1] == a1 and out_i[I_KEYS + 3 * d + 2] == a2:
-                return _NOT_SURE
     out_i[I_MINOR] = minor
     out_i[I_SESSION] = sid
     out_i[I_TOKEN_HI] = hi
@@ -334,7 +317,9 @@ class ContactParser:
     in (its reference count), so an update the loop keeps (pending, or applied and not yet
     acknowledged) is never overwritten by a newer one; the views of a slot are built once per
     contact count. Keep the message, not only its arrays (the loop does). With every slot held
-    it returns ``None`` and the codec allocates as it always did."""
+    it returns ``None`` and the codec allocates as it always did. Its messages carry the
+    columns (``keys``, ``position_m``, ...), not the raw bins: ``contact_keys`` and
+    ``contact_data`` are empty (the codec re-encodes from the columns)."""
 
     SLOTS = 4
 
@@ -374,9 +359,6 @@ class ContactParser:
     def accepted(self, seq: int) -> None:
         """The expected session accepted ``seq`` (its newest now)."""
         self._lim[L_NEWEST] = seq
-
-    def forget(self) -> None:
-        self._lim[L_SESSION] = -1
 
     def _contact_views(self, slot: int, n: int) -> tuple:
         row = self._f[slot]

@@ -349,7 +349,6 @@ class HapticLoop:
         self._apply_stage = self._on_update
         self.dropped_at_start = 0  # datagrams that queued before start() (counted, not read)
         self.advice: EngineAdvice | None = None
-        self._adv_arrays: tuple = ()  # the advice's kernel arrays (EngineAdvice.kernel_arrays)
         self._scratch_pose = np.zeros(13)
         self._no_joints = np.zeros(0)
         # the acknowledgement's arrays: views made once (the ack encodes from them as they are)
@@ -699,7 +698,7 @@ class HapticLoop:
             js = self._jstate
             m.joint_state_into(self._ack_wrench, js)
             pose, twist, wrench, effort, jq, jqd = js
-            advice_update(*self._adv_arrays, now * 1e-9, pose, twist, upd.tool_pose, upd.separation_m, False)
+            advice_update(*adv.kernel_arrays, now * 1e-9, pose, twist, upd.tool_pose, upd.separation_m, False)
             if self.endpoint.send_proxy_state(self.session_id, now, pose, twist, wrench, server_time_s=m.time_s,
                                               joint_position=jq, joint_velocity=jqd, joint_effort=effort,
                                               server_state=state, epsilon_m=adv.epsilon_m, lead_s=adv.lead_s,
@@ -707,7 +706,7 @@ class HapticLoop:
                 self.acks += 1
             return
         mg = self._margs
-        ctl.ack_state(mg[0], mg[1], mg[2], self._R, self._c, self._scratch_pose, *self._adv_arrays, now * 1e-9,
+        ctl.ack_state(mg[0], mg[1], mg[2], self._R, self._c, self._scratch_pose, *adv.kernel_arrays, now * 1e-9,
                       upd.tool_pose, upd.separation_m)
         if self.endpoint.send_proxy_state(self.session_id, now, self._ack_pose, self._ack_twist, self._ack_wrench,
                                           server_time_s=m.time_s, server_state=state, epsilon_m=adv.epsilon_m,
@@ -768,7 +767,6 @@ class HapticLoop:
         self.com_m = np.asarray(hello.com_m, dtype=float)
         self._tool_axis = tool.axis
         self.advice = self._new_advice(hello, tool, float(sess.epsilon_m))
-        self._adv_arrays = self.advice.kernel_arrays
         self.device.on_engage()  # a simulated hand's script starts with the session
         self._reindex()
         c = self.ctrl

@@ -157,6 +157,9 @@ class EngineAdvice:
         self._p = np.array([cap, float(tool_radius_m), float(bool(predict)), float(bool(lead)),
                             min(float(epsilon_floor_m), cap), float(margin), float(lead_max_s)])
         self._a = np.zeros(10)
+        #: ``(a, p)`` for :func:`advice_update` called from another kernel (the loop's
+        #: acknowledgement: the proxy's state and the advice in one call)
+        self.kernel_arrays = (self._a, self._p)
         self._a[A_T] = math.nan  # server time of the last update, s
         self._a[A_EPSILON] = cap  # until something has been measured: the granted epsilon
 
@@ -180,12 +183,6 @@ class EngineAdvice:
         passes the update's column and lets the kernel look)."""
         advice_update(self._a, self._p, float(now_s), _f8(proxy_pose, 7), _f8(proxy_twist, 6),
                       _f8(engine_tool_pose, 7), separation_m, bool(tool_touching))
-
-    @property
-    def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(a, p)`` for :func:`advice_update` called from another kernel (the loop's
-        acknowledgement: the proxy's state and the advice in one call)."""
-        return self._a, self._p
 
     @property
     def lag_s(self) -> float:
