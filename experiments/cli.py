@@ -81,6 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in names:
         out = os.path.join(args.out, name) if args.name == "all" else args.out
         t0 = time.perf_counter()
+        started = time.time() - 1.0  # files older than this run are not its plots
         try:
             res = run_one(name, out, mode=args.mode, quick=args.quick, log=log)
         except (RuntimeError, ValueError, OSError) as exc:
@@ -108,7 +109,11 @@ def main(argv: list[str] | None = None) -> int:
                 print(line)
         what = {"tradeoff": "tradeoff.json, tables", "rates": "rates.json, rates.md",
                 "fidelity": "fidelity.json, fidelity.md", "literal": "literal.json, literal.md"}.get(name, "metrics.json")
-        print(f"{name}: wrote {out}/{what} and plots ({time.perf_counter() - t0:.1f} s)")
+        # name the plots this run wrote (a quick fidelity run writes none)
+        plots = sorted(f for f in os.listdir(out) if f.endswith(".png")
+                       and os.path.getmtime(os.path.join(out, f)) >= started)
+        drawn = f" and {len(plots)} plot{'s' if len(plots) != 1 else ''} ({', '.join(plots)})" if plots else ""
+        print(f"{name}: wrote {out}/{what}{drawn} ({time.perf_counter() - t0:.1f} s)")
     return status
 
 
