@@ -360,6 +360,12 @@ class HapticLoop:
         self._st_missed = ST["missed_deadlines"]
         # arrays the kernel gets while no model is engaged (active = 0: never stepped)
         self._dummy = LocalModel(ToolSpec.one_dof(1.0), period_s=self.dt_s, capacity=1, warm=False).kernel_args()
+        #: the model's counters the telemetry row reads its live contacts from (none: zeros)
+        self._no_cnt = np.zeros_like(self._dummy[5])
+        self._cnt = self._no_cnt
+        sh = self.shared
+        #: the accounting kernel's fixed arguments, gathered once (each lookup in a step costs)
+        self._acc = (sh.tel, sh.head, sh.hist_late, sh.hist_step, sh.stat, int(self.period_ns))
         self.ctrl.hold()  # nothing drives a proxy until a session engages
         st = self.shared.status
         st[ST["period_ns"]] = self.period_ns
@@ -405,6 +411,7 @@ class HapticLoop:
     def _drop_model(self) -> None:
         self.model = None
         self._margs = None
+        self._cnt = self._no_cnt
         self._linkage = False
         self._largs = None
         self.session_id = 0
@@ -448,10 +455,12 @@ class HapticLoop:
                                         cnt_, wk_, lm.linkage_args()[3], c.hand)
         ctl.fade_only(c.cp, c.cs, c.cc, c.cmd)
         scratch = SharedState.local(4)  # the same views (so the same kernel types) as the shared block's
-        self._account_step(scratch.tel, scratch.head, scratch.hist_late, scratch.hist_step, scratch.stat, 1, 1, 0,
-                           c.cs, dev, c.cmd)
-        record_contacts(scratch.contacts, 0.0, 0.0, 1, 1, np.zeros((4, 3), dtype=np.int64), np.zeros((4, 3)),
-                        np.zeros((4, 3)), np.zeros(4))
+        account(scratch.tel, scratch.head, scratch.hist_late, scratch.hist_step, scratch.stat, self.period_ns, 1, 1,
+                0, self.state, self.updates, c.cs, self._no_cnt, dev, c.cmd)
+        ro = [np.zeros((4, 3), dtype=np.int64), np.zeros((4, 3)), np.zeros((4, 3)), np.zeros(4)]
+        for a in ro:
+            a.flags.writeable = False  # the decoder's views of a packet, which _on_update records
+        record_contacts(scratch.contacts, 0.0, 0.0, 1, 1, *ro)
         ctl.proxy_hand_state(tmp.kind, tmp.kernel_args()[1], tmp.kernel_args()[2], c.R, c.c, self._scratch_pose, 0)
         pose = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
         pose.flags.writeable = False  # what the decoder hands out: read-only views of the packet
@@ -579,9 +588,8 @@ class HapticLoop:
             clock.charge()
         end = clock.now_ns()
         self._last_write_ns = end
-        sh = self.shared
-        self._account_step(sh.tel, sh.head, sh.hist_late, sh.hist_step, sh.stat, late, end - wake, wake - self._t0,
-                           c.cs, dev, c.cmd)
+        # (late, end - wake, wake - t0: ints, as the clock gives them; state a float, LS's values)
+        account(*self._acc, late, end - wake, wake - self._t0, self.state, self.updates, c.cs, self._cnt, dev, c.cmd)
         self._hk_count += 1
         if self._hk_count >= self._hk_every and (not busy or self._hk_count >= self._hk_every + _HK_MAX_DEFER):
             # not in a step that received or applied an update (each costs some us, as
@@ -602,13 +610,6 @@ class HapticLoop:
             self._on_fault(ctl.RC_NONFINITE, 0, now, Reason.UPDATE_ERROR)
         return True
 
-    def _account_step(self, tel, head, hist_late, hist_step, stat, late_ns, comp_ns, since_start_ns, cs, dev,
-                      cmd) -> None:
-        # every scalar converted here, so the kernel always sees the one signature warm_up compiled
-        account(tel, head, hist_late, hist_step, stat, self.period_ns, int(late_ns), int(comp_ns),
-                 since_start_ns * 1e-9, float(self.state), float(cs[ctl.CS_GAIN]), self._contacts(),
-                 float(self.updates), cs, dev, cmd)
-
     def _contacts(self) -> float:
         return float(self._margs[5][0]) if self._margs is not None else 0.0
 
@@ -628,22 +629,19 @@ class HapticLoop:
             if self.model is None:
                 return  # not engaged (a Hello the model cannot hold)
         else:
-            n = upd.keys.shape[0]
-            m = self.model
-            self._kbuf[:n] = upd.keys
-            self._pbuf[:n] = upd.position_m
-            self._nbuf[:n] = upd.normal
-            self._sbuf[:n] = upd.separation_m
-            self._vbuf[:n] = upd.v_constr_m_per_s
-            code = m.update_arrays(self._kbuf, self._pbuf, self._nbuf, self._sbuf, self._vbuf, n,
-                                   self._engine_q(upd))
+            # the decoder's read-only views go to the kernels as they are (no copies: the codec
+            # and the session checked them, and warm_up compiled the kernels for these types)
+            keys = upd.keys
+            code = self.model.update_arrays(keys, upd.position_m, upd.normal, upd.separation_m,
+                                            upd.v_constr_m_per_s, keys.shape[0], self._engine_q(upd))
             if code != 0:
                 self.update_errors += 1
                 return
         self._track_env(upd, now)
         self.updates += 1
+        keys = upd.keys
         record_contacts(self.shared.contacts, (now - self._t0) * 1e-9, float(upd.env_time_s), self.updates,
-                        upd.keys.shape[0], self._kbuf, self._pbuf, self._nbuf, self._sbuf)
+                        keys.shape[0], keys, upd.position_m, upd.normal, upd.separation_m)
         if self.state == LS["fading"] and self.watchdog == WD_SILENT:
             self.transition("engaged", Reason.RESUMED)
         self._ack_due = upd  # acknowledged in the next step, with the proxy state the update led to
@@ -741,28 +739,17 @@ class HapticLoop:
         if linkage:  # the acknowledgement's arrays (``_ack``), written in place at every update
             nj = len(tool.links) - 1
             self._jstate = (np.zeros(7), np.zeros(6), np.zeros(6), np.zeros(nj), np.zeros(nj), np.zeros(nj))
-        cap = max(mcfg["capacity"], sess.max_contacts)
-        self._kbuf = np.zeros((cap, 3), dtype=np.int64)
-        self._pbuf = np.zeros((cap, 3))
-        self._nbuf = np.zeros((cap, 3))
-        self._sbuf = np.zeros(cap)
-        self._vbuf = np.zeros(cap)
-        n = upd.keys.shape[0]
-        self._kbuf[:n] = upd.keys
-        self._pbuf[:n] = upd.position_m
-        self._nbuf[:n] = upd.normal
-        self._sbuf[:n] = upd.separation_m
-        self._vbuf[:n] = upd.v_constr_m_per_s
         self._hello_com = np.asarray(hello.com_m, dtype=float)
         self._hello_axis = np.asarray(hello.axis, dtype=float)
         self._tool_kind = qkind
         self._qk = ctl.Q_KINDS[qkind]
         self._tool_q = np.zeros(model.nq)  # the engine's tool configuration of each update
-        if model.update_arrays(self._kbuf, self._pbuf, self._nbuf, self._sbuf, self._vbuf, n,
-                               self._engine_q(upd)) != 0:
+        if model.update_arrays(upd.keys, upd.position_m, upd.normal, upd.separation_m, upd.v_constr_m_per_s,
+                               upd.keys.shape[0], self._engine_q(upd)) != 0:
             self.update_errors += 1
         self.model = model
         self._margs = model.kernel_args()
+        self._cnt = self._margs[5]
         self.session_id = upd.session_id
         self.com_m = np.asarray(hello.com_m, dtype=float)
         self._tool_axis = tool.axis

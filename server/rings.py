@@ -6,15 +6,19 @@ from __future__ import annotations
 
 from numba import njit
 
-from .control import CS_DPOSE, CS_ENV, CS_FC, CS_PPOSE
+from .control import CS_DPOSE, CS_ENV, CS_FC, CS_GAIN, CS_PPOSE
 from .devices.base import DS_HAND
+from .model.layout import K_M
 from .shm import HBINS
 
 
 @njit(cache=True, nogil=True)
-def account(tel, head, hist_late, hist_step, stat, period_ns, late_ns, comp_ns, t_s, state, gain, contacts,
-            updates, cs, dev, cmd):
-    """Histograms, maxima, counters and one telemetry row (``shm.TEL_DTYPE``) for a step."""
+def account(tel, head, hist_late, hist_step, stat, period_ns, late_ns, comp_ns, since_start_ns, state, updates,
+            cs, cnt, dev, cmd):
+    """Histograms, maxima, counters and one telemetry row (``shm.TEL_DTYPE``) for a step. The
+    scalars as the loop has them (integers; ``state`` a float), the gain read from the
+    controller's ``cs`` and the live contacts from the model's counters ``cnt``: the step's
+    Python converts nothing (a haptic step pays for every Python operation)."""
     lu = late_ns / 1000.0
     cu = comp_ns / 1000.0
     bl = int(lu) if lu > 0.0 else 0
@@ -30,13 +34,13 @@ def account(tel, head, hist_late, hist_step, stat, period_ns, late_ns, comp_ns, 
     if late_ns + comp_ns > period_ns:
         st.overruns += 1.0  # the step finished after the next deadline
     r = tel[head[0] % tel.shape[0]]
-    r.t_s = t_s
+    r.t_s = since_start_ns * 1e-9
     r.lateness_us = lu
     r.compute_us = cu
     r.loop_state = state
-    r.gain = gain
-    r.contacts = contacts
-    r.updates = updates
+    r.gain = cs[CS_GAIN]
+    r.contacts = float(cnt[K_M])
+    r.updates = float(updates)
     for j in range(13):  # pose (7) and twist (6)
         r.dev[j] = cs[CS_DPOSE + j]
         r.proxy[j] = cs[CS_PPOSE + j]

@@ -41,6 +41,7 @@ from numba import njit
 from .base import (
     DEV_FAULT_DISABLED, DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_NSTATE, DEV_OK,
 )
+from .hands import hand_eval
 from .layout import (
     C_ENABLED, C_FAULT, C_LAST_NS, C_WD_NS,
     HO_B, HO_BR, HO_I, HO_K, HO_KR, HO_M, HO_VT, HO_W, HO_XT,
@@ -353,6 +354,17 @@ def sim_write(par, st, cnt, ctl, hout, wrench, now_ns):
             cnt[K_SAT_COMPONENTS] += nsat
     _step(par, st, cnt, hout)
     return _status(ctl)
+
+
+@njit(**_JIT)
+def sim_write_hand(par, st, cnt, ctl, hp, tab, hout, wrench, cmd, now_ns):
+    """One step of ``SimDevice.write`` in one call (a call per step costs us on a cold cache):
+    keep the command (``cmd``, float64[6], as ``wrench``: float64[6], checked by the caller),
+    evaluate the hand's script at the device time (``hands.hand_eval``), then ``sim_write``."""
+    for i in range(6):
+        cmd[i] = wrench[i]
+    hand_eval(hp, tab, st, hout)
+    return sim_write(par, st, cnt, ctl, hout, cmd, now_ns)
 
 
 @njit(**_JIT)

@@ -393,7 +393,7 @@ def effective_config(config: dict, *, period_s: float) -> dict:
 
 class SimDevice(DeviceDriver):
     """A simulated device. Owns its arrays; ``read`` and ``write`` are one kernel call each
-    (``write`` two: the hand, then the device) and allocate nothing.
+    (``write`` evaluates the hand, then steps the device, in the one call) and allocate nothing.
 
     ``clock_ns``: callable returning ns (the loop's clock), used only by the watchdog.
     """
@@ -439,12 +439,11 @@ class SimDevice(DeviceDriver):
 
     def write(self, wrench: np.ndarray) -> int:
         cmd = self._cmd
-        if type(wrench) is np.ndarray and wrench.dtype == cmd.dtype and wrench.shape == cmd.shape:
-            cmd[:] = wrench
-        else:
-            self._copy_command(wrench)
-        _hands.hand_eval(self._hp, self._tab, self._st, self._hout)
-        return _dyn.sim_write(self._par, self._st, self._cnt, self._ctl, self._hout, cmd, self._clock())
+        if not (type(wrench) is np.ndarray and wrench.dtype == cmd.dtype and wrench.shape == cmd.shape):
+            self._copy_command(wrench)  # checked (raises on a bad shape), into cmd
+            wrench = cmd
+        return _dyn.sim_write_hand(self._par, self._st, self._cnt, self._ctl, self._hp, self._tab, self._hout, wrench,
+                                   cmd, self._clock())
 
     # -- extras --------------------------------------------------------------------------------
     def warm_up(self) -> None:
@@ -589,6 +588,7 @@ def warm_up() -> None:
             hp[_hands.HP_NROWS] = 2
             _hands.hand_eval(hp, tab, st, hout)
             _dyn.sim_write(par, st, cnt, ctl, hout, w, 0)
+            _dyn.sim_write_hand(par, st, cnt, ctl, hp, tab, hout, w, np.zeros(6), 0)
         _dyn.sim_hand_now(par, st, hout)
         _dyn.sim_read(st, ctl, cnt, out, 0)
         _dyn.qexp(0.0, 0.0, 0.0)

@@ -920,6 +920,15 @@ def linkage_arrays(tool: ToolSpec, velocity_terms: bool = True) -> tuple[np.ndar
 _WARM = False
 
 
+def _read_only(*arrays) -> tuple:
+    out = []
+    for a in arrays:
+        a = a.copy()
+        a.flags.writeable = False
+        out.append(a)
+    return tuple(out)
+
+
 def warm_up() -> None:
     """Load (or compile, first time on a machine) every kernel for every tool kind, once per
     process, on throw-away arrays: the first haptic step must not pay for it."""
@@ -945,12 +954,15 @@ def warm_up() -> None:
         nrm = np.zeros((1, 3)); nrm[0, 0] = 1.0
         dsep = np.zeros(1); vc = np.zeros(1)
         sel = np.zeros(4, dtype=np.int64)
-        for use_qe in (0, 1):
-            qe = np.zeros(7)
-            qe[3] = 1.0
-            _k.update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, 1, sel,
-                            np.zeros((cap, NCOLS_F)), np.zeros((cap, NCOLS_I), dtype=np.int64),
-                            qe, use_qe, np.zeros(NSTATE), np.zeros((3, 3)), np.zeros(3))
+        # writable contact arrays (``update``'s copies) and read-only ones (the decoder's views
+        # of a packet, which the server's loop hands over as they are)
+        for contact_arrays in ((keys, cp, nrm, dsep, vc), _read_only(keys, cp, nrm, dsep, vc)):
+            for use_qe in (0, 1):
+                qe = np.zeros(7)
+                qe[3] = 1.0
+                _k.update_rigid(kind, par, st, C, CI, cnt, wk, *contact_arrays, 1, sel,
+                                np.zeros((cap, NCOLS_F)), np.zeros((cap, NCOLS_I), dtype=np.int64),
+                                qe, use_qe, np.zeros(NSTATE), np.zeros((3, 3)), np.zeros(3))
         st[S_QD] = -0.1
         _k.step_rigid(kind, par, st, C, CI, cnt, wk, np.zeros(6))
     # the linkage kernels (one compiled version serves planar and spatial linkages)
@@ -964,6 +976,9 @@ def warm_up() -> None:
             m.update(keys, [[0.1, 0.0, 0.0]], [[1.0, 0.0, 0.0]], [0.0], tool_q=tq)
         m.reset(qd=np.r_[-0.1, np.zeros(m.dof - 1)])
         m.update(keys, [[0.1, 0.0, 0.0]], [[1.0, 0.0, 0.0]], [0.0])
+        ro = _read_only(keys, np.array([[0.1, 0.0, 0.0]]), np.array([[1.0, 0.0, 0.0]]), np.zeros(1), np.zeros(1))
+        for tq in (None, m.q.copy()):
+            m.update_arrays(*ro, 1, tq)
         m.step(np.zeros(6))
         m.hand_state()
         m.joint_state(np.zeros(6))
