@@ -307,10 +307,14 @@ class Supervisor:
     live: LiveView | None = None
 
     def __init__(self, settings: cfgmod.Settings, *, record: str = "", duration_s: float | None = None,
-                 ready_timeout_s: float = 120.0, naive: bool = False, live: str = "") -> None:
+                 ready_timeout_s: float = 600.0, naive: bool = False, live: str = "") -> None:
         self.settings = settings
         self.naive = naive
         self.duration_s = duration_s
+        # Only a loop process that hangs while alive meets this: one that dies or fails is seen
+        # at once, and a stop at any moment is honoured. A first start with an empty kernel cache
+        # on a busy 2-core machine compiles ~80 kernels for two minutes or more (CI of 3f9e6ba:
+        # stopped by the old 120 s while still compiling), so the bound is generous.
         self.ready_timeout_s = ready_timeout_s
         rows = max(1024, int(settings["telemetry"]["ring_s"] * settings.rate_hz))
         self.ring_rows = rows
