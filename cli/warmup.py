@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     todo = cold(modules)
     if todo:
         total = len(dispatchers(modules))
-        why = ("first run on this machine, about a minute" if len(todo) == total
+        why = ("first run on this machine: a few minutes on 2 cores" if len(todo) == total
                else f"{total - len(todo)} already cached; these changed or no start needed"
                   " them yet")
         log.info("compiling %d kernels (%s) ...", len(todo), why)

@@ -118,8 +118,8 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         todo = loop.cold_kernels()
         t_warm = time.monotonic()
         if todo:
-            llog.info("compiling %d kernel%s before the loop starts (not cached on this machine yet: up to a "
-                      "minute; `hapticproxy warmup` does it ahead) ...", len(todo), "s" * (len(todo) != 1))
+            llog.info("compiling %d kernel%s before the loop starts (not cached on this machine yet: a few "
+                      "minutes on 2 cores; `hapticproxy warmup` does it ahead) ...", len(todo), "s" * (len(todo) != 1))
         loop.warm_up()
         if todo:
             llog.info("kernels compiled in %.1f s; numba cached them for the next start", time.monotonic() - t_warm)
