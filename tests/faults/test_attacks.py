@@ -261,7 +261,10 @@ def test_a_spoofed_source_with_a_valid_token_is_rejected(live):
     a = live.wait(lambda s: s["wrong_peer"] >= b["wrong_peer"] + 300)
     d = _delta(b, a, *REASONS)
     assert d["wrong_peer"] == 300 and d["stale_or_duplicate"] == 0
-    s = _unaffected(live, b, head0)  # the real client's next updates were still applied
+    # the real client's next updates were still applied: waited for explicitly (the attack may
+    # outlast the ten updates _unaffected waits for, and then its snapshot can equal ``a``)
+    live.wait(lambda s: s["updates"] > a["updates"])
+    s = _unaffected(live, b, head0)
     assert s["updates"] > a["updates"]
     fy = live.rows_since(head0)[:, TEL["cmd_fy"]]
     assert np.max(np.abs(fy)) <= np.max(np.abs(f_before)) + 0.05  # no yank reached the hand
