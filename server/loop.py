@@ -51,7 +51,9 @@ from .devices.base import (
 )
 from .lifecycle import LOOP_STATES, LS, SERVER_STATE_BY_CODE, TRANSITIONS, Fault, Reason
 from .prediction import EngineAdvice, advice_update, tool_radius_m, warm_up as advice_warm_up
+from .model.layout import K_M
 from .model.model import ContactParams, LinkSpec, LocalModel, ToolSpec, warm_up as model_warm_up
+from .readonly import frozen_copies
 from .rings import account, record_contacts
 from .shm import CT, ST, SharedState
 
@@ -457,10 +459,9 @@ class HapticLoop:
         scratch = SharedState.local(4)  # the same views (so the same kernel types) as the shared block's
         account(scratch.tel, scratch.head, scratch.hist_late, scratch.hist_step, scratch.stat, self.period_ns, 1, 1,
                 0, self.state, self.updates, c.cs, self._no_cnt, dev, c.cmd)
-        ro = [np.zeros((4, 3), dtype=np.int64), np.zeros((4, 3)), np.zeros((4, 3)), np.zeros(4)]
-        for a in ro:
-            a.flags.writeable = False  # the decoder's views of a packet, which _on_update records
-        record_contacts(scratch.contacts, 0.0, 0.0, 1, 1, *ro)
+        record_contacts(scratch.contacts, 0.0, 0.0, 1, 1,  # the decoder's views, as _on_update records them
+                        *frozen_copies(np.zeros((4, 3), dtype=np.int64), np.zeros((4, 3)), np.zeros((4, 3)),
+                                       np.zeros(4)))
         ctl.proxy_hand_state(tmp.kind, tmp.kernel_args()[1], tmp.kernel_args()[2], c.R, c.c, self._scratch_pose, 0)
         pose = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
         pose.flags.writeable = False  # what the decoder hands out: read-only views of the packet
@@ -611,11 +612,12 @@ class HapticLoop:
         return True
 
     def _contacts(self) -> float:
-        return float(self._margs[5][0]) if self._margs is not None else 0.0
+        return float(self._cnt[K_M])  # the model's live contacts (no model: zeros)
 
     # ---------------------------------------------------------------------------- events
     def _on_update(self, upd, now: int) -> None:
         sid = upd.session_id
+        keys = upd.keys
         if sid != self.session_id or self.model is None:
             if self.model is not None and self.session_id in self.endpoint.sessions:
                 return  # another session owns the model; its updates are the only ones applied
@@ -631,7 +633,6 @@ class HapticLoop:
         else:
             # the decoder's read-only views go to the kernels as they are (no copies: the codec
             # and the session checked them, and warm_up compiled the kernels for these types)
-            keys = upd.keys
             code = self.model.update_arrays(keys, upd.position_m, upd.normal, upd.separation_m,
                                             upd.v_constr_m_per_s, keys.shape[0], self._engine_q(upd))
             if code != 0:
@@ -639,7 +640,6 @@ class HapticLoop:
                 return
         self._track_env(upd, now)
         self.updates += 1
-        keys = upd.keys
         record_contacts(self.shared.contacts, (now - self._t0) * 1e-9, float(upd.env_time_s), self.updates,
                         keys.shape[0], keys, upd.position_m, upd.normal, upd.separation_m)
         if self.state == LS["fading"] and self.watchdog == WD_SILENT:

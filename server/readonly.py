@@ -21,6 +21,8 @@ from __future__ import annotations
 from operator import attrgetter
 from typing import TYPE_CHECKING, Any, Callable, Generic, TypeVar, overload
 
+import numpy as np
+
 T = TypeVar("T")
 
 
@@ -86,3 +88,14 @@ class ArrayBool(ArrayItem[bool]):
 
     def __init__(self, array: str, index: int, *, doc: str | None = None) -> None:
         super().__init__(array, index, bool, doc)
+
+
+def frozen_copies(*arrays) -> tuple:
+    """Read-only copies of ``arrays``: what the decoder hands out (read-only views of a packet),
+    for warm-ups that must compile the kernels for exactly those types."""
+    out = []
+    for a in arrays:
+        a = np.array(a)
+        a.flags.writeable = False
+        out.append(a)
+    return tuple(out)

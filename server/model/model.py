@@ -21,7 +21,7 @@ import numpy as np
 
 from hapticproxy.protocol.quaternion import quat_to_matrix_into
 
-from ..readonly import ArrayFloat, ArrayInt
+from ..readonly import ArrayFloat, ArrayInt, frozen_copies
 from . import kernels as _k
 from . import linkage as _lk
 from .layout import (
@@ -920,15 +920,6 @@ def linkage_arrays(tool: ToolSpec, velocity_terms: bool = True) -> tuple[np.ndar
 _WARM = False
 
 
-def _read_only(*arrays) -> tuple:
-    out = []
-    for a in arrays:
-        a = a.copy()
-        a.flags.writeable = False
-        out.append(a)
-    return tuple(out)
-
-
 def warm_up() -> None:
     """Load (or compile, first time on a machine) every kernel for every tool kind, once per
     process, on throw-away arrays: the first haptic step must not pay for it."""
@@ -956,7 +947,7 @@ def warm_up() -> None:
         sel = np.zeros(4, dtype=np.int64)
         # writable contact arrays (``update``'s copies) and read-only ones (the decoder's views
         # of a packet, which the server's loop hands over as they are)
-        for contact_arrays in ((keys, cp, nrm, dsep, vc), _read_only(keys, cp, nrm, dsep, vc)):
+        for contact_arrays in ((keys, cp, nrm, dsep, vc), frozen_copies(keys, cp, nrm, dsep, vc)):
             for use_qe in (0, 1):
                 qe = np.zeros(7)
                 qe[3] = 1.0
@@ -976,7 +967,7 @@ def warm_up() -> None:
             m.update(keys, [[0.1, 0.0, 0.0]], [[1.0, 0.0, 0.0]], [0.0], tool_q=tq)
         m.reset(qd=np.r_[-0.1, np.zeros(m.dof - 1)])
         m.update(keys, [[0.1, 0.0, 0.0]], [[1.0, 0.0, 0.0]], [0.0])
-        ro = _read_only(keys, np.array([[0.1, 0.0, 0.0]]), np.array([[1.0, 0.0, 0.0]]), np.zeros(1), np.zeros(1))
+        ro = frozen_copies(keys, np.array([[0.1, 0.0, 0.0]]), np.array([[1.0, 0.0, 0.0]]), np.zeros(1), np.zeros(1))
         for tq in (None, m.q.copy()):
             m.update_arrays(*ro, 1, tq)
         m.step(np.zeros(6))
