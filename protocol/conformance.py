@@ -136,6 +136,9 @@ class Report:
 
     rules: dict[str, str]
     results: dict[str, tuple[bool, str]] = field(default_factory=dict)
+    #: why failures are not the peer's to answer for (the checker itself stalled): not passed,
+    #: but not a verdict on the peer either
+    inconclusive: list[str] = field(default_factory=list)
 
     def check(self, rule: str, ok: bool, why_not: str = "") -> bool:
         """Record ``rule``: passed, or failed because ``why_not`` (kept only for a failure).
@@ -171,9 +174,17 @@ class Report:
             ok, why = self.results.get(rule, (False, "not reached"))
             out.append(f"{'PASS' if ok else 'FAIL'}  {rule:<{width}}  {text}" + ("" if ok else f": {why}"))
         bad = self.failed
-        out.append(f"RESULT: PASS ({len(self.rules)} rules)" if not bad else
-                   f"RESULT: FAIL ({len(bad)} of {len(self.rules)} rules: {', '.join(bad)})")
+        if bad and self.inconclusive:
+            out.append(f"RESULT: INCONCLUSIVE ({'; '.join(self.inconclusive)})")
+        else:
+            out.append(f"RESULT: PASS ({len(self.rules)} rules)" if not bad else
+                       f"RESULT: FAIL ({len(bad)} of {len(self.rules)} rules: {', '.join(bad)})")
         return out
+
+    @property
+    def exit_code(self) -> int:
+        """0 passed, 1 failed, 3 inconclusive (run the check again)."""
+        return 0 if self.passed else 3 if self.inconclusive else 1
 
 
 def _open(url: str, role: str):
@@ -861,16 +872,36 @@ class _Probe:
         self.t = _open(url, "client")
         self.mac = mac
         self.codec = Codec()
+        # A server rightly ends a session its client leaves silent for silence_timeout_s, and a
+        # stall of the checker's own process or machine (a garbage collection, a busy CI host)
+        # is such a silence: the checker keeps the longest time it sent nothing, to tell that
+        # apart from the server's fault.
+        self.last_send_s: float | None = None
+        self.longest_quiet_s = 0.0
 
     def send(self, packet: bytes) -> None:
+        now = time.monotonic()
+        if self.last_send_s is not None:
+            self.longest_quiet_s = max(self.longest_quiet_s, now - self.last_send_s)
+        self.last_send_s = now
         self.t.send(self.mac.seal(packet) if self.mac else packet)
+
+    def quiet_s(self) -> float:
+        """The longest time without a send since the last ``longest_quiet_s`` reset, up to now."""
+        if self.last_send_s is None:
+            return 0.0
+        return max(self.longest_quiet_s, time.monotonic() - self.last_send_s)
 
     def recv_all(self, wait_s: float, until: Callable[[list], bool] | None = None) -> list:
         """(arrival time, message or ProtocolError) for ``wait_s`` or until ``until(got)``."""
         out, end = [], time.monotonic() + wait_s
-        while time.monotonic() < end:
+        while True:
             got = self.t.recv()
             if got is None:
+                # what is queued is read even when the wait is over (after a stall of this
+                # process the deadline may already be past while the answers sit in the socket)
+                if time.monotonic() >= end:
+                    break
                 time.sleep(0.0002)
                 continue
             data = got[0]
@@ -887,6 +918,11 @@ class _Probe:
     def close(self) -> None:
         self.t.close()
 
+
+#: check-server's rules judged in the main session, which the checker keeps alive with its own
+#: packets up to the heartbeat rule
+_MAIN_SESSION_RULES = ("ack", "ack-latency", "proxy-valid", "initial-pose", "server-state", "stale", "bad-address",
+                       "invalid", "capacity", "out-of-bounds", "unusable", "seq-jump", "heartbeat")
 
 #: tool kinds check-server tries, in order, until the server accepts one
 _KINDS = (ToolKind.SPATIAL, ToolKind.PLANAR, ToolKind.ONE_DOF)
@@ -1006,12 +1042,31 @@ class _ScriptedClient:
             self._updates()
             self._refusals()
             self._heartbeat()
+            # measured after the heartbeat rule, whose own quiet (2 heartbeat intervals and
+            # 50 ms) is shorter than the silence timeout unless a server grants less than that
+            self._judge_own_stall(_MAIN_SESSION_RULES, self.probe.quiet_s())
             self._restart()
+            self.probe.longest_quiet_s = 0.0
             self._heartbeat_session()
+            self._judge_own_stall(("heartbeat-session",), self.probe.quiet_s())
             self._bye_rule()
             self._silence()
         finally:
             self.probe.close()
+
+    def _judge_own_stall(self, rules: tuple[str, ...], quiet_s: float) -> None:
+        """Failures of ``rules`` are the checker's, not the server's, when the server ended the
+        session (its Bye came) after the checker itself had sent nothing for the session's
+        silence timeout (less the silence rule's 50 ms): the server was right to end it."""
+        w = self.welcome
+        failed = [r for r in rules if self.rep.judged(r) and not self.rep.ok(r)]
+        byes = [m for _, m in self.others if isinstance(m, Bye) and m.session_id == w.session_id]
+        if failed and byes and quiet_s >= w.silence_timeout_s - 0.05:
+            self.rep.inconclusive.append(
+                f"this checker sent nothing for {quiet_s:.2f} s (its process or machine stalled), not less than the "
+                f"session's silence_timeout_s {w.silence_timeout_s:g} s, and the server ended the session "
+                f"(Bye {_code_name(byes[0].code)}) as it should: {', '.join(failed)} say nothing about the server; "
+                f"run the check again")
 
     def _one_hello(self, packet: bytes, nonce: int) -> list:
         probe = _Probe(self.url, self.mac)
@@ -1235,7 +1290,7 @@ class _ScriptedClient:
         if rule != "seq-jump" and not self._acked(seq):
             problems.append(f"the same seq, valid, was not acknowledged afterwards")
         self.rep.check(rule, not problems, f"{what}: " + ", ".join(problems))
-        self.probe.recv_all(0.1)  # the Error budget refills (error_rate_per_s)
+        self.collect(0.1)  # the Error budget refills (error_rate_per_s)
 
     def _refusals(self) -> None:
         rep = self.rep
@@ -1585,7 +1640,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"hapticproxy protocol {args.mode}: {exc}", file=sys.stderr)
         return 2
     print("\n".join(rep.lines()))
-    return 0 if rep.passed else 1
+    return rep.exit_code
 
 
 if __name__ == "__main__":
