@@ -17,9 +17,11 @@ States (what the device gets, what the proxy does):
   fades to zero over ``fade_s``; the proxy is held (a device that renders less and less must not
   push it into what it touches).
 - ``fault``: output off (device disabled, or faded for a speed trip); the proxy is held. A fault
-  caused by a late loop (the device's own watchdog tripped by a stall of the loop process)
-  recovers by itself once the loop has been on time for ``safety.stall_recover_s``; more than
-  ``safety.stall_trips_max`` such trips within ``safety.stall_window_s`` latch. Every other
+  caused by a late loop (a stall of the loop process at least as long as the device's watchdog:
+  the device's trip, or the loop's own when the device did not see it, as a device program that
+  was itself late does not) recovers by itself once the loop has been on time for
+  ``safety.stall_recover_s``; more than ``safety.stall_trips_max`` such trips within
+  ``safety.stall_window_s`` latch (a new stall while one's recovery waits counts). Every other
   fault (a non-finite value, a fault the device reports, a speed trip) waits for a re-arm.
 - ``stopping``: ramping down before exit; ``stopped``: done.
 """

@@ -525,6 +525,8 @@ class HapticLoop:
             self._stall_ns = gap
             self._stall_at = wake
             self._ontime_since = wake
+            if gap >= self._dev_wd_ns > 0:
+                self._on_own_stall(wake)
         # 1: acknowledge the ContactUpdate the previous step applied, then apply the one it
         # received. Receiving (decode, validation), applying (the model update) and acknowledging
         # (the engine's advice, the ProxyState's encoding) each cost some us of Python: spread
@@ -841,14 +843,26 @@ class HapticLoop:
             return  # already ramping down; the output is off
         self.transition("fault", reason or why, dev_code)
 
-    def _on_stall_trip(self, now: int) -> None:
-        """The device's watchdog cut the output because this loop did not run in time. Nothing
-        was wrong with the device or the model: once the loop has been on time for
-        ``stall_recover_s`` the force ramps back in (housekeeping), unless it happens too often."""
+    def _on_own_stall(self, now: int) -> None:
+        """This loop did not run for at least the device's watchdog: a stall trip whether or not
+        the device saw it. A device program that was itself not running when the stall ended
+        finds the loop's new commands waiting and never trips; the output and the count of
+        repeated stalls must not depend on that. A new stall while the last one's recovery
+        waits counts too (the device is off then: only the loop can see it). Before anything
+        is rendered, only the device's own trip matters (nothing to cut, nothing to count)."""
+        st = self.state
+        if st == LS["engaged"] or st == LS["fading"] or (st == LS["fault"] and self.fault == Fault.STALL):
+            self._on_stall_trip(now, own=True)
+
+    def _on_stall_trip(self, now: int, own: bool = False) -> None:
+        """The device's watchdog cut the output because this loop did not run in time (or the
+        loop saw its own stall first). Nothing was wrong with the device or the model: once the
+        loop has been on time for ``stall_recover_s`` the force ramps back in (housekeeping),
+        unless it happens too often. ``own``: the loop saw the stall itself (a new one)."""
         stall_ms = self._stall_ns * 1e-6
         if self.state == LS["fault"]:
-            if self.fault == Fault.STALL or self.fault == Fault.STALLS_REPEATED:
-                return  # the same stall, seen again by the device
+            if self.fault == Fault.STALLS_REPEATED or (self.fault == Fault.STALL and not own):
+                return  # the device's latched report of a stall already counted
         self.stall_trips += 1
         if self.state == LS["idle"] and self.ctrl.cs[ctl.CS_GAIN] <= 0.0:
             # nothing was being rendered: no force can come back by surprise

@@ -149,6 +149,73 @@ def test_repeated_stalls_latch_until_rearmed(rig):
     assert abs(r.device.commands[-1][1] - 0.5) < 0.02
 
 
+class LateDevice(WatchdogDevice):
+    """A device program that was itself not running when the loop's stall ended: it finds the
+    loop's new commands waiting and its watchdog never sees the gap (a remote device on a
+    loaded machine)."""
+
+    def _check(self):
+        self._last_ns = self.clock.now_ns()
+        return super()._check()
+
+
+def _late_rig(**sections):
+    clock = SimClock(start_ns=1_000_000_000)
+    settings = make_settings(**sections)
+    dev = LateDevice(clock, hand=PUSH, period_s=settings.period_ns * 1e-9)
+    return Rig(settings, dev, {"start_pose": (0.0, 0.012, 0.0)}, clock=clock)
+
+
+@pytest.fixture
+def late_rig():
+    yield from made_then_ended(_late_rig)
+
+
+def test_a_stall_the_device_did_not_see_trips_all_the_same(late_rig):
+    r = late_rig()
+    r.run(3.0)
+    assert abs(r.device.commands[-1][1] - 0.5) < 0.02
+    n0 = len(r.device.commands)
+    r.clock.stall(80_000_000)
+    r.run(0.2)
+    assert r.device.trips == 0                      # the device's watchdog saw nothing
+    assert r.loop.state_name == "fault" and r.loop.fault == Fault.STALL and r.loop.stall_trips == 1
+    assert np.all(np.array(r.device.commands[-150:]) == 0.0)  # the loop cut it (as the device would have)
+    r.run(3.0)
+    assert r.loop.state_name == "engaged" and r.loop.stall_recoveries == 1
+    fy = np.array(r.device.commands[n0:])[:, 1]
+    assert np.max(np.abs(np.diff(fy))) <= 1.0 + 1e-9  # ramped back in: no step beyond the rate limit
+    assert abs(fy[-1] - 0.5) < 0.02
+
+
+def test_repeated_stalls_the_device_did_not_see_latch(late_rig):
+    r = late_rig(safety={"stall_trips_max": 3, "stall_window_s": 60.0})
+    r.run(2.0)
+    for _ in range(3):
+        r.clock.stall(80_000_000)
+        r.run(1.2)
+        assert r.loop.state_name == "engaged"
+    r.clock.stall(80_000_000)
+    r.run(1.5)
+    assert r.device.trips == 0
+    assert r.loop.state_name == "fault" and r.loop.fault == Fault.STALLS_REPEATED and r.loop.stall_trips == 4
+
+
+def test_a_stall_while_the_last_one_recovers_counts(rig):
+    """The device is off while a stall's recovery waits, so only the loop sees a new stall then:
+    it is a trip of its own (and with stall_trips_max 1, the second latches)."""
+    r = rig(safety={"stall_trips_max": 1, "stall_window_s": 60.0})
+    r.run(2.0)
+    r.clock.stall(80_000_000)
+    r.run(0.2)
+    assert r.loop.fault == Fault.STALL and r.loop.stall_trips == 1
+    r.clock.stall(80_000_000)
+    r.run(0.2)
+    assert r.loop.state_name == "fault" and r.loop.fault == Fault.STALLS_REPEATED and r.loop.stall_trips == 2
+    r.run(2.0)
+    assert r.loop.state_name == "fault"             # latched until a re-arm
+
+
 def test_stall_trips_outside_the_window_do_not_add_up(rig):
     r = rig(safety={"stall_trips_max": 1, "stall_window_s": 2.0})
     r.run(2.0)
