@@ -29,7 +29,9 @@ Safety contract every driver keeps (the loop relies on it):
 - ``disable()`` zeroes the output at once and keeps it zero until ``enable()``;
 - a driver whose hardware has its own watchdog (``limits.watchdog_s``) zeroes its output when
   no ``write`` arrives within that time and latches the fault: forces never come back by
-  themselves, only through ``enable()``.
+  themselves, only through ``enable()``. The loop holds a stall of its own at least that long
+  to be such a trip while it renders force (it disables the device), whether or not the
+  driver saw it: a driver or device program that was late itself changes nothing.
 """
 from __future__ import annotations
 
