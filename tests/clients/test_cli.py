@@ -20,9 +20,6 @@ from hapticproxy.protocol.codec import Codec, Hello, Reject
 from hapticproxy.protocol.messages import ErrorCode
 from hapticproxy.protocol.transport import open_transport
 
-# the checkers time their peers (threads, subprocesses) from this process
-pytestmark = pytest.mark.usefixtures("frozen_gc")
-
 EXE = str(Path(sys.executable).parent / "hapticproxy")
 
 

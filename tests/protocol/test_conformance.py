@@ -24,9 +24,6 @@ from hapticproxy.protocol.messages import ErrorCode, ServerState, ToolKind
 from hapticproxy.protocol.session import ServerConfig
 from hapticproxy.protocol.transport import TransportError, open_transport
 
-# the checkers time their peers (threads, subprocesses) from this process
-pytestmark = pytest.mark.usefixtures("frozen_gc")
-
 KEY = bytes(range(7, 39))
 TRANSPORTS = ["udp", "mem", "zenoh"]
 _names = itertools.count(1)
