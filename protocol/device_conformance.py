@@ -453,7 +453,11 @@ class DeviceCheck(_Scripted):
         if not got:
             R.fail("watchdog", f"still armed {_ms(self.clock() - t_last)} after the last command")
         else:
-            t_cut, s = next((t, x) for t, x in self.states if t > t_last and not x.flags & F_ARMED)
+            # the cut: the first disarmed state after the last armed one, in the device's order
+            # (one read can bring a state the device sent before it took the command that armed
+            # it, next to the state that echoes that command: not the cut)
+            armed = max((i for i, (_, x) in enumerate(self.states) if x.flags & F_ARMED), default=-1)
+            t_cut, s = next((t, x) for t, x in self.states[armed + 1:] if not x.flags & F_ARMED)
             dt = t_cut - t_last
             if dt > limit:
                 R.fail("watchdog", f"cut {_ms(dt)} after the last command (watchdog_s {self.watchdog_s:g} + slack "
