@@ -26,24 +26,29 @@ _W_XP = 4
 
 # ---- the reference: the update as first written, O(n m) matching, plain Python -------------
 
+def _sum3(v):
+    """v[0] + v[1] + v[2], left to right (the kernels' order of summation)."""
+    return v[0] + v[1] + v[2]
+
+
+def _to_world(P, k, v):
+    """Pose row ``P[k]`` (rotation row-major, then the origin) applied to the point ``v``: the
+    origin plus the rotation's columns times the components, added in that order."""
+    return P[k, 9:12] + P[k, 0:9:3] * v[0] + P[k, 1:9:3] * v[1] + P[k, 2:9:3] * v[2]
+
+
 def _ref_feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, out):
     """The reported tool feature as the proxy carries it (world, into ``out``); returns its
     separation s_w from the reported constraint along n (the engine frame: the feature taken in
     the engine tool's frame and put on the proxy; the paper's eq. 1: c_p + d n, s_w = d)."""
-    if use_qe:
-        fx = cp[j, 0] + dsep[j] * nrm[j, 0] - Pe[k, 9]
-        fy = cp[j, 1] + dsep[j] * nrm[j, 1] - Pe[k, 10]
-        fz = cp[j, 2] + dsep[j] * nrm[j, 2] - Pe[k, 11]
-        bx = Pe[k, 0] * fx + Pe[k, 3] * fy + Pe[k, 6] * fz
-        by = Pe[k, 1] * fx + Pe[k, 4] * fy + Pe[k, 7] * fz
-        bz = Pe[k, 2] * fx + Pe[k, 5] * fy + Pe[k, 8] * fz
-        out[0] = P[k, 9] + P[k, 0] * bx + P[k, 1] * by + P[k, 2] * bz
-        out[1] = P[k, 10] + P[k, 3] * bx + P[k, 4] * by + P[k, 5] * bz
-        out[2] = P[k, 11] + P[k, 6] * bx + P[k, 7] * by + P[k, 8] * bz
-        return nrm[j, 0] * (out[0] - cp[j, 0]) + nrm[j, 1] * (out[1] - cp[j, 1]) + nrm[j, 2] * (out[2] - cp[j, 2])
-    for q_ in range(3):
-        out[q_] = cp[j, q_] + dsep[j] * nrm[j, q_]
-    return dsep[j]
+    feature = cp[j] + dsep[j] * nrm[j]
+    if not use_qe:
+        out[:] = feature
+        return dsep[j]
+    f = feature - Pe[k, 9:12]
+    local = Pe[k, 0:3] * f[0] + Pe[k, 3:6] * f[1] + Pe[k, 6:9] * f[2]  # R_e^T f
+    out[:] = _to_world(P, k, local)
+    return _sum3(nrm[j] * (out - cp[j]))
 
 
 def _ref_same_feature(C, CI, X, t, i, k, xp, cp, nrm, j):
@@ -51,26 +56,19 @@ def _ref_same_feature(C, CI, X, t, i, k, xp, cp, nrm, j):
     ``xp`` / constraint ``j`` is (REKEY_DISTANCE_M along the surface and across it), else 0."""
     if CI[i, CI_KEY] != k:
         return 0.0
-    dot = C[i, C_N] * nrm[j, 0] + C[i, C_N + 1] * nrm[j, 1] + C[i, C_N + 2] * nrm[j, 2]
+    n_old = C[i, C_N:C_N + 3]
+    dot = _sum3(n_old * nrm[j])
     if abs(dot) < REKEY_COS:
         return 0.0
     # the two constraint planes (the old one moved on with v_constr since its update)
     ds = C[i, C_VC] * (t - C[i, C_TU]) + C[i, C_REC]
-    across = 0.0
-    for a in range(3):
-        across += nrm[j, a] * (cp[j, a] - C[i, C_CP + a] - ds * C[i, C_N + a])
-    if abs(across) > REKEY_DISTANCE_M:
+    if abs(_sum3(nrm[j] * (cp[j] - C[i, C_CP:C_CP + 3] - ds * n_old))) > REKEY_DISTANCE_M:
         return 0.0
     # the proxy's point of the old contact against the new feature, along the surface (the
     # deformation only moved it along n)
-    e0 = X[i, 0] - xp[0]
-    e1 = X[i, 1] - xp[1]
-    e2 = X[i, 2] - xp[2]
-    en = e0 * nrm[j, 0] + e1 * nrm[j, 1] + e2 * nrm[j, 2]
-    e0 -= en * nrm[j, 0]
-    e1 -= en * nrm[j, 1]
-    e2 -= en * nrm[j, 2]
-    if e0 * e0 + e1 * e1 + e2 * e2 > REKEY_DISTANCE_M * REKEY_DISTANCE_M:
+    e = X[i, :3] - xp
+    e = e - _sum3(e * nrm[j]) * nrm[j]
+    if _sum3(e * e) > REKEY_DISTANCE_M * REKEY_DISTANCE_M:
         return 0.0
     return dot
 
@@ -95,16 +93,11 @@ def reference_apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dse
     # current world points and proxy separations s_p of the existing contacts
     for i in range(m):
         k = CI[i, CI_KEY]
-        for a in range(3):
-            s = P[k, 9 + a]
-            for b2 in range(3):
-                s += P[k, 3 * a + b2] * C[i, C_P + b2]
-            X[i, a] = s
-        s = -C[i, C_VC] * (t - C[i, C_TU]) - C[i, C_REC]
-        for a in range(3):
-            s += C[i, C_N + a] * (X[i, a] - C[i, C_CP + a])
-        W[i, _W_SP] = s
-        W[i, _W_TAKEN] = 0.0
+        X[i, :3] = _to_world(P, k, C[i, C_P:C_P + 3])
+        s_p = -C[i, C_VC] * (t - C[i, C_TU]) - C[i, C_REC]
+        for term in C[i, C_N:C_N + 3] * (X[i, :3] - C[i, C_CP:C_CP + 3]):
+            s_p += term
+        W[i, [_W_SP, _W_TAKEN]] = (s_p, 0.0)
     # pass 1: the same keys
     for a in range(nk):
         j = sel[a]
@@ -130,123 +123,76 @@ def reference_apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dse
         k = keys[j, 0]
         xp = W[a, _W_XP:_W_XP + 3]
         _ref_feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, xp)
-        best = -1
-        best_dot = 0.0
-        for i in range(m):
-            if W[i, _W_TAKEN] != 0.0:
-                continue
-            dot = _ref_same_feature(C, CI, X, t, i, k, xp, cp, nrm, j)
-            if dot != 0.0 and (best < 0 or abs(dot) > abs(best_dot)):
-                best = i
-                best_dot = dot
-        if best >= 0:
-            W[a, _W_FOUND] = best
-            W[best, _W_TAKEN] = 1.0
-            if best_dot < 0.0:
-                W[a, _W_FLIP] = 1.0
-            else:
-                n_rekey += 1
-    # pass 3: the rule table
-    matched = 0
-    n_new = 0
-    n_def = 0
-    n_flip = 0
+        # every contact not yet continued that sits at this feature; the largest |cos| wins, the
+        # lowest index on a tie
+        dots = [(i, _ref_same_feature(C, CI, X, t, i, k, xp, cp, nrm, j)) for i in range(m) if W[i, _W_TAKEN] == 0.0]
+        dots = [(i, d) for i, d in dots if d != 0.0]
+        if not dots:
+            continue
+        best, best_dot = max(dots, key=lambda c: (abs(c[1]), -c[0]))
+        W[[a, best], [_W_FOUND, _W_TAKEN]] = (best, 1.0)
+        if best_dot < 0.0:
+            W[a, _W_FLIP] = 1.0
+        else:
+            n_rekey += 1
+    # pass 3: the rule table, row by row (written as slices, not as the kernel's column loops:
+    # the reference states the rules once more in its own form, with the same arithmetic)
+    literal = policy == POLICY_PAPER_LITERAL
+    matched = n_new = n_def = n_flip = 0
     for a in range(nk):
         j = sel[a]
         k = keys[j, 0]
         found = int(W[a, _W_FOUND])
-        if found >= 0:
-            matched += 1
+        matched += found >= 0
         if found >= 0 and W[a, _W_FLIP] != 0.0:
             # refused for this update: the contact stays exactly as it was (key included)
-            for q_ in range(NCOLS_F):
-                newF[a, q_] = C[found, q_]
-            for q_ in range(NCOLS_I):
-                newI[a, q_] = CI[found, q_]
+            newF[a, :NCOLS_F] = C[found, :NCOLS_F]
+            newI[a, :NCOLS_I] = CI[found, :NCOLS_I]
             newI[a, CI_AGE] = CI[found, CI_AGE] + 1
             n_flip += 1
             continue
-        # the tool feature as the proxy carries it (xp) and its separation dj along n
         xp = W[a, _W_XP:_W_XP + 3]
         dj = _ref_feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, xp)
-        # the separation the rules render: the real tool's, or (the paper read literally, for the
-        # reproductions only) the epsilon-inflated tool's, new contacts included (eq. 6, no eq. 4)
-        literal = policy == POLICY_PAPER_LITERAL
+        # rendered separation: the real tool's, or the epsilon-inflated tool's read literally
         dr = dj - par[P_EPS] if literal else dj
-        # offset along n of the target world point from c_p (eq. 1/6: d, eq. 5: s_p, eq. 4: 0)
         if found >= 0:
+            # eq. 1/6 while apart or receding (d), eq. 5 (s_p, at most 0) while penetrating
             s_p = W[found, _W_SP]
-            if policy == POLICY_RIGID or dr > 0.0 or s_p < dr:
-                off = dr
-            elif s_p <= 0.0:
-                off = s_p
-                n_def += 1
-            else:
-                off = 0.0
-                n_def += 1
-            newF[a, C_S] = C[found, C_S]
-            newF[a, C_SPREV] = C[found, C_SPREV]
-            for q_ in range(3):
-                newF[a, C_Z + q_] = C[found, C_Z + q_]
-            newI[a, CI_SLIP] = CI[found, CI_SLIP]
-            newI[a, CI_STATE] = CI[found, CI_STATE]
-            newI[a, CI_AGE] = CI[found, CI_AGE] + 1
+            rigid = policy == POLICY_RIGID or dr > 0.0 or s_p < dr
+            off = dr if rigid else min(s_p, 0.0)
+            newF[a, [C_S, C_SPREV]] = C[found, [C_S, C_SPREV]]
+            newF[a, C_Z:C_Z + 3] = C[found, C_Z:C_Z + 3]
+            newI[a, [CI_SLIP, CI_STATE, CI_AGE]] = CI[found, [CI_SLIP, CI_STATE, CI_AGE]] + np.array([0, 0, 1])
         else:
+            # eq. 1/6 (d) for a new contact apart; eq. 4 (0) for one that arises penetrating
             n_new += 1
-            if policy == POLICY_RIGID or literal or dr > 0.0:
-                off = dr
-            else:
-                off = 0.0
-                n_def += 1
-            newF[a, C_S] = np.inf             # has just arisen: next step may be a collision
-            newF[a, C_SPREV] = np.inf
-            for q_ in range(3):
-                newF[a, C_Z + q_] = 0.0
-            newI[a, CI_SLIP] = 0
-            newI[a, CI_STATE] = CS_IMPENDING
-            newI[a, CI_AGE] = 0
-        for q_ in range(3):
-            newI[a, CI_KEY + q_] = keys[j, q_]
-            newF[a, C_CP + q_] = cp[j, q_]
-            newF[a, C_N + q_] = nrm[j, q_]
+            rigid = policy == POLICY_RIGID or literal or dr > 0.0
+            off = dr if rigid else 0.0
+            newF[a, [C_S, C_SPREV]] = np.inf
+            newF[a, C_Z:C_Z + 3] = 0.0
+            newI[a, [CI_SLIP, CI_STATE, CI_AGE]] = (0, CS_IMPENDING, 0)
+        n_def += not rigid
+        newI[a, CI_KEY:CI_KEY + 3] = keys[j]
+        newF[a, C_CP:C_CP + 3] = cp[j]
+        newF[a, C_N:C_N + 3] = nrm[j]
         if planar:
-            newF[a, C_CP + 2] = 0.0
-            newF[a, C_N + 2] = 0.0
-        newF[a, C_D] = dsep[j]
-        newF[a, C_VC] = vc[j]
-        newF[a, C_TU] = t
-        newF[a, C_VN] = 0.0
-        newF[a, C_FN] = 0.0
-        newF[a, C_IMP] = 0.0
-        for q_ in range(3):
-            newF[a, C_FT + q_] = 0.0
-        # what the rules put the proxy off the true geometry by (eqs. 4/5): to be recovered. Only
-        # known in the engine frame: with the paper's eq. 1 the reported separation is the engine
-        # tool's, not the proxy's, and "recovering" towards it only creeps after the engine's tool
+            newF[a, [C_CP + 2, C_N + 2]] = 0.0
+        newF[a, [C_D, C_VC, C_TU]] = (dsep[j], vc[j], t)
+        newF[a, [C_VN, C_FN, C_IMP, C_REC]] = 0.0
+        newF[a, C_FT:C_FT + 3] = 0.0
+        # the deformation to recover: known only in the engine frame
         newF[a, C_DEF] = off - dr if (off > dr and use_qe) else 0.0
-        newF[a, C_REC] = 0.0
-        # local contact point in the link frame: p = R^T (Xp + (off - s_w) n - c); with the
-        # engine at the proxy's pose Xp = c_p + d n, s_w = d: p = R^T (c_p + off n - c)  (eqs. 1, 4, 5, 6)
-        w0 = xp[0] + (off - dj) * newF[a, C_N] - P[k, 9]
-        w1 = xp[1] + (off - dj) * newF[a, C_N + 1] - P[k, 10]
-        w2 = xp[2] + (off - dj) * newF[a, C_N + 2] - P[k, 11]
-        for q_ in range(3):
-            newF[a, C_P + q_] = P[k, q_] * w0 + P[k, 3 + q_] * w1 + P[k, 6 + q_] * w2
+        # the local point in the link frame: R^T (Xp + (off - s_w) n - c)
+        w = xp + (off - dj) * newF[a, C_N:C_N + 3] - P[k, 9:12]
+        newF[a, C_P:C_P + 3] = P[k, 0:3] * w[0] + P[k, 3:6] * w[1] + P[k, 6:9] * w[2]
         if planar:
             newF[a, C_P + 2] = 0.0
-    for a in range(nk):
-        for q_ in range(NCOLS_F):
-            C[a, q_] = newF[a, q_]
-        for q_ in range(NCOLS_I):
-            CI[a, q_] = newI[a, q_]
+    C[:nk, :NCOLS_F] = newF[:nk, :NCOLS_F]
+    CI[:nk, :NCOLS_I] = newI[:nk, :NCOLS_I]
     cnt[K_M] = nk
-    cnt[K_UPDATES] += 1
-    cnt[K_DROPPED] += n_in - nk
-    cnt[K_NEW] += n_new
-    cnt[K_DEFORMED] += n_def
-    cnt[K_LEFT] += m - matched
-    cnt[K_FLIPS] += n_flip
-    cnt[K_REKEYED] += n_rekey
+    for col, added in ((K_UPDATES, 1), (K_DROPPED, n_in - nk), (K_NEW, n_new), (K_DEFORMED, n_def),
+                       (K_LEFT, m - matched), (K_FLIPS, n_flip), (K_REKEYED, n_rekey)):
+        cnt[col] += added
 
 
 
