@@ -173,22 +173,23 @@ def run(rate_hz: float, seconds: float, naive_seconds: float) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from . import update_steps
+
     ap = argparse.ArgumentParser(prog="hapticproxy bench loop", description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object (default: a summary and a table)")
     ap.add_argument("--rate", type=float, default=1000.0, help="haptic rate [Hz] (default 1000)")
     ap.add_argument("--seconds", type=float, default=60.0, help="measured seconds of the real loop (default 60)")
     ap.add_argument("--naive-seconds", type=float, default=None,
                     help="seconds of the naive comparison loop (default: same as --seconds, at most 20)")
-    ap.add_argument("--update-steps", type=int, default=6000, metavar="N",
-                    help="steps per tool kind of the update-step measurement (default 6000)")
+    ap.add_argument("--update-steps", type=int, default=update_steps.STEPS, metavar="N",
+                    help="steps per tool kind of the update-step measurement (default %(default)s: about 1,900 "
+                         "of each update step, so that a p99 is not one of the few largest of a few hundred)")
     ap.add_argument("--update-steps-only", action="store_true", help="only the update-step measurement")
     args = ap.parse_args(argv)
     if not (100 <= args.rate <= 20000) or not args.seconds > 0:
         print("hapticproxy bench loop: --rate must be in [100, 20000] Hz and --seconds > 0", file=sys.stderr)
         return 2
     naive_s = min(args.seconds, 20.0) if args.naive_seconds is None else args.naive_seconds
-    from . import update_steps
-
     try:
         res = {} if args.update_steps_only else run(args.rate, args.seconds, naive_s)
     except RuntimeError as exc:
