@@ -29,6 +29,33 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
     exit 1
   fi
   echo "$WANT" > "$STAMP"
+  rm -f "$VENV/static/.done"  # the package map may have changed with pyproject.toml
+fi
+# Static tools (pyright, pylint, an IDE) follow a plain path in a .pth file, not the import hook
+# by which the editable install maps hapticproxy.* onto the top-level folders. So .venv/static/
+# holds hapticproxy/<name> -> <folder> links, one per top-level entry of pyproject.toml's
+# package-dir table (links to folders: a new module is seen at once), and a .pth names it;
+# Python imports the same files through it.
+if [ ! -f "$VENV/static/.done" ]; then
+  "$VENV/bin/python" - "$ROOT" "$VENV/static" <<'PY' || { echo "run.sh: linking .venv/static/ failed" >&2; exit 1; }
+import os, sys, sysconfig, tomllib
+root, tree = sys.argv[1], sys.argv[2]
+with open(os.path.join(root, "pyproject.toml"), "rb") as fh:
+    dirs = tomllib.load(fh)["tool"]["setuptools"]["package-dir"]
+os.makedirs(os.path.join(tree, "hapticproxy"), exist_ok=True)
+for name, folder in dirs.items():
+    parent, _, last = name.rpartition(".")
+    if parent != "hapticproxy":  # a sub-package must be its parent's sub-folder, as the links show it
+        assert folder == dirs[parent] + "/" + last, f"{name} = {folder} is not a sub-folder of {dirs[parent]}"
+        continue
+    link = os.path.join(tree, "hapticproxy", last)
+    if os.path.lexists(link):
+        os.remove(link)
+    os.symlink(os.path.join(root, folder), link)
+with open(os.path.join(sysconfig.get_paths()["purelib"], "hapticproxy-static.pth"), "w") as fh:
+    fh.write(tree + "\n")
+open(os.path.join(tree, ".done"), "w").close()
+PY
 fi
 # Compile every kernel now (or load it from numba's cache): nothing may compile once the haptic
 # loop has armed its deadlines. Quiet when everything is cached already.
