@@ -182,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--naive-seconds", type=float, default=None,
                     help="seconds of the naive comparison loop (default: same as --seconds, at most 20)")
     ap.add_argument("--update-steps", type=int, default=update_steps.STEPS, metavar="N",
-                    help="steps per tool kind of the update-step measurement (default %(default)s: about 1,900 "
+                    help="steps per tool kind of the update-step measurement (default %(default)s: about 1,870 "
                          "of each update step, so that a p99 is not one of the few largest of a few hundred)")
     ap.add_argument("--update-steps-only", action="store_true", help="only the update-step measurement")
     args = ap.parse_args(argv)

@@ -25,8 +25,8 @@ from hapticproxy.protocol.transport import open_transport
 #: the budget the issue sets: a quarter of a 4 kHz period
 BUDGET_US = 62.5
 #: steps per tool kind: an update every 16 steps gives about 1,870 of each update step. With the
-#: 371 of 6,000 steps a p99 was the 4th-largest sample, and five runs of the same tree in a row
-#: put the costliest update step's p99 anywhere from 34 to 83 us; with 1,870 it is the 19th.
+#: 371 of 6,000 steps a p99 was the 4th-largest sample, and seven runs of the same tree on one
+#: day put the costliest update step's p99 anywhere from 32 to 83 us; with 1,870 it is the 19th.
 STEPS = 30000
 
 _BAR = dict(mass_kg=0.08, com_m=[0.03, 0.0, 0.0], inertia_kg_m2=[3e-6, 2.5e-5, 2.5e-5, 0.0, 0.0, 0.0])
