@@ -33,7 +33,7 @@ import time
 
 import numpy as np
 
-from hapticproxy.protocol.jsonout import print_json
+from ..protocol.jsonout import print_json
 
 PUSH_M = 0.15
 PERIOD_S = 4.0
@@ -41,7 +41,7 @@ PERIOD_S = 4.0
 
 def _available_engines() -> dict:
     """Every registered engine (``hapticproxy.engines`` entry points) whose library imports."""
-    from hapticproxy.clients.registry import engines, load_engine_class
+    from ..clients.registry import engines, load_engine_class
 
     registry = engines()
     out = {}
@@ -65,8 +65,8 @@ def _proxy_target(start: np.ndarray, t: float, out: np.ndarray) -> np.ndarray:
 def time_ticks(engine, scene: str, *, ticks: int, warmup: int, epsilon_m: float, max_contacts: int,
                repeat: int = 3) -> dict:
     """Time ``repeat`` blocks of ``ticks`` engine ticks (step + contacts + encode) in ``scene``."""
-    from hapticproxy.clients.engine import ContactBuffer
-    from hapticproxy.protocol.codec import Codec
+    from ..clients.engine import ContactBuffer
+    from ..protocol.codec import Codec
 
     info = engine.load_scene(scene)
     engine.set_epsilon(epsilon_m)
@@ -114,9 +114,9 @@ def time_ticks(engine, scene: str, *, ticks: int, warmup: int, epsilon_m: float,
 
 def _serve(conn, stop) -> None:
     """Child process: the reference server on a free UDP loopback port until ``stop`` is set."""
-    from hapticproxy.protocol.conformance import run_reference_server
-    from hapticproxy.protocol.session import ServerConfig
-    from hapticproxy.protocol.transport import open_transport
+    from ..protocol.conformance import run_reference_server
+    from ..protocol.session import ServerConfig
+    from ..protocol.transport import open_transport
 
     t = open_transport("udp://127.0.0.1:0", role="server")
     conn.send(t.url)
@@ -128,7 +128,7 @@ def _serve(conn, stop) -> None:
 
 def sustained(cls, scene: str, url: str, *, seconds: float, epsilon_m: float, max_contacts: int) -> dict:
     """Run a fresh engine back-to-back against the server at ``url`` for ``seconds``."""
-    from hapticproxy.clients.runner import ClientRunner
+    from ..clients.runner import ClientRunner
 
     engine = cls()
     try:

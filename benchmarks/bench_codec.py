@@ -19,8 +19,8 @@ import time
 import msgpack
 import numpy as np
 
-from hapticproxy.protocol.codec import Codec, ProtocolError, ProxyState
-from hapticproxy.protocol.jsonout import print_json
+from ..protocol.codec import Codec, ProtocolError, ProxyState
+from ..protocol.jsonout import print_json
 
 CONTACT_COUNTS = (0, 8, 32, 64)
 POSE = np.array([0.1, -0.2, 0.3, 1.0, 0.0, 0.0, 0.0])
@@ -95,7 +95,7 @@ def median_us(fn, batch: int, repeats: int) -> float:
 
 
 def run(batch: int = 500, repeats: int = 41) -> list[dict]:
-    from hapticproxy.server import ingest
+    from ..server import ingest
 
     codec = Codec()
     ingest.warm_up()

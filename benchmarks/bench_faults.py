@@ -70,8 +70,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hapticproxy.testing.impair import Decision, GilbertElliott, Impairment, ImpairingRelay
-from hapticproxy.protocol.jsonout import print_json
+from ..testing.impair import Decision, GilbertElliott, Impairment, ImpairingRelay
+from ..protocol.jsonout import print_json
 
 PUSH_N = 0.5
 RATE_HZ = 1000.0
@@ -163,7 +163,7 @@ CASES = _matrix()
 # ------------------------------------------------------------------------------ the rig
 def settings_for(url: str, *, device: str = "sim", device_port: int = 0, realtime: bool = True,
                  seconds: float = 10.0, device_watchdog_s: float = DEVICE_WATCHDOG_S, flush_rows: int = 512):
-    from hapticproxy.server import config as cfgmod
+    from ..server import config as cfgmod
 
     if device == "sim":
         dev = {"driver": "sim", "kind": "planar", "damping_n_s_per_m": DEVICE_DAMPING, "watchdog_s": device_watchdog_s,
@@ -186,8 +186,8 @@ def settings_for(url: str, *, device: str = "sim", device_port: int = 0, realtim
 def _device_main(port: int, out_path: str, seconds_max: float, stop, ready, hand: dict | None = None) -> None:
     """The remote device program (its own process): a simulated planar device, the same hand
     (or ``hand``), watchdog 50 ms; records per tick what the device rendered."""
-    from hapticproxy.server.devices.remote import DeviceProgram
-    from hapticproxy.server.devices.sim import SimDevice, parse_sim_config
+    from ..server.devices.remote import DeviceProgram
+    from ..server.devices.sim import SimDevice, parse_sim_config
 
     period_ns = 1_000_000
     sim = SimDevice(parse_sim_config({
@@ -263,8 +263,8 @@ class _Silencer:
 @contextmanager
 def _impaired_runner_transport(c2s: dict, s2c: dict):
     """While active, ClientRunner opens its transport wrapped in ImpairedTransport."""
-    from hapticproxy.clients import runner as runner_mod
-    from hapticproxy.testing.impair import ImpairedTransport
+    from ..clients import runner as runner_mod
+    from ..testing.impair import ImpairedTransport
 
     real = runner_mod.open_transport
 
@@ -280,17 +280,17 @@ def _impaired_runner_transport(c2s: dict, s2c: dict):
 
 def _engine(name: str):
     if name == "pymunk":
-        from hapticproxy.clients.pymunk_engine import PymunkEngine
+        from ..clients.pymunk_engine import PymunkEngine
 
         return PymunkEngine()
-    from hapticproxy.clients.stub_engine import StubEngine
+    from ..clients.stub_engine import StubEngine
 
     return StubEngine(seed=3)
 
 
 class _ThreadClient:
     def __init__(self, engine_name: str, url: str, transport_options: dict | None = None, scene: str = "testbed") -> None:
-        from hapticproxy.clients.runner import ClientRunner
+        from ..clients.runner import ClientRunner
 
         self.engine = _engine(engine_name)
         self.runner = ClientRunner(self.engine, url, scene=scene, epsilon_m=0.005, max_contacts=16,
@@ -361,8 +361,8 @@ def _ring(sup) -> np.ndarray:
 def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, seconds: float = 6.0,
              device_watchdog_s: float = DEVICE_WATCHDOG_S, workdir: str | None = None, keep_rows: bool = False) -> dict:
     """Run one case; returns its row (see the module docstring)."""
-    from hapticproxy.server import telemetry
-    from hapticproxy.server.daemon import Supervisor
+    from ..server import telemetry
+    from ..server.daemon import Supervisor
 
     tmp = tempfile.TemporaryDirectory(prefix="hp-faults-", dir=workdir)
     events: dict = {}
@@ -397,7 +397,7 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
             relay.start()
             client_url = relay.url
         elif case.transport == "zenoh":
-            from hapticproxy.testing.impair_tcp import ImpairingTcpProxy
+            from ..testing.impair_tcp import ImpairingTcpProxy
 
             zport = int(url.split(":")[2].split("/")[0])
             proxy = ImpairingTcpProxy(("127.0.0.1", zport), delay_s=case.tcp_delay_s, seed=5).start()
@@ -469,7 +469,7 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
         t0_s = snap["t_start_ns"] * 1e-9
         if case.kind == "stall":
             # the device is re-enabled when the loop recovers (instead of a person's re-arm)
-            from hapticproxy.server.lifecycle import Reason
+            from ..server.lifecycle import Reason
 
             rec = [t_ns for _, t_ns, _f, _t, r, _d in sup.shared.transitions_since(0) if r == Reason.RECOVERED]
             if rec:
@@ -500,7 +500,7 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
             row["broken"]["telemetry"] = 1
             row["violations"] += 1
     if "state_after_stall" in events:
-        from hapticproxy.server.shm import TEL
+        from ..server.shm import TEL
 
         row["state_after_stall"] = events["state_after_stall"]
         row["stall_trips"] = int(snap["stall_trips"])
@@ -529,7 +529,7 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
 def limits_from(settings, snap: dict) -> dict:
     """What :func:`analyse` checks against: the loop's own caps and rates (status) and the
     ``[safety]`` times. The torque cap is the device's (0.5 N m for the planar sim device)."""
-    from hapticproxy.server.config import FIRST_COMMAND_MAX_N
+    from ..server.config import FIRST_COMMAND_MAX_N
 
     saf = settings["safety"]
     return dict(force_cap_n=snap["force_cap_n"], rate_limit_n_per_step=snap["rate_limit_n_per_step"],
@@ -544,7 +544,7 @@ def analyse(rows: np.ndarray, lim: dict, ev: dict, case: Case | None = None) -> 
 
     ``ev``: event times in the telemetry's time base (s since the loop started): ``fault_s``,
     ``fault_end_s``, ``rearm_s``, ``end_s``."""
-    from hapticproxy.server.shm import LS, TEL
+    from ..server.shm import LS, TEL
 
     t = rows[:, TEL["t_s"]]
     state = rows[:, TEL["loop_state"]]
@@ -640,7 +640,7 @@ def analyse(rows: np.ndarray, lim: dict, ev: dict, case: Case | None = None) -> 
     not_full_t = t[(t <= t_ref) & ~full]
     t_from = max(t_ref - 1.0, (not_full_t[-1] + FULL_GAIN_SETTLE_S) if len(not_full_t) else -np.inf)
     win = (t > t_from) & (t <= t_ref) & full
-    from hapticproxy.server.shm import TEL as _T
+    from ..server.shm import TEL as _T
 
     dev_y = rows[:, _T["dev_y"]]
     settle_ptp_mm = float(np.ptp(dev_y[win]) * 1e3) if win.sum() > 10 else None

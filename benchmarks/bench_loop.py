@@ -31,13 +31,13 @@ import time
 
 import numpy as np
 
-from hapticproxy.protocol.codec import Hello
-from hapticproxy.protocol.messages import ToolKind
-from hapticproxy.protocol.session import ClientEndpoint
-from hapticproxy.protocol.transport import open_transport
-from hapticproxy.server import config as cfgmod
-from hapticproxy.server.daemon import Supervisor
-from hapticproxy.protocol.jsonout import print_json
+from ..protocol.codec import Hello
+from ..protocol.messages import ToolKind
+from ..protocol.session import ClientEndpoint
+from ..protocol.transport import open_transport
+from ..server import config as cfgmod
+from ..server.daemon import Supervisor
+from ..protocol.jsonout import print_json
 
 
 def free_port() -> int:

@@ -27,9 +27,9 @@ import time
 
 import numpy as np
 
-from hapticproxy.server.model import ContactParams, LinkSpec, LocalModel, ToolSpec
-from hapticproxy.server.model.reference import LinkageReference, reference_step
-from hapticproxy.protocol.jsonout import print_json
+from ..server.model import ContactParams, LinkSpec, LocalModel, ToolSpec
+from ..server.model.reference import LinkageReference, reference_step
+from ..protocol.jsonout import print_json
 
 TOOLS = ("1dof", "planar", "spatial", "linkage3", "linkage6")
 CONTACTS = (0, 8, 32, 64)

@@ -24,12 +24,12 @@ import time
 
 import numpy as np
 
-from hapticproxy.benchmarks.bench_loop import floor_client, free_port
-from hapticproxy.protocol.codec import Hello
-from hapticproxy.protocol.messages import ToolKind
-from hapticproxy.server import config as cfgmod
-from hapticproxy.server.daemon import Supervisor
-from hapticproxy.protocol.jsonout import print_json
+from .bench_loop import floor_client, free_port
+from ..protocol.codec import Hello
+from ..protocol.messages import ToolKind
+from ..server import config as cfgmod
+from ..server.daemon import Supervisor
+from ..protocol.jsonout import print_json
 
 
 def _client(url: str, stop: threading.Event, rate_hz: float, n_contacts: int, counts: dict) -> None:

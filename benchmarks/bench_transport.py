@@ -41,8 +41,8 @@ import statistics
 import sys
 import time
 
-from hapticproxy.protocol.transport import open_transport
-from hapticproxy.protocol.jsonout import print_json
+from ..protocol.transport import open_transport
+from ..protocol.jsonout import print_json
 
 UPDATE_BYTES = 1300  # a 32-contact ContactUpdate
 ACK_BYTES = 200  # a ProxyState acknowledgement
@@ -61,7 +61,7 @@ def pin_this_thread(cpu: int | None) -> None:
 def set_io_thread_affinity(cpus) -> None:
     """Pin this process's Zenoh runtime threads to ``cpus`` (also to unpin them again: Zenoh's
     threads outlive a session)."""
-    from hapticproxy.protocol.transport.zenoh_backend import zenoh_thread_ids
+    from ..protocol.transport.zenoh_backend import zenoh_thread_ids
 
     for tid in zenoh_thread_ids():
         try:

@@ -169,7 +169,7 @@ class _SharedSocket:
 
 @contextmanager
 def _same_socket_runners():
-    from hapticproxy.clients import runner as runner_mod
+    from ..clients import runner as runner_mod
 
     real_open = runner_mod.open_transport
     holder: dict = {}
@@ -190,7 +190,7 @@ def _same_socket_runners():
 
 
 def _settings(bf, url: str, case: LifecycleCase, *, device: str = "sim", device_port: int = 0, seconds: float = 20.0):
-    from hapticproxy.server import config as cfgmod
+    from ..server import config as cfgmod
 
     s = bf.settings_for(url, device=device, device_port=device_port, seconds=seconds)
     data = s.as_dict()
@@ -202,7 +202,7 @@ def _settings(bf, url: str, case: LifecycleCase, *, device: str = "sim", device_
 
 
 def _transitions(sup) -> list[tuple]:
-    from hapticproxy.server.lifecycle import LOOP_STATES, Reason
+    from ..server.lifecycle import LOOP_STATES, Reason
 
     t0 = sup.shared.status[sup._st("t_start_ns")]
     return [((t_ns - t0) * 1e-9, LOOP_STATES[frm], LOOP_STATES[to], Reason(r).name.lower(), detail)
@@ -211,7 +211,7 @@ def _transitions(sup) -> list[tuple]:
 
 def _kick(rows: np.ndarray, t_engage: float, row: dict) -> None:
     """Peak force within AFTER_ENGAGE_S of ``t_engage`` against the steady force at the end."""
-    from hapticproxy.server.shm import TEL
+    from ..server.shm import TEL
 
     t = rows[:, TEL["t_s"]]
     f = np.linalg.norm(rows[:, [TEL["cmd_fx"], TEL["cmd_fy"], TEL["cmd_fz"]]], axis=1)
@@ -231,8 +231,8 @@ def _kick(rows: np.ndarray, t_engage: float, row: dict) -> None:
 
 def run_lifecycle_case(case: LifecycleCase, bf, *, engine: str = "pymunk", realtime: bool = True) -> dict:
     """Run one lifecycle case on the real server (``bf``: the bench_faults module)."""
-    from hapticproxy.server.daemon import Supervisor
-    from hapticproxy.server.lifecycle import Fault
+    from ..server.daemon import Supervisor
+    from ..server.lifecycle import Fault
 
     url = f"udp://127.0.0.1:{bf._port()}"
     tmp = tempfile.TemporaryDirectory(prefix="hp-lifecycle-")
@@ -242,7 +242,7 @@ def run_lifecycle_case(case: LifecycleCase, bf, *, engine: str = "pymunk", realt
     if not realtime:
         data = s.as_dict()
         data["loop"]["realtime"] = False
-        from hapticproxy.server import config as cfgmod
+        from ..server import config as cfgmod
         s = cfgmod.load({k: v for k, v in data.items() if k != "preset"})
     clients: list = []
     dev_proc = None
@@ -370,7 +370,7 @@ def _fail(row: dict, what: str, n: int = 1) -> None:
 
 def _judge(case: LifecycleCase, row: dict, rows: np.ndarray, trans: list, ev: dict) -> None:
     """The case's own promises, counted as violations like the per-step ones."""
-    from hapticproxy.server.shm import TEL
+    from ..server.shm import TEL
 
     to_fault = [t for t in trans if t[2] == "fault"]
     engages = [t for t in trans if t[2] == "engaged"]
@@ -402,7 +402,7 @@ def _judge(case: LifecycleCase, row: dict, rows: np.ndarray, trans: list, ev: di
             _fail(row, f"nothing refused as {counter}")
         if to_fault:
             _fail(row, "a fault")
-        from hapticproxy.server.shm import TEL as _T
+        from ..server.shm import TEL as _T
 
         t = rows[:, _T["t_s"]]
         win = t >= ev.get("fault_s", 0.0)

@@ -49,11 +49,11 @@ import msgpack
 import msgspec
 import numpy as np
 
-from hapticproxy.protocol import messages as M
-from hapticproxy.protocol.codec import (
+from ..protocol import messages as M
+from ..protocol.codec import (
     Bye, Codec, ContactUpdate, Error, Heartbeat, Hello, Limits, Message, ProtocolError, ProxyState, Reject, Welcome,
 )
-from hapticproxy.protocol.jsonout import print_json
+from ..protocol.jsonout import print_json
 
 LIMITS = Limits()
 IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
@@ -316,7 +316,7 @@ class ModelProbe:
     """A spatial local model every accepted ContactUpdate is applied to (fresh state each time)."""
 
     def __init__(self) -> None:
-        from hapticproxy.server.model import ContactParams, LocalModel, ToolSpec
+        from ..server.model import ContactParams, LocalModel, ToolSpec
 
         self.model = LocalModel(ToolSpec.spatial(0.25, (1e-4, 1e-4, 1e-4)), ContactParams(stiffness_n_per_m=4000.0),
                                 period_s=1e-3, capacity=LIMITS.max_contacts, epsilon_m=0.005,
@@ -324,7 +324,7 @@ class ModelProbe:
         self.hand = np.zeros(6)
 
     def nonfinite(self, cu: ContactUpdate) -> bool:
-        from hapticproxy.server.loop import q_from_tool_pose
+        from ..server.loop import q_from_tool_pose
 
         m = self.model
         m.reset(IDENTITY[:3] + (1.0, 0.0, 0.0, 0.0))
@@ -496,7 +496,7 @@ def run_atheris(inputs: int, seed: int, corpus_dir: str) -> None:
 
     import atheris  # noqa: F401 - optional
 
-    import hapticproxy.protocol.codec as codec_mod
+    from ..protocol import codec as codec_mod
 
     # the codec is imported already (this module uses it): instrument its functions in place
     for obj in list(vars(codec_mod).values()) + list(vars(codec_mod.Codec).values()):

@@ -18,9 +18,9 @@ import time
 
 import numpy as np
 
-from hapticproxy.protocol.messages import Hello, ToolKind
-from hapticproxy.protocol.session import ClientEndpoint
-from hapticproxy.protocol.transport import open_transport
+from ..protocol.messages import Hello, ToolKind
+from ..protocol.session import ClientEndpoint
+from ..protocol.transport import open_transport
 
 #: the budget the issue sets: a quarter of a 4 kHz period
 BUDGET_US = 62.5
@@ -50,9 +50,9 @@ def _hello(kind: str, contacts: int) -> Hello:
 def measure(kind: str, *, steps: int = STEPS, every: int = 16, contacts: int = 8, rate_hz: float = 1000.0) -> dict:
     """Step times [us] of one tool kind: ``receive``, ``apply``, ``ack``, ``housekeeping`` and
     ``other`` steps (p50, p99, max)."""
-    from hapticproxy.server import config as cfgmod
-    from hapticproxy.server.clock import SimClock
-    from hapticproxy.server.loop import HapticLoop
+    from ..server import config as cfgmod
+    from ..server.clock import SimClock
+    from ..server.loop import HapticLoop
 
     device_kind = {"linkage-planar": "planar", "linkage-spatial": "spatial"}.get(kind, kind)
     url = f"mem://bench-update-{kind}-{time.monotonic_ns()}"

@@ -38,8 +38,8 @@ import statistics
 import sys
 import time
 
-from hapticproxy.benchmarks.bench_transport import pin_this_thread, place_io_threads, selected, set_io_thread_affinity
-from hapticproxy.protocol.transport.zenoh_backend import DEFAULT_ZENOH_RUNTIME
+from .bench_transport import pin_this_thread, place_io_threads, selected, set_io_thread_affinity
+from ..protocol.transport.zenoh_backend import DEFAULT_ZENOH_RUNTIME
 
 PAYLOAD = 1300
 REPLY = 200

@@ -24,7 +24,7 @@ import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from hapticproxy.protocol.logs import ENV_LEVEL, ENV_VERBOSE, LEVELS, parse_level
+from ..protocol.logs import ENV_LEVEL, ENV_VERBOSE, LEVELS, parse_level
 
 PROG = "hapticproxy"
 

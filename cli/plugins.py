@@ -12,16 +12,16 @@ from __future__ import annotations
 import argparse
 import sys
 
-from hapticproxy.protocol.jsonout import print_json
-from hapticproxy.protocol.registry import Registry, format_rows
+from ..protocol.jsonout import print_json
+from ..protocol.registry import Registry, format_rows
 
 KINDS = ("engine", "device", "transport")
 
 
 def registries() -> dict[str, Registry]:
-    from hapticproxy.clients.registry import REGISTRY as ENGINES
-    from hapticproxy.protocol.transport import TRANSPORT_REGISTRY
-    from hapticproxy.server.devices.base import DEVICE_REGISTRY
+    from ..clients.registry import REGISTRY as ENGINES
+    from ..protocol.transport import TRANSPORT_REGISTRY
+    from ..server.devices.base import DEVICE_REGISTRY
 
     return {"engine": ENGINES, "device": DEVICE_REGISTRY, "transport": TRANSPORT_REGISTRY}
 

@@ -8,12 +8,34 @@ import logging
 import sys
 import time
 
-from hapticproxy.protocol import logs
-from hapticproxy.server.warm import SERVER_KERNEL_MODULES, cold, dispatchers, refresh_stale_caches, warm_server
+from ..protocol import logs
+from ..server import config as cfgmod
+from ..server.loop import HapticLoop
+from ..server.warm import SERVER_KERNEL_MODULES, cold, dispatchers, refresh_stale_caches
 
 #: engine modules with numba kernels, each with a ``warm_up_kernels()``; skipped when the
 #: engines extra is not installed
 CLIENT_KERNEL_MODULES = ("hapticproxy.clients.narrowphase",)
+
+
+def _settings(device_kind: str, tool: str = ""):
+    return cfgmod.load({"transport": {"url": f"mem://warmup-{device_kind}-{tool or device_kind}"},
+                        "model": {"tool": tool}, "device": {"driver": "sim", "kind": device_kind},
+                        "telemetry": {"ring_s": 0.1}})
+
+
+def warm_server() -> int:
+    """Warm a loop for every device kind and tool kind; returns how many loops were warmed."""
+    n = 0
+    for device_kind, tool in (("1dof", ""), ("planar", ""), ("spatial", ""), ("planar", "linkage"),
+                              ("spatial", "linkage")):
+        loop = HapticLoop.build(_settings(device_kind, tool))
+        try:
+            loop.warm_up()
+            n += 1
+        finally:
+            loop.close()
+    return n
 
 
 def warm_clients() -> list[str]:

@@ -32,9 +32,9 @@ import signal
 import sys
 import threading
 
-from hapticproxy.protocol import logs
-from hapticproxy.protocol.jsonout import print_json
-from hapticproxy.protocol.registry import format_rows
+from ..protocol import logs
+from ..protocol.jsonout import print_json
+from ..protocol.registry import format_rows
 
 from .registry import REGISTRY, load_engine_class
 
@@ -82,7 +82,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _url(connect: str, transport: str) -> str:
-    from hapticproxy.protocol.transport import parse_transport_url
+    from ..protocol.transport import parse_transport_url
 
     url = connect if "://" in connect else f"{transport}://{connect}"
     parse_transport_url(url)  # ValueError naming the problem
@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
             if importlib.util.find_spec(package) is None:
                 raise ValueError(f"--gui needs {package}, which is not installed (pip install 'hapticproxy[gui]')")
         url = _url(args.connect, args.transport)
-        from hapticproxy.protocol.session import load_hmac_key
+        from ..protocol.session import load_hmac_key
 
         key = load_hmac_key(args.hmac_key_file)
     except _UsageError as exc:
@@ -180,7 +180,7 @@ def _list(as_json: bool) -> int:
 def _transport_options(url: str, connect_timeout_s: float) -> dict:
     """Zenoh's own connect wait is bounded by ``--connect-timeout`` (its default is 5 s), unless
     the URL names ``connect_timeout_s`` itself."""
-    from hapticproxy.protocol.transport import parse_transport_url
+    from ..protocol.transport import parse_transport_url
 
     parsed = parse_transport_url(url)
     if parsed.scheme == "zenoh" and "connect_timeout_s" not in parsed.options:

@@ -6,7 +6,7 @@ In a lab's own package, with its engine registered (``[project.entry-points."hap
 mylab = "mylab.engine:MyLabEngine"``)::
 
     # tests/test_contract.py
-    from hapticproxy.clients.contract import EngineContract
+    from .contract import EngineContract
 
     class TestMyLabEngine(EngineContract):
         engine = "mylab"                      # the registry name
@@ -54,10 +54,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from hapticproxy.protocol.codec import Codec, Hello
-from hapticproxy.protocol.messages import ServerState
-from hapticproxy.protocol.session import ServerConfig, ServerEndpoint
-from hapticproxy.protocol.transport import open_transport
+from ..protocol.codec import Codec, Hello
+from ..protocol.messages import ServerState
+from ..protocol.session import ServerConfig, ServerEndpoint
+from ..protocol.transport import open_transport
 
 from .engine import Engine
 from .geometry import quat_angle

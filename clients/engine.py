@@ -18,7 +18,7 @@ import numpy as np
 
 
 #: Joint types of a linkage link (the protocol's JointType values).
-from hapticproxy.protocol.vocab import JOINT_TYPES_BY_NAME as JOINT_TYPES  # noqa: E402
+from ..protocol.vocab import JOINT_TYPES_BY_NAME as JOINT_TYPES  # noqa: E402
 
 
 def checked_epsilon(epsilon_m) -> float:

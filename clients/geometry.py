@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from hapticproxy.protocol.quaternion import quat_to_matrix_into
+from ..protocol.quaternion import quat_to_matrix_into
 
 __all__ = [
     "IDENTITY_WXYZ", "xyzw_from_wxyz", "wxyz_from_xyzw", "quat_to_matrix_into", "quat_to_matrix",

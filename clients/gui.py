@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-from hapticproxy.protocol.messages import ServerState
+from ..protocol.messages import ServerState
 
 from .geometry import planar_angle, planar_chain
 from .scenes import LINK_LENGTH_M, TOOL_LENGTH_M, TOOL_WIDTH_M

@@ -15,7 +15,7 @@ same name is listed as ignored. Engines are imported only when chosen
 """
 from __future__ import annotations
 
-from hapticproxy.protocol.registry import Entry, Registry
+from ..protocol.registry import Entry, Registry
 
 __all__ = ["ENGINES", "GROUP", "EngineEntry", "REGISTRY", "engines", "load_engine_class", "availability"]
 

@@ -60,11 +60,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hapticproxy.protocol.codec import Hello, Limits
-from hapticproxy.protocol.messages import ErrorCode, ServerState
-from hapticproxy.protocol.vocab import TOOL_KINDS_BY_NAME
-from hapticproxy.protocol.session import ClientConfig, ClientEndpoint, ClientState
-from hapticproxy.protocol.transport import TransportError, open_transport, parse_transport_url
+from ..protocol.codec import Hello, Limits
+from ..protocol.messages import ErrorCode, ServerState
+from ..protocol.vocab import TOOL_KINDS_BY_NAME
+from ..protocol.session import ClientConfig, ClientEndpoint, ClientState
+from ..protocol.transport import TransportError, open_transport, parse_transport_url
 
 from .engine import ContactBuffer, Engine, SceneInfo
 from .geometry import advance_pose

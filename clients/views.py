@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hapticproxy.protocol.messages import ServerState
+from ..protocol.messages import ServerState
 
 __all__ = ["ViewState", "view_state", "state_style", "contact_colour", "PENETRATING_RGB", "PREDICTED_RGB",
            "PROXY_RGB"]

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hapticproxy.clients.geometry import advance_pose  # noqa: F401 - used below and by experiments
+from ..clients.geometry import advance_pose  # noqa: F401 - used below and by experiments
 
 #: The three ways of coupling the device to the environment the paper compares (section V).
 #: IR: Berkelman's intermediate representation = direct coupling, no proxy deformation (eq. 1
@@ -201,19 +201,19 @@ class RunSpec:
 
     def make_engine(self):
         if self.engine == "stub":
-            from hapticproxy.clients.stub_engine import StubEngine
+            from ..clients.stub_engine import StubEngine
 
             return StubEngine(seed=self.seed, rate_range_hz=tuple(self.env_rate_hz))
         if self.engine == "pymunk":
-            from hapticproxy.clients.pymunk_engine import PymunkEngine
+            from ..clients.pymunk_engine import PymunkEngine
 
             return PymunkEngine(rate_hz=float(self.env_rate_hz[0]))
         if self.engine == "peg1d":
-            from hapticproxy.clients.peg_engine import PegEngine
+            from ..clients.peg_engine import PegEngine
 
             return PegEngine(rate_hz=float(self.env_rate_hz[0]))
         if self.engine == "pybullet":
-            from hapticproxy.clients.pybullet_engine import PybulletEngine
+            from ..clients.pybullet_engine import PybulletEngine
 
             return PybulletEngine(rate_hz=float(self.env_rate_hz[0]))
         raise ValueError(f"engine: expected stub, pymunk, peg1d or pybullet, got {self.engine!r}")
@@ -265,7 +265,7 @@ def _theta(qw: np.ndarray, qz: np.ndarray) -> np.ndarray:
 
 
 def trace_from_rows(spec: RunSpec, mode: str, rows: np.ndarray, **kw) -> Trace:
-    from hapticproxy.server.shm import TEL
+    from ..server.shm import TEL
 
     if rows.size == 0:
         raise RuntimeError("no telemetry rows: the client never engaged the server")
@@ -339,11 +339,11 @@ class SimEnvClient:
     def __init__(self, engine, url: str, clock, *, scene: str, epsilon_m: float, max_contacts: int,
                  delay_s: float = 0.0, misreport: Misreport | None = None, tool_lag_s: float = 0.0,
                  advice=None) -> None:
-        from hapticproxy.clients.engine import ContactBuffer
-        from hapticproxy.clients.runner import hello_fields
-        from hapticproxy.protocol.codec import Hello
-        from hapticproxy.protocol.session import ClientEndpoint
-        from hapticproxy.protocol.transport import open_transport
+        from ..clients.engine import ContactBuffer
+        from ..clients.runner import hello_fields
+        from ..protocol.codec import Hello
+        from ..protocol.session import ClientEndpoint
+        from ..protocol.transport import open_transport
 
         self.engine = engine
         self.clock = clock
@@ -397,7 +397,7 @@ class SimEnvClient:
         if ep.established and not self.welcomed:
             self.welcomed = True
             self.engine.set_epsilon(ep.welcome.epsilon_m)
-            from hapticproxy.clients.engine import ContactBuffer
+            from ..clients.engine import ContactBuffer
 
             self.buf = ContactBuffer(ep.welcome.max_contacts)
             self.next_ns = now
@@ -456,9 +456,9 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
     ``model_timing_every`` > 0: every that many steps, time the model kernel alone (numba
     ``step_rigid``) and the plain-numpy reference step on copies of the live arrays with the
     step's hand wrench (the numba vs numpy cost on the run's own states)."""
-    from hapticproxy.server import config as cfgmod
-    from hapticproxy.server.clock import SimClock
-    from hapticproxy.server.loop import HapticLoop
+    from ..server import config as cfgmod
+    from ..server.clock import SimClock
+    from ..server.loop import HapticLoop
 
     url = f"mem://experiment-{next(_mem_names)}"
     with tempfile.TemporaryDirectory(prefix="hapticproxy-exp-") as tmp:
@@ -557,7 +557,7 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
 
 def _advice(spec: RunSpec):
     """The server's EngineAdvice for this run's tool (the granted epsilon is its cap)."""
-    from hapticproxy.server.prediction import EngineAdvice, tool_radius_m
+    from ..server.prediction import EngineAdvice, tool_radius_m
 
     eng = spec.make_engine()
     try:
@@ -600,8 +600,8 @@ def _configure_models(loop, spec: RunSpec) -> None:
 def _time_model_step(loop) -> tuple[float, float]:
     """One model step timed twice on copies of the live state: the numba kernel and the numpy
     reference (same inputs; neither touches the loop's model)."""
-    from hapticproxy.server.model.kernels import step_rigid
-    from hapticproxy.server.model.reference import reference_step
+    from ..server.model.kernels import step_rigid
+    from ..server.model.reference import reference_step
 
     kind, par, st, C, CI, cnt, wk = loop._margs
     hand = loop.ctrl.hand.copy()
@@ -620,9 +620,9 @@ def run_realtime(spec: RunSpec, *, log=None, connect_timeout_s: float = 30.0) ->
     if spec.recovery or spec.misreport or spec.tool_lag_s or spec.predict_epsilon or spec.lead or spec.reading:
         raise ValueError("recovery / misreport / tool_lag_s: simulated time only (the real-time server takes its "
                          "[model] config)")
-    from hapticproxy.clients.runner import ClientRunner
-    from hapticproxy.server import config as cfgmod
-    from hapticproxy.server.daemon import Supervisor
+    from ..clients.runner import ClientRunner
+    from ..server import config as cfgmod
+    from ..server.daemon import Supervisor
 
     url = f"udp://127.0.0.1:{free_port()}"
     with tempfile.TemporaryDirectory(prefix="hapticproxy-exp-") as tmp:
@@ -633,7 +633,7 @@ def run_realtime(spec: RunSpec, *, log=None, connect_timeout_s: float = 30.0) ->
         relay = None
         client_url = url
         if spec.env_delay_s > 0:
-            from hapticproxy.testing.impair import ImpairingRelay, Impairment
+            from ..testing.impair import ImpairingRelay, Impairment
 
             host, _, port = url.removeprefix("udp://").rpartition(":")
             relay = ImpairingRelay((host, int(port)), c2s=Impairment(delay_s=float(spec.env_delay_s)))
@@ -679,7 +679,7 @@ def run_realtime(spec: RunSpec, *, log=None, connect_timeout_s: float = 30.0) ->
         raise RuntimeError(f"environment client failed: {err[0]}")
     span = (snap["t_last_ns"] - snap["t_start_ns"]) * 1e-9
     achieved = (snap["steps"] - 1) / span if span > 0 else 0.0
-    from hapticproxy.server.shm import TEL
+    from ..server.shm import TEL
 
     first = rows[rows[:, TEL["updates"]] > 0]
     if len(first) and first[0, TEL["t_s"]] >= spec.hand.start_s:

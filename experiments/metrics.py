@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from hapticproxy.clients.scenes import IN_HOLE_POSE, WALL_CONTACT_Y_COM_M
+from ..clients.scenes import IN_HOLE_POSE, WALL_CONTACT_Y_COM_M
 
 #: Where the bottom wall is, as the peg's y_COM touching it (the paper's 124 mm).
 WALL_Y_MM = WALL_CONTACT_Y_COM_M * 1e3

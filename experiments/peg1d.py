@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapticproxy.server.model import ContactParams, LocalModel, ToolSpec
+from ..server.model import ContactParams, LocalModel, ToolSpec
 
 FIG6_MASS_KG = 1.0
 FIG6_STIFFNESS_N_PER_M = 10000.0

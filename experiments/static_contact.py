@@ -55,12 +55,12 @@ def run_static_contact(*, seconds: float = 5.0, rate_hz: float = 512.0, epsilon_
                        policy: str = "deformation", controller: str = "four_channel", engine: str = "pymunk",
                        url: str | None = None, record: str | Path | None = None, contact_frame: str = "engine",
                        log=None) -> StaticContactResult:
-    from hapticproxy.clients.runner import ClientRunner
-    from hapticproxy.clients.scenes import WALL_CONTACT_Y_COM_M
-    from hapticproxy.server import config as cfgmod
-    from hapticproxy.server import telemetry
-    from hapticproxy.server.daemon import Supervisor
-    from hapticproxy.server.shm import TEL
+    from ..clients.runner import ClientRunner
+    from ..clients.scenes import WALL_CONTACT_Y_COM_M
+    from ..server import config as cfgmod
+    from ..server import telemetry
+    from ..server.daemon import Supervisor
+    from ..server.shm import TEL
 
     url = url or f"udp://127.0.0.1:{_free_port()}"
     settings = cfgmod.load({
@@ -78,11 +78,11 @@ def run_static_contact(*, seconds: float = 5.0, rate_hz: float = 512.0, epsilon_
     rec = str(record) if record else ""
     sup = Supervisor(settings, record=rec)
     if engine == "pymunk":
-        from hapticproxy.clients.pymunk_engine import PymunkEngine
+        from ..clients.pymunk_engine import PymunkEngine
 
         eng = PymunkEngine()
     elif engine == "stub":
-        from hapticproxy.clients.stub_engine import StubEngine
+        from ..clients.stub_engine import StubEngine
 
         eng = StubEngine()
     else:

@@ -271,7 +271,7 @@ def numpy_row(row: dict) -> dict:
 
 def _reference_step_method(self, hand_wrench):
     """``LocalModel.step`` computed by the plain-numpy reference (the model's arrays overwritten)."""
-    from hapticproxy.server.model.reference import reference_step
+    from ..server.model.reference import reference_step
 
     hand = np.zeros(6)
     hand[:self.hand_dim] = np.asarray(hand_wrench, dtype=float).ravel()[:self.hand_dim]
@@ -289,10 +289,10 @@ def _planar_cage_step_differences(steps: int) -> tuple[float, float]:
     ``bench model`` does), pushed by a rotating hand wrench. Every step is computed by the
     numba kernel and, from the same state, by the numpy reference; returns the largest
     differences of the new configuration and of the rendered wrench."""
-    from hapticproxy.benchmarks.bench_model import make_tool, random_contacts
-    from hapticproxy.server.model import ContactParams, LocalModel
-    from hapticproxy.server.model.layout import S_FENV, S_Q
-    from hapticproxy.server.model.reference import reference_step
+    from ..benchmarks.bench_model import make_tool, random_contacts
+    from ..server.model import ContactParams, LocalModel
+    from ..server.model.layout import S_FENV, S_Q
+    from ..server.model.reference import reference_step
 
     rng = np.random.default_rng(3)
     model = LocalModel(make_tool("planar"), ContactParams(4000.0, 30.0, 0.0, 0.4, 0.3), period_s=1e-3, capacity=16)
@@ -319,7 +319,7 @@ def numpy_matches_numba(seconds: float = 4.0) -> dict:
     differences of the trajectories); (2) a planar proxy in a cage of changing contacts, every
     step computed both ways from the same state (largest per-step differences: a closed loop of
     random contacts would amplify rounding differences, so trajectories are not compared)."""
-    from hapticproxy.server.model import LocalModel
+    from ..server.model import LocalModel
 
     from .peg1d import simulate_peg1d
 

@@ -54,9 +54,9 @@ from typing import Annotated, Any, Literal, Union
 import msgspec
 from msgspec import Meta, Struct
 
-from hapticproxy.protocol.transport import transport_options
-from hapticproxy.protocol.vocab import CONTROLLERS, POLICIES  # noqa: F401 - the vocabulary, once
-from hapticproxy.protocol.vocab import RIGID_TOOL_KINDS as TOOL_KINDS
+from ..protocol.transport import transport_options
+from ..protocol.vocab import CONTROLLERS, POLICIES  # noqa: F401 - the vocabulary, once
+from ..protocol.vocab import RIGID_TOOL_KINDS as TOOL_KINDS
 
 from . import schema
 from . import stability

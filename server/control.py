@@ -42,7 +42,7 @@ import math
 import numpy as np
 from numba import njit
 
-from hapticproxy.protocol.vocab import CONTROLLERS
+from ..protocol.vocab import CONTROLLERS
 
 from .readonly import ArrayBool, ArrayFloat, ArrayInt
 from .model.kernels import _rigid_pose, hand_to_world, step_rigid

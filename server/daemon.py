@@ -36,7 +36,7 @@ import sys
 import time
 from typing import TYPE_CHECKING
 
-from hapticproxy.protocol.jsonout import dumps, jsonable  # noqa: F401 - re-exported (the status replies' rule)
+from ..protocol.jsonout import dumps, jsonable  # noqa: F401 - re-exported (the status replies' rule)
 
 from . import config as cfgmod
 from .lifecycle import LOOP_STATES, Reason, describe
@@ -83,7 +83,7 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     signal.signal(signal.SIGTERM, _raise_stop)
     set_process_title(LOOP_TITLE)
-    from hapticproxy.protocol import logs
+    from ..protocol import logs
 
     logs.configure(logging.INFO)
     llog = logging.getLogger("hapticproxy.loop")
@@ -227,7 +227,7 @@ def address_error(what: str, address: str, exc: BaseException) -> StartupError:
 def open_server_transport(url: str):
     """The server's transport endpoint at ``url``; :class:`StartupError` naming
     ``transport.url`` and the address when it cannot be opened."""
-    from hapticproxy.protocol.transport import TransportError, open_transport
+    from ..protocol.transport import TransportError, open_transport
 
     try:
         return open_transport(url, "server")
@@ -336,7 +336,7 @@ class Supervisor:
         path = self.settings["transport"]["hmac_key_file"]
         if not path:
             return None
-        from hapticproxy.protocol.session import load_hmac_key
+        from ..protocol.session import load_hmac_key
 
         return load_hmac_key(path)
 
@@ -664,7 +664,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="print every key in effect (the device's and the hand's too) as TOML and exit")
     p.add_argument("-q", "--quiet", action="count", default=0, help="fewer log lines (warnings and errors only)")
     args = p.parse_args(argv)
-    from hapticproxy.protocol import logs
+    from ..protocol import logs
 
     logs.configure(logging.INFO, quiet=args.quiet)
     over: dict = {}

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from enum import IntEnum
 
-from hapticproxy.protocol.messages import ServerState
+from ..protocol.messages import ServerState
 
 LOOP_STATES = ("idle", "engaged", "fading", "fault", "stopping", "stopped", "starting")
 #: state name -> code (float: it is stored in the float64 status block and telemetry rows)

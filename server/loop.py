@@ -40,9 +40,9 @@ import time
 
 import numpy as np
 
-from hapticproxy.protocol.vocab import JOINT_TYPE_NAMES, TOOL_KIND_NAMES, TOOL_KINDS_BY_NAME
-from hapticproxy.protocol.codec import Codec
-from hapticproxy.protocol.session import ServerConfig, ServerEndpoint
+from ..protocol.vocab import JOINT_TYPE_NAMES, TOOL_KIND_NAMES, TOOL_KINDS_BY_NAME
+from ..protocol.codec import Codec
+from ..protocol.session import ServerConfig, ServerEndpoint
 
 from . import control as ctl
 from . import egress, ingest
@@ -210,7 +210,7 @@ class HapticLoop:
               hmac_key: bytes | None = None, **kw) -> "HapticLoop":
         """Open what is not given (the transport at ``transport.url``, the ``[device]`` driver); the
         loop closes what it opened."""
-        from hapticproxy.protocol.transport import open_transport
+        from ..protocol.transport import open_transport
 
         from .clock import MonotonicClock
 

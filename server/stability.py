@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-from hapticproxy.protocol.vocab import CONTROLLERS, POLICIES  # noqa: F401 - the vocabulary, once
+from ..protocol.vocab import CONTROLLERS, POLICIES  # noqa: F401 - the vocabulary, once
 
 #: b = DAMPING_PER_STIFFNESS_S x k: the damping the rows were measured with (the paper's 30 N s/m
 #: at 4000 N/m); ``experiments/tradeoff.py`` DAMPING_PER_STIFFNESS_S.

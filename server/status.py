@@ -23,7 +23,7 @@ import socket
 import sys
 import time
 
-from hapticproxy.protocol.jsonout import print_json
+from ..protocol.jsonout import print_json
 
 DEFAULT_ADDRESS = "127.0.0.1:9871"
 #: A signed request older (or newer) than this is refused; its nonce is remembered twice as long.
@@ -151,7 +151,7 @@ def format_status(s: dict) -> str:
 def load_key(config: str | None, key_file: str | None) -> tuple[bytes | None, str | None]:
     """(HMAC key, status address from the config) for the command line's options; the
     environment (``HAPTICPROXY_HMAC_KEY_FILE`` / ``HAPTICPROXY_HMAC_KEY``) when neither names one."""
-    from hapticproxy.protocol.session import load_hmac_key
+    from ..protocol.session import load_hmac_key
 
     address = None
     if config:
@@ -187,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.watch:
         from .watch import run_watch
 
-        return run_watch(address, key=key, interval_s=args.interval, timeout_s=args.timeout)
+        return run_watch(address, query, key=key, interval_s=args.interval, timeout_s=args.timeout)
     req = {"cmd": "status"}
     if args.rearm:
         req = {"cmd": "rearm"}

@@ -186,27 +186,3 @@ def cold(modules=SERVER_KERNEL_MODULES) -> list[str]:
         if not os.path.exists(path):
             names.append(d.py_func.__qualname__)
     return names
-
-
-def _settings(device_kind: str, tool: str = ""):
-    from . import config as cfgmod
-
-    return cfgmod.load({"transport": {"url": f"mem://warmup-{device_kind}-{tool or device_kind}"},
-                        "model": {"tool": tool}, "device": {"driver": "sim", "kind": device_kind},
-                        "telemetry": {"ring_s": 0.1}})
-
-
-def warm_server() -> int:
-    """Warm a loop for every device kind and tool kind; returns how many loops were warmed."""
-    from .loop import HapticLoop
-
-    n = 0
-    for device_kind, tool in (("1dof", ""), ("planar", ""), ("spatial", ""), ("planar", "linkage"),
-                              ("spatial", "linkage")):
-        loop = HapticLoop.build(_settings(device_kind, tool))
-        try:
-            loop.warm_up()
-            n += 1
-        finally:
-            loop.close()
-    return n

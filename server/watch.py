@@ -227,9 +227,8 @@ class WatchApp(App):
         self._send("stop")
 
 
-def run_watch(address: str, *, key: bytes | None = None, interval_s: float = 0.2, timeout_s: float = 1.0) -> int:
-    from .status import query
-
+def run_watch(address: str, query, *, key: bytes | None = None, interval_s: float = 0.2, timeout_s: float = 1.0) -> int:
+    """``query``: ``status.query`` (given, so this view does not import the command that opens it)."""
     app = WatchApp(lambda: query(address, {"cmd": "status"}, timeout_s, key=key),
                    send=lambda cmd: query(address, {"cmd": cmd}, timeout_s, key=key),
                    interval_s=max(0.05, interval_s), address=address)

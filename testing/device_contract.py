@@ -38,7 +38,7 @@ attaches one to its driver's factory, next to its entry point::
 
 and runs the suite from its own tests::
 
-    from hapticproxy.testing.device_contract import RULES, check
+    from .device_contract import RULES, check
     @pytest.mark.parametrize("rule", RULES)
     def test_mydev_keeps_the_device_contract(rule):
         check(rule, "mydev")          # or check(rule, lambda: MyHarness("planar", 1e-3))
@@ -54,7 +54,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hapticproxy.server.devices.base import (
+from ..server.devices.base import (
     DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_NSTATE, DEV_OK, DEVICE_KINDS, DeviceDriver, DeviceLimits,
 )
 
@@ -121,7 +121,7 @@ class SimHarness(Harness):
 
     def __init__(self, kind: str = "planar", period_s: float = PERIOD_S, config: dict | None = None) -> None:
         super().__init__(period_s)
-        from hapticproxy.server.devices.sim import make_sim_device
+        from ..server.devices.sim import make_sim_device
 
         self.driver = make_sim_device({"kind": kind, **(config or {})}, period_s=period_s, clock_ns=self.clock)
 
@@ -138,9 +138,9 @@ class RemoteHarness(Harness):
 
     def __init__(self, kind: str = "planar", period_s: float = PERIOD_S, config: dict | None = None) -> None:
         super().__init__(period_s)
-        from hapticproxy.server.devices.base import load_device
-        from hapticproxy.server.devices.remote import DeviceProgram
-        from hapticproxy.server.devices.sim import make_sim_device
+        from ..server.devices.base import load_device
+        from ..server.devices.remote import DeviceProgram
+        from ..server.devices.sim import make_sim_device
 
         self.driver = load_device("remote", {"kind": kind, "listen": "127.0.0.1:0", **(config or {})},
                                   period_s=period_s, clock_ns=self.clock)
@@ -182,7 +182,7 @@ def harness_for(name: str, kind: str = "planar", period_s: float = PERIOD_S) -> 
     built-ins merged with the ``hapticproxy.devices`` entry points): its factory's
     ``contract_harness(kind, period_s)``, or a built-in one. ``ValueError`` if the driver has
     neither."""
-    from hapticproxy.server.devices.base import DEVICE_REGISTRY
+    from ..server.devices.base import DEVICE_REGISTRY
 
     if not DEVICE_REGISTRY.known(name):
         raise ValueError(f"device driver {name!r} is not registered; installed: {DEVICE_REGISTRY.names()}")

@@ -62,7 +62,7 @@ import time
 from collections.abc import Callable
 from dataclasses import MISSING, dataclass, field, fields
 
-from hapticproxy.protocol.transport.base import Peer, Transport
+from ..protocol.transport.base import Peer, Transport
 
 __all__ = ["Decision", "GilbertElliott", "Impairment", "ImpairedTransport", "ImpairingRelay", "ImpairmentCounters"]
 

@@ -81,3 +81,80 @@ def test_the_checker_catches_violations():
     assert violations("clients", {"a/b.py": "from ...server.model import LocalModel\n"}) != []
     assert violations("server", {"loop.py": "from hapticproxy.cli import main\n"}) != []
     assert violations("server", {"loop.py": "from hapticproxy.protocol import messages\nimport numba\n"}) == []
+
+
+#: every folder of the ``hapticproxy`` namespace (``pyproject.toml``'s package-dir roots)
+NAMESPACE = {"protocol": "hapticproxy.protocol", "server": "hapticproxy.server", "clients": "hapticproxy.clients",
+             "cli": "hapticproxy.cli", "benchmarks": "hapticproxy.benchmarks",
+             "experiments": "hapticproxy.experiments", "testing": "hapticproxy.testing"}
+#: folders under a namespace folder that are not part of the package (standalone examples)
+NOT_PACKAGE = ("clients/examples/",)
+
+
+def _package_modules() -> dict[str, tuple[Path, bool]]:
+    """module name -> (file, is_package) for every module of the namespace."""
+    out = {}
+    for folder, pkg in NAMESPACE.items():
+        for p in (ROOT / folder).rglob("*.py"):
+            rel = str(p.relative_to(ROOT))
+            if "__pycache__" in rel or rel.startswith(NOT_PACKAGE):
+                continue
+            parts = str(p.relative_to(ROOT / folder))[:-3].split("/")
+            is_package = parts[-1] == "__init__"
+            if is_package:
+                parts = parts[:-1]
+            out[".".join([pkg] + parts)] = (p, is_package)
+    return out
+
+
+def absolute_self_imports(source: str) -> list[str]:
+    """``from hapticproxy... import`` / ``import hapticproxy...`` statements (at any depth)."""
+    bad = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.ImportFrom) and not node.level and (node.module or "").startswith("hapticproxy"):
+            bad.append(f"line {node.lineno}: from {node.module}")
+        elif isinstance(node, ast.Import):
+            bad.extend(f"line {node.lineno}: import {a.name}" for a in node.names if a.name.startswith("hapticproxy"))
+    return bad
+
+
+def test_imports_inside_the_package_are_relative():
+    """A reader (pyright, pylint, a person) follows ``from ..protocol import vocab`` from the file
+    itself; ``hapticproxy.protocol`` exists only through the install's mapping of folders."""
+    bad = {}
+    for name, (path, _) in _package_modules().items():
+        found = absolute_self_imports(path.read_text())
+        if found:
+            bad[name] = found
+    assert bad == {}
+
+
+def mutual_imports(modules: dict[str, tuple[str, bool]]) -> list[tuple[str, str]]:
+    """Pairs of modules that import each other (at any depth: a function's own import counts).
+    ``modules``: name -> (source, is_package)."""
+    graph = {}
+    for name, (source, is_package) in modules.items():
+        deps = set()
+        for dep in imports_of(source, name, is_package):
+            # "from . import x" names x (a module) or an attribute of the package: keep the longest
+            # prefix that is a module
+            while dep and dep not in modules:
+                dep = dep.rpartition(".")[0]
+            if dep and dep != name:
+                deps.add(dep)
+        graph[name] = deps
+    return sorted((a, b) for a in graph for b in graph[a] if a < b and a in graph.get(b, ()))
+
+
+def test_no_two_modules_import_each_other():
+    mods = {name: (path.read_text(), pkg) for name, (path, pkg) in _package_modules().items()}
+    assert mutual_imports(mods) == []
+
+
+def test_the_cycle_checker_catches_a_pair():
+    mods = {"hapticproxy.server.a": ("from . import b\n", False),
+            "hapticproxy.server.b": ("def f():\n    from .a import x\n", False),
+            "hapticproxy.server.c": ("from .a import y\n", False)}
+    assert mutual_imports(mods) == [("hapticproxy.server.a", "hapticproxy.server.b")]
+    assert absolute_self_imports("def f():\n    from hapticproxy.server import loop\n") == \
+        ["line 2: from hapticproxy.server"]

@@ -40,9 +40,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapticproxy.protocol.devlink import ROW_COLUMNS, ROW_FLOATS, DeviceFault
-from hapticproxy.protocol.registry import Registry
-from hapticproxy.protocol.vocab import DEVICE_KINDS  # noqa: F401 - re-exported
+from ...protocol.devlink import ROW_COLUMNS, ROW_FLOATS, DeviceFault
+from ...protocol.registry import Registry
+from ...protocol.vocab import DEVICE_KINDS  # noqa: F401 - re-exported
 
 # The state row and the status codes are the remote-device link's (protocol/devlink.py): one set
 # of numbers for every driver and for the wire.

@@ -59,9 +59,9 @@ import msgspec
 import numpy as np
 from msgspec import Meta
 
-from hapticproxy.protocol import devlink as dl
-from hapticproxy.protocol.devlink import COMMAND, F_ARMED, F_ENABLE, PREFIX_BYTES, STATE, new_session
-from hapticproxy.protocol.transport import Transport, UdpTransport
+from ...protocol import devlink as dl
+from ...protocol.devlink import COMMAND, F_ARMED, F_ENABLE, PREFIX_BYTES, STATE, new_session
+from ...protocol.transport import Transport, UdpTransport
 
 from ..readonly import ReadOnly
 from . import _check as ck
@@ -760,7 +760,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     import logging
 
-    from hapticproxy.protocol import logs
+    from ...protocol import logs
 
     logs.configure(logging.INFO, quiet=1 if args.quiet else 0)
     log = logging.getLogger("hapticproxy.device")

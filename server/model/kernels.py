@@ -32,7 +32,7 @@ import math
 import numpy as np
 from numba import njit
 
-from hapticproxy.protocol.quaternion import quat_to_matrix_into
+from ...protocol.quaternion import quat_to_matrix_into
 
 from .layout import (
     C_CP, C_D, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,

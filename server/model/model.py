@@ -19,7 +19,7 @@ from typing import Sequence
 
 import numpy as np
 
-from hapticproxy.protocol.quaternion import quat_to_matrix_into
+from ...protocol.quaternion import quat_to_matrix_into
 
 from ..readonly import ArrayFloat, ArrayInt, frozen_copies
 from . import kernels as _k
