@@ -170,8 +170,8 @@ class ControllerConfig(_Table):
 
 
 class SafetyConfig(_Table):
-    max_force_n: _num(0, 1000, lo_open=True, doc="force cap per axis [N] (the device's own cap applies too)") = 10.0
-    max_torque_n_m: _num(0, 100, lo_open=True, doc="torque cap per axis [N m]") = 0.5
+    max_force_n: _num(0, 1000, lo_open=True, doc="cap on the force's norm [N] (the device's own cap applies too)") = 10.0
+    max_torque_n_m: _num(0, 100, lo_open=True, doc="cap on the torque's norm [N m]") = 0.5
     force_rate_n_per_s: _doc(Union[Literal["auto"], _num(0, 1e6, lo_open=True)],
                              "largest force change per second [N/s]; at most 1 N x rate_hz, so one haptic "
                              "step never changes the force by more than 1 N (a larger step is felt as a "

@@ -22,18 +22,12 @@ offset is set when a session engages so that the handle maps exactly onto the pr
 point (no jump; the classic indexing of haptic workspaces); ``absolute`` keeps the identity.
 The hand point is the tool frame's origin (``-com_m`` in the body frame).
 
-Safety (order matters): a non-finite command or device state -> zero output and a latched
-``NONFINITE`` code (the loop disables the device); device speed over its limit -> the gain
-target drops to 0 (a fade-out) and a trip is counted; then ``gain`` moves towards its target by
-``dt / ramp_in_s`` (up) or ``dt / fade_s`` (down); the scaled command is capped per axis
-(counted) and scaled by the gain (so while ramping in the output is at most ``gain * cap``);
-while the gain goes down (a fade) each component is also kept between zero and its previous
-value times ``gain / previous gain``, so a fade never pushes harder than where it began, whatever
-the command does meanwhile; while it goes up (a ramp) no component grows by more than ``cap *
-dt / ramp_in_s`` per step, so force comes back gradually also after an interrupted fade; then
-the change per step is capped at the rate limit (counted).
-Because the previous output and the capped target both lie within the caps, the rate-limited
-output does too.
+Safety: a non-finite device state -> zero output and a latched ``NONFINITE`` code (the loop
+disables the device); device speed over its limit -> the gain target drops to 0 (a fade-out) and
+a trip is counted; then the command goes through the safety filter (``safety.safety_filter``,
+whose docstring is its contract: finite, caps on the norm and per axis, the gain's fade and ramp
+envelopes, the rate limit). The filter's arrays are blocks of the controller's (``CP_SAFETY``,
+``CS_SAFETY``, ``CC_SAFETY``).
 """
 from __future__ import annotations
 
@@ -44,6 +38,7 @@ from numba import njit
 
 from ..protocol.vocab import CONTROLLERS
 
+from . import safety as sf
 from .readonly import ArrayBool, ArrayFloat, ArrayInt
 from .model.kernels import _rigid_pose, hand_to_world, step_rigid
 from .model.layout import LM_PLANAR, P_AXIS, P_HAND, P_ORIGIN, S_FENV, S_Q, S_QD, TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL
@@ -71,45 +66,42 @@ CP_EG = 6          # environment force-channel gain
 CP_ROFF = 7        # 7..15 device -> world rotation, row-major
 CP_POFF = 16       # 16..18 device -> world translation, m
 CP_QOFF = 19       # 19..22 the same rotation as a quaternion (w x y z)
-CP_FMAX = 23       # force cap per axis, N
-CP_TMAX = 24       # torque cap per axis, N m
-CP_FRATE = 25      # largest force change per step, N
-CP_TRATE = 26      # largest torque change per step, N m
-CP_VMAX = 27       # device speed limit, m/s
-CP_WMAX = 28       # device angular speed limit, rad/s
-CP_FADE = 29       # gain decrement per step (dt / fade_s)
-CP_RAMP = 30       # gain increment per step (dt / ramp_in_s)
-CP_MASK = 31       # 31..36 components the device renders (1/0)
-NCP = 37
+CP_VMAX = 23       # device speed limit, m/s
+CP_WMAX = 24       # device angular speed limit, rad/s
+CP_SAFETY = 25     # 25..38 the safety filter's parameters (``safety.SP_*``)
+NCP = CP_SAFETY + sf.NSP
 
 # ---- state (float64[NCS]); rows for telemetry and the ProxyState
-CS_GAIN = 0
-CS_TARGET = 1
-CS_PREV = 2        # 2..7 previous output, device frame
-CS_FC = 8          # 8..13 coupling wrench on the proxy, world
-CS_HAND = 14       # 14..19 wrench applied to the proxy at the hand point, world
-CS_ENV = 20        # 20..25 environment wrench at the hand point, world
-CS_DPOSE = 26      # 26..32 device handle pose, world (x y z qw qx qy qz)
-CS_DTWIST = 33     # 33..38 device handle twist, world
-CS_PPOSE = 39      # 39..45 proxy hand-point (tool-frame) pose, world, after the step
-CS_PTWIST = 46     # 46..51 proxy hand-point twist, world, after the step
-CS_CMDW = 52       # 52..57 controller command before safety, world
-CS_DRIVE = 58      # 1: the device drives the proxy (hand and coupling channels, model step); 0: held
-CS_SLIDE = 59      # 1: the device->world offset follows the proxy while the force ramps in
-CS_SKIPPED = 60    # periods the loop skipped before this step (it woke late): the gain moves on
+CS_SAFETY = 0      # 0..8 the safety filter's state (``safety.SS_*``): gain, target, previous output
+CS_GAIN = CS_SAFETY + sf.SS_GAIN        # gain of the rendered force, 0..1
+CS_TARGET = CS_SAFETY + sf.SS_TARGET    # where the gain goes
+CS_PREV = CS_SAFETY + sf.SS_PREV        # 2..7 previous output, device frame
+CS_SKIPPED = CS_SAFETY + sf.SS_SKIPPED  # periods the loop skipped before this step (it woke late)
+CS_FC = 9          # 9..14 coupling wrench on the proxy, world
+CS_HAND = 15       # 15..20 wrench applied to the proxy at the hand point, world
+CS_ENV = 21        # 21..26 environment wrench at the hand point, world
+CS_DPOSE = 27      # 27..33 device handle pose, world (x y z qw qx qy qz)
+CS_DTWIST = 34     # 34..39 device handle twist, world
+CS_PPOSE = 40      # 40..46 proxy hand-point (tool-frame) pose, world, after the step
+CS_PTWIST = 47     # 47..52 proxy hand-point twist, world, after the step
+CS_CMDW = 53       # 53..58 controller command before safety, world
+CS_DRIVE = 59      # 1: the device drives the proxy (hand and coupling channels, model step); 0: held
+CS_SLIDE = 60      # 1: the device->world offset follows the proxy while the force ramps in
 NCS = 61
 
 # ---- counters (int64[NCC])
-CC_STEPS = 0
-CC_SATURATED = 1       # steps in which a cap clipped some axis
-CC_RATE_LIMITED = 2    # steps in which the rate limit clipped some axis
-CC_SPEED_TRIPS = 3     # steps over the speed limit
-CC_NONFINITE = 4       # steps with a non-finite command or device state
-CC_HAND_MISSING = 5    # steps with no (finite) measured hand wrench in four-channel
-NCC = 6
+CC_SAFETY = 0          # 0..2 the safety filter's counters (``safety.SC_*``)
+CC_SATURATED = CC_SAFETY + sf.SC_SATURATED        # steps in which a cap clipped the command
+CC_RATE_LIMITED = CC_SAFETY + sf.SC_RATE_LIMITED  # steps in which the rate limit clipped it
+CC_CMD_NONFINITE = CC_SAFETY + sf.SC_NONFINITE    # steps whose command was not finite
+CC_STEPS = 3
+CC_SPEED_TRIPS = 4     # steps over the speed limit
+CC_NONFINITE = 5       # steps with a non-finite device state or model result
+CC_HAND_MISSING = 6    # steps with no (finite) measured hand wrench in four-channel
+NCC = 7
 
-RC_OK = 0
-RC_NONFINITE = 1
+RC_OK = sf.RC_OK
+RC_NONFINITE = sf.RC_NONFINITE
 RC_SPEED = 2
 
 
@@ -188,83 +180,20 @@ def ack_state(kind, par, st, R, c, out, adv_a, adv_p, now_s, engine_tool_pose, s
 
 @njit(**_JIT)
 def _fault_zero(cs, cc, cmd):
-    """A non-finite value before the device: zero output, no gain, counted."""
+    """A non-finite device state or model result: zero output, no gain, counted."""
     for k in range(6):
         cmd[k] = 0.0
-        cs[CS_PREV + k] = 0.0
-    cs[CS_GAIN] = 0.0
-    cs[CS_TARGET] = 0.0
+    sf.reset(cs[CS_SAFETY:CS_SAFETY + sf.NSS])
     cc[CC_NONFINITE] += 1
     return RC_NONFINITE
 
 
 @njit(**_JIT)
 def _safety(cp, cs, cc, cmd):
-    """Finite check, fade gain, per-axis caps, rate limit. ``cmd`` (device frame) in/out."""
-    for j in range(6):
-        if not math.isfinite(cmd[j]):
-            return _fault_zero(cs, cc, cmd)
-    g_old = cs[CS_GAIN]
-    g = g_old
-    # the gain keeps its time across periods the loop skipped (a fade reaches zero in fade_s of
-    # wall-clock time), while the bounds below still compare with the previous output
-    steps = 1.0 + cs[CS_SKIPPED]
-    cs[CS_SKIPPED] = 0.0
-    if cs[CS_TARGET] > g:
-        g = min(cs[CS_TARGET], g + steps * cp[CP_RAMP])
-    elif cs[CS_TARGET] < g:
-        g = max(cs[CS_TARGET], g - steps * cp[CP_FADE])
-    cs[CS_GAIN] = g
-    fading = g < g_old
-    ramping = g > g_old
-    shrink = g / g_old if fading else 1.0
-    sat = False
-    lim = False
-    for j in range(6):
-        cap = cp[CP_FMAX] if j < 3 else cp[CP_TMAX]
-        rate = cp[CP_FRATE] if j < 3 else cp[CP_TRATE]
-        # cap first, then the gain: while ramping in, the output is at most gain * cap
-        v = cmd[j] * cp[CP_MASK + j]
-        if v > cap:
-            v = cap
-            sat = True
-        elif v < -cap:
-            v = -cap
-            sat = True
-        v *= g
-        prev = cs[CS_PREV + j]
-        if fading:
-            # A fade only takes force away: the user pushing on while it runs stretches the
-            # coupling and raises the command, so the gain alone would not bring the force down
-            # (it could even rise to gain * cap). Each component stays between zero and its
-            # previous value scaled like the gain: at most a linear fade from where it began.
-            bound = prev * shrink
-            if bound >= 0.0:
-                v = min(max(v, 0.0), bound)
-            else:
-                v = max(min(v, 0.0), bound)
-        elif ramping:
-            # A ramp adds force at the ramp's own slope (cap * dt / ramp_in_s per step) at most,
-            # also when it resumes an interrupted fade (whose output the fade held below the
-            # gained command): force comes back gradually, never as a step.
-            grow = abs(prev) + cap * cp[CP_RAMP]  # per written command, skipped periods or not
-            if v > grow:
-                v = grow
-            elif v < -grow:
-                v = -grow
-        if v > prev + rate:
-            v = prev + rate
-            lim = True
-        elif v < prev - rate:
-            v = prev - rate
-            lim = True
-        cmd[j] = v
-        cs[CS_PREV + j] = v
-    if sat:
-        cc[CC_SATURATED] += 1
-    if lim:
-        cc[CC_RATE_LIMITED] += 1
-    return RC_OK
+    """The safety filter (``safety.safety_filter``: its docstring is the contract) on the
+    controller's blocks."""
+    return sf.safety_filter(cp[CP_SAFETY:CP_SAFETY + sf.NSP], cs[CS_SAFETY:CS_SAFETY + sf.NSS],
+                            cc[CC_SAFETY:CC_SAFETY + sf.NSC], cmd)
 
 
 @njit(**_JIT)
@@ -654,29 +583,35 @@ class Controller:
         cp[CP_HG] = ctl["hand_gain"]
         cp[CP_EG] = ctl["env_gain"]
         fmax, tmax = saf["max_force_n"], saf["max_torque_n_m"]
+        faxis = taxis = None
         vmax, wmax = saf["max_speed_m_per_s"], saf["max_angular_speed_rad_per_s"]
         if device_limits is not None:  # never command more than the hardware can take
             fmax = min(fmax, device_limits.max_force_n)
             tmax = min(tmax, device_limits.max_torque_n_m)
+            # a motor's own limit, where the device declares one tighter than its norm
+            faxis = getattr(device_limits, "max_force_axis_n", None)
+            taxis = getattr(device_limits, "max_torque_axis_n_m", None)
             vmax = min(vmax, device_limits.max_speed_m_per_s)
             wmax = min(wmax, device_limits.max_angular_speed_rad_per_s)
-        cp[CP_FMAX] = fmax
-        cp[CP_TMAX] = tmax
-        cp[CP_FRATE] = saf["force_rate_n_per_s"] * dt
-        cp[CP_TRATE] = saf["torque_rate_n_m_per_s"] * dt
         cp[CP_VMAX] = vmax
         cp[CP_WMAX] = wmax
-        cp[CP_FADE] = dt / saf["fade_s"]
-        cp[CP_RAMP] = dt / saf["ramp_in_s"]
-        cp[CP_MASK:CP_MASK + 6] = KIND_WRENCH_MASK[device_kind]
+        #: the safety filter's parameters (a view: the kernels read them in ``cp``)
+        self.sp = cp[CP_SAFETY:CP_SAFETY + sf.NSP]
+        sf.set_parameters(self.sp, max_force_n=fmax, max_torque_n_m=tmax, max_force_axis_n=faxis,
+                          max_torque_axis_n_m=taxis, force_rate_n_per_step=saf["force_rate_n_per_s"] * dt,
+                          torque_rate_n_m_per_step=saf["torque_rate_n_m_per_s"] * dt, fade_per_step=dt / saf["fade_s"],
+                          ramp_per_step=dt / saf["ramp_in_s"], mask=KIND_WRENCH_MASK[device_kind])
         self.set_offset(np.eye(3), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
         self.cs[CS_DRIVE] = 1.0  # a bare kernel user drives its model; the loop holds until engaged
         self.cs[CS_DPOSE + 3] = 1.0
         self.cs[CS_PPOSE + 3] = 1.0
 
     controller_type = ArrayInt("cp", CP_TYPE, doc="The controller's id (``CONTROLLER_IDS``).")
-    force_cap_n = ArrayFloat("cp", CP_FMAX, doc="Force cap per axis, N (the device's limit when lower).")
-    force_rate_n_per_step = ArrayFloat("cp", CP_FRATE, doc="Largest force change per step, N.")
+    force_cap_n = ArrayFloat("cp", CP_SAFETY + sf.SP_FMAX,
+                             doc="Cap on the force's norm, N (the device's limit when lower).")
+    torque_cap_n_m = ArrayFloat("cp", CP_SAFETY + sf.SP_TMAX, doc="Cap on the torque's norm, N m.")
+    force_rate_n_per_step = ArrayFloat("cp", CP_SAFETY + sf.SP_FRATE,
+                                       doc="Largest change of the force vector per step, N.")
 
     def set_offset(self, R_off: np.ndarray, p_off: np.ndarray, q_off: np.ndarray) -> None:
         self.cp[CP_ROFF:CP_ROFF + 9] = np.asarray(R_off, dtype=float).reshape(9)
@@ -714,9 +649,19 @@ class Controller:
 
     gain = ArrayFloat("cs", CS_GAIN, doc="Gain of the rendered force, 0..1 (fades and ramps in).")
 
+    def cut(self) -> None:
+        """The device was disabled (it renders nothing now): the safety filter starts again from
+        zero output and zero gain, so whatever comes next ramps in from what the hand feels."""
+        sf.reset(self.cs[CS_SAFETY:CS_SAFETY + sf.NSS])
+
+    _COUNTERS = (("steps", CC_STEPS), ("saturated", CC_SATURATED), ("rate_limited", CC_RATE_LIMITED),
+                 ("speed_trips", CC_SPEED_TRIPS), ("nonfinite", CC_NONFINITE), ("hand_missing", CC_HAND_MISSING),
+                 ("command_nonfinite", CC_CMD_NONFINITE))
+
     def counters(self) -> dict[str, int]:
-        names = ("steps", "saturated", "rate_limited", "speed_trips", "nonfinite", "hand_missing")
-        return {n: int(self.cc[i]) for i, n in enumerate(names)}
+        out = {n: int(self.cc[i]) for n, i in self._COUNTERS}
+        out["nonfinite"] += out["command_nonfinite"]  # any non-finite value before the device
+        return out
 
 
 # ------------------------------------------------------------------------------ mapping

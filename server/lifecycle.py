@@ -28,6 +28,7 @@ States (what the device gets, what the proxy does):
 from __future__ import annotations
 
 from enum import IntEnum
+from typing import NamedTuple
 
 from ..protocol.messages import ServerState
 
@@ -79,6 +80,12 @@ FAULT_TEXT = {
 #: Faults that clear by themselves; every other one waits for ``status --rearm``.
 SELF_CLEARING = frozenset({Fault.STALL})
 
+#: A device watchdog or link fault is explained by the loop's own stall (not the device's fault)
+#: when the stall ended at most this long before the fault is seen: a device reports a trip at
+#: its next exchange, a remote one within its link's latency. Later, it is the device's own.
+STALL_EXPLAINS_S = 1.0
+
+
 
 class Reason(IntEnum):
     """Why a transition happened (logged by the supervisor with the transition's detail value)."""
@@ -101,6 +108,7 @@ class Reason(IntEnum):
     STOP = 16
     STOPPED = 17
     UPDATE_ERROR = 18     # an update raised: treated as a non-finite value
+    SPEED_IDLE = 19       # the handle moved faster than its limit while nothing was rendered
 
 
 REASON_TEXT = {
@@ -124,6 +132,8 @@ REASON_TEXT = {
     Reason.STOPPED: "stopped",
     Reason.UPDATE_ERROR: "a contact update could not be applied: zero wrench, device disabled; re-arm with "
                          "`hapticproxy status --rearm`",
+    Reason.SPEED_IDLE: "the handle moved faster than its limit while nothing was rendered (counted; nothing "
+                       "to fade)",
 }
 
 
@@ -132,3 +142,46 @@ def describe(reason: int, detail: float) -> str:
         return REASON_TEXT[Reason(int(reason))].format(detail=detail)
     except (ValueError, KeyError):
         return f"reason {int(reason)}"
+
+
+class Policy(NamedTuple):
+    """What the loop does about one source of trouble (a row of :data:`FAULT_POLICY`)."""
+
+    key: str
+    source: str
+    output: str      # "cut": zero at once, device disabled; "fade": to zero over fade_s, device on;
+                     # "none": nothing is rendered, nothing to do
+    recovery: str    # how force comes back
+    fault: Fault     # the loop's fault code while it lasts (NONE: not a fault state)
+    reason: Reason   # the transition's reason
+
+
+#: Every source of trouble and its policy, one row each (``tests/server/test_fault_policy.py``
+#: runs each row; ``docs/architecture.md`` shows the table). The loop classifies in
+#: ``HapticLoop._on_fault`` / ``_on_own_stall`` / the silence and session checks.
+FAULT_POLICY: tuple[Policy, ...] = (
+    Policy("stall_explained", "device watchdog, explained by the loop's own stall (it ended at most STALL_EXPLAINS_S before)",
+           "cut", f"by itself once the loop has been on time for safety.stall_recover_s; more than "
+           f"safety.stall_trips_max trips within safety.stall_window_s latch", Fault.STALL, Reason.STALL),
+    Policy("own_stall_engaged", "the loop's own stall of at least the device's watchdog while force is rendered (seen or not by "
+           "the device)", "cut", "as the row above", Fault.STALL, Reason.STALL),
+    Policy("own_stall_idle", "the loop's own stall while nothing is rendered", "none", "nothing to recover: logged",
+           Fault.NONE, Reason.STALL_IDLE),
+    Policy("watchdog_unexplained", "device watchdog not explained by a stall (e.g. 5 s after a recovered one)", "cut", "re-arm",
+           Fault.DEVICE, Reason.DEVICE_FAULT),
+    Policy("hardware", "device hardware fault, or a device that disabled itself", "cut", "re-arm", Fault.DEVICE,
+           Reason.DEVICE_FAULT),
+    Policy("link_lost", "device link lost (remote device) after force was ever rendered, not explained by a stall", "cut",
+           "re-arm", Fault.DEVICE, Reason.DEVICE_FAULT),
+    Policy("link_not_up", "device link not yet up at start-up (nothing ever rendered)", "none", "by itself when the link "
+           "comes up", Fault.DEVICE, Reason.LINK_UP),
+    Policy("nonfinite", "non-finite device state, command or model result", "cut", "re-arm", Fault.NONFINITE, Reason.NONFINITE),
+    Policy("update_error", "a contact update that raised while applied", "cut", "re-arm", Fault.NONFINITE, Reason.UPDATE_ERROR),
+    Policy("speed_engaged", "device faster than its limit while force is rendered", "fade", "re-arm", Fault.SPEED, Reason.SPEED),
+    Policy("speed_idle", "device faster than its limit while nothing is rendered", "none", "nothing to recover: counted and "
+           "logged", Fault.NONE, Reason.SPEED_IDLE),
+    Policy("env_silent", "environment silent for safety.watchdog_s", "fade", "by itself when updates resume (the force "
+           "ramps in)", Fault.NONE, Reason.SILENT),
+    Policy("session_ended", "the session ended (Bye, timeout)", "fade", "a new session engages (ramps in)", Fault.NONE,
+           Reason.SESSION_ENDED),
+)

@@ -45,11 +45,11 @@ from ..protocol.codec import Codec
 from ..protocol.session import ServerConfig, ServerEndpoint
 
 from . import control as ctl
-from . import egress, ingest
+from . import egress, ingest, tick
 from .devices.base import (
     DEV_FAULT_LINK, DEV_FAULT_NAMES, DEV_FAULT_WATCHDOG, DEV_NSTATE, DS_TIME, empty_state, load_device,
 )
-from .lifecycle import LOOP_STATES, LS, SERVER_STATE_BY_CODE, TRANSITIONS, Fault, Reason
+from .lifecycle import LOOP_STATES, LS, SERVER_STATE_BY_CODE, STALL_EXPLAINS_S, TRANSITIONS, Fault, Reason
 from .prediction import EngineAdvice, advice_update, tool_radius_m, warm_up as advice_warm_up
 from .model.layout import K_M
 from .model.model import ContactParams, LinkSpec, LocalModel, ToolSpec, warm_up as model_warm_up
@@ -75,8 +75,15 @@ WD_OK = 0
 WD_SILENT = 1
 WD_SESSION_ENDED = 2
 
+#: updates over which the environment's rate is measured (``HapticLoop._track_env``)
+ENV_RATE_WINDOW = 32
 #: steps housekeeping may wait for a step that handles no update (receives or applies one)
 _HK_MAX_DEFER = 3
+#: the tick's device arrays for a device that is not simulated, and its linkage arrays for a
+#: rigid tool (never read: the same types as the real ones, so one compiled tick serves all)
+_NO_SIM_DEVICE = (np.zeros(1), np.zeros(1), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64), np.zeros(1),
+                  np.zeros((1, 1)), np.zeros(1), np.zeros(6))
+_NO_LINKAGE = (np.zeros(8, dtype=np.int64), np.zeros((1, 1)), np.zeros((1, 1), dtype=np.int64), np.zeros((1, 1)))
 #: datagrams start() discards at most (what a socket buffer holds of small ones)
 _START_DRAIN_MAX = 100_000
 
@@ -305,6 +312,8 @@ class HapticLoop:
         self.last_update_ns = 0
         self.last_env_time_s = math.nan
         self.env_rate_hz = 0.0
+        self._env_arrivals = np.zeros(ENV_RATE_WINDOW, dtype=np.int64)
+        self._env_n = 0
         self.updates = 0
         self.acks = 0
         self.update_errors = 0
@@ -321,6 +330,9 @@ class HapticLoop:
         self._dev_wd_ns = int(round(float(getattr(self.device.limits, "watchdog_s", 0.0)) * 1e9))
         self._recover_ns = int(scfg["stall_recover_s"] * 1e9)
         self._stall_window_ns = int(scfg["stall_window_s"] * 1e9)
+        self._stall_explains_ns = int(STALL_EXPLAINS_S * 1e9)
+        self._speeding = False  # a speed trip while nothing was rendered is logged when it starts
+        self._rendered_ever = False  # a session was ever engaged (force rendered, or ramping in)
         self._stall_trips_max = int(scfg["stall_trips_max"])
         self._trip_times: list[int] = []
         #: a gap between two steps' device writes longer than this is a stall: half the device's
@@ -329,18 +341,13 @@ class HapticLoop:
         self._stall_gap_ns = max(2 * self.period_ns, self._dev_wd_ns // 2 if self._dev_wd_ns > 0 else 25_000_000)
         self.stall_trips = 0
         self.stall_recoveries = 0
-        self._last_write_ns = 0   # end of the last step (its device write)
         self._stall_ns = 0        # the latest gap between steps longer than two periods
         self._stall_at = 0        # when it ended
         self._ontime_since = 0    # the end of the last stall
         #: the supervisor's pid; when it changes (the supervisor died) the loop stops cleanly
         self.parent_pid = 0
-        self._deadline = 0
-        self._t0 = 0
         self.watchdog_ns = int(scfg["watchdog_s"] * 1e9)
         self._use_engine_frame = mcfg["contact_frame"] == "engine"
-        self._hk_every = max(1, int(round(0.01 * settings.rate_hz)))
-        self._hk_count = 0
         self._hk_n = 0
         self._kernels_compiled = -1
         self._kernels: list = []
@@ -369,12 +376,60 @@ class HapticLoop:
         #: the accounting kernel's fixed arguments, gathered once (each lookup in a step costs)
         self._acc = (sh.tel, sh.head, sh.hist_late, sh.hist_step, sh.stat, int(self.period_ns))
         self.ctrl.hold()  # nothing drives a proxy until a session engages
+        # the tick's words and arrays (``tick.TickArrays``: bound again when the model changes)
+        self.tk = tick.new_words(self.period_ns)
+        tk = self.tk
+        tk[tick.TK_STALL_GAP_NS] = self._stall_gap_ns
+        tk[tick.TK_HK_EVERY] = max(1, int(round(0.01 * settings.rate_hz)))
+        tk[tick.TK_WATCHDOG_NS] = self.watchdog_ns
+        tk[tick.TK_SIMULATED] = 1 if self.clock.simulated else 0
+        tk[tick.TK_SIM_COST_NS] = int(getattr(self.clock, "step_cost_ns", 0))
+        fileno = getattr(self.transport, "fileno", None)
+        tk[tick.TK_FD] = fileno() if callable(fileno) else -1
+        tk[tick.TK_STATE] = int(self.state)
+        sim_arrays = getattr(self.device, "tick_arrays", None)
+        self._dev_arrays = sim_arrays() if callable(sim_arrays) else _NO_SIM_DEVICE
+        self._io = tick.IO_SIM if callable(sim_arrays) else tick.IO_EXTERNAL
+        tk[tick.TK_IO] = self._io
+        self._bind()
         st = self.shared.status
         st[ST["period_ns"]] = self.period_ns
         st[ST["rate_hz"]] = settings.rate_hz
         st[ST["force_cap_n"]] = self.ctrl.force_cap_n
         st[ST["rate_limit_n_per_step"]] = self.ctrl.force_rate_n_per_step
         st[ST["loop_state"]] = self.state
+
+    def _bind(self) -> None:
+        """The tick's arrays: the controller's, the device's, the engaged model's (or the idle
+        dummy's), the shared rings'. Runs at construction and when the engaged model changes."""
+        c, sh, tk = self.ctrl, self.shared, self.tk
+        margs = self._margs if self._margs is not None else self._dummy
+        kind, par, st_, C, CI, cnt, wk = margs
+        lmeta, lk, lki, lw = self._largs if self._linkage else _NO_LINKAGE
+        self._T = tick.TickArrays(c.cp, c.cs, c.cc, c.cmd, c.hand, c.R, c.c, self.dev, *self._dev_arrays,
+                                  par, st_, C, CI, cnt, wk, lmeta, lk, lki, lw,
+                                  sh.tel, sh.head, sh.hist_late, sh.hist_step, sh.stat, tk)
+        tk[tick.TK_ACTIVE] = 0 if self._margs is None else 1
+        tk[tick.TK_LINKAGE] = 1 if self._linkage else 0
+        tk[tick.TK_KIND] = int(kind)
+
+    @property
+    def _last_write_ns(self) -> int:
+        """The end of the last tick (its device write and accounting)."""
+        return int(self.tk[tick.TK_LAST_WRITE_NS])
+
+    @property
+    def _deadline(self) -> int:
+        return int(self.tk[tick.TK_DEADLINE_NS])
+
+    @property
+    def _t0(self) -> int:
+        return int(self.tk[tick.TK_T0_NS])
+
+    @property
+    def _hk_every(self) -> int:
+        """Ticks between housekeeping."""
+        return int(self.tk[tick.TK_HK_EVERY])
 
     # ---------------------------------------------------------------------------- lifecycle
     @property
@@ -394,6 +449,7 @@ class HapticLoop:
         c = self.ctrl
         if to == "engaged":
             c.engage(slide=self._index_mapping)
+            self._rendered_ever = True
         else:
             c.hold()
             if self.model is not None:
@@ -405,6 +461,7 @@ class HapticLoop:
         elif to != "fault":
             self.watchdog = WD_OK
         self.state = LS[to]
+        self.tk[tick.TK_STATE] = int(self.state)
         self.last_reason = Reason(reason)
         sh = self.shared
         sh.log_transition(self.clock.now_ns(), LS[frm], self.state, int(reason), float(detail))
@@ -417,6 +474,7 @@ class HapticLoop:
         self._linkage = False
         self._largs = None
         self.session_id = 0
+        self._bind()
 
     # ---------------------------------------------------------------------------- set-up
     def cold_kernels(self) -> list[str]:
@@ -456,6 +514,7 @@ class HapticLoop:
                 ctl.haptic_step_linkage(c.cp, c.cs, c.cc, dev, c.cmd, par_, *lm.linkage_args()[:3], st_, C_, CI_,
                                         cnt_, wk_, lm.linkage_args()[3], c.hand)
         ctl.fade_only(c.cp, c.cs, c.cc, c.cmd)
+        c.cut()
         scratch = SharedState.local(4)  # the same views (so the same kernel types) as the shared block's
         account(scratch.tel, scratch.head, scratch.hist_late, scratch.hist_step, scratch.stat, self.period_ns, 1, 1,
                 0, self.state, self.updates, c.cs, self._no_cnt, dev, c.cmd)
@@ -474,6 +533,16 @@ class HapticLoop:
         for sep in (joints, joints[:0]):  # the update's separation column: read-only, empty or not
             ctl.ack_state(tmp.kind, tmp.kernel_args()[1], tmp.kernel_args()[2], c.R, c.c, self._scratch_pose, adv_a,
                           adv_p, 0.0, pose, sep)
+        # the tick and the compiled loop, with this loop's argument types, on throw-away arrays
+        tk = tick.new_words(self.period_ns)
+        tk[tick.TK_SIMULATED] = 1
+        tk[tick.TK_IO] = self._io
+        Tw = tick.TickArrays(c.cp, c.cs, c.cc, c.cmd, c.hand, c.R, c.c, dev, *(a.copy() for a in self._dev_arrays),
+                             *tmp.kernel_args()[1:], *(a.copy() for a in _NO_LINKAGE), scratch.tel, scratch.head,
+                             scratch.hist_late, scratch.hist_step, scratch.stat, tk)
+        tick.tick(Tw, 0, 0)
+        tk[tick.TK_STOP] = 1
+        tick.run_ticks(Tw)
         warm = getattr(self.device, "warm_up", None)
         if callable(warm):
             warm()
@@ -493,9 +562,10 @@ class HapticLoop:
             self.dropped_at_start += 1
         self.device.enable()
         now = self.clock.now_ns()
-        self._t0 = now
-        self._deadline = now + self.period_ns
-        self._last_write_ns = now
+        tk = self.tk
+        tk[tick.TK_T0_NS] = now
+        tk[tick.TK_DEADLINE_NS] = now + self.period_ns
+        tk[tick.TK_LAST_WRITE_NS] = now
         self._ontime_since = now
         if self._kernels_compiled < 0:
             self._kernels = package_kernels()
@@ -507,31 +577,58 @@ class HapticLoop:
 
     # ---------------------------------------------------------------------------- the step
     def step(self) -> bool:
-        """One haptic step. Returns ``False`` once the loop has stopped."""
-        clock = self.clock
-        deadline = self._deadline
-        wake = clock.wait_until(deadline)
+        """One haptic step: wait for the deadline, then :meth:`step_at`. Returns ``False`` once
+        the loop has stopped."""
+        tk = self.tk
+        deadline = int(tk[tick.TK_DEADLINE_NS])
+        wake = self.clock.wait_until(deadline)
         late = wake - deadline
         period = self.period_ns
         if late >= period:  # missed whole periods: skip them rather than burst
             missed = late // period
             self.shared.status[self._st_missed] += missed
-            self._deadline = deadline + (missed + 1) * period
+            tk[tick.TK_DEADLINE_NS] = deadline + (missed + 1) * period
             self.ctrl.skip(missed)  # fades and ramp-ins keep their times, not their step counts
         else:
-            self._deadline = deadline + period
-        gap = wake - self._last_write_ns
+            tk[tick.TK_DEADLINE_NS] = deadline + period
+        return self.step_at(wake, late)
+
+    def step_at(self, wake: int, late: int) -> bool:
+        """The step woken at ``wake``: the tick first (device read, controller and model, safety
+        filter, device write, accounting: ``tick.tick``, one compiled call), then what needs
+        Python (faults, the lifecycle, the protocol: an update to acknowledge, one to apply,
+        datagrams to read, housekeeping), so the device is sampled and commanded right after the
+        deadline whatever the protocol costs. Returns ``False`` once the loop has stopped."""
+        clock = self.clock
+        tk = self.tk
+        gap = wake - int(tk[tick.TK_LAST_WRITE_NS])
         if gap > self._stall_gap_ns:  # the process did not run: a stall (what the device saw, too)
             self._stall_ns = gap
             self._stall_at = wake
             self._ontime_since = wake
+            self._quiet_since()
             if gap >= self._dev_wd_ns > 0:
                 self._on_own_stall(wake)
-        # 1: acknowledge the ContactUpdate the previous step applied, then apply the one it
-        # received. Receiving (decode, validation), applying (the model update) and acknowledging
-        # (the engine's advice, the ProxyState's encoding) each cost some us of Python: spread
-        # over three consecutive steps, no step pays for two of them (nor for housekeeping),
-        # unless updates arrive in consecutive steps.
+        # 1: the tick
+        if self._io == tick.IO_EXTERNAL:
+            tk[tick.TK_EXT_RC] = self.device.read(self.dev)
+            rcs = tick.tick(self._T, wake, late)
+            rc_w = self.device.write(self.ctrl.cmd)
+            if rc_w:
+                rcs |= (rc_w & 0xFF) << 16
+            if clock.simulated:
+                clock.charge()
+            # a driver in Python: its write ends the step (the tick accounted up to its call)
+            tk[tick.TK_LAST_WRITE_NS] = clock.now_ns()
+        else:
+            rcs = tick.tick(self._T, wake, late)
+            if clock.simulated:
+                clock.charge()
+        self._after_tick(rcs, wake)
+        # 2: acknowledge the ContactUpdate the previous step applied, then apply the one received
+        # before. Applying (the model update) and acknowledging (the engine's advice, the
+        # ProxyState's encoding) each cost some us of Python: spread over consecutive steps, no
+        # step pays for two of them (nor for housekeeping), unless updates arrive in every step.
         busy = False
         upd = self._ack_due
         if upd is not None:
@@ -545,12 +642,33 @@ class HapticLoop:
             # (the environment's silence is counted from the end of this loop's own last stall:
             # while the loop did not run, the environment's updates waited in the socket)
             self.transition("fading", Reason.SILENT, (wake - self.last_update_ns) * 1e-6)
-        # 2: poll without blocking; the newest ContactUpdate wins (applied next step)
+        if self._poll(wake):
+            busy = True
+        tk[tick.TK_NEEDS_PYTHON] = 1 if (self._pending is not None or self._ack_due is not None) else 0
+        self._maybe_housekeeping(busy)
+        return not self.stopped
+
+    def _after_tick(self, rcs: int, wake: int) -> None:
+        """What a tick's results ask of the lifecycle: a fault, or a fade that reached zero."""
+        if rcs:
+            rc, rc_dev, rc_w = rcs & 0xFF, (rcs >> 8) & 0xFF, (rcs >> 16) & 0xFF
+            self._on_fault(rc, rc_dev or rc_w, wake)
+        elif self._speeding:
+            self._speeding = False
+        if (self.state == LS["fading"] or self.state == LS["stopping"]) and self.ctrl.cs[ctl.CS_GAIN] <= 0.0:
+            self._after_fade()
+
+    def _poll(self, wake: int) -> bool:
+        """Read waiting datagrams without blocking (at most ``max_packets_per_step`` and
+        ``POLL_BUDGET`` of the period); the newest ContactUpdate wins (applied next step). True
+        when one was received."""
         tr = self.transport
         ep = self.endpoint
         buf = self.rxbuf
+        got = False
         poll_end = wake + self.poll_budget_ns
-        now_ns = clock.now_ns
+        now_ns = self.clock.now_ns
+        self.tk[tick.TK_RX_PENDING] = 0
         for _ in range(self.max_packets_per_step):
             n, peer = tr.recv_into(buf)
             if peer is None:
@@ -558,49 +676,28 @@ class HapticLoop:
             m = ep.receive(buf[:n], peer, wake)  # bytearray slice: a copy the update may keep
             if m is not None:
                 self._pending = m
-                busy = True
+                got = True
             if now_ns() > poll_end:
                 self.poll_cut += 1
+                self.tk[tick.TK_RX_PENDING] = 1  # more waits: come back next period
                 break
-        # 3: device
-        dev = self.dev
-        rc_dev = self.device.read(dev)
-        # 4: controller + model + safety
-        c = self.ctrl
-        margs = self._margs
-        active = 1
-        if margs is None:
-            margs = self._dummy
-            active = 0
-        kind, par, st_, C, CI, cnt, wk = margs
-        if self._linkage:
-            lmeta, lk, lki, lw = self._largs
-            rc = ctl.haptic_step_linkage(c.cp, c.cs, c.cc, dev, c.cmd, par, lmeta, lk, lki, st_, C, CI, cnt, wk, lw,
-                                         c.hand)
-        else:
-            rc = ctl.haptic_step(c.cp, c.cs, c.cc, dev, c.cmd, active, kind, par, st_, C, CI, cnt, wk, c.hand, c.R,
-                                 c.c)
-        # 5: device command
-        rc_w = self.device.write(c.cmd)
-        if rc or rc_dev or rc_w:
-            self._on_fault(rc, rc_dev or rc_w, wake)
-        if (self.state == LS["fading"] or self.state == LS["stopping"]) and c.cs[ctl.CS_GAIN] <= 0.0:
-            self._after_fade()
-        # 6: account
-        if clock.simulated:
-            clock.charge()
-        end = clock.now_ns()
-        self._last_write_ns = end
-        # (late, end - wake, wake - t0: ints, as the clock gives them; state a float, LS's values)
-        account(*self._acc, late, end - wake, wake - self._t0, self.state, self.updates, c.cs, self._cnt, dev, c.cmd)
-        self._hk_count += 1
-        if self._hk_count >= self._hk_every and (not busy or self._hk_count >= self._hk_every + _HK_MAX_DEFER):
-            # not in a step that received or applied an update (each costs some us, as
-            # housekeeping does), unless updates arrive in every step (a flood): then at most
-            # _HK_MAX_DEFER steps late
-            self._hk_count = 0
-            self._housekeeping(end)
-        return not self.stopped
+        return got
+
+    def _maybe_housekeeping(self, busy: bool) -> None:
+        """Housekeeping every ``TK_HK_EVERY`` ticks, not in a step that received or applied an
+        update (each costs some us, as housekeeping does) unless updates arrive in every step (a
+        flood): then at most ``_HK_MAX_DEFER`` steps late."""
+        tk = self.tk
+        tk[tick.TK_HK_COUNT] += 1
+        n = int(tk[tick.TK_HK_COUNT])
+        every = int(tk[tick.TK_HK_EVERY])
+        if n >= every and (not busy or n >= every + _HK_MAX_DEFER):
+            tk[tick.TK_HK_COUNT] = 0
+            self._housekeeping(self.clock.now_ns())
+
+    def _quiet_since(self) -> None:
+        """The environment's silence counts from its last update or this loop's last stall."""
+        self.tk[tick.TK_QUIET_SINCE_NS] = max(self.last_update_ns, self._stall_at)
 
     def _survive(self, handler, upd, now: int) -> bool:
         """``handler(upd, now)``, outlived: the loop must survive anything an update can raise (e.g.
@@ -642,6 +739,7 @@ class HapticLoop:
                 return
         self._track_env(upd, now)
         self.updates += 1
+        self.tk[tick.TK_UPDATES] = self.updates
         record_contacts(self.shared.contacts, (now - self._t0) * 1e-9, float(upd.env_time_s), self.updates,
                         keys.shape[0], keys, upd.position_m, upd.normal, upd.separation_m)
         if self.state == LS["fading"] and self.watchdog == WD_SILENT:
@@ -675,13 +773,24 @@ class HapticLoop:
         return self.models.check(hello, *self._granted(hello))
 
     def _track_env(self, upd, now: int) -> None:
-        if self.last_update_ns:
-            dt = (now - self.last_update_ns) * 1e-9
-            if dt > 0:
-                r = 1.0 / dt
-                self.env_rate_hz = r if self.env_rate_hz == 0 else 0.9 * self.env_rate_hz + 0.1 * r
+        """The environment's rate over a window of arrivals: the last ``ENV_RATE_WINDOW`` updates
+        applied, or those of the last second if fewer (an average of 1/dt would be ruled by
+        back-to-back updates that queued while the loop stalled)."""
+        self._env_arrivals[self._env_n % ENV_RATE_WINDOW] = now
+        self._env_n += 1
+        k = min(self._env_n, ENV_RATE_WINDOW)
+        oldest = now
+        count = 0
+        for i in range(1, k + 1):  # newest first, back to the window's start or a second ago
+            t = int(self._env_arrivals[(self._env_n - i) % ENV_RATE_WINDOW])
+            if now - t > 1_000_000_000:
+                break
+            oldest = t
+            count = i
+        self.env_rate_hz = (count - 1) / ((now - oldest) * 1e-9) if count > 1 and now > oldest else 0.0
         self.last_update_ns = now
         self.last_env_time_s = upd.env_time_s
+        self._quiet_since()
 
     def _ack(self, upd, now: int) -> None:
         """The engine's advice (epsilon to use next, the lead; one kernel) and the ProxyState that
@@ -752,6 +861,7 @@ class HapticLoop:
         self.model = model
         self._margs = model.kernel_args()
         self._cnt = self._margs[5]
+        self._bind()
         self.session_id = upd.session_id
         self.com_m = np.asarray(hello.com_m, dtype=float)
         self._tool_axis = tool.axis
@@ -763,6 +873,8 @@ class HapticLoop:
         self.engagements += 1
         self.last_update_ns = now
         self.env_rate_hz = 0.0
+        self._env_n = 0
+        self._quiet_since()
         if self.fault == Fault.NONE:
             self.transition("engaged", Reason.ENGAGE, self.session_id)
 
@@ -810,13 +922,13 @@ class HapticLoop:
         time since the previous step's end, and it ended just now, not at the step's wake-up (the
         recovery counts its time on time from here)."""
         t = self.clock.now_ns()
-        gap = t - self._last_write_ns  # one period and one step's compute when on time
+        gap = t - int(self.tk[tick.TK_PREV_WRITE_NS])  # one period and one step's compute when on time
         if gap > self._stall_gap_ns:
             self._stall_ns = gap
             self._stall_at = t
             self._ontime_since = t
         wd = self._dev_wd_ns if self._dev_wd_ns > 0 else 50_000_000
-        return self._stall_at > 0 and now - self._stall_at <= 1_000_000_000 and 2 * self._stall_ns >= wd
+        return self._stall_at > 0 and now - self._stall_at <= self._stall_explains_ns and 2 * self._stall_ns >= wd
 
     def _on_fault(self, rc: int, dev_code: int, now: int, reason: Reason | None = None) -> None:
         # the device's watchdog, or a remote device's link, cut by this loop's own stall
@@ -827,16 +939,25 @@ class HapticLoop:
         if self.state == LS["fault"] or self.stopped:
             return
         if rc == ctl.RC_SPEED and not dev_code:
+            if self.state == LS["idle"] and self.ctrl.cs[ctl.CS_GAIN] <= 0.0:
+                # nothing is rendered: nothing to fade, nothing that could come back by surprise;
+                # a client that connects later engages as usual (lifecycle.FAULT_POLICY)
+                if not self._speeding:
+                    self._speeding = True
+                    self.transition("idle", Reason.SPEED_IDLE)
+                return
             self.fault = Fault.SPEED  # fade out (the kernel dropped the gain target), device stays on
             why = Reason.SPEED
         elif dev_code:
             self.fault = Fault.DEVICE
             self.device_fault = dev_code
             self.device.disable()
+            self.ctrl.cut()
             why = Reason.DEVICE_FAULT
         else:
             self.fault = Fault.NONFINITE
             self.device.disable()
+            self.ctrl.cut()
             why = Reason.NONFINITE
         self.faults_total += 1
         if self.state == LS["stopping"]:
@@ -871,6 +992,7 @@ class HapticLoop:
                 self.transition("idle", Reason.STALL_IDLE, stall_ms)
                 return
         self.device.disable()
+        self.ctrl.cut()
         self._trip_times = [t for t in self._trip_times if now - t <= self._stall_window_ns] + [now]
         self.faults_total += 1
         if len(self._trip_times) > self._stall_trips_max:
@@ -891,7 +1013,7 @@ class HapticLoop:
         self.fault = Fault.NONE
         self.device_fault = 0
         self.stall_recoveries += 1
-        self.ctrl.cs[ctl.CS_GAIN] = 0.0
+        self.ctrl.cut()  # the device rendered nothing while it was off: ramp in from zero
         if self.model is not None and self.session_id in self.endpoint.sessions:
             self.transition("engaged", Reason.RECOVERED, on_time * 1e-9)
         else:
@@ -907,7 +1029,7 @@ class HapticLoop:
         self.fault = Fault.NONE
         self.device_fault = 0
         self._trip_times = []
-        self.ctrl.cs[ctl.CS_GAIN] = 0.0
+        self.ctrl.cut()
         if self.model is not None and self.session_id in self.endpoint.sessions:
             self.transition("engaged", Reason.REARM)
         else:
@@ -929,7 +1051,7 @@ class HapticLoop:
         if self.state == LS["fault"]:
             if self.fault == Fault.STALL:
                 self._recover_from_stall(now)
-            elif self.fault == Fault.DEVICE and self.device_fault == DEV_FAULT_LINK and self.engagements == 0:
+            elif self.fault == Fault.DEVICE and self.device_fault == DEV_FAULT_LINK and not self._rendered_ever:
                 # a remote device not connected yet at start-up: no force has ever been rendered,
                 # so arming it when its link comes up is not a force "coming back by itself"
                 self.device.enable()
@@ -1016,11 +1138,26 @@ class HapticLoop:
         st[ST["poll_budget_cuts"]] = self.poll_cut
         st[ST["stall_trips"]] = self.stall_trips
         st[ST["stall_recoveries"]] = self.stall_recoveries
-        st[ST["torque_cap_n_m"]] = self.ctrl.cp[ctl.CP_TMAX]
+        st[ST["torque_cap_n_m"]] = self.ctrl.torque_cap_n_m
 
     # ---------------------------------------------------------------------------- running
     def run(self, *, max_steps: int | None = None, duration_s: float | None = None) -> None:
-        """Step until stopped (or ``max_steps`` / ``duration_s`` of loop time, then stop cleanly)."""
+        """Step until stopped (or ``max_steps`` / ``duration_s`` of loop time, then stop cleanly).
+
+        On the monotonic clock the compiled loop (``tick.run_ticks``) owns the clock and ticks by
+        itself, handing back only the steps and the aftermath that need Python; on any other
+        clock (simulated time, the naive baseline), or with a driver written in Python (read and
+        written by Python), each step is :meth:`step`."""
+        from .clock import MonotonicClock
+
+        if type(self.clock) is not MonotonicClock or self._io == tick.IO_EXTERNAL:
+            # (a driver in Python is read and written by Python every step)
+            self._run_steps(max_steps, duration_s)
+        else:
+            self._run_compiled(max_steps, duration_s)
+        self.publish(self.clock.now_ns())
+
+    def _run_steps(self, max_steps, duration_s) -> None:
         end_ns = None if duration_s is None else self.clock.now_ns() + int(duration_s * 1e9)
         n = 0
         step = self.step
@@ -1032,7 +1169,48 @@ class HapticLoop:
                     # bounded: the fade takes fade_s; then one more step closes the sessions
                     max_steps = None
                     end_ns = None
-        self.publish(self.clock.now_ns())
+
+    def _run_compiled(self, max_steps, duration_s) -> None:
+        tk = self.tk
+        # the spin never takes more than a quarter of the period: the thread sleeps every period,
+        # so SCHED_FIFO never meets the kernel's real-time throttling (95 % of each second)
+        tk[tick.TK_SPIN_NS] = min(int(self.clock.spin_ns), self.period_ns // 4)
+        self.shared.status[ST["spin_ns"]] = float(tk[tick.TK_SPIN_NS])
+        end_ns = None if duration_s is None else self.clock.now_ns() + int(duration_s * 1e9)
+        n0 = int(tk[tick.TK_TICKS])
+        steps = 0
+        T = self._T
+        while not self.stopped:
+            ev = tick.run_ticks(T)
+            T = self._T  # an engagement binds the tick to the new model's arrays
+            if ev == tick.EV_STEP:
+                self.step_at(int(tk[tick.TK_WAKE_NS]), int(tk[tick.TK_LATE_NS]))
+                steps += 1
+            elif ev == tick.EV_TICKED:
+                self._after_compiled_tick()
+            else:
+                tk[tick.TK_STOP] = 0
+                self._stop_flag = True
+                self._housekeeping(self.clock.now_ns())
+            n = steps + int(tk[tick.TK_TICKS]) - n0
+            if (max_steps is not None and n >= max_steps) or (end_ns is not None and self._deadline >= end_ns):
+                if not self.stopping:
+                    self.request_stop()
+                max_steps = None
+                end_ns = None
+
+    def _after_compiled_tick(self) -> None:
+        """What a tick run by ``run_ticks`` left for Python: its results, a datagram, housekeeping."""
+        tk = self.tk
+        wake = int(tk[tick.TK_LAST_WRITE_NS])
+        self._after_tick(int(tk[tick.TK_RC]), wake)
+        busy = self._poll(wake)
+        tk[tick.TK_NEEDS_PYTHON] = 1 if (self._pending is not None or self._ack_due is not None) else 0
+        n = int(tk[tick.TK_HK_COUNT])
+        every = int(tk[tick.TK_HK_EVERY])
+        if n >= every and (not busy or n >= every + _HK_MAX_DEFER):
+            tk[tick.TK_HK_COUNT] = 0
+            self._housekeeping(self.clock.now_ns())
 
     def close(self) -> None:
         """Stop output and release what this loop opened."""

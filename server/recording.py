@@ -194,8 +194,8 @@ def _num(v: float):
 # column indices of the flat telemetry row, once
 _D, _P = TEL["dev_x"], TEL["proxy_x"]
 _CMD, _ENV, _HAND, _CPL = TEL["cmd_fx"], TEL["env_fx"], TEL["hand_fx"], TEL["couple_fx"]
-_T, _LATE, _COMP, _STATE, _GAIN, _NC, _UPD = (TEL[n] for n in ("t_s", "lateness_us", "compute_us", "loop_state",
-                                                                 "gain", "contacts", "updates"))
+_T, _LATE, _COMP, _STATE, _GAIN, _NC, _UPD, _SEQ = (TEL[n] for n in ("t_s", "lateness_us", "compute_us", "loop_state",
+                                                                 "gain", "contacts", "updates", "seq"))
 
 
 def _pose(r, o) -> Pose:  # pose columns: x y z qw qx qy qz
@@ -392,12 +392,10 @@ class McapRecorder:
         n = head - self._read
         if n <= 0:
             return 0
+        # only complete rows, none the loop rewrote while they were copied (it runs on): the
+        # others are counted as lost and dropped
         chunk = shared.rows(self._read, head)
-        # rows the loop overwrote while they were copied (it runs on): counted, dropped
-        over = int(shared.head[0]) - shared.ring_rows - self._read
-        if over > 0:
-            chunk = chunk[over:]
-            self.rows_lost += over
+        self.rows_lost += n - len(chunk)
         self._read = head
         self.add_rows(chunk)
         return n
@@ -599,6 +597,7 @@ def _rows_from(msgs: dict) -> np.ndarray:
         flat[i, _GAIN] = _nan(lp.gain)
         flat[i, _NC] = lp.contacts
         flat[i, _UPD] = lp.updates
+        flat[i, _SEQ] = i  # the ring's seqlock number is not recorded: a row's number in the file
     return out
 
 

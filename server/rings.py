@@ -9,6 +9,7 @@ from numba import njit
 from .control import CS_DPOSE, CS_ENV, CS_FC, CS_GAIN, CS_PPOSE
 from .devices.base import DS_HAND
 from .model.layout import K_M
+from .native import fence
 from .shm import HBINS
 
 
@@ -33,7 +34,12 @@ def account(tel, head, hist_late, hist_step, stat, period_ns, late_ns, comp_ns, 
         st.compute_max_us = cu
     if late_ns + comp_ns > period_ns:
         st.overruns += 1.0  # the step finished after the next deadline
-    r = tel[head[0] % tel.shape[0]]
+    seq = head[0]
+    r = tel[seq % tel.shape[0]]
+    # a seqlock (``SharedState.rows`` is the reader): -1 while the fields change, then the row's
+    # number; the fences keep the three groups of stores in this order, for the compiler and CPU
+    r.seq = -1.0
+    fence()
     r.t_s = since_start_ns * 1e-9
     r.lateness_us = lu
     r.compute_us = cu
@@ -49,7 +55,9 @@ def account(tel, head, hist_late, hist_step, stat, period_ns, late_ns, comp_ns, 
         r.env[j] = cs[CS_ENV + j]
         r.hand[j] = dev[DS_HAND + j]
         r.couple[j] = cs[CS_FC + j]
-    head[0] += 1
+    fence()
+    r.seq = float(seq)
+    head[0] = seq + 1
 
 
 @njit(cache=True, nogil=True)

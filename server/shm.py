@@ -65,7 +65,7 @@ STATUS_LAYOUT = (
     # lifecycle: transitions written to the log, stall trips (device watchdog cut by a late
     # loop), recoveries from them, kernels compiled after the loop was armed (must stay 0)
     ("transitions", "i"), ("stall_trips", "i"), ("stall_recoveries", "i"), ("late_compiles", "i"),
-    # the torque cap per axis (the force cap is above), N m
+    # the cap on the torque's norm (the force's is above), N m
     ("torque_cap_n_m", "f"),
     # ContactUpdates refused before the model (answered with an Error naming the field): outside
     # the scene's bounds (Welcome), contacts the tool cannot use, a sequence number jumping ahead
@@ -93,7 +93,9 @@ _AX6 = ("fx", "fy", "fz", "tx", "ty", "tz")
 _POSE13 = ("x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "wx", "wy", "wz")
 #: Scalar columns of a telemetry row, then its vectors with their components' names. The flat
 #: names (``dev_x``, ``cmd_fy``, ...) index the float64 view: ``ring[:, TEL["cmd_fy"]]``.
-TEL_SCALARS = ("t_s", "lateness_us", "compute_us", "loop_state", "gain", "contacts", "updates")
+#: ``seq`` is the row's number (as ``head`` counts), -1 while the loop writes it: a seqlock, so a
+#: reader that copied a row while it was rewritten (the ring lapped it) can tell (``rows``).
+TEL_SCALARS = ("t_s", "lateness_us", "compute_us", "loop_state", "gain", "contacts", "updates", "seq")
 TEL_VECTORS = (
     ("dev", _POSE13),     # device handle pose (x y z qw qx qy qz) and twist, world
     ("proxy", _POSE13),   # proxy hand-point pose and twist, world, after the step
@@ -173,6 +175,8 @@ class SharedState:
         self.contact_separation_m = np.ndarray((CONTACT_ROWS, MAX_CONTACTS), np.float64, buf, o["contact_separation_m"])
         self.tel = np.ndarray((self.ring_rows,), TEL_DTYPE, buf, o["tel"])
         self.ring = np.ndarray((self.ring_rows, NTEL), np.float64, buf, o["tel"])
+        #: telemetry rows a reader found torn or rewritten while it copied them (dropped)
+        self.torn_rows = 0
 
     @property
     def contacts(self) -> tuple:
@@ -255,11 +259,13 @@ class SharedState:
         return out
 
     def latest_row(self) -> np.ndarray | None:
-        """The newest telemetry row (a copy of the structured record), or None before the first."""
+        """The newest complete telemetry row (a copy of the structured record), or None before the
+        first."""
         head = int(self.head[0])
         if head <= 0:
             return None
-        return self.tel[(head - 1) % self.ring_rows].copy()
+        got = self.rows(max(0, head - 2), head)
+        return got[-1].copy() if len(got) else None
 
     def catch_up(self, read: int) -> tuple[int, int, int]:
         """For a reader that has consumed telemetry rows up to ``read`` (absolute, as ``head``
@@ -271,14 +277,30 @@ class SharedState:
 
     def rows(self, start: int, stop: int) -> np.ndarray:
         """Telemetry rows ``start..stop-1`` (absolute numbers, as ``head`` counts; both within the
-        last ``ring_rows``), oldest first, as a structured copy."""
+        last ``ring_rows``), oldest first, as a structured copy: only rows that are complete and
+        were not rewritten while they were copied (the seqlock's check; ``torn_rows`` counts the
+        others). The loop writes a row's ``seq`` as -1, then its fields, then its number, with a
+        fence between each (``rings.account``); this side copies, then reads ``seq`` again. On
+        x86-64 loads are not reordered with loads, so the copy's ``seq`` and the second read
+        bracket the copy."""
         rows = self.ring_rows
         i0, n = start % rows, stop - start
         if n <= 0:
             return np.zeros(0, TEL_DTYPE)
         if i0 + n <= rows:
-            return self.tel[i0:i0 + n].copy()
-        return np.concatenate([self.tel[i0:], self.tel[: i0 + n - rows]])
+            idx = slice(i0, i0 + n)
+            out = self.tel[idx].copy()
+            after = self.tel["seq"][idx].copy()
+        else:
+            out = np.concatenate([self.tel[i0:], self.tel[: i0 + n - rows]])
+            after = np.concatenate([self.tel["seq"][i0:], self.tel["seq"][: i0 + n - rows]])
+        want = np.arange(start, stop, dtype=np.float64)
+        ok = (out["seq"] == want) & (after == want)
+        bad = n - int(np.count_nonzero(ok))
+        if bad:
+            self.torn_rows += bad
+            return out[ok]
+        return out
 
     def contact_rows_since(self, seq: int) -> tuple[list[tuple[np.void, np.ndarray, np.ndarray, np.ndarray, np.ndarray]], int]:
         """Contact-ring rows written after update row ``seq`` (oldest first): a list of ``(header,

@@ -68,7 +68,9 @@ class TelemetryWriter:
         n = head - self._read
         if n <= 0:
             return 0
-        chunk = flat_rows(shared.rows(self._read, head))
+        rows = shared.rows(self._read, head)  # complete rows only (the others: lost)
+        self.rows_lost += n - len(rows)
+        chunk = flat_rows(rows)
         self._read = head
         self.add(chunk)
         return n

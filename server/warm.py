@@ -22,7 +22,9 @@ from pathlib import Path
 SERVER_KERNEL_MODULES = (
     "hapticproxy.server.model.kernels",
     "hapticproxy.server.model.linkage",
+    "hapticproxy.server.safety",
     "hapticproxy.server.control",
+    "hapticproxy.server.tick",
     "hapticproxy.server.loop",
     "hapticproxy.server.ingest",
     "hapticproxy.server.egress",
@@ -46,7 +48,8 @@ GLUE_MODULES = ("hapticproxy.server.loop",)
 #: counterpart, the constants the server's kernels read, is :func:`kernel_constants`).
 KERNEL_SOURCES = tuple(name.removeprefix("hapticproxy.").replace(".", "/") + ".py" for name in SERVER_KERNEL_MODULES
                        if name not in GLUE_MODULES) + (
-    "clients/narrowphase.py", "clients/geometry.py", "clients/contacts.py", "protocol/quaternion.py")
+    "clients/narrowphase.py", "clients/geometry.py", "clients/contacts.py", "protocol/quaternion.py",
+    "server/native.py")
 _STAMP = "hapticproxy-kernel-sources.sha256"
 
 

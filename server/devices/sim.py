@@ -543,6 +543,12 @@ class SimDevice(DeviceDriver):
         """The raw arrays (par, state, counters, control, hand params, hand table), for tests."""
         return self._par, self._st, self._cnt, self._ctl, self._hp, self._tab
 
+    def tick_arrays(self):
+        """What the compiled haptic tick (``server/tick.py``) reads and writes to run this device
+        inside its own call: ``(par, state, counters, control, hand params, hand table, hand output,
+        command)``, as ``dynamics.sim_read`` / ``sim_write_hand`` take them."""
+        return self._par, self._st, self._cnt, self._ctl, self._hp, self._tab, self._hout, self._cmd
+
 
 def make_sim_device(config: dict, *, period_s: float, clock_ns=None) -> SimDevice:
     """Entry point ``sim``: build a simulated device from the ``[device]`` table."""

@@ -236,6 +236,7 @@ def test_every_schema_is_plain_json_schema_and_matches_its_messages(tmp_path):
     for c in ("loop_state", "contacts", "updates"):  # integers in the recording
         sh.ring[:40, TEL[c]] = np.arange(40) % 5
     sh.ring[5, TEL["hand_fx"]] = np.nan
+    sh.ring[:40, TEL["seq"]] = np.arange(40)  # each row complete (the ring's seqlock: its number)
     sh.head[0] = 40
     p = tmp_path / "s.mcap"
     recording.dump_ring(sh, p, rate_hz=1000.0)
@@ -284,6 +285,7 @@ def test_a_torn_recording_reads_to_its_last_chunk_and_converts_whole(tmp_path):
     sh = SharedState.local(4096)
     sh.ring[:3000] = 0.0
     sh.ring[:3000, TEL["t_s"]] = np.arange(3000) * 1e-3
+    sh.ring[:3000, TEL["seq"]] = np.arange(3000)  # each row complete (the ring's seqlock: its number)
     sh.head[0] = 3000
     p = tmp_path / "t.mcap"
     w = recording.McapRecorder(p, rate_hz=1000.0, flush_rows=1000)
@@ -319,6 +321,7 @@ def test_an_old_hpt_recording_converts_and_plots(tmp_path):
     rows[:, TEL["t_s"]] = np.arange(300) * 1e-3
     rows[:, TEL["dev_qw"]] = rows[:, TEL["proxy_qw"]] = 1.0
     rows[:, TEL["cmd_fy"]] = -0.5
+    rows[:, TEL["seq"]] = np.arange(300)  # as the loop numbers its rows
     w.add(rows)
     w.close()
     out = subprocess.run(HAPTICPROXY + ["convert", str(p), str(tmp_path / "new.mcap")], capture_output=True, text=True,

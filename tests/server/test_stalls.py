@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from server_harness import Rig, WatchdogDevice, make_settings
 
+from hapticproxy.server import control as ctl
 from hapticproxy.server.clock import SimClock
 from hapticproxy.server.lifecycle import Fault, Reason
 from hapticproxy.server.shm import LS, TEL
@@ -61,7 +62,7 @@ def test_a_stall_while_engaged_recovers_by_itself_without_a_kick(rig, stall_ms):
     r = rig()
     r.run(3.0)
     assert abs(r.device.commands[-1][1] - 0.5) < 0.02
-    proxy_y = r.loop.ctrl.cs[39 + 1]  # CS_PPOSE y: where the proxy rests on the floor
+    proxy_y = r.loop.ctrl.cs[ctl.CS_PPOSE + 1]  # where the proxy rests on the floor
     n0 = len(r.device.commands)
     r.clock.stall(stall_ms * 1_000_000)
     rows = r.run(0.2)

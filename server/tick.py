@@ -1,0 +1,222 @@
+"""One haptic tick as one compiled call, and the compiled loop that owns the clock.
+
+``tick(T, wake_ns, late_ns)`` is everything a haptic period needs, in this order, the device
+sampled and commanded first after the deadline:
+
+1. read the device (``IO_SIM``: the simulated device's kernel; ``IO_NATIVE``: a C function of
+   the device's library, through ``native.call_i32_ptr_ptr``; ``IO_EXTERNAL``: the caller read it
+   into ``T.dev`` and passes its status in ``T.tk[TK_EXT_RC]``);
+2. the controller, the model step and the safety filter (``control.haptic_step`` or
+   ``haptic_step_linkage``);
+3. write the device (``IO_EXTERNAL``: the caller writes ``T.cmd`` after the call);
+4. account: histograms, maxima and one telemetry row (``rings.account``).
+
+It allocates nothing and touches no Python object; ``T`` (:class:`TickArrays`) holds every array it
+reads or writes, each with its layout declared once where its owner lives (``control``,
+``model.layout``, ``devices.layout``, ``shm``) and this module's own ``TK_*`` words.
+
+Who calls it:
+
+- ``run_ticks(T)``, a compiled loop that owns the clock (absolute deadlines; ``clock_nanosleep``
+  until ``spin_ns`` before each, then a spin on the monotonic clock; ``spin_ns`` is at most a
+  quarter of the period, so the thread sleeps every period and never meets the kernel's
+  real-time throttling). It releases the GIL and returns to Python only on events: a step that
+  needs Python (an update to apply or acknowledge, a stall, the environment's silence), a tick
+  that reported a fault, a fade that ended, housekeeping due, a datagram waiting (``poll`` on the
+  transport's socket), a stop. The plain steps between (most of them) never touch Python.
+- ``HapticLoop.step`` in Python (simulated time in tests, and the steps ``run_ticks`` hands back):
+  the same ``tick``, then the protocol work after the device was written.
+- a device SDK's servo thread through a C callback (``servo.py``), for a device that owns the
+  clock.
+"""
+from __future__ import annotations
+
+from collections import namedtuple
+
+import numpy as np
+from numba import njit
+
+from . import control as ctl
+from .devices.dynamics import sim_read, sim_write_hand
+from .native import call_i32_ptr_ptr, fd_readable, monotonic_ns, sleep_until_ns
+from .rings import account
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+
+#: Every array the tick touches. The controller's (``control.Controller``), the device's (its
+#: state row ``dev``, and a simulated device's own arrays ``d*``: dummies for other devices), the
+#: model's (``LocalModel.kernel_args`` and, for a linkage, ``linkage_args``: dummies for a rigid
+#: tool), the shared rings' (``shm.SharedState``) and the tick's own words ``tk``.
+TickArrays = namedtuple("TickArrays", (
+    "cp", "cs", "cc", "cmd", "hand", "R", "c",
+    "dev", "dpar", "dst", "dcnt", "dctl", "dhp", "dtab", "dhout", "dcmd",
+    "par", "st", "C", "CI", "cnt", "wk", "lmeta", "lk", "lki", "lw",
+    "tel", "head", "hist_late", "hist_step", "stat",
+    "tk",
+))
+
+# ---- the tick's words (int64[NTK])
+TK_PERIOD_NS = 0
+TK_DEADLINE_NS = 1      # the next deadline (absolute, monotonic clock)
+TK_T0_NS = 2            # when the loop started
+TK_LAST_WRITE_NS = 3    # the end of the last tick (its device write and accounting)
+TK_STALL_GAP_NS = 4     # a gap between two ticks longer than this is a stall (Python handles it)
+TK_IO = 5               # IO_*: how the tick reaches the device
+TK_ACTIVE = 6           # 1: a session has engaged the model (else the filter runs on zero)
+TK_LINKAGE = 7          # 1: the engaged tool is a linkage
+TK_KIND = 8             # the rigid tool's kind (model.layout TOOL_*)
+TK_STATE = 9            # the loop state (lifecycle LS code), for the telemetry row and the checks
+TK_UPDATES = 10         # model updates applied, for the telemetry row
+TK_SIMULATED = 11       # 1: simulated time (the step's end is wake + TK_SIM_COST_NS)
+TK_SIM_COST_NS = 12
+TK_EXT_RC = 13          # IO_EXTERNAL: the status of the caller's device read
+TK_RC = 14              # the last tick's results: control rc | device read rc << 8 | write rc << 16
+TK_WAKE_NS = 15         # the wake-up of the step run_ticks hands to Python (EV_STEP)
+TK_LATE_NS = 16
+TK_SPIN_NS = 17         # how long before a deadline run_ticks stops sleeping and spins
+TK_HK_EVERY = 18        # ticks between housekeeping
+TK_HK_COUNT = 19        # ticks since the last housekeeping
+TK_FD = 20              # the transport's socket (-1: none; run_ticks then hands back each period)
+TK_NEEDS_PYTHON = 21    # 1: the next step has Python work (an update to apply or acknowledge)
+TK_WATCHDOG_NS = 22     # the environment's silence that starts a fade while engaged
+TK_QUIET_SINCE_NS = 23  # when the environment was last heard (or the loop's last stall ended)
+TK_STOP = 24            # 1: run_ticks returns at once (a request from Python or a signal)
+TK_NATIVE_READ = 25     # IO_NATIVE: int32 read(void *ctx, double *state_row)
+TK_NATIVE_WRITE = 26    # IO_NATIVE: int32 write(void *ctx, const double *wrench)
+TK_NATIVE_CTX = 27      # IO_NATIVE: the device's context pointer
+TK_TICKS = 28           # ticks run by run_ticks (the rest ran in Python)
+TK_RETURNS = 29         # times run_ticks handed back to Python
+TK_MISSED = 30          # deadlines missed (whole periods skipped)
+TK_RX_PENDING = 31      # a transport without a socket received something (its thread sets it)
+TK_PREV_WRITE_NS = 32   # the end of the tick before the last (a stall inside the last one shows
+                        # as the time from there to its end)
+NTK = 34
+
+IO_EXTERNAL = 0
+IO_SIM = 1
+IO_NATIVE = 2
+
+# run_ticks' events: why it handed back
+EV_STEP = 1        # the step at TK_WAKE_NS needs Python (it was not ticked)
+EV_TICKED = 2      # a tick ran whose aftermath needs Python (a fault, a fade's end, housekeeping,
+                   # a datagram waiting)
+EV_STOP = 3
+
+_S_ENGAGED = 1     # lifecycle LS codes the checks read (asserted against lifecycle below)
+_S_FADING = 2
+_S_STOPPING = 4
+
+
+@njit(**_JIT)
+def tick(T, wake_ns, late_ns):
+    """One haptic period (see the module docstring). Returns the packed results (also in
+    ``TK_RC``): the controller's rc, the device read's << 8, the write's << 16; 0: all fine."""
+    tk = T.tk
+    tk[TK_PREV_WRITE_NS] = tk[TK_LAST_WRITE_NS]
+    io = tk[TK_IO]
+    if io == IO_SIM:
+        rc_dev = sim_read(T.dst, T.dctl, T.dcnt, T.dev, wake_ns)
+    elif io == IO_NATIVE:
+        rc_dev = call_i32_ptr_ptr(tk[TK_NATIVE_READ], tk[TK_NATIVE_CTX], T.dev.ctypes.data)
+    else:
+        rc_dev = tk[TK_EXT_RC]
+    if tk[TK_LINKAGE] != 0:
+        rc = ctl.haptic_step_linkage(T.cp, T.cs, T.cc, T.dev, T.cmd, T.par, T.lmeta, T.lk, T.lki, T.st, T.C, T.CI,
+                                     T.cnt, T.wk, T.lw, T.hand)
+    else:
+        rc = ctl.haptic_step(T.cp, T.cs, T.cc, T.dev, T.cmd, tk[TK_ACTIVE], tk[TK_KIND], T.par, T.st, T.C, T.CI,
+                             T.cnt, T.wk, T.hand, T.R, T.c)
+    rc_w = 0
+    simulated = tk[TK_SIMULATED] != 0
+    if io == IO_SIM:
+        rc_w = sim_write_hand(T.dpar, T.dst, T.dcnt, T.dctl, T.dhp, T.dtab, T.dhout, T.cmd, T.dcmd,
+                              wake_ns if simulated else monotonic_ns())
+    elif io == IO_NATIVE:
+        rc_w = call_i32_ptr_ptr(tk[TK_NATIVE_WRITE], tk[TK_NATIVE_CTX], T.cmd.ctypes.data)
+    end = wake_ns + tk[TK_SIM_COST_NS] if simulated else monotonic_ns()
+    tk[TK_LAST_WRITE_NS] = end
+    account(T.tel, T.head, T.hist_late, T.hist_step, T.stat, tk[TK_PERIOD_NS], late_ns, end - wake_ns,
+            wake_ns - tk[TK_T0_NS], float(tk[TK_STATE]), tk[TK_UPDATES], T.cs, T.cnt, T.dev, T.cmd)
+    packed = (rc & 0xFF) | ((rc_dev & 0xFF) << 8) | ((rc_w & 0xFF) << 16)
+    tk[TK_RC] = packed
+    return packed
+
+
+@njit(**_JIT)
+def _needs_python(T, wake_ns):
+    """The step at ``wake_ns`` has work only Python does: an update to apply or acknowledge, a
+    stall to classify, the environment's silence to act on."""
+    tk = T.tk
+    if tk[TK_NEEDS_PYTHON] != 0:
+        return True
+    if wake_ns - tk[TK_LAST_WRITE_NS] > tk[TK_STALL_GAP_NS]:
+        return True
+    return tk[TK_STATE] == _S_ENGAGED and wake_ns - tk[TK_QUIET_SINCE_NS] > tk[TK_WATCHDOG_NS]
+
+
+@njit(**_JIT)
+def _after_needs_python(T):
+    """The tick just run left work for Python: a fault, a fade that reached zero, housekeeping."""
+    tk = T.tk
+    if tk[TK_RC] != 0:
+        return True
+    st = tk[TK_STATE]
+    if (st == _S_FADING or st == _S_STOPPING) and T.cs[ctl.CS_GAIN] <= 0.0:
+        return True
+    return tk[TK_HK_COUNT] >= tk[TK_HK_EVERY]
+
+
+@njit(**_JIT)
+def wait_deadline(T):
+    """Sleep, then spin, until the next deadline; move it on (skipping whole periods missed, which
+    the safety filter's gain still counts). Returns ``(wake_ns, late_ns)``."""
+    tk = T.tk
+    deadline = tk[TK_DEADLINE_NS]
+    period = tk[TK_PERIOD_NS]
+    wake_at = deadline - tk[TK_SPIN_NS]
+    now = monotonic_ns()
+    if now < wake_at:
+        sleep_until_ns(wake_at)
+        now = monotonic_ns()
+    while now < deadline:
+        now = monotonic_ns()
+    late = now - deadline
+    if late >= period:
+        missed = late // period
+        tk[TK_MISSED] += missed
+        T.stat[0].missed_deadlines += float(missed)
+        tk[TK_DEADLINE_NS] = deadline + (missed + 1) * period
+        T.cs[ctl.CS_SKIPPED] += float(missed)
+    else:
+        tk[TK_DEADLINE_NS] = deadline + period
+    return now, late
+
+
+@njit(**_JIT)
+def run_ticks(T):
+    """Tick on the clock until Python is needed (see the module docstring); returns ``EV_*``.
+    A datagram waiting is seen on the socket ``TK_FD`` or, for a transport without one, through
+    ``TK_RX_PENDING``, which its receiving thread sets."""
+    tk = T.tk
+    while True:
+        if tk[TK_STOP] != 0:
+            return EV_STOP
+        wake, late = wait_deadline(T)
+        if _needs_python(T, wake):
+            tk[TK_WAKE_NS] = wake
+            tk[TK_LATE_NS] = late
+            tk[TK_RETURNS] += 1
+            return EV_STEP
+        tick(T, wake, late)
+        tk[TK_TICKS] += 1
+        tk[TK_HK_COUNT] += 1
+        if _after_needs_python(T) or tk[TK_RX_PENDING] != 0 or (tk[TK_FD] >= 0 and fd_readable(tk[TK_FD]) != 0):
+            tk[TK_RETURNS] += 1
+            return EV_TICKED
+
+
+def new_words(period_ns: int) -> np.ndarray:
+    tk = np.zeros(NTK, dtype=np.int64)
+    tk[TK_PERIOD_NS] = int(period_ns)
+    tk[TK_FD] = -1
+    return tk
