@@ -174,7 +174,13 @@ class RemoteHarness(Harness):
             self.driver.close()
 
 
-_BUILTIN = {"sim": SimHarness, "remote": RemoteHarness}
+def _forcedimension(kind: str = "spatial", period_s: float = PERIOD_S) -> Harness:
+    from .emulators.harness import ForceDimensionHarness
+
+    return ForceDimensionHarness(kind, period_s)
+
+
+_BUILTIN = {"sim": SimHarness, "remote": RemoteHarness, "forcedimension": _forcedimension}
 
 
 def harness_for(name: str, kind: str = "planar", period_s: float = PERIOD_S) -> Callable[[], Harness]:
