@@ -174,13 +174,17 @@ class RemoteHarness(Harness):
             self.driver.close()
 
 
-def _forcedimension(kind: str = "spatial", period_s: float = PERIOD_S) -> Harness:
-    from .emulators.harness import ForceDimensionHarness
+def _emulated(cls_name: str) -> Callable[..., Harness]:
+    """A vendor driver's harness on its emulator (``testing/emulators/harness.py``, which builds on
+    this module: named, not imported, here)."""
+    def make(kind: str = "spatial", period_s: float = PERIOD_S) -> Harness:
+        import importlib
 
-    return ForceDimensionHarness(kind, period_s)
+        return getattr(importlib.import_module("hapticproxy.testing.emulators.harness"), cls_name)(kind, period_s)
+    return make
 
 
-_BUILTIN = {"sim": SimHarness, "remote": RemoteHarness, "forcedimension": _forcedimension}
+_BUILTIN = {"sim": SimHarness, "remote": RemoteHarness, "forcedimension": _emulated("ForceDimensionHarness")}
 
 
 def harness_for(name: str, kind: str = "planar", period_s: float = PERIOD_S) -> Callable[[], Harness]:
