@@ -184,7 +184,8 @@ def _emulated(cls_name: str) -> Callable[..., Harness]:
     return make
 
 
-_BUILTIN = {"sim": SimHarness, "remote": RemoteHarness, "forcedimension": _emulated("ForceDimensionHarness")}
+_BUILTIN = {"sim": SimHarness, "remote": RemoteHarness, "forcedimension": _emulated("ForceDimensionHarness"),
+            "haply": _emulated("HaplyHarness")}
 
 
 def harness_for(name: str, kind: str = "planar", period_s: float = PERIOD_S) -> Callable[[], Harness]:

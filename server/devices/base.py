@@ -282,6 +282,7 @@ DEVICES = {
     "sim": "hapticproxy.server.devices.sim:make_sim_device",
     "remote": "hapticproxy.server.devices.remote:make_remote_device",
     "forcedimension": "hapticproxy.server.devices.forcedimension:make_forcedimension_device",
+    "haply": "hapticproxy.server.devices.haply:make_haply_device",
 }
 
 

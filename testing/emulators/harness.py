@@ -79,3 +79,65 @@ class ForceDimensionHarness(Harness):
             super().close()
         finally:
             self.block.close()
+
+
+class HaplyHarness(Harness):
+    """The ``haply`` driver on a fake Inverse3 (a pseudo-terminal served by its own process) or
+    on a fake Inverse Service (``transport="service"``); the physics stepped in this process.
+
+    Not ``continuous``: the Inverse3 renders the last force through a stall of the host (no
+    firmware watchdog is documented for it); the driver cuts at its next call."""
+
+    def __init__(self, kind: str = "spatial", period_s: float = PERIOD_S, config: dict | None = None,
+                 transport: str = "serial", hand: dict | None = None, model_id: int = 0) -> None:
+        super().__init__(period_s)
+        from ...server.devices.haply import make_haply_device
+        from . import inverse3, inverse_service
+
+        self.folder = Path(tempfile.mkdtemp(dir=scratch()))
+        self.block = Block(self.folder / "dev.blk", create=True)
+        model, mid = model_for("inverse3", 0)
+        # the handle rests in front of the base, never at its origin (see haply.py's quirks)
+        self.physics = Physics(self.block, model, model_id=model_id, serial=1181, period_s=period_s, hand=hand,
+                               max_force_n=10.0, initial_pose=[0.0, -0.12, 0.08, 0.0, 0.0, 0.0])
+        if transport == "serial":
+            self.proc, where = inverse3.spawn(self.block.path, str(self.folder))
+            cfg = {"transport": "serial", "port": where}
+        else:
+            self.proc, where = inverse_service.spawn(self.block.path, str(self.folder))
+            cfg = {"transport": "service", "url": where}
+        # generous: the fake shares 2 cores with everything else (a timeout is a lost device)
+        cfg["timeout_s"] = 0.25
+        try:
+            self.driver = make_haply_device({"kind": kind, **cfg, **(config or {})}, period_s=period_s,
+                                            clock_ns=self.clock)
+        except BaseException:
+            self._stop()
+            raise
+
+    def tick(self) -> None:
+        super().tick()
+        self.physics.step()
+
+    def rendered(self) -> np.ndarray:
+        return self.physics.command_now()  # the Inverse3 applies a force as it arrives
+
+    def _stop(self) -> None:
+        self.block["stop"] = 1.0
+        try:
+            self.proc.wait(timeout=10)
+        except Exception:  # noqa: BLE001
+            self.proc.kill()
+            self.proc.wait()
+
+    def close(self) -> None:
+        try:
+            super().close()
+        finally:
+            self._stop()
+            self.block.close()
+
+
+class HaplyServiceHarness(HaplyHarness):
+    def __init__(self, kind: str = "spatial", period_s: float = PERIOD_S, **kw) -> None:
+        super().__init__(kind, period_s, transport="service", **kw)

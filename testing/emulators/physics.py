@@ -138,6 +138,19 @@ class Physics:
         b[_O["angvel_rad_s"]:_O["angvel_rad_s"] + 3] = r[10:13]
         b[seq] += 1  # even: done
 
+    def command_now(self) -> np.ndarray:
+        """What the motors render once the command in the block is taken (a device that applies
+        each command as it arrives, between the physics' ticks): masked, norm-capped, zero when
+        forces are off."""
+        b = self.block.b
+        w = b[_O["cmd"]:_O["cmd"] + 6] * self._mask
+        if b[_O["force_on"]] == 0.0 or b[_O["fault_unplugged"]] != 0.0 or not np.all(np.isfinite(w)):
+            return w * 0.0
+        f = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+        if f > self.max_force_n:
+            w[:3] *= self.max_force_n / f
+        return w
+
     @property
     def rendered(self) -> np.ndarray:
         return self.block.view("rendered").copy()
