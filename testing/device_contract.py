@@ -185,7 +185,7 @@ def _emulated(cls_name: str) -> Callable[..., Harness]:
 
 
 _BUILTIN = {"sim": SimHarness, "remote": RemoteHarness, "forcedimension": _emulated("ForceDimensionHarness"),
-            "haply": _emulated("HaplyHarness")}
+            "haply": _emulated("HaplyHarness"), "touch": _emulated("TouchHarness")}
 
 
 def harness_for(name: str, kind: str = "planar", period_s: float = PERIOD_S) -> Callable[[], Harness]:

@@ -283,6 +283,7 @@ DEVICES = {
     "remote": "hapticproxy.server.devices.remote:make_remote_device",
     "forcedimension": "hapticproxy.server.devices.forcedimension:make_forcedimension_device",
     "haply": "hapticproxy.server.devices.haply:make_haply_device",
+    "touch": "hapticproxy.server.devices.touch:make_touch_device",
 }
 
 

@@ -321,12 +321,15 @@ class _Websocket:
         from websockets.frames import Opcode
 
         while True:
-            for ev in self._proto.events_received():
+            response = None
+            for ev in self._proto.events_received():  # all of them: a reply may share a read with the next
                 if getattr(ev, "opcode", None) == Opcode.TEXT:
                     self._texts.append(ev.data.decode())
                 elif getattr(ev, "opcode", None) is None:
-                    return ev
+                    response = ev
             self._flush()  # pongs, close frames
+            if response is not None:
+                return response
             if self._texts:
                 return self._texts.pop(0)
             self._sock.settimeout(timeout)

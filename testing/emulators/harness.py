@@ -141,3 +141,63 @@ class HaplyHarness(Harness):
 class HaplyServiceHarness(HaplyHarness):
     def __init__(self, kind: str = "spatial", period_s: float = PERIOD_S, **kw) -> None:
         super().__init__(kind, period_s, transport="service", **kw)
+
+
+def hd_folder() -> Path:
+    """The fake libHD of this process, built and loaded (by absolute path, globally, so the
+    package's ``CDLL("libHD.so")`` binds it: the loader matches the SONAME of a loaded library)."""
+    import ctypes
+
+    folder = scratch() / "hd"
+    lib = build.build_libhd(folder)
+    if "hd" not in _TMP:
+        _TMP["hd"] = str(lib)
+        ctypes.CDLL(str(lib), mode=ctypes.RTLD_GLOBAL)
+    return folder
+
+
+def attach_hd_devices(devices: dict[str, str], lockstep: bool) -> None:
+    """Point the fake libHD at these devices (``name -> block``) and make it read them again."""
+    hd_folder()
+    os.environ["HAPTICPROXY_EMU_HD_DEVICES"] = ",".join(f"{n}={p}" for n, p in devices.items())
+    from ...server.devices.touch import hd
+
+    lib = hd()._lib_hd
+    lib.emu_hd_reattach()
+    lib.emu_hd_set_lockstep(1 if lockstep else 0)
+
+
+class TouchHarness(Harness):
+    """The ``touch`` driver on the fake libHD; lock-step: the scheduler's thread is not started,
+    each :meth:`tick` steps the physics and runs one servo tick (the driver's callback)."""
+
+    continuous = True  # the servo callback renders between writes; its watchdog cuts
+
+    def __init__(self, kind: str = "spatial", period_s: float = PERIOD_S, config: dict | None = None,
+                 model: str = "Touch", hand: dict | None = None, calibrated: bool = True,
+                 name: str = "Default Device") -> None:
+        super().__init__(period_s)
+        from ...server.devices.touch import make_touch_device
+
+        self.folder = Path(tempfile.mkdtemp(dir=scratch()))
+        self.block = Block(self.folder / "dev.blk", create=True)
+        m, mid = model_for("touch", model)
+        self.physics = Physics(self.block, m, model_id=mid, serial=22011, period_s=period_s, hand=hand,
+                               calibrated=calibrated, initial_pose=[0.0, 0.0, 0.05, 0.0, 0.0, 0.0])
+        attach_hd_devices({name: self.block.path}, lockstep=True)
+        self.lib = __import__("pyOpenHaptics.hd", fromlist=["_lib_hd"])._lib_hd
+        self.driver = make_touch_device({"kind": kind, **(config or {})}, period_s=period_s, clock_ns=self.clock)
+
+    def tick(self) -> None:
+        super().tick()
+        self.physics.step()
+        self.lib.emu_hd_tick()
+
+    def rendered(self) -> np.ndarray:
+        return self.physics.command_now()
+
+    def close(self) -> None:
+        try:
+            super().close()
+        finally:
+            self.block.close()
