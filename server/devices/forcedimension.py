@@ -93,16 +93,22 @@ def sdk():
     fix: the package missing, or the SDK's library not found or too old."""
     if importlib.util.find_spec(PACKAGE) is None:
         raise missing("forcedimension", DIST, variable="FDSDK to the Force Dimension SDK's folder")
+    import contextlib
+    import io
+
+    said = io.StringIO()  # the package writes its own complaint to stderr: folded into the one line
     try:
-        import forcedimension_core as fdc  # noqa: F401 - loads libdrd
-        from forcedimension_core import dhd, drd  # noqa: F401
-        import forcedimension_core.dhd.expert  # noqa: F401
-        from forcedimension_core.dhd import direct  # noqa: F401
-    except ImportError as exc:
+        with contextlib.redirect_stderr(said):
+            import forcedimension_core as fdc  # noqa: F401 - loads libdrd
+            from forcedimension_core import dhd, drd  # noqa: F401
+            import forcedimension_core.dhd.expert  # noqa: F401
+            from forcedimension_core.dhd import direct  # noqa: F401
+    except ImportError:
         where = os.environ.get("FDSDK") or os.environ.get("FORCEDIM_SDK")
         hint = (f"FDSDK={where} holds no usable lib/release/lin-*-gcc/libdrd.so.* (SDK 3.16 or newer)" if where
                 else "FDSDK is not set: set it to the Force Dimension SDK's folder (the one holding lib/release/)")
-        raise DeviceUnavailable(f"device.driver: forcedimension: {DIST} could not load libdrd ({exc}); {hint}") from None
+        why = " ".join(said.getvalue().split()) or "no libdrd"
+        raise DeviceUnavailable(f"device.driver: forcedimension: {DIST} could not load libdrd ({why}); {hint}") from None
     return fdc
 
 
@@ -273,3 +279,6 @@ def make_forcedimension_device(config: dict, *, period_s: float, clock_ns=None) 
 make_forcedimension_device.effective_config = effective_config
 #: the kinds this driver builds (the contract suite runs it on these only)
 make_forcedimension_device.kinds = ("spatial",)
+
+#: for `hapticproxy plugins` and `hapticproxy devices`
+make_forcedimension_device.about = {"clock": "loop", "package": "forcedimension-core", "module": "forcedimension_core", "sdk": "the Force Dimension SDK ($FDSDK)", "models": sorted({m.name for m in models.FORCEDIMENSION.values()})}

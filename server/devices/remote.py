@@ -796,3 +796,6 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+#: for `hapticproxy plugins` and `hapticproxy devices`
+make_remote_device.about = {"clock": "loop", "models": ["a device program over the remote-device link"]}

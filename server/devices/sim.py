@@ -600,3 +600,6 @@ def warm_up() -> None:
         _dyn.sim_read(st, ctl, cnt, out, 0)
         _dyn.qexp(0.0, 0.0, 0.0)
     _WARM = True
+
+#: for `hapticproxy plugins` and `hapticproxy devices`
+make_sim_device.about = {"clock": "loop", "models": ["simulated 1dof / planar / spatial"]}

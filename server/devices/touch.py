@@ -399,3 +399,6 @@ def make_touch_device(config: dict, *, period_s: float, clock_ns=None) -> TouchD
 
 make_touch_device.effective_config = effective_config
 make_touch_device.kinds = ("spatial",)
+
+#: for `hapticproxy plugins` and `hapticproxy devices`
+make_touch_device.about = {"clock": "device", "package": "pyopenhaptics", "module": "pyOpenHaptics", "sdk": "OpenHaptics (libHD.so)", "models": sorted(models.TOUCH)}
