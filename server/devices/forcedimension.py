@@ -49,7 +49,7 @@ from msgspec import Meta
 
 from . import _check as ck
 from . import models
-from .base import DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_OK, DeviceInfo
+from .base import DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_WATCHDOG, DEV_OK, DeviceInfo
 from .vendor import DeviceUnavailable, VendorDevice, missing, quat_from_matrix
 
 PACKAGE = "forcedimension_core"
@@ -58,6 +58,9 @@ WATCHDOG_UNIT_S = 125e-6
 WATCHDOG_MAX_S = 255 * WATCHDOG_UNIT_S
 # DHD error numbers (forcedimension_core.constants.ErrorNum)
 E_COM, E_NO_DRIVER, E_NO_DEVICE, E_NOT_AVAILABLE, E_IN_USE = 2, 4, 5, 6, 20
+#: read the device's status (force on? why off?) every this many reads (one more USB request)
+STATUS_EVERY = 50
+CAUSE_WATCHDOG = 3  # forcedimension_core.constants.ForceOffCause.WATCHDOG
 
 
 class ForceDimensionConfig(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
@@ -177,6 +180,8 @@ class ForceDimensionDevice(VendorDevice):
         self._has_grip = info.gripper
         self.gripper_angle_rad = 0.0
         self.buttons = 0
+        self._reads = 0
+        self._status_v = fdc.containers.Status()
         self.native = Native(fdc.runtime._libdrd, self._id, self._system_type)
         self._direct = fdc.dhd.direct
         self._set = dhd.setForceAndTorqueAndGripperForce
@@ -257,6 +262,13 @@ class ForceDimensionDevice(VendorDevice):
         if self._has_grip and self._dhd.getGripperAngleRad(self._grip, i) >= 0:
             self.gripper_angle_rad = self._grip.value
         self.buttons = int(self._mask_bits(i))
+        self._reads += 1
+        if self._enabled and self._fault == DEV_OK and self._reads % STATUS_EVERY == 0:
+            # the device may have cut its forces itself (its watchdog, its force button, ...)
+            if self._dhd.getStatus(self._status_v, i) < 0:
+                return self._fail_code()
+            if self._status_v[5] == 0:
+                return DEV_FAULT_WATCHDOG if self._status_v[14] == CAUSE_WATCHDOG else DEV_FAULT_HARDWARE
         return DEV_OK
 
     def _io_write(self, wrench: np.ndarray) -> int:

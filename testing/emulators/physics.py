@@ -74,6 +74,7 @@ class Physics:
                               + [1.0 if "rotation" in model.actuated else 0.0] * 3)
         self._last_seq = -1.0
         self._last_cmd_t = 0.0
+        self._was_on = False
         self._hand_go = 0.0
         b = block
         b["model_id"] = model_id
@@ -95,12 +96,16 @@ class Physics:
                 self._last_cmd_t = t
                 self._w[:] = cmd[:6]
         on = b[_O["force_on"]] != 0.0
+        if on and not self._was_on:
+            self._last_cmd_t = t  # the firmware's watchdog counts from the enable, too
+        self._was_on = on
         wd = b[_O["watchdog_s"]]
         if on and wd > 0.0 and t - self._last_cmd_t > wd:
             on = False
             b[_O["force_on"]] = 0.0
             b[_O["force_off_cause"]] = CAUSE_WATCHDOG
             b[_O["watchdog_trips"]] += 1
+            self._was_on = False
         if on and b[_O["fault_unplugged"]] != 0.0:
             on = False
             b[_O["force_on"]] = 0.0

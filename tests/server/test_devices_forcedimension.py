@@ -216,3 +216,23 @@ def test_the_drivers_own_watchdog_zeroes_the_device_at_once(omega):
     assert omega.driver.read(omega.row) == DEV_FAULT_WATCHDOG
     omega.physics.step()
     assert not np.any(omega.rendered()), "the watchdog trip did not zero the device"
+
+
+def test_enabling_after_a_long_idle_does_not_trip_the_firmware_watchdog(omega):
+    """The firmware's watchdog counts from the enable as well as from each command (the server
+    enables the device seconds after opening it: no command in between)."""
+    for _ in range(200):
+        omega.tick()
+    omega.driver.enable()
+    _run(omega, [2.0, 0, 0, 0, 0, 0], steps=3)
+    assert omega.rendered()[0] == 2.0 and omega.block["watchdog_trips"] == 0
+
+
+def test_a_cut_the_device_made_itself_is_seen_in_its_status(omega):
+    omega.settle()
+    omega.driver.enable()
+    _run(omega, [2.0, 0, 0, 0, 0, 0])
+    omega.block["force_on"] = 0.0         # e.g. its force button, or a watchdog the driver did not see
+    omega.block["force_off_cause"] = 1.0
+    codes = {omega.step(np.array([2.0, 0, 0, 0, 0, 0]))[0] for _ in range(60)}
+    assert DEV_FAULT_HARDWARE in codes and omega.driver.fault == DEV_FAULT_HARDWARE
