@@ -26,8 +26,8 @@ Config (``[device]``, ``driver = "forcedimension"``; every key optional):
     ``drdAutoInit`` when the device is not calibrated. The handle then moves by itself for a
     few seconds (let go of it), so it never happens unless the config asks; a device that needs
     calibration otherwise is refused with the fix.
-``max_force_n`` = the model's continuous force
-    A lower cap (never a higher one).
+``max_force_n`` = 100
+    A cap below the model's continuous force (the lower of the two applies; 100: the model's).
 ``watchdog_s`` = 0.02
     The firmware watchdog (rounded to 125 us; at most 0.031875 s; 0: none).
 ``max_speed_m_per_s`` = 2.0, ``max_angular_speed_rad_per_s`` = 20.0
@@ -69,7 +69,8 @@ class ForceDimensionConfig(msgspec.Struct, forbid_unknown_fields=True, kw_only=T
     serial: Annotated[int, Meta(ge=0, le=65535)] = 0
     model: str = ""
     calibrate: bool = False
-    max_force_n: Annotated[float, Meta(gt=0.0, le=100.0)] | None = None
+    #: a cap below the model's own (the lower of the two applies; 100: the model's)
+    max_force_n: Annotated[float, Meta(gt=0.0, le=100.0)] = 100.0
     watchdog_s: Annotated[float, Meta(ge=0.0, le=WATCHDOG_MAX_S)] = 0.02
     max_speed_m_per_s: Annotated[float, Meta(gt=0.0, le=100.0)] = 2.0
     max_angular_speed_rad_per_s: Annotated[float, Meta(gt=0.0, le=1000.0)] = 20.0

@@ -94,7 +94,8 @@ class TouchConfig(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     serial: str = ""
     model: str = ""
     calibrate: bool = False
-    max_force_n: Annotated[float, Meta(gt=0.0, le=100.0)] | None = None
+    #: a cap below the model's own (the lower of the two applies; 100: the model's)
+    max_force_n: Annotated[float, Meta(gt=0.0, le=100.0)] = 100.0
     watchdog_s: Annotated[float, Meta(ge=0.0, le=1.0)] = 0.01
     stale_s: Annotated[float, Meta(gt=0.0, le=1.0)] = 0.02
     max_speed_m_per_s: Annotated[float, Meta(gt=0.0, le=100.0)] = 2.0

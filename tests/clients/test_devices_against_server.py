@@ -44,6 +44,7 @@ class Rig:
     """An emulated device: its block, its physics process and (Haply) its front-end process."""
 
     controller: dict = {}
+    rate_hz = 1000.0
 
     def __init__(self, tmp_path, which: str, monkeypatch) -> None:
         self.block = Block(tmp_path / "dev.blk", create=True)
@@ -78,6 +79,11 @@ class Rig:
             # late (its timeout, a lost device, is tests/server's); the loop waits for it meanwhile
             self.device["timeout_s"] = 0.3
             self.device["watchdog_s"] = 1.0
+            # each step waits for the fake's reply (a round trip through another process): at
+            # 1 kHz here the loop missed most deadlines (8858 in one run) and the coupling, run
+            # slower than it was tuned for, oscillated; 500 Hz with a softer coupling holds
+            self.rate_hz = 500.0
+            self.controller = {"stiffness_n_per_m": 600.0, "damping_n_s_per_m": 6.0}
             self.procs.append(p)
 
     def close(self) -> None:
@@ -98,7 +104,7 @@ def test_the_wall_is_felt_through_each_vendor_driver(which, tmp_path, monkeypatc
     rig = Rig(tmp_path, which, monkeypatch)
     url = f"udp://127.0.0.1:{_port()}"
     settings = cfgmod.load({
-        "loop": {"rate_hz": 1000.0, "realtime": False},
+        "loop": {"rate_hz": rig.rate_hz, "realtime": False},
         "transport": {"url": url, "silence_timeout_s": 0.5},
         "status": {"address": f"127.0.0.1:{_port()}"},
         "model": {"epsilon_m": 0.005},
@@ -123,6 +129,7 @@ def test_the_wall_is_felt_through_each_vendor_driver(which, tmp_path, monkeypatc
             assert time.monotonic() - t0 < 2 * WAIT_S, "gave up waiting for 4 s of engine time"
             sup._serve_status(0.05)
         snap = sup.status()
+        device_steps = rig.block["steps"]
         if os.environ.get("DBG"):
             print("at end", rig.block.view("pos_m"), rig.block["force_on"], rig.block.view("rendered"), rig.block["steps"], rig.block["force_off_cause"], rig.block["watchdog_trips"])
         head = int(sup.shared.head[0])
@@ -133,6 +140,11 @@ def test_the_wall_is_felt_through_each_vendor_driver(which, tmp_path, monkeypatc
             client.close()
         sup.close()
         rig.close()
+    if os.environ.get("DBG"):
+        print({k: snap.get(k) for k in ("loop_state", "fault_name", "stall_trips", "overruns", "missed_deadlines")})
+        e = rows[rows[:, TEL["updates"]] > 0]
+        for r in e[:1500:50]:
+            print(" ".join(f"{k}={r[TEL[k]]:+.4f}" for k in ("dev_z", "proxy_z", "cmd_fz", "contacts")))
     info = snap["device_info"]
     assert info["driver"] == rig.device["driver"] and info["clock"] == ("device" if which == "touch" else "loop")
     assert snap["faults_total"] == 0, (snap["fault"], snap["device_fault"], snap["stall_trips"])
@@ -144,4 +156,4 @@ def test_the_wall_is_felt_through_each_vendor_driver(which, tmp_path, monkeypatc
             print(" ".join(f"{k}={r[TEL[k]]:+.4f}" for k in ("dev_z", "proxy_z", "cmd_fz", "contacts")))
     assert abs(np.mean(last[:, TEL["proxy_z"]]) - 0.020) < 0.002   # the cube rests on the floor
     assert abs(np.mean(last[:, TEL["cmd_fz"]]) - PUSH_N) < 0.05     # the floor pushes back the 0.5 N
-    assert rig.block["steps"] > 1000                                  # the emulated device ran on its own
+    assert device_steps > 1000                                        # the emulated device ran on its own
