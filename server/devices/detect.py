@@ -57,7 +57,6 @@ def haply(service_url: str = "ws://127.0.0.1:10001") -> list[dict]:
             out.append(_row("haply", "connected", model="Inverse3", port=port,
                             config=f'driver = "haply", kind = "spatial", port = "{port}"'))
     if importlib.util.find_spec("websockets") is not None:
-        from .haply import HaplyDevice  # noqa: F401 - the client class lives there
         from .haply import _Websocket
         import json
 

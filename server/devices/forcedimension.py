@@ -152,7 +152,7 @@ class ForceDimensionDevice(VendorDevice):
         c = parse_config(config)
         fdc = sdk()
         self._fdc = fdc
-        dhd, drd = fdc.dhd, fdc.drd
+        dhd = fdc.dhd
         self._dhd = dhd
         self.config = c
         dev_id = dhd.openSerial(c.serial) if c.serial else dhd.open()

@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import math
 import os
 import stat
 from typing import Annotated, Literal
@@ -373,7 +372,6 @@ def make_haply_device(config: dict, *, period_s: float, clock_ns=None) -> HaplyD
 
 make_haply_device.effective_config = effective_config
 make_haply_device.kinds = ("spatial",)
-_ = math
 
 #: for `hapticproxy plugins` and `hapticproxy devices`
 make_haply_device.about = {"clock": "loop", "package": "haplyhardwareapi", "module": "HaplyHardwareAPI", "models": ["Inverse3"], "transports": ["serial", "service"]}

@@ -185,7 +185,7 @@ class TouchDevice(VendorDevice):
                                     f"(HD error 0x{err:04x}): {fix}")
         self._h = h
         try:
-            info = self._identify(c, phd)
+            info = self._identify(c)
         except BaseException:
             lib.hdDisableDevice(h)
             raise
@@ -216,7 +216,7 @@ class TouchDevice(VendorDevice):
         lib.hdEnable(HD_FORCE_OUTPUT)
         lib.hdStartScheduler()
 
-    def _identify(self, c: TouchConfig, phd) -> DeviceInfo:
+    def _identify(self, c: TouchConfig) -> DeviceInfo:
         lib = self._lib
         lib.hdMakeCurrentDevice(self._h)
         model = (lib.hdGetString(HD_DEVICE_MODEL_TYPE) or b"").decode()

@@ -96,7 +96,7 @@ class HaplyHarness(Harness):
 
         self.folder = Path(tempfile.mkdtemp(dir=scratch()))
         self.block = Block(self.folder / "dev.blk", create=True)
-        model, mid = model_for("inverse3", 0)
+        model, _ = model_for("inverse3", 0)
         # the handle rests in front of the base, never at its origin (see haply.py's quirks)
         self.physics = Physics(self.block, model, model_id=model_id, serial=1181, period_s=period_s, hand=hand,
                                max_force_n=10.0, initial_pose=[0.0, -0.12, 0.08, 0.0, 0.0, 0.0])
