@@ -47,6 +47,7 @@ BENCH_TARGETS = {
     "clients": "hapticproxy.benchmarks.bench_clients",
     "faults": "hapticproxy.benchmarks.bench_faults",
     "recorder": "hapticproxy.benchmarks.bench_recorder",
+    "devices": "hapticproxy.benchmarks.bench_devices",
 }
 
 COMMANDS: dict[str, Command] = {

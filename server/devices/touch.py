@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import ctypes
 import importlib.util
+from time import monotonic_ns as _monotonic_ns
 from dataclasses import dataclass
 from typing import Annotated
 
@@ -85,6 +86,7 @@ C_SEQ, C_FORCE, C_ARMED, C_EPOCH = 0, 1, 4, 5
 NC = 6
 
 CALLBACK = ctypes.CFUNCTYPE(ctypes.c_uint, ctypes.c_void_p)
+TICK_RING = 4096
 
 
 class TouchConfig(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
@@ -203,6 +205,9 @@ class TouchDevice(VendorDevice):
         self._f = (ctypes.c_double * 3)()
         self._b = ctypes.c_int()
         self._cmd_taken = np.zeros(NC)
+        #: the servo ticks' start times [ns, CLOCK_MONOTONIC], a ring (the measured native rate
+        #: and period jitter: ``bench devices``); index ``tick % TICK_RING``
+        self.tick_ns = np.zeros(TICK_RING, dtype=np.int64)
         self._wd_ticks = int(round(wd * info.native_rate_hz)) if wd > 0 and info.native_rate_hz else 0
         self._since = 0        # servo ticks since the command's counter last moved
         self._last_seq = -1.0
@@ -274,6 +279,7 @@ class TouchDevice(VendorDevice):
 
     def _servo(self, _data) -> int:
         lib, h, st, cm = self._lib, self._h, self.state, self.command
+        self.tick_ns[int(st[S_TICK]) % TICK_RING] = _monotonic_ns()
         lib.hdBeginFrame(h)
         lib.hdGetDoublev(HD_CURRENT_TRANSFORM, self._m)
         lib.hdGetDoublev(HD_CURRENT_VELOCITY, self._v)
