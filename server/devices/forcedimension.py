@@ -26,8 +26,8 @@ Config (``[device]``, ``driver = "forcedimension"``; every key optional):
     ``drdAutoInit`` when the device is not calibrated. The handle then moves by itself for a
     few seconds (let go of it), so it never happens unless the config asks; a device that needs
     calibration otherwise is refused with the fix.
-``max_force_n`` = 100
-    A cap below the model's continuous force (the lower of the two applies; 100: the model's).
+``max_force_n`` = 0
+    A cap below the model's continuous force (0: the model's; a higher one is refused with it).
 ``watchdog_s`` = 0.02
     The firmware watchdog (rounded to 125 us; at most 0.031875 s; 0: none).
 ``max_speed_m_per_s`` = 2.0, ``max_angular_speed_rad_per_s`` = 20.0
@@ -50,7 +50,7 @@ from msgspec import Meta
 from . import _check as ck
 from . import models
 from .base import DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_WATCHDOG, DEV_OK, DeviceInfo
-from .vendor import DeviceUnavailable, VendorDevice, missing, quat_from_matrix
+from .vendor import DeviceUnavailable, VendorDevice, check_force_cap, missing, quat_from_matrix
 
 PACKAGE = "forcedimension_core"
 DIST = "forcedimension-core"
@@ -69,8 +69,8 @@ class ForceDimensionConfig(msgspec.Struct, forbid_unknown_fields=True, kw_only=T
     serial: Annotated[int, Meta(ge=0, le=65535)] = 0
     model: str = ""
     calibrate: bool = False
-    #: a cap below the model's own (the lower of the two applies; 100: the model's)
-    max_force_n: Annotated[float, Meta(gt=0.0, le=100.0)] = 100.0
+    #: a cap below the model's continuous force (0: the model's; above it is refused at open)
+    max_force_n: Annotated[float, Meta(ge=0.0, le=100.0)] = 0.0
     watchdog_s: Annotated[float, Meta(ge=0.0, le=WATCHDOG_MAX_S)] = 0.02
     max_speed_m_per_s: Annotated[float, Meta(gt=0.0, le=100.0)] = 2.0
     max_angular_speed_rad_per_s: Annotated[float, Meta(gt=0.0, le=1000.0)] = 20.0
@@ -163,7 +163,7 @@ class ForceDimensionDevice(VendorDevice):
             info = self._identify(c)
             limits = info.limits(max_speed_m_per_s=c.max_speed_m_per_s,
                                  max_angular_speed_rad_per_s=c.max_angular_speed_rad_per_s,
-                                 watchdog_s=self._watchdog_s, max_force_n=c.max_force_n)
+                                 watchdog_s=self._watchdog_s, max_force_n=check_force_cap(c.max_force_n, info))
         except BaseException:
             dhd.close(self._id)
             raise

@@ -41,7 +41,7 @@ Config (``[device]``, ``driver = "touch"``): ``kind`` = ``"spatial"``; ``device_
 ``"Default Device"`` (the name in the Touch Setup / ``Touch_Setup`` configuration: several
 devices by name); ``serial`` = ``""`` (refuse another device); ``model`` = ``""`` (refuse another
 model); ``calibrate`` = false (``hdUpdateCalibration`` when the device needs it: a Touch
-calibrates from its inkwell without moving); ``max_force_n`` (a lower cap); ``watchdog_s`` = 0.01;
+calibrates from its inkwell without moving); ``max_force_n`` = 0 (a cap below the continuous force; 0: the device's; higher: refused); ``watchdog_s`` = 0.01;
 ``stale_s`` = 0.02; ``max_speed_m_per_s`` = 2.0.
 """
 from __future__ import annotations
@@ -59,7 +59,7 @@ from msgspec import Meta
 from . import _check as ck
 from . import models
 from .base import DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_WATCHDOG, DEV_OK, DeviceInfo
-from .vendor import DeviceUnavailable, VendorDevice, missing, quat_from_matrix
+from .vendor import DeviceUnavailable, VendorDevice, check_force_cap, missing, quat_from_matrix
 
 HD_INVALID_HANDLE = 0xFFFFFFFF
 HD_FORCE_OUTPUT = 0x4000
@@ -96,8 +96,8 @@ class TouchConfig(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     serial: str = ""
     model: str = ""
     calibrate: bool = False
-    #: a cap below the model's own (the lower of the two applies; 100: the model's)
-    max_force_n: Annotated[float, Meta(gt=0.0, le=100.0)] = 100.0
+    #: a cap below the model's continuous force (0: the model's; above it is refused at open)
+    max_force_n: Annotated[float, Meta(ge=0.0, le=100.0)] = 0.0
     watchdog_s: Annotated[float, Meta(ge=0.0, le=1.0)] = 0.01
     stale_s: Annotated[float, Meta(gt=0.0, le=1.0)] = 0.02
     max_speed_m_per_s: Annotated[float, Meta(gt=0.0, le=100.0)] = 2.0
@@ -192,7 +192,8 @@ class TouchDevice(VendorDevice):
             lib.hdDisableDevice(h)
             raise
         wd = c.watchdog_s
-        limits = info.limits(max_speed_m_per_s=c.max_speed_m_per_s, watchdog_s=wd, max_force_n=c.max_force_n)
+        limits = info.limits(max_speed_m_per_s=c.max_speed_m_per_s, watchdog_s=wd,
+                             max_force_n=check_force_cap(c.max_force_n, info))
         super().__init__(info, limits, clock_ns=clock_ns)
         self.native = Native(lib, h)
         # the mailbox and the callback's own buffers (preallocated: nothing is made per tick)

@@ -40,6 +40,18 @@ class DeviceUnavailable(ValueError):
     configuration problem (exit 2)."""
 
 
+def check_force_cap(asked: float, info: DeviceInfo) -> float | None:
+    """The config's ``max_force_n`` (0: none) against the device's continuous force: ``None`` to
+    use the device's, the value when lower, ``DeviceUnavailable`` naming the nearest safe value
+    when higher (a config never gets more than the device renders continuously)."""
+    if not asked:
+        return None
+    if asked > info.max_force_n:
+        raise DeviceUnavailable(f"device.max_force_n: {asked:g} N is above the {info.model}'s continuous force "
+                                f"({info.max_force_n:g} N): at most {info.max_force_n:g} (0: the device's own)")
+    return asked
+
+
 def missing(driver: str, package: str, *, extra: str = "", variable: str = "") -> DeviceUnavailable:
     """``device.driver: <driver> needs <package> (pip install ...); set <variable>``."""
     how = f"pip install 'hapticproxy[devices]' (or: pip install {package})"

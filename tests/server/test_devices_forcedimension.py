@@ -133,7 +133,7 @@ def test_a_stronger_model_is_capped_at_its_own_figures():
         h.close()
 
 
-def test_a_config_lower_cap_wins_never_a_higher_one():
+def test_a_config_lower_cap_wins_a_higher_one_is_refused():
     h = ForceDimensionHarness(config={"max_force_n": 5.0})
     try:
         assert h.driver.limits.max_force_n == 5.0 and h.driver.limits.max_force_norm_n == 5.0
@@ -141,6 +141,9 @@ def test_a_config_lower_cap_wins_never_a_higher_one():
         h.close()
     with pytest.raises(ValueError, match="device.max_force_n"):
         ForceDimensionHarness(config={"max_force_n": 500.0})
+    with pytest.raises(DeviceUnavailable, match=r"device.max_force_n: 30 N is above the omega.3's continuous force "
+                                                r"\(12 N\): at most 12"):
+        ForceDimensionHarness(config={"max_force_n": 30.0})
 
 
 @pytest.mark.parametrize("setup,config,match", [

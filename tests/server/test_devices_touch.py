@@ -154,3 +154,37 @@ def test_without_libhd_the_driver_says_what_to_install(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     line = out.stdout.strip().splitlines()[-1]
     assert line.startswith("device.driver: touch: pyopenhaptics could not load libHD.so") and "LD_LIBRARY_PATH" in line
+
+
+def test_late_servo_ticks_from_the_fake_thread_are_a_lost_device(tmp_path):
+    """The fake's servo thread oversleeps 40 ms a tick (fault_late_ms): the loop's reads find no
+    new sample for stale_s and latch a lost link; on time again, enable() re-arms."""
+    from hapticproxy.server.devices import models
+    from hapticproxy.testing.emulators.block import Block
+    from hapticproxy.testing.emulators.physics import Physics
+
+    blk = Block(tmp_path / "d.blk", create=True)
+    Physics(blk, models.TOUCH["Touch"], model_id=0, serial=5, initial_pose=[0.0, 0.0, 0.05, 0, 0, 0])
+    attach_hd_devices({"Default Device": blk.path}, lockstep=False)
+    d = make_touch_device({"stale_s": 0.02}, period_s=1e-3)
+    try:
+        row = np.zeros(20)
+        d.enable()
+        blk["fault_late_ms"] = 40.0
+        codes = set()
+        end = time.monotonic() + 30.0
+        while DEV_FAULT_LINK not in codes and time.monotonic() < end:
+            codes.add(d.read(row))
+            d.write(PUSH)
+            time.sleep(0.001)
+        assert DEV_FAULT_LINK in codes and blk["servo_late"] > 0
+        blk["fault_late_ms"] = 0.0
+        while time.monotonic() < end:
+            d.enable()
+            if d.fault == DEV_OK:
+                break
+            time.sleep(0.01)
+        assert d.fault == DEV_OK
+    finally:
+        d.close()
+        blk.close()
