@@ -44,3 +44,14 @@ def test_every_driver_declares_info():
     assert "clock: loop" in info.summary()
     assert info.as_dict()["wrench_mask"] == [1] * 6
     assert math.isinf(d.limits.max_force_norm_n)  # the simulated device caps per axis only
+
+
+def test_status_shows_what_the_device_is():
+    from hapticproxy.server.status import format_status
+
+    info = _touch(serial="22011", native_rate_hz=1000.0, calibration="done")
+    text = format_status({"device_info": info.as_dict(), "loop_state": "idle"})
+    line = next(ln for ln in text.splitlines() if ln.startswith("device       "))
+    assert line == ("device       3D Systems Touch #22011, 6 DOF sensed / 3 rendered, 3.3 N, 1000 Hz native, "
+                    "calibration done, clock: device")
+    assert not any(ln.startswith("device       ") for ln in format_status({"loop_state": "idle"}).splitlines())
