@@ -239,3 +239,24 @@ def test_a_cut_the_device_made_itself_is_seen_in_its_status(omega):
     omega.block["force_off_cause"] = 1.0
     codes = {omega.step(np.array([2.0, 0, 0, 0, 0, 0]))[0] for _ in range(60)}
     assert DEV_FAULT_HARDWARE in codes and omega.driver.fault == DEV_FAULT_HARDWARE
+
+
+@pytest.mark.parametrize("system_type", sorted(__import__("hapticproxy.server.devices.models", fromlist=["x"])
+                                               .FORCEDIMENSION))
+def test_every_known_model_opens_with_its_own_figures(system_type):
+    from hapticproxy.server.devices import models
+
+    spec = models.FORCEDIMENSION[system_type]
+    h = ForceDimensionHarness(system_type=system_type)
+    try:
+        info, lim = h.driver.info, h.driver.limits
+        assert (info.model, info.vendor, info.hand) == (spec.name, spec.vendor, spec.hand)
+        assert lim.max_force_norm_n == spec.max_force_n
+        assert lim.max_torque_n_m == (spec.max_torque_n_m if "rotation" in spec.actuated else 0.0)
+        assert info.dof_sensed == {"omega.3": 3, "delta.3": 3, "Falcon": 3, "omega.6": 6}.get(spec.name, 7)
+        h.settle()
+        h.driver.enable()
+        _run(h, [0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+        assert h.rendered()[2] == 1.0
+    finally:
+        h.close()
