@@ -5,7 +5,8 @@ second transport of the same driver.
 **Who owns the clock: the loop**, on both transports. Over serial, each ``write`` is one exchange
 (``end_effector_force``: the force goes out, the device answers its position and velocity);
 ``read`` hands the loop the state of the last exchange (one period old). The Inverse Service
-answers exactly one state frame per message it gets, so the client, here the loop, sets the rate.
+answers exactly one state frame per message it gets (a wireless VerseGrip it lists gives the
+handle's orientation and buttons: 6 DOF sensed, 3 rendered), so the client, here the loop, sets the rate.
 The Inverse3 renders the last force it was sent until the next one and no firmware watchdog is
 documented for it: the driver's watchdog is the host's (``watchdog_s``, on the loop's clock): a
 stall of the host leaves the last force on until the loop runs again, which then cuts it.
@@ -48,6 +49,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import os
 import stat
 from typing import Annotated, Literal
@@ -120,6 +122,9 @@ class HaplyDevice(VendorDevice):
         c = parse_config(config)
         self.config = c
         self._state = np.zeros(6)
+        self._quat = np.array([1.0, 0.0, 0.0, 0.0])  # the VerseGrip's, where one is listed
+        self._grip_id = None
+        self.buttons = 0
         self._have = False
         self._f = [0.0, 0.0, 0.0]
         self.native = None
@@ -128,11 +133,13 @@ class HaplyDevice(VendorDevice):
         else:
             ident = self._open_service(c)
         spec = models.INVERSE3
+        grip = self._grip_id is not None
         info = DeviceInfo(
-            model=spec.name, vendor=spec.vendor, driver="haply", serial=str(ident.get("device_id", "")),
-            sensed=spec.sensed, actuated=spec.actuated, max_force_n=c.max_force_n,
+            model=spec.name + (" + VerseGrip" if grip else ""), vendor=spec.vendor, driver="haply",
+            serial=str(ident.get("device_id", "")),
+            sensed=("position", "rotation") if grip else spec.sensed, actuated=spec.actuated, max_force_n=c.max_force_n,
             workspace_radius_m=None, workspace_min_m=tuple(c.workspace_min_m), workspace_max_m=tuple(c.workspace_max_m),
-            native_rate_hz=None, buttons=0, calibration="not needed", clock="loop", sdk_units="m, N",
+            native_rate_hz=None, buttons=3 if grip else 0, calibration="not needed", clock="loop", sdk_units="m, N",
             source=f"device id and versions from the device ({c.transport}); force cap from the config "
                    f"(Haply's rated figures not available)")
         self.identity = ident
@@ -205,6 +212,10 @@ class HaplyDevice(VendorDevice):
                                     + f" (it lists {[d.get('device_id') for d in inv.get('inverse3') or []]})")
         self._ws_id = devs[0]["device_id"]
         self._take(devs[0])
+        grips = inv.get("wireless_verse_grip") or []
+        self._grip_id = grips[0].get("device_id") if grips else None
+        if self._grip_id is not None:
+            self._take_grip(grips[0])
         self.native = {"websocket": self._ws, "device_id": self._ws_id, "session_id": inv.get("session_id")}
         self._exchange = self._service_exchange
         return {"device_id": _as_int(self._ws_id), "session_id": inv.get("session_id")}
@@ -219,6 +230,16 @@ class HaplyDevice(VendorDevice):
         s[3], s[4], s[5] = v["x"], v["y"], v["z"]
         return True
 
+    def _take_grip(self, g: dict) -> None:
+        st = g.get("state") or {}
+        q = st.get("orientation")
+        if q:
+            n = math.sqrt(q["w"] ** 2 + q["x"] ** 2 + q["y"] ** 2 + q["z"] ** 2)
+            if n > 0.0:
+                self._quat[:] = (q["w"] / n, q["x"] / n, q["y"] / n, q["z"] / n)
+        b = st.get("buttons") or {}
+        self.buttons = int(bool(b.get("a"))) | int(bool(b.get("b"))) << 1 | int(bool(b.get("c"))) << 2
+
     def _service_exchange(self, f) -> int:
         msg = {"inverse3": [{"device_id": self._ws_id,
                              "commands": {"set_cursor_force": {"values": {"x": f[0], "y": f[1], "z": f[2]}}}}]}
@@ -229,6 +250,10 @@ class HaplyDevice(VendorDevice):
             return DEV_FAULT_LINK
         except Exception:  # noqa: BLE001 - a closed socket, a malformed frame: the device is lost
             return DEV_FAULT_LINK
+        if self._grip_id is not None:
+            for g in frame.get("wireless_verse_grip") or []:
+                if g.get("device_id") == self._grip_id:
+                    self._take_grip(g)
         for d in frame.get("inverse3") or []:
             if d.get("device_id") == self._ws_id:
                 return DEV_OK if self._take(d) else DEV_FAULT_HARDWARE
@@ -238,8 +263,7 @@ class HaplyDevice(VendorDevice):
     def _io_read(self, row: np.ndarray) -> int:
         s = self._state
         row[0:3] = s[0:3]
-        row[3] = 1.0
-        row[4:7] = 0.0
+        row[3:7] = self._quat
         row[7:10] = s[3:6]
         row[10:13] = 0.0
         row[13:19] = np.nan

@@ -89,7 +89,8 @@ class HaplyHarness(Harness):
     firmware watchdog is documented for it); the driver cuts at its next call."""
 
     def __init__(self, kind: str = "spatial", period_s: float = PERIOD_S, config: dict | None = None,
-                 transport: str = "serial", hand: dict | None = None, model_id: int = 0) -> None:
+                 transport: str = "serial", hand: dict | None = None, model_id: int = 0,
+                 versegrip: bool = False) -> None:
         super().__init__(period_s)
         from ...server.devices.haply import make_haply_device
         from . import inverse3, inverse_service
@@ -104,7 +105,7 @@ class HaplyHarness(Harness):
             self.proc, where = inverse3.spawn(self.block.path, str(self.folder))
             cfg = {"transport": "serial", "port": where}
         else:
-            self.proc, where = inverse_service.spawn(self.block.path, str(self.folder))
+            self.proc, where = inverse_service.spawn(self.block.path, str(self.folder), versegrip=versegrip)
             cfg = {"transport": "service", "url": where}
         # generous: the fake shares 2 cores with everything else (a timeout is a lost device)
         cfg["timeout_s"] = 0.25

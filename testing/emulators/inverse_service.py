@@ -8,6 +8,9 @@ one state frame (the same shape) per message the client sends, after applying th
 commands (``{"inverse3": [{"device_id": ID, "commands": {"set_cursor_force": {"values":
 {"x", "y", "z"}}}}]}``): the client sets the rate.
 
+With ``--versegrip`` it lists one ``wireless_verse_grip`` too: ``state.orientation {w,x,y,z}`` (the
+physics' handle orientation) and ``state.buttons {a,b,c}`` (the block's ``buttons`` bits 0-2).
+
 Faults from the block: ``fault_unplugged`` -> the device is no longer listed in the frames;
 ``fault_error`` -> the frame lists it without a state; ``fault_frozen`` -> the physics stops
 publishing (the same position comes back).
@@ -29,6 +32,9 @@ import numpy as np
 from .block import OFFSETS, Block
 
 DEVICE_ID = "049D"
+GRIP_ID = "0A51"
+#: list a wireless VerseGrip (orientation: the physics' handle orientation; buttons: the block's)
+_VERSEGRIP = [False]
 
 
 def _frame(block: Block, buf: np.ndarray, session: int, inventory: bool = False) -> str:
@@ -47,7 +53,14 @@ def _frame(block: Block, buf: np.ndarray, session: int, inventory: bool = False)
         if inventory:
             dev["config"] = {"device_info": {"id": DEVICE_ID, "model": "Inverse3"}}
         devs = [dev]
-    out = {"inverse3": devs, "wireless_verse_grip": []}
+    grips = []
+    if _VERSEGRIP[0] and b[o["fault_unplugged"]] == 0.0:
+        q = o["quat"] - o["time_s"]
+        bt = int(buf[o["buttons"] - o["time_s"]])
+        grips = [{"device_id": GRIP_ID, "state": {
+            "orientation": {"w": float(buf[q]), "x": float(buf[q + 1]), "y": float(buf[q + 2]), "z": float(buf[q + 3])},
+            "buttons": {"a": bool(bt & 1), "b": bool(bt & 2), "c": bool(bt & 4)}}}]
+    out = {"inverse3": devs, "wireless_verse_grip": grips}
     if inventory:
         out["session_id"] = session
     return json.dumps(out)
@@ -76,6 +89,7 @@ def main(argv: list[str] | None = None) -> int:
 
     argv = sys.argv[1:] if argv is None else argv
     block = Block(argv[0])
+    _VERSEGRIP[0] = "--versegrip" in argv[2:]
     parent = os.getppid()
     sessions = iter(range(1, 1 << 30))
 
@@ -101,11 +115,12 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def spawn(block_path: str, folder: str) -> tuple[subprocess.Popen, str]:
-    """Start the fake service in its own process; returns it and its ``ws://`` URL."""
+def spawn(block_path: str, folder: str, versegrip: bool = False) -> tuple[subprocess.Popen, str]:
+    """Start the fake service in its own process (``versegrip``: with a wireless VerseGrip);
+    returns it and its ``ws://`` URL."""
     portfile = os.path.join(folder, "service.port")
     proc = subprocess.Popen([sys.executable, "-m", "hapticproxy.testing.emulators.inverse_service", block_path,
-                             portfile])
+                             portfile] + (["--versegrip"] if versegrip else []))
     end = time.monotonic() + 60.0
     while not os.path.exists(portfile):
         if proc.poll() is not None:

@@ -129,3 +129,21 @@ def test_the_native_handles_are_kept(inv3):
         assert n["stream"] is not None and n["inverse3"] is not None
     else:
         assert n["device_id"] == "049D" and n["session_id"] == 1
+
+
+def test_a_versegrip_on_the_service_gives_orientation_and_buttons():
+    h = HaplyHarness(transport="service", versegrip=True,
+                     hand={"type": "constant", "wrench": [0, 0, 0, 0.0, 0.0, 0.02], "start": "server"})
+    try:
+        info = h.driver.info
+        assert info.model == "Inverse3 + VerseGrip" and (info.dof_sensed, info.dof_actuated) == (6, 3)
+        assert info.buttons == 3 and h.driver.limits.max_torque_n_m == 0.0
+        h.block["buttons"] = 5.0
+        h.driver.enable()
+        for _ in range(60):
+            h.step(np.zeros(6))
+        q = h.row[3:7]
+        assert abs(float(q @ q) - 1.0) < 1e-9 and q[3] > 1e-3   # turned about z by the hand's torque
+        assert h.driver.buttons == 5
+    finally:
+        h.close()
