@@ -47,6 +47,7 @@ BENCH_TARGETS = {
     "clients": "hapticproxy.benchmarks.bench_clients",
     "faults": "hapticproxy.benchmarks.bench_faults",
     "recorder": "hapticproxy.benchmarks.bench_recorder",
+    "devices": "hapticproxy.benchmarks.bench_devices",
 }
 
 COMMANDS: dict[str, Command] = {
@@ -60,6 +61,7 @@ COMMANDS: dict[str, Command] = {
     "protocol": Command("hapticproxy.protocol.conformance", "protocol conformance kit: check-client, check-server"),
     "experiment": Command("hapticproxy.experiments.cli", "reproduce the paper's figures; the speed/accuracy trade-off"),
     "bench": Command("", "benchmarks that print figures (" + ", ".join(BENCH_TARGETS) + ")", BENCH_TARGETS),
+    "devices": Command("hapticproxy.cli.devices", "list the haptic devices connected (driver, model, serial) and the drivers that find none"),
     "plugins": Command("hapticproxy.cli.plugins", "list the engines, device drivers and transports (built-in and installed)"),
     "warmup": Command("hapticproxy.cli.warmup", "compile every numba kernel now (set-up does it; later runs load them)"),
 }

@@ -31,7 +31,19 @@ def _describe(kind: str):
         return lambda name, cls: {"scenes": list(cls.scenes())}
     if kind == "transport":
         return lambda name, cls: {"url_form": f"{name}://{cls.url_form}"}
-    return None
+    return _device_about
+
+
+def _device_about(name: str, factory) -> dict:
+    """A device driver's ``about`` (its factory's attribute): who owns the clock, the vendor
+    package it needs and whether that is installed, the models it knows."""
+    import importlib.util
+
+    about = dict(getattr(factory, "about", None) or {})
+    pkg = about.get("module")
+    if pkg:
+        about["package_installed"] = importlib.util.find_spec(pkg) is not None
+    return {"device": about}
 
 
 def _detail(r: dict) -> str:
@@ -39,6 +51,14 @@ def _detail(r: dict) -> str:
         return f"scenes: {', '.join(r['scenes'])}"
     if "url_form" in r:
         return f"url: {r['url_form']}"
+    if r.get("device"):
+        a = r["device"]
+        out = [f"clock: {a['clock']}"] if a.get("clock") else []
+        if a.get("package"):
+            out.append(f"needs {a['package']} ({'installed' if a.get('package_installed') else 'not installed: pip install hapticproxy[devices]'})")
+        if a.get("models"):
+            out.append("models: " + ", ".join(a["models"]))
+        return "; ".join(out)
     return ""
 
 

@@ -112,6 +112,7 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         loop.parent_pid = parent  # a loop whose supervisor died stops (forces fade, Bye, exit)
         llog.debug("pid %d: transport %s open, %s device %r built", os.getpid(), transport.url,
                    settings["device"]["kind"], settings["device"]["driver"])
+        _send_device_info(report, loop.device)
         from .warm import refresh_stale_caches
 
         refresh_stale_caches()  # kernels compiled from older sources would run the old code
@@ -160,6 +161,11 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
     except StartupError as exc:
         _report(report, str(exc), exc.code)
         code = exc.code
+    except ValueError as exc:
+        if running or not str(exc).startswith("device"):
+            raise
+        _report(report, str(exc), 2)  # a device that cannot be used as configured: its one line, the fix in it
+        code = 2
     except Exception as exc:  # noqa: BLE001 - reported to the supervisor, then exit non-zero
         why = f"{type(exc).__name__}: {exc}"
         if running:
@@ -180,6 +186,20 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         st[ST["loop_state"]] = LOOP_STATES.index("stopped")
         shared.close()
     sys.exit(code)
+
+
+#: the first element of the message that carries the device's info (not a failure)
+DEVICE_INFO = "\0device-info"
+
+
+def _send_device_info(conn, device) -> None:
+    """Tell the supervisor what the device is (``status`` shows it)."""
+    if conn is None:
+        return
+    try:
+        conn.send((DEVICE_INFO, device.info.as_dict()))
+    except Exception:  # noqa: BLE001 - a driver whose info cannot be read: status shows none
+        pass
 
 
 def _report(conn, message: str, code: int) -> None:
@@ -310,6 +330,7 @@ class Supervisor:
                  ready_timeout_s: float = 600.0, naive: bool = False, live: str = "") -> None:
         self.settings = settings
         self.naive = naive
+        self.device_info: dict | None = None
         self.duration_s = duration_s
         # Only a loop process that hangs while alive meets this: one that dies or fails is seen
         # at once, and a stop at any moment is honoured. A first start with an empty kernel cache
@@ -371,17 +392,19 @@ class Supervisor:
             signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         report.close()  # the child holds its own end
         log.debug("loop process %d started", self.proc.pid)
+        failure = None
         try:
             t_end = time.monotonic() + self.ready_timeout_s
             while self.shared.status[self._st("ready")] != 1.0:
                 if self._stop_requested:
                     self._stop_during_startup()
                     return False
+                failure = self._read_reports(reports, 0, failure)
                 if not self.proc.is_alive():
                     self.proc.join(1)
-                    if reports.poll(0.5):
-                        message, code = reports.recv()
-                        raise StartupError(message, code)
+                    failure = self._read_reports(reports, 0.5, failure)
+                    if failure:
+                        raise StartupError(*failure)
                     raise StartupError(f"the loop process exited during start-up (exit code {self.proc.exitcode})")
                 if time.monotonic() > t_end:
                     raise StartupError("the loop process did not become ready in time")
@@ -400,6 +423,20 @@ class Supervisor:
                  f", recording to {self.record}" if self.record else "",
                  f", live view on ws://{self.live.address}" if self.live else "")
         return True
+
+    def _read_reports(self, reports, wait_s: float, failure):
+        """Drain the loop process's reports: its device's info (kept for ``status``), or the one
+        line that says why it cannot start (returned, raised once the process is gone)."""
+        while reports.poll(wait_s):
+            try:
+                message, code = reports.recv()
+            except EOFError:  # the loop process closed its end: nothing more to read
+                break
+            if message == DEVICE_INFO:
+                self.device_info = code
+            else:
+                failure = (message, code)
+        return failure
 
     def _stop_during_startup(self) -> None:
         """Stop the loop process before it ever ran (it unwinds and closes its device at SIGTERM)."""
@@ -544,6 +581,7 @@ class Supervisor:
         snap["url"] = self.settings["transport"]["url"]
         snap["outside_stable_region"] = [f"{k}: {why}" for k, why in self.settings.outside_stable_region]
         snap["device_kind"] = self.settings["device"]["kind"]
+        snap["device_info"] = self.device_info
         snap["tool_kind"] = self.settings.tool_kind
         snap["live"] = f"ws://{self.live.address}" if self.live else ""
         snap["authenticated"] = self.auth.key is not None

@@ -103,6 +103,17 @@ def _what_the_hand_feels(s: dict) -> list[str]:
     return out
 
 
+def _device_line(info: dict) -> str:
+    """What the device is, from its DeviceInfo (model, serial, DOF, force, clock)."""
+    from .devices.base import DeviceInfo
+
+    try:
+        names = {f for f in DeviceInfo.__dataclass_fields__}
+        return DeviceInfo(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in info.items() if k in names}).summary()
+    except (TypeError, ValueError):
+        return str(info.get("model", "?"))
+
+
 def format_status(s: dict) -> str:
     lat = s.get("lateness_us") or {}
     comp = s.get("compute_us") or {}
@@ -112,6 +123,7 @@ def format_status(s: dict) -> str:
     lines = [
         f"server       {s.get('url', '?')}  {s.get('tool_kind', '?')} tool on a {s.get('device_kind', '?')} device  "
         f"(config {s.get('config_source', '?')})",
+        *([f"device       {_device_line(s['device_info'])}"] if s.get("device_info") else []),
         f"state        {s.get('loop_state')}  (fault: {_fault_name(s.get('fault', 0))}, device fault: "
         f"{_device_fault_name(s.get('device_fault', 0))}; stall trips {s.get('stall_trips', 0)}, "
         f"recovered {s.get('stall_recoveries', 0)})",

@@ -174,7 +174,18 @@ class RemoteHarness(Harness):
             self.driver.close()
 
 
-_BUILTIN = {"sim": SimHarness, "remote": RemoteHarness}
+def _emulated(cls_name: str) -> Callable[..., Harness]:
+    """A vendor driver's harness on its emulator (``testing/emulators/harness.py``, which builds on
+    this module: named, not imported, here)."""
+    def make(kind: str = "spatial", period_s: float = PERIOD_S) -> Harness:
+        import importlib
+
+        return getattr(importlib.import_module("hapticproxy.testing.emulators.harness"), cls_name)(kind, period_s)
+    return make
+
+
+_BUILTIN = {"sim": SimHarness, "remote": RemoteHarness, "forcedimension": _emulated("ForceDimensionHarness"),
+            "haply": _emulated("HaplyHarness"), "touch": _emulated("TouchHarness")}
 
 
 def harness_for(name: str, kind: str = "planar", period_s: float = PERIOD_S) -> Callable[[], Harness]:

@@ -372,8 +372,8 @@ def test_a_device_of_another_package_is_built_and_configured_by_name(plugins):
         dev.close()
     settings = cfgmod.load(None, {"device": {"driver": "labdev", "kind": "planar"}})
     assert settings["device"]["driver"] == "labdev"
-    with pytest.raises(cfgmod.ConfigError, match="device.driver: unknown device 'nosuch'; choose one of: remote, sim, "
-                                                  "labdev"):
+    with pytest.raises(cfgmod.ConfigError, match="device.driver: unknown device 'nosuch'; choose one of: "
+                                                  "forcedimension, haply, remote, sim, touch, labdev"):
         cfgmod.load(None, {"device": {"driver": "nosuch"}})
 
 

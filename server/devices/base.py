@@ -36,7 +36,8 @@ Safety contract every driver keeps (the loop relies on it):
 from __future__ import annotations
 
 import abc
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -84,6 +85,140 @@ class DeviceLimits:
     workspace_max_m: tuple = (0.2, 0.2, 0.2)
     #: The driver's own watchdog (0 = none): no ``write`` for this long -> zero output, latched.
     watchdog_s: float = 0.05
+    #: cap on the norm of the commanded force [N] (a device's motors saturate together: a
+    #: per-axis cap alone lets a diagonal command reach sqrt(3) times it); inf: per axis only
+    max_force_norm_n: float = math.inf
+    #: cap on the norm of the commanded torque [N m]
+    max_torque_norm_n_m: float = math.inf
+
+
+#: who runs the haptic clock: the loop (a polled device: read/write when the loop wakes) or the
+#: device (its SDK runs the servo thread and hands the loop its samples)
+CLOCK_OWNERS = ("loop", "device")
+#: what a device can sense or render, in the order of a wrench: position (force), rotation
+#: (torque), gripper (gripper force)
+DOF_PARTS = ("position", "rotation", "gripper")
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    """What a device is (CHAI3D's ``cHapticDeviceInfo``, plus what the loop needs to know).
+
+    Figures a vendor does not state are ``None`` (never a guess); ``source`` says where the
+    figures come from (the device's own queries, a vendor table, the config). ``sensed`` and
+    ``actuated`` name the parts of :data:`DOF_PARTS` the device measures and renders: a Touch
+    senses position and rotation (6 DOF) and renders position only (3), so its
+    :attr:`wrench_mask` has no torque and :func:`DeviceLimits` derived from it cap torque at 0.
+    """
+
+    model: str
+    vendor: str
+    driver: str
+    serial: str = ""
+    sensed: tuple = ("position",)
+    actuated: tuple = ("position",)
+    #: continuous (rated) force at the handle [N]; what the caps never exceed
+    max_force_n: float = 0.0
+    #: peak force [N] (None: not stated)
+    peak_force_n: float | None = None
+    max_torque_n_m: float = 0.0
+    max_gripper_force_n: float = 0.0
+    #: the stiffest spring the device renders stably at its native rate [N/m] (None: not stated)
+    max_stiffness_n_per_m: float | None = None
+    max_damping_n_s_per_m: float | None = None
+    max_rot_stiffness_n_m_per_rad: float | None = None
+    max_rot_damping_n_m_s_per_rad: float | None = None
+    #: radius of the sphere the handle reaches [m]
+    workspace_radius_m: float | None = None
+    workspace_min_m: tuple = (-0.1, -0.1, -0.1)
+    workspace_max_m: tuple = (0.1, 0.1, 0.1)
+    #: the rate the device's own loop runs at [Hz] (None: polled, as fast as it is asked)
+    native_rate_hz: float | None = None
+    gripper: bool = False
+    buttons: int = 0
+    #: "not needed", "needed" (the device must be calibrated before use), "done"
+    calibration: str = "not needed"
+    #: "loop" or "device" (:data:`CLOCK_OWNERS`)
+    clock: str = "loop"
+    #: the units the SDK speaks (the driver converts to m, N, rad)
+    sdk_units: str = "m, N"
+    #: handedness ("right", "left", "" when both or not stated)
+    hand: str = ""
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        if self.clock not in CLOCK_OWNERS:
+            raise ValueError(f"clock: expected one of {CLOCK_OWNERS}, got {self.clock!r}")
+        for name in ("sensed", "actuated"):
+            bad = [p for p in getattr(self, name) if p not in DOF_PARTS]
+            if bad:
+                raise ValueError(f"{name}: unknown parts {bad} (known: {DOF_PARTS})")
+
+    @staticmethod
+    def _dof(parts) -> int:
+        return 3 * ("position" in parts) + 3 * ("rotation" in parts) + ("gripper" in parts)
+
+    @property
+    def dof_sensed(self) -> int:
+        return self._dof(self.sensed)
+
+    @property
+    def dof_actuated(self) -> int:
+        return self._dof(self.actuated)
+
+    @property
+    def wrench_mask(self) -> tuple:
+        """Which of fx fy fz tx ty tz the device renders (1) or ignores (0)."""
+        f = int("position" in self.actuated)
+        t = int("rotation" in self.actuated)
+        return (f, f, f, t, t, t)
+
+    def limits(self, *, max_speed_m_per_s: float = 2.0, max_angular_speed_rad_per_s: float = 20.0,
+               watchdog_s: float = 0.0, max_force_n: float | None = None) -> DeviceLimits:
+        """The safety layer's view: caps at the continuous force (per axis and on the norm; a
+        lower ``max_force_n`` from the config wins), torque 0 where rotation is not actuated."""
+        f = self.max_force_n if max_force_n is None else min(max_force_n, self.max_force_n)
+        t = self.max_torque_n_m if "rotation" in self.actuated else 0.0
+        return DeviceLimits(max_force_n=f, max_torque_n_m=t, max_speed_m_per_s=max_speed_m_per_s,
+                            max_angular_speed_rad_per_s=max_angular_speed_rad_per_s,
+                            workspace_min_m=tuple(self.workspace_min_m), workspace_max_m=tuple(self.workspace_max_m),
+                            watchdog_s=watchdog_s, max_force_norm_n=f, max_torque_norm_n_m=t)
+
+    def as_dict(self) -> dict:
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d.update(dof_sensed=self.dof_sensed, dof_actuated=self.dof_actuated, wrench_mask=list(self.wrench_mask))
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
+
+    def summary(self) -> str:
+        """One line: model, serial, DOF, force, clock (``status`` and ``plugins`` show it)."""
+        serial = f" #{self.serial}" if self.serial else ""
+        parts = [f"{self.vendor} {self.model}{serial}".strip(),
+                 f"{self.dof_sensed} DOF sensed / {self.dof_actuated} rendered",
+                 f"{self.max_force_n:g} N" + (f" (peak {self.peak_force_n:g})" if self.peak_force_n else "")]
+        if self.max_torque_n_m and "rotation" in self.actuated:
+            parts.append(f"{self.max_torque_n_m:g} N m")
+        if self.max_stiffness_n_per_m:
+            parts.append(f"<= {self.max_stiffness_n_per_m:g} N/m")
+        if self.native_rate_hz:
+            parts.append(f"{self.native_rate_hz:g} Hz native")
+        if self.gripper:
+            parts.append("gripper")
+        if self.buttons:
+            parts.append(f"{self.buttons} buttons")
+        if self.calibration != "not needed":
+            parts.append(f"calibration {self.calibration}")
+        parts.append(f"clock: {self.clock}")
+        return ", ".join(parts)
+
+
+def info_from_limits(kind: str, limits: DeviceLimits, *, model: str, vendor: str, driver: str,
+                     source: str = "config", clock: str = "loop") -> DeviceInfo:
+    """The info of a device known only by its kind and limits (a simulated or remote one)."""
+    sensed = {"1dof": ("position",), "planar": ("position", "rotation"), "spatial": ("position", "rotation")}[kind]
+    return DeviceInfo(model=model, vendor=vendor, driver=driver, sensed=sensed, actuated=sensed,
+                      max_force_n=limits.max_force_n, max_torque_n_m=limits.max_torque_n_m,
+                      workspace_min_m=tuple(limits.workspace_min_m), workspace_max_m=tuple(limits.workspace_max_m),
+                      clock=clock, source=source)
 
 
 class DeviceDriver(abc.ABC):
@@ -97,6 +232,13 @@ class DeviceDriver(abc.ABC):
     @property
     @abc.abstractmethod
     def limits(self) -> DeviceLimits: ...
+
+    @property
+    def info(self) -> DeviceInfo:
+        """What the device is (:class:`DeviceInfo`). A driver that does not declare it is
+        described by its kind and limits."""
+        return info_from_limits(self.kind, self.limits, model=self.kind, vendor="", driver=self.name,
+                                source="kind and limits")
 
     @abc.abstractmethod
     def enable(self) -> None:
@@ -139,6 +281,9 @@ DEVICE_GROUP = "hapticproxy.devices"
 DEVICES = {
     "sim": "hapticproxy.server.devices.sim:make_sim_device",
     "remote": "hapticproxy.server.devices.remote:make_remote_device",
+    "forcedimension": "hapticproxy.server.devices.forcedimension:make_forcedimension_device",
+    "haply": "hapticproxy.server.devices.haply:make_haply_device",
+    "touch": "hapticproxy.server.devices.touch:make_touch_device",
 }
 
 

@@ -69,7 +69,7 @@ from . import sim as _sim
 from .base import (
     DEV_FAULT_DISABLED, DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_NAMES,
     DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_NSTATE, DEV_OK, DEVICE_KINDS, DS_HAND, DS_POSE,
-    DS_TIME, DS_TWIST, DeviceDriver, DeviceLimits,
+    DS_TIME, DS_TWIST, DeviceDriver, DeviceInfo, DeviceLimits, info_from_limits,
 )
 from .layout import KIND_IDS
 
@@ -225,6 +225,13 @@ class RemoteDevice(DeviceDriver, _LinkEnd):
 
     # -- DeviceDriver ------------------------------------------------------------------------
     limits = ReadOnly[DeviceLimits]("_limits", doc="The device's limits (as configured).")
+
+    @property
+    def info(self) -> DeviceInfo:
+        """The device program's figures are not sent over the link: the config's. Each side runs
+        its own tick; the server driver is polled by the loop (the loop's clock paces commands)."""
+        return info_from_limits(self.kind, self._limits, model=f"remote {self.kind}", vendor="",
+                                driver=self.name, source="config (the link carries no device figures)")
     enabled = ReadOnly[bool]("_enabled", doc="Armed by ``enable`` (the device re-arms on the next command).")
     fault = ReadOnly[int]("_fault", doc="Latched ``DEV_FAULT_*`` code (``DEV_OK`` if none).")
 
@@ -789,3 +796,6 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+#: for `hapticproxy plugins` and `hapticproxy devices`
+make_remote_device.about = {"clock": "loop", "models": ["a device program over the remote-device link"]}

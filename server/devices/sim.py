@@ -89,7 +89,7 @@ from . import _check as ck
 from . import dynamics as _dyn
 from . import hands as _hands
 from .base import (
-    DEV_FAULT_NAMES, DEV_NSTATE, DEV_OK, DEVICE_KINDS, DeviceDriver, DeviceLimits,
+    DEV_FAULT_NAMES, DEV_NSTATE, DEV_OK, DEVICE_KINDS, DeviceDriver, DeviceInfo, DeviceLimits, info_from_limits,
 )
 from .layout import (
     C_ENABLED, C_FAULT, C_LAST_NS, C_WD_NS, COUNTER_NAMES, KIND_IDS, NCNT, NCTL, NHO, NPAR, NST,
@@ -421,6 +421,13 @@ class SimDevice(DeviceDriver):
     def limits(self) -> DeviceLimits:
         return self.spec.limits
 
+    @property
+    def info(self) -> DeviceInfo:
+        """A simulated device: its figures are its config's; it advances inside ``write``, so
+        the loop owns the clock."""
+        return info_from_limits(self.kind, self.spec.limits, model=f"simulated {self.kind}", vendor="hapticproxy",
+                                driver=self.name, source="config")
+
     def enable(self) -> None:
         """Arm the output; clears a latched fault (a simulated device's causes are all gone)."""
         self._ctl[C_FAULT] = DEV_OK
@@ -599,3 +606,6 @@ def warm_up() -> None:
         _dyn.sim_read(st, ctl, cnt, out, 0)
         _dyn.qexp(0.0, 0.0, 0.0)
     _WARM = True
+
+#: for `hapticproxy plugins` and `hapticproxy devices`
+make_sim_device.about = {"clock": "loop", "models": ["simulated 1dof / planar / spatial"]}
