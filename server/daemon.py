@@ -320,6 +320,8 @@ class Supervisor:
         self.ring_rows = rows
         self.shared = SharedState.create(rows)
         self.record = record or settings["telemetry"]["record"]
+        #: what named the recording's path, for a message about it
+        self.record_source = "--record" if record else "telemetry.record"
         self.live_address = live
         self._stop_requested = False
         self._trans_seq = 0
@@ -345,6 +347,9 @@ class Supervisor:
         status meanwhile). ``False`` when a stop was requested during start-up (the loop process
         is stopped then, cleanly); :class:`StartupError` (one line, naming the address or what
         failed) when the server cannot start."""
+        if self._stop_requested:  # a Ctrl-C before anything started: nothing to stop
+            log.info("stopped during start-up")
+            return False
         address = self.settings["status"]["address"]
         host, _, port = address.rpartition(":")
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -354,7 +359,9 @@ class Supervisor:
             raise address_error("status.address", address, exc) from None
         self.sock.setblocking(False)
         if self.record:
-            _check_writable(self.record, "--record")
+            why = _check_writable(self.record, self.record_source, raise_=False)
+            if why:  # the command line or the config must change
+                raise StartupError(why, 2)
             from . import recording  # noqa: F401 - imported now, so the recording starts with the loop
         ctx = mp.get_context("spawn")
         reports, report = ctx.Pipe(duplex=False)
@@ -664,6 +671,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="print every key in effect (the device's and the hand's too) as TOML and exit")
     p.add_argument("-q", "--quiet", action="count", default=0, help="fewer log lines (warnings and errors only)")
     args = p.parse_args(argv)
+    # The command line's own SIGINT handler (``hapticproxy.cli.EarlyInterrupt``) records a Ctrl-C
+    # that came while Python imported the server; it stays in place until the supervisor's own
+    # handler replaces it below, which then honours what it recorded.
+    early = signal.getsignal(signal.SIGINT)
     from ..protocol import logs
 
     logs.configure(logging.INFO, quiet=args.quiet)
@@ -706,6 +717,8 @@ def main(argv: list[str] | None = None) -> int:
 
         for sig in signals:
             signal.signal(sig, on_signal)
+        if getattr(early, "pending", False):  # Ctrl-C while starting: stop before the loop runs
+            sup.request_stop()
     finally:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, signals)
     try:
