@@ -61,6 +61,7 @@ COMMANDS: dict[str, Command] = {
     "experiment": Command("hapticproxy.experiments.cli", "reproduce the paper's figures; the speed/accuracy trade-off"),
     "bench": Command("", "benchmarks that print figures (" + ", ".join(BENCH_TARGETS) + ")", BENCH_TARGETS),
     "plugins": Command("hapticproxy.cli.plugins", "list the engines, device drivers and transports (built-in and installed)"),
+    "view": Command("hapticproxy.cli.view", "the 3-D view of a running server or a recording (rerun's viewer, served here)"),
     "warmup": Command("hapticproxy.cli.warmup", "compile every numba kernel now (set-up does it; later runs load them)"),
 }
 

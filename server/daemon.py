@@ -633,6 +633,9 @@ class Supervisor:
 
         snap["device_fault_name"] = DEV_FAULT_NAMES.get(snap["device_fault"], str(snap["device_fault"]))
         snap["last_transition"] = self._last_transition
+        shape = self.tool_shape
+        snap["tool_shape"] = [[list(c), list(q), list(s)] for c, q, s in shape.boxes] if shape else None
+        snap["tool_shape_source"] = shape.source if shape else None
         row = self.shared.latest_row()
         if row is not None:
             snap["latest"] = {"t_s": float(row["t_s"]), "device_pose": row["dev"][:7].tolist(),
@@ -643,10 +646,12 @@ class Supervisor:
             snap["latest"] = None
         c = self._last_contacts
         if c is not None:
-            hdr, _key, _pos, _nrm, sep = c
+            hdr, _key, pos, nrm, sep = c
             snap["last_update"] = {"t_s": float(hdr["t_s"]), "count": int(hdr["count"]),
                                    "min_separation_m": float(sep.min()) if len(sep) else None,
-                                   "penetration_m": max(0.0, -float(sep.min())) if len(sep) else 0.0}
+                                   "penetration_m": max(0.0, -float(sep.min())) if len(sep) else 0.0,
+                                   # the contacts themselves, for a 3-D view (`hapticproxy view`)
+                                   "position_m": pos.tolist(), "normal": nrm.tolist(), "separation_m": sep.tolist()}
         else:
             snap["last_update"] = None
         return snap

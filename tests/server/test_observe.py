@@ -175,6 +175,40 @@ def test_watch_shows_state_pose_force_contacts_and_reason():
     assert misses >= 1  # a missed poll is shown, not fatal
 
 
+def test_watch_dims_every_panel_while_the_server_does_not_answer():
+    """Papercut 8: the server goes away; every panel (not just the header) is dimmed and says how
+    old its values are; when it answers again they are live again."""
+    import asyncio
+
+    from hapticproxy.server.watch import WatchApp
+
+    up = {"on": True}
+
+    def fetch():
+        if not up["on"]:
+            raise TimeoutError("no server answering on 127.0.0.1:9871")
+        return {"loop_state": "stopping", "gain": 0.4, "latest": None}
+
+    async def go():
+        app = WatchApp(fetch, interval_s=0.05)
+        seen = {}
+        async with app.run_test(size=(120, 40)) as pilot:
+            await pilot.pause(0.2)
+            seen["live"] = [app.query_one(f"#{w}").has_class("stale") for w, _ in app.PANELS]
+            up["on"] = False
+            await pilot.pause(0.2)
+            seen["gone"] = [app.query_one(f"#{w}").has_class("stale") for w, _ in app.PANELS]
+            seen["titles"] = [str(app.query_one(f"#{w}").border_title) for w, _ in app.PANELS]
+            up["on"] = True
+            await pilot.pause(0.2)
+            seen["back"] = [app.query_one(f"#{w}").has_class("stale") for w, _ in app.PANELS]
+        return seen
+
+    seen = asyncio.run(go())
+    assert seen["live"] == [False] * 5 and seen["gone"] == [True] * 5 and seen["back"] == [False] * 5
+    assert all("stale: last answer" in t for t in seen["titles"]), seen["titles"]
+
+
 def test_watch_against_a_real_server(rig):
     import asyncio
 
