@@ -176,3 +176,27 @@ def test_the_client_prints_the_session_id_as_the_server_does_and_asks_for_the_se
     assert re.match(r"session \d+ with", opened) and "0x" not in opened
     if sid is not None:
         assert opened.startswith(f"session {sid} with")
+
+
+def test_a_client_of_the_wrong_tool_kind_is_logged_by_the_server(caplog):
+    """Papercut 14: the refusal the client prints is also a line in the server's log, with the
+    reason; a flood of refused Hellos is one line a second, the rest counted."""
+    import logging
+
+    from hapticproxy.protocol.codec import Codec, Hello
+    from hapticproxy.protocol.messages import ToolKind
+    from hapticproxy.protocol.session import ServerConfig, ServerEndpoint
+
+    sent = []
+    ep = ServerEndpoint(lambda data, peer: sent.append(data), ServerConfig(supported_tools=frozenset({ToolKind.SPATIAL})))
+    codec = Codec()
+    with caplog.at_level(logging.WARNING, logger="hapticproxy.loop"):
+        for nonce in range(1, 6):
+            hello = Hello(client_nonce=nonce, tool_kind=ToolKind.PLANAR, mass_kg=1.0, max_contacts=16,
+                          inertia_kg_m2=(0.0, 0.0, 1e-3, 0.0, 0.0, 0.0))
+            ep.receive(codec.encode(hello), ("127.0.0.1", 40000 + nonce), 10**9)
+    lines = [r.getMessage() for r in caplog.records if r.name == "hapticproxy.loop"]
+    assert len(sent) == 5 and ep.counters.rejects_sent == 5
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("refused a client at ('127.0.0.1', 40001): UNSUPPORTED_TOOL: tool kind planar not "
+                               "supported by this server (it simulates spatial)")
