@@ -3,6 +3,8 @@
 #   sh run.sh demo        -> .venv/bin/hapticproxy demo
 #   sh run.sh test [ARGS] -> the test suite (pytest ARGS)
 #   sh run.sh <any hapticproxy subcommand ...>
+#   sh run.sh --server-only JOB  -> the server alone (requirements-server.lock: no engines, GUI, plots,
+#                                   viewer or test tools; what deploy/ installs), then JOB
 set -eu
 cd "$(dirname "$0")"
 ROOT=$(pwd)
@@ -13,15 +15,20 @@ fi
 "$PY" -c 'import sys; sys.exit(0 if sys.version_info[:2] == (3, 11) else 1)' || {
   echo "run.sh: Python 3.11 is required (found: $("$PY" --version 2>&1))" >&2; exit 2; }
 
+LOCK=requirements.lock
+if [ "${1:-}" = "--server-only" ]; then
+  LOCK=requirements-server.lock
+  shift
+fi
 VENV="$ROOT/.venv"
 STAMP="$VENV/.hapticproxy-installed"
-WANT=$(cat requirements.lock pyproject.toml | cksum | cut -d' ' -f1)
+WANT="$LOCK $(cat "$LOCK" pyproject.toml | cksum | cut -d' ' -f1)"
 if [ ! -x "$VENV/bin/python" ]; then
   "$PY" -m venv "$VENV"
 fi
 if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
   echo "run.sh: installing pinned dependencies into .venv/ (log: .venv/install.log) ..." >&2
-  if ! { "$VENV/bin/python" -m pip install --disable-pip-version-check -r requirements.lock &&
+  if ! { "$VENV/bin/python" -m pip install --disable-pip-version-check -r "$LOCK" &&
          "$VENV/bin/python" -m pip install --disable-pip-version-check --no-deps --no-build-isolation -e .; \
        } >"$VENV/install.log" 2>&1; then
     tail -n 30 "$VENV/install.log" >&2

@@ -33,6 +33,7 @@ import time
 
 import numpy as np
 
+from ..protocol.logs import doc_summary
 from ..protocol.jsonout import print_json
 
 PUSH_M = 0.15
@@ -143,7 +144,7 @@ def sustained(cls, scene: str, url: str, *, seconds: float, epsilon_m: float, ma
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="hapticproxy bench clients", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="hapticproxy bench clients", description=doc_summary(__doc__))
     parser.add_argument("--json", action="store_true", help="print a JSON list of rows")
     parser.add_argument("--engines", default=None, help="comma-separated engine names (default: all that import)")
     parser.add_argument("--scenes", default=None, help="comma-separated scene names (default: each engine's all)")

@@ -19,6 +19,7 @@ import time
 import msgpack
 import numpy as np
 
+from ..protocol.logs import doc_summary
 from ..protocol.codec import Codec, ProtocolError, ProxyState
 from ..protocol.jsonout import print_json
 
@@ -145,7 +146,7 @@ def run(batch: int = 500, repeats: int = 41) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="hapticproxy bench codec", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="hapticproxy bench codec", description=doc_summary(__doc__))
     parser.add_argument("--json", action="store_true", help="print the rows as a JSON list")
     parser.add_argument("--batch", type=int, default=500, help="calls per timed batch (default 500)")
     parser.add_argument("--repeats", type=int, default=41, help="timed batches per figure (default 41)")

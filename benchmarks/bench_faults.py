@@ -70,6 +70,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..protocol.logs import doc_summary
 from ..testing.impair import Decision, GilbertElliott, Impairment, ImpairingRelay
 from ..protocol.jsonout import print_json
 
@@ -744,7 +745,7 @@ COLUMNS = ("case", "max_force_n", "max_force_step_n", "force_cap_n", "rate_limit
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="hapticproxy bench faults", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="hapticproxy bench faults", description=doc_summary(__doc__))
     ap.add_argument("--json", action="store_true", help="one JSON object per line (default: a table, then JSON)")
     ap.add_argument("--engine", choices=("pymunk", "stub"), default="pymunk", help="testbed client engine")
     ap.add_argument("--cases", default="", help="comma-separated substrings of case names to run (default: all)")

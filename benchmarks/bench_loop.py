@@ -31,6 +31,7 @@ import time
 
 import numpy as np
 
+from ..protocol.logs import doc_summary
 from ..protocol.codec import Hello
 from ..protocol.messages import ToolKind
 from ..protocol.session import ClientEndpoint
@@ -175,7 +176,7 @@ def run(rate_hz: float, seconds: float, naive_seconds: float) -> dict:
 def main(argv: list[str] | None = None) -> int:
     from . import update_steps
 
-    ap = argparse.ArgumentParser(prog="hapticproxy bench loop", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="hapticproxy bench loop", description=doc_summary(__doc__))
     ap.add_argument("--json", action="store_true", help="print one JSON object (default: a summary and a table)")
     ap.add_argument("--rate", type=float, default=1000.0, help="haptic rate [Hz] (default 1000)")
     ap.add_argument("--seconds", type=float, default=60.0, help="measured seconds of the real loop (default 60)")

@@ -27,6 +27,7 @@ import time
 
 import numpy as np
 
+from ..protocol.logs import doc_summary
 from ..server.model import ContactParams, LinkSpec, LocalModel, ToolSpec
 from ..server.model.reference import LinkageReference, reference_step
 from ..protocol.jsonout import print_json
@@ -162,7 +163,7 @@ def warm_start_s() -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="hapticproxy bench model", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="hapticproxy bench model", description=doc_summary(__doc__))
     parser.add_argument("--json", action="store_true", help="print a JSON list of rows")
     parser.add_argument("--steps", type=int, default=20000, help="numba steps per row (default 20000)")
     parser.add_argument("--numpy-steps", type=int, default=400, help="numpy steps per row (default 400)")
@@ -170,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--contacts", default=None,
                         help=f"comma-separated contact counts (default {','.join(map(str, CONTACTS))}; "
                              f"linkages {','.join(map(str, LINKAGE_CONTACTS))})")
-    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=1, help="seed of the random contact sets (default 1)")
     args = parser.parse_args(argv)
     tools = [t for t in args.tools.split(",") if t]
     bad = [t for t in tools if t not in TOOLS]

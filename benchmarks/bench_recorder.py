@@ -24,6 +24,7 @@ import time
 
 import numpy as np
 
+from ..protocol.logs import doc_summary
 from .bench_loop import floor_client, free_port
 from ..protocol.codec import Hello
 from ..protocol.messages import ToolKind
@@ -139,7 +140,7 @@ def run(rate_hz: float, seconds: float, phases: int, n_contacts: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="hapticproxy bench recorder", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="hapticproxy bench recorder", description=doc_summary(__doc__))
     p.add_argument("--rate", type=float, default=4000.0, help="haptic rate [Hz] (default 4000)")
     p.add_argument("--seconds", type=float, default=10.0, help="seconds per window (default 10)")
     p.add_argument("--phases", type=int, default=2, help="pairs of windows without / with recording (default 2)")

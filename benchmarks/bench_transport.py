@@ -41,6 +41,7 @@ import statistics
 import sys
 import time
 
+from ..protocol.logs import doc_summary
 from ..protocol.transport import open_transport
 from ..protocol.jsonout import print_json
 
@@ -283,7 +284,7 @@ DEFAULT_IO_THREADS = {"zenoh": "float", "zenoh-lowlatency": "other"}
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="hapticproxy bench transport", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="hapticproxy bench transport", description=doc_summary(__doc__))
     parser.add_argument("--json", action="store_true", help="print a JSON list of rows")
     parser.add_argument(
         "--transports", default=",".join(VARIANTS), help=f"comma-separated, from: {', '.join(VARIANTS)}"
@@ -291,7 +292,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--exchanges", type=int, default=5000, help="measured round trips per row")
     parser.add_argument("--warmup", type=int, default=500, help="round trips run before measuring")
     parser.add_argument("--rate-hz", type=float, default=1000.0, help="paced send rate")
-    parser.add_argument("--schedule", choices=("both", "paced", "back-to-back"), default="both")
+    parser.add_argument("--schedule", choices=("both", "paced", "back-to-back"), default="both",
+                        help="paced at the haptic rate, back-to-back, or both (default)")
     parser.add_argument("--timeout-ms", type=float, default=100.0, help="an ack later than this counts as lost")
     parser.add_argument(
         "--idle-every",

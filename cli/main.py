@@ -63,6 +63,7 @@ COMMANDS: dict[str, Command] = {
     "bench": Command("", "benchmarks that print figures (" + ", ".join(BENCH_TARGETS) + ")", BENCH_TARGETS),
     "devices": Command("hapticproxy.cli.devices", "list the haptic devices connected (driver, model, serial) and the drivers that find none"),
     "plugins": Command("hapticproxy.cli.plugins", "list the engines, device drivers and transports (built-in and installed)"),
+    "view": Command("hapticproxy.cli.view", "the 3-D view of a running server or a recording (rerun's viewer, served here)"),
     "warmup": Command("hapticproxy.cli.warmup", "compile every numba kernel now (set-up does it; later runs load them)"),
 }
 
@@ -90,9 +91,10 @@ class GlobalOptions:
 
 
 def split_global(argv: list[str]) -> tuple[GlobalOptions, str | None, list[str]]:
-    """(global options, command, the command's own arguments). ``-v``/``-vv``/``--verbose`` and
-    ``--log-level LEVEL`` are taken wherever they stand (no command has options of those
-    names), up to a ``--``; ``--version`` and ``-h`` only before the command."""
+    """(global options, command, the command's own arguments). ``-v``/``-vv``/``--verbose``,
+    ``--log-level LEVEL`` and ``--version`` are taken wherever they stand (no command has options
+    of those names), up to a ``--``; ``-h`` only before the command (after it, it is the
+    command's own help)."""
     g = GlobalOptions()
     command = None
     rest: list[str] = []
@@ -117,7 +119,7 @@ def split_global(argv: list[str]) -> tuple[GlobalOptions, str | None, list[str]]
             except ValueError as exc:
                 raise _UsageError(str(exc)) from None
             g.log_level = value
-        elif command is None and a == "--version":
+        elif a == "--version":
             g.version = True
         elif command is None and a in ("-h", "--help"):
             g.help = True
@@ -181,6 +183,21 @@ def _quiet_stdout() -> None:
         pass
 
 
+def _take_sigint() -> bool:
+    """Give SIGINT back to Python's default (a ``KeyboardInterrupt``) for a command that stops on
+    it; False when a Ctrl-C came while the command line was starting (``cli.EarlyInterrupt``).
+    ``serve`` keeps the recording handler until its supervisor installs its own, which reads it."""
+    import signal
+
+    from . import EarlyInterrupt
+
+    early = signal.getsignal(signal.SIGINT)
+    if not isinstance(early, EarlyInterrupt):
+        return True
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    return not early.pending
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
@@ -198,6 +215,9 @@ def main(argv: list[str] | None = None) -> int:
         _parser().print_usage(sys.stderr)
         print(f"{PROG}: a command is required (hapticproxy --help lists them)", file=sys.stderr)
         return 2
+    if command != "serve" and not _take_sigint():
+        print(f"{PROG} {command}: interrupted", file=sys.stderr)
+        return 130
     saved = {k: os.environ.get(k) for k in (ENV_LEVEL, ENV_VERBOSE)}
     if g.log_level is not None:
         os.environ[ENV_LEVEL] = g.log_level  # children (the loop process) inherit it

@@ -8,6 +8,7 @@ import logging
 import sys
 import time
 
+from ..protocol.logs import doc_summary
 from ..protocol import logs
 from ..server import config as cfgmod
 from ..server.loop import HapticLoop
@@ -51,7 +52,7 @@ def warm_clients() -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="hapticproxy warmup", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="hapticproxy warmup", description=doc_summary(__doc__))
     p.add_argument("-q", "--quiet", action="store_true", help="print nothing when every kernel is cached")
     args = p.parse_args(argv)
     logs.configure(logging.INFO)

@@ -64,13 +64,16 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--transport", choices=("udp", "zenoh"), default="udp",
                    help="transport for a --connect given as HOST:PORT (default udp)")
     p.add_argument("--epsilon", type=float, default=0.005, help="epsilon of active geometry to request [m] (default 0.005)")
-    p.add_argument("--max-contacts", type=int, default=16, help="contact capacity to request (default 16)")
+    p.add_argument("--max-contacts", type=int, default=None,
+                   help="contact capacity to request (default: the protocol's most, so the server's capacity "
+                        "decides: 16 for the fast preset, 32 balanced, 64 accurate)")
     p.add_argument("--rate", type=float, default=None, help="fixed engine step rate [Hz] (engines with a fixed rate)")
     p.add_argument("--seed", type=int, default=None, help="random seed (stub: its variable step rate)")
     p.add_argument("--gui", action="store_true", help="live window (pymunk: pygame, pip install 'hapticproxy[gui]'; pybullet: its own)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: run until Ctrl-C)")
     p.add_argument("--connect-timeout", type=float, default=10.0,
-                   help="give up if no session opens within this many seconds (default 10)")
+                   help="give up if no first session opens within this many seconds (default 10); after a "
+                        "session ended the client keeps reconnecting and says so every this many seconds")
     p.add_argument("--no-reconnect", action="store_true", help="stop when the session ends instead of reconnecting")
     p.add_argument("--free-run", action="store_true", help="step back-to-back instead of at the engine's real-time rate")
     p.add_argument("--hmac-key-file", default=None,
@@ -103,12 +106,18 @@ def _engine_kwargs(cls, args) -> dict:
     return kwargs
 
 
+def _most_contacts() -> int:
+    from ..protocol.codec import Limits
+
+    return Limits().max_contacts
+
+
 def _check_numbers(args) -> None:
     if not (math.isfinite(args.epsilon) and args.epsilon >= 0):
         raise ValueError(f"--epsilon: must be a finite number of metres >= 0, got {args.epsilon!r}")
     if args.epsilon >= 1.0:
         raise ValueError(f"--epsilon is in metres: {args.epsilon!r} m is not plausible (5 mm is 0.005)")
-    if args.max_contacts < 1:
+    if args.max_contacts is not None and args.max_contacts < 1:
         raise ValueError(f"--max-contacts: must be >= 1, got {args.max_contacts}")
     for flag, v in (("--rate", args.rate), ("--duration", args.duration), ("--connect-timeout", args.connect_timeout)):
         if v is not None and not (math.isfinite(v) and v > 0):
@@ -213,7 +222,8 @@ def _run(cls, kwargs: dict, url: str, key, args) -> int:
     try:
         try:
             engine = cls(**kwargs)
-            runner = ClientRunner(engine, url, scene=args.scene, epsilon_m=args.epsilon, max_contacts=args.max_contacts,
+            runner = ClientRunner(engine, url, scene=args.scene, epsilon_m=args.epsilon,
+                                  max_contacts=args.max_contacts or _most_contacts(),
                                   hmac_key=key, realtime=not args.free_run, reconnect=not args.no_reconnect,
                                   connect_timeout_s=args.connect_timeout, log=log,
                                   transport_options=_transport_options(url, args.connect_timeout))

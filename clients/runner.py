@@ -41,7 +41,14 @@ What it does, in one thread (its own, or a background thread of another program)
   within ``connect_timeout_s`` of the first connection attempt (``None``: keep trying). The time
   before it (building the engine, loading its scene, opening a GUI, ``Engine.warm_up``'s
   compilation) does not count. After a first session the runner keeps trying for as long as it
-  runs; ``stats()["state"]`` tells a caller what it is doing.
+  runs (a restarting server may compile for minutes); ``stats()["state"]`` tells a caller what it
+  is doing, and the log says it every ``connect_timeout_s`` (10 s without one) until a session
+  opens again ("no session with URL for 20 s (...); still trying").
+- **Its own stalls**: two ContactUpdates further apart than ``STALL_S`` (50 ms: half the
+  server's default watchdog, after which the server fades the force) are the client's own stall
+  (its engine step, its window or the OS kept it from running): counted (``stalls``,
+  ``stall_max_ms``) and logged, the first at once and then at most one line every 5 s with the
+  count since the last one.
 - **Windows**: an engine with a ``window`` (``--gui``) gets ``window.update(runner)`` after every
   step and on every pass without one (the window limits its own frame rate).
 - **Time**: one clock, ``clock_ns`` (default ``time.monotonic_ns``), paces the steps and stamps
@@ -76,6 +83,11 @@ TOOL_KINDS = TOOL_KINDS_BY_NAME
 _RTT_RING = 4096
 #: a realtime loop this far behind its schedule restarts the schedule instead of catching up
 _RESYNC_NS = 250_000_000
+#: a gap between two ContactUpdates of one session longer than this is the client's own stall [s]
+STALL_S = 0.05
+_STALL_REPORT_NS = 5 * 1_000_000_000
+#: how often a client without a session after it had one says it is still trying, by default [s]
+_RETRY_REPORT_S = 10.0
 #: server states in which the proxy is rendered: the tool follows it
 _FOLLOW = frozenset((ServerState.ENGAGED, ServerState.UNKNOWN))
 #: the engine's epsilon follows the server's advice when it moves by more than this [m] (a
@@ -200,7 +212,14 @@ class ClientRunner:
             "steps", "updates_sent", "proxy_states", "proxy_applied", "proxy_superseded", "proxy_held", "holds",
             "sessions",
             "sessions_ended", "connect_attempts", "transport_errors", "steps_clustered", "contacts_max",
-            "stale", "duplicate", "hellos_sent", "heartbeats_sent", "send_failures", "server_full"), 0)
+            "stale", "duplicate", "hellos_sent", "heartbeats_sent", "send_failures", "server_full", "stalls"), 0)
+        self._stall_max_ns = 0
+        self._last_send_ns = 0      # the last ContactUpdate of this session (0: none yet)
+        self._stall_report_ns = 0   # when the last stall line was logged
+        self._stalls_unreported = 0
+        self._stall_worst_ns = 0    # the longest stall since the last line
+        self._lost_ns = 0           # when the last session ended (0: in one, or never had one)
+        self._lost_reports = 0      # "still trying" lines since then
         self._contacts_last = 0
         self._rtt_last_s = math.nan
         self._rtt_sum_s = 0.0
@@ -225,7 +244,7 @@ class ClientRunner:
                 epsilon_m=self.epsilon_m, lead_s=self._lead_s,
                 server_state=self.server_state, following=self.following,
                 granted_max_contacts=self.granted_max_contacts,
-                rtt_last_ms=self._rtt_last_s * 1e3,
+                rtt_last_ms=self._rtt_last_s * 1e3, stall_max_ms=self._stall_max_ns * 1e-6,
                 rtt_mean_ms=(self._rtt_sum_s / self._rtt_n * 1e3) if self._rtt_n else math.nan)
         return out
 
@@ -317,6 +336,8 @@ class ClientRunner:
         if not self._ever_connected and self._connect_deadline is not None and now >= self._connect_deadline:
             why = f" ({self._last_open_error})" if self._last_open_error else " (is the server running?)"
             raise ClientError(f"no session with {self.url} within {self.connect_timeout_s:g} s{why}")
+        if self._lost_ns:
+            self._report_retrying(now)
         ep = self.endpoint
         if ep is None:
             if now < self._next_attempt:
@@ -461,10 +482,13 @@ class ClientRunner:
             self.contacts = ContactBuffer(w.max_contacts)
         self._counts["sessions"] += 1
         self._ever_connected = True
+        self._lost_ns = self._lost_reports = 0
+        self._last_send_ns = 0
         self.following = True  # until a ProxyState says otherwise
         self._state = "established"
         if self._log:
-            self._log(f"session {ep.session_id:#010x} with {w.server_name!r} at {self.url}: epsilon "
+            # the session id in decimal, as the server's log and `hapticproxy status` print it
+            self._log(f"session {ep.session_id} with {w.server_name!r} at {self.url}: epsilon "
                       f"{w.epsilon_m * 1e3:g} mm, max {w.max_contacts} contacts, haptic {w.haptic_rate_hz:g} Hz")
 
     def _tick(self) -> float:
@@ -489,6 +513,9 @@ class ClientRunner:
         if seq:
             c["updates_sent"] += 1
             self._sent_ns[seq % _RTT_RING] = now
+            if self._last_send_ns and now - self._last_send_ns > STALL_S * _NS:
+                self._on_stall(now, now - self._last_send_ns)
+            self._last_send_ns = now
         self._contacts_last = n
         if n > c["contacts_max"]:
             c["contacts_max"] = n
@@ -509,10 +536,45 @@ class ClientRunner:
             self._end_reason = f"server silent for {ep.welcome.silence_timeout_s:g} s"
         if not handshake_failed:
             self._counts["sessions_ended"] += 1
+            self._lost_ns = self._clock()
+            self._lost_reports = 0
             if self._log:
                 self._log(self._end_reason + ("; reconnecting" if self.reconnect else ""))
         self._drop_endpoint()
         self._state = "waiting" if (self.reconnect or handshake_failed) else "stopped"
+
+    def _on_stall(self, now: int, gap_ns: int) -> None:
+        c = self._counts
+        c["stalls"] += 1
+        self._stall_max_ns = max(self._stall_max_ns, gap_ns)
+        self._stalls_unreported += 1
+        self._stall_worst_ns = max(self._stall_worst_ns, gap_ns)
+        if self._stall_report_ns and now - self._stall_report_ns < _STALL_REPORT_NS:
+            return
+        if self._log:
+            n, worst = self._stalls_unreported, self._stall_worst_ns * 1e-6
+            what = (f"client stalled {worst:.0f} ms between two updates" if n == 1 else
+                    f"client stalled {n} times since the last report (longest {worst:.0f} ms)")
+            self._log(f"{what}: its own engine step, window or the OS kept it from running, and the server "
+                      f"fades the force when updates stop for its watchdog (100 ms by default); on a busy "
+                      f"machine run the client at a lower priority than the server (nice -n 10 hapticproxy "
+                      f"client ...), without --gui, or on another machine ({c['stalls']} stalls so far)")
+        self._stall_report_ns = now
+        self._stalls_unreported = 0
+        self._stall_worst_ns = 0
+
+    def _report_retrying(self, now: int) -> None:
+        """After a session ended: a line every ``connect_timeout_s`` (10 s without one) until the
+        next session opens, so a client waiting for a server that is gone says so."""
+        every = self.connect_timeout_s or _RETRY_REPORT_S
+        due = self._lost_ns + int((self._lost_reports + 1) * every * _NS)
+        if now < due:
+            return
+        self._lost_reports += 1
+        if self._log:
+            why = self._last_open_error or self._end_reason
+            self._log(f"no session with {self.url} for {(now - self._lost_ns) / _NS:.0f} s ({why}); still trying "
+                      f"every {self.reconnect_delay_s:g} s (Ctrl-C stops)")
 
     def _drop_endpoint(self) -> None:
         ep, transport = self.endpoint, self.transport

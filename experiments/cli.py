@@ -25,6 +25,7 @@ import json
 import os
 import sys
 import time
+from ..protocol.logs import doc_summary
 
 NAMES = ("fig6", "fig9", "fig14", "fig16", "fig17", "tradeoff", "rates", "fidelity", "literal")
 
@@ -67,7 +68,7 @@ def run_one(name: str, out: str, *, mode: str, quick: bool, log) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="hapticproxy experiment", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="hapticproxy experiment", description=doc_summary(__doc__))
     p.add_argument("name", choices=NAMES + ("all",), help="which experiment")
     p.add_argument("--out", required=True, help="output folder (created)")
     p.add_argument("--quick", action="store_true", help="the short version")

@@ -12,14 +12,16 @@ import argparse
 import os
 import sys
 import time
+from ..protocol.logs import doc_summary
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="hapticproxy demo", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="hapticproxy demo", description=doc_summary(__doc__))
     p.add_argument("--out", default=os.path.join("out", "demo"), help="output folder (default: out/demo)")
     p.add_argument("--seconds", type=float, default=5.0, help="wall-clock seconds of the experiment (default 5)")
     p.add_argument("--rate", type=float, default=512.0, help="haptic rate [Hz] (default: the paper's 512)")
-    p.add_argument("--engine", choices=("pymunk", "stub"), default="pymunk")
+    p.add_argument("--engine", choices=("pymunk", "stub"), default="pymunk",
+                   help="the environment client's engine (default pymunk; stub needs no physics library)")
     args = p.parse_args(argv)
     if not args.seconds >= 2.0:
         print("hapticproxy demo: --seconds must be >= 2", file=sys.stderr)

@@ -96,3 +96,10 @@ def configure(default: int = logging.INFO, *, quiet: int = 0) -> int:
     root.setLevel(others)
     logging.getLogger(_ROOT).setLevel(level)
     return level
+
+
+def doc_summary(doc: str | None) -> str:
+    """A command's ``--help`` description from its module docstring: the first paragraph whole
+    (not its first line, which may stop mid-sentence), reST double backticks dropped."""
+    first = (doc or "").strip().split("\n\n", 1)[0]
+    return " ".join(first.replace("``", "").split())

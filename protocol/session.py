@@ -27,6 +27,7 @@ Environment client, once per simulation step::
 from __future__ import annotations
 
 import hmac
+import logging
 import os
 import secrets
 import time
@@ -49,6 +50,10 @@ from .codec import (
     Welcome,
 )
 from .messages import MAX_ABS_FLOAT, PROTOCOL_MAJOR, PROTOCOL_MINOR, UNIT_TOLERANCE
+
+#: the server's session layer (refusals): in the loop process, whose log lines the supervisor's
+#: terminal shows ("hapticproxy loop: ...")
+_log = logging.getLogger("hapticproxy.loop")
 from .vocab import TOOL_KIND_NAMES, ErrorCode, MessageType, ToolKind
 
 __all__ = [
@@ -460,6 +465,8 @@ class ServerEndpoint:
         self._hb_ns = int(self.config.heartbeat_interval_s * _NS)
         self._timeout_ns = int(self.config.silence_timeout_s * _NS)
         self._rx_len = 0  # length of the datagram being handled (a Reject never exceeds it)
+        self._refusal_logged_s = -1e9  # when a refusal was last logged (monotonic s)
+        self._refusals_unlogged = 0
 
     # -------------------------------------------------------------------------- sending
     def _emit(self, packet: bytes, peer: Peer) -> None:
@@ -656,12 +663,26 @@ class ServerEndpoint:
         if s is not None and err.token == s.token and peer == s.peer:
             self._error(s, now, err.code, err.field, err.detail, err.type_id, err.seq)
 
+    def _log_refusal(self, peer: Peer, code: ErrorCode, reason: str) -> None:
+        """One log line per refused Hello, at most one a second (a flood of Hellos must not become
+        a flood of lines: the ones between are counted in the next line), so the server's operator
+        sees what a client was told (a wrong tool kind, an old version, a full server)."""
+        now = time.monotonic()
+        if now - self._refusal_logged_s < 1.0:
+            self._refusals_unlogged += 1
+            return
+        more = f" ({self._refusals_unlogged} more refused since the last line)" if self._refusals_unlogged else ""
+        _log.warning("refused a client at %s: %s: %s%s", peer, code.name, reason, more)
+        self._refusal_logged_s = now
+        self._refusals_unlogged = 0
+
     def _reject(self, peer: Peer, nonce: int, code: ErrorCode, reason: str) -> None:
         # A Reject is never larger than the datagram it answers (no amplification, even for a
         # truncated Hello): the reason is shortened to fit, and without room for the rest no
         # Reject is sent (counted in errors_suppressed).
         room = self._rx_len
         reason = reason[:120]
+        self._log_refusal(peer, code, reason)
         packet = self.codec.encode(Reject(client_nonce=nonce, code=code, reason=reason))
         if len(packet) > room:
             cut = max(0, len(reason.encode("utf-8")) - (len(packet) - room))

@@ -10,13 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ..protocol.logs import doc_summary
 from .recording import McapRecorder, _nan, is_mcap, read as read_recording
 from .shm import TEL, TEL_DTYPE, TEL_FIELDS, flat_rows
 from .telemetry import read_hpt
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="hapticproxy convert", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="hapticproxy convert", description=doc_summary(__doc__))
     ap.add_argument("src", help="the recording to read (.hpt or .mcap)")
     ap.add_argument("dst", help="the MCAP file to write (must not exist; its directory must)")
     args = ap.parse_args(argv)

@@ -74,11 +74,12 @@ LOOP_TITLE = "hapticproxy-loop"
 
 
 def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes | None, naive: bool = False,
-                      report=None) -> None:
+                      report=None, tools=None) -> None:
     """Entry point of the loop process (spawned). ``naive``: the comparison baseline of
     ``bench loop``: the same work paced by ``time.sleep`` alone, with none of the tuning.
     ``report``: the sending end of a pipe; a start-up failure sends ``(message, exit code)`` on it,
-    so the supervisor prints one line that names what failed (a taken transport address...)."""
+    so the supervisor prints one line that names what failed (a taken transport address...).
+    ``tools``: the sending end of a pipe; each engaged client's tool goes on it (``_tell_tools``)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the supervisor's to handle
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     signal.signal(signal.SIGTERM, _raise_stop)
@@ -110,6 +111,7 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         st[ST["transport_port"]] = bound[1] if isinstance(bound, tuple) and len(bound) >= 2 else 0
         loop = HapticLoop.build(settings, clock=clock, transport=transport, shared=shared, hmac_key=hmac_key)
         loop.parent_pid = parent  # a loop whose supervisor died stops (forces fade, Bye, exit)
+        _tell_tools(loop, tools)
         llog.debug("pid %d: transport %s open, %s device %r built", os.getpid(), transport.url,
                    settings["device"]["kind"], settings["device"]["driver"])
         _send_device_info(report, loop.device)
@@ -200,6 +202,33 @@ def _send_device_info(conn, device) -> None:
         conn.send((DEVICE_INFO, device.info.as_dict()))
     except Exception:  # noqa: BLE001 - a driver whose info cannot be read: status shows none
         pass
+
+
+def _tell_tools(loop, conn) -> None:
+    """Send the tool of every Hello the loop engages (kind, mass, centre of mass, inertia) to the
+    supervisor, which draws the proxy with it in the recording and the live view. The loop keeps
+    the Hello to itself, so this observes its model factory's ``take`` (called once per
+    engagement, never per step); the send is non-blocking and a full pipe drops the message.
+    Nothing is observed when the loop has no such factory: the views then draw the tool kind's
+    shape. (The lasting place for this is the shared block; see ``scene.ToolShape``.)"""
+    models = getattr(loop, "models", None)
+    take = getattr(models, "take", None)
+    if conn is None or take is None:
+        return
+    os.set_blocking(conn.fileno(), False)
+
+    def take_and_tell(hello, *args, **kwargs):
+        built = take(hello, *args, **kwargs)
+        try:
+            from ..protocol.vocab import TOOL_KIND_NAMES
+
+            conn.send((TOOL_KIND_NAMES.get(hello.tool_kind, "?"), float(hello.mass_kg), tuple(hello.com_m),
+                       tuple(hello.inertia_kg_m2)))
+        except (OSError, ValueError, AttributeError):
+            pass
+        return built
+
+    models.take = take_and_tell
 
 
 def _report(conn, message: str, code: int) -> None:
@@ -341,12 +370,16 @@ class Supervisor:
         self.ring_rows = rows
         self.shared = SharedState.create(rows)
         self.record = record or settings["telemetry"]["record"]
+        #: what named the recording's path, for a message about it
+        self.record_source = "--record" if record else "telemetry.record"
         self.live_address = live
         self._stop_requested = False
         self._trans_seq = 0
         self._contact_seq = 0
         self._last_contacts = None  # the newest contact-ring row read: (header, key, pos, normal, sep)
         self._last_transition = None
+        self._tools = None          # the loop's engaged tools (a pipe's receiving end)
+        self.tool_shape = None      # the newest engaged client's tool (scene.ToolShape)
         self.auth = StatusAuth(self._hmac_key())
         self.exit_code = 0
         self._closed_shared = False
@@ -366,6 +399,9 @@ class Supervisor:
         status meanwhile). ``False`` when a stop was requested during start-up (the loop process
         is stopped then, cleanly); :class:`StartupError` (one line, naming the address or what
         failed) when the server cannot start."""
+        if self._stop_requested:  # a Ctrl-C before anything started: nothing to stop
+            log.info("stopped during start-up")
+            return False
         address = self.settings["status"]["address"]
         host, _, port = address.rpartition(":")
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -375,13 +411,16 @@ class Supervisor:
             raise address_error("status.address", address, exc) from None
         self.sock.setblocking(False)
         if self.record:
-            _check_writable(self.record, "--record")
+            why = _check_writable(self.record, self.record_source, raise_=False)
+            if why:  # the command line or the config must change
+                raise StartupError(why, 2)
             from . import recording  # noqa: F401 - imported now, so the recording starts with the loop
         ctx = mp.get_context("spawn")
         reports, report = ctx.Pipe(duplex=False)
+        self._tools, tools = ctx.Pipe(duplex=False)
         self.proc = ctx.Process(target=loop_process_main, name=LOOP_TITLE,
                                 args=(self.settings.as_dict(), self.shared.name, self.ring_rows, self.auth.key, self.naive,
-                                      report),
+                                      report, tools),
                                 daemon=False)
         # The child starts with SIGINT blocked (a Ctrl-C while it imports would print a
         # traceback there); it ignores SIGINT, then unblocks it. The supervisor gets it meanwhile.
@@ -391,6 +430,7 @@ class Supervisor:
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         report.close()  # the child holds its own end
+        tools.close()
         log.debug("loop process %d started", self.proc.pid)
         failure = None
         try:
@@ -417,6 +457,8 @@ class Supervisor:
             from .live import LiveView
 
             self.live = LiveView(self.live_address, self.settings, self.t0_epoch_ns)
+            if self.tool_shape is not None:
+                self.live.shape = self.tool_shape
         log.info("serving: %s at %.0f Hz, status on %s (rt scheduling: %s)%s%s", self.transport_url,
                  self.settings.rate_hz, "%s:%d" % self.sock.getsockname()[:2],  # the bound port, also for port 0
                  "yes" if self.shared.status[self._st("rt_scheduling")] else "no",
@@ -453,21 +495,35 @@ class Supervisor:
         """Unix time of the loop's start (its telemetry's ``t_s = 0``)."""
         return int(self.shared.status[self._st("t_start_ns")]) + self._epoch_offset_ns
 
+    def _limits_published(self) -> bool:
+        """The loop has published its status once since it started: the caps in the status block
+        are its effective ones (the config's, lowered to the device's). Before that, some are
+        still the zeros of a fresh block (issue 28: a recording's metadata said 0.0 N m)."""
+        return float(self.shared.status[self._st("t_last_ns")]) > 0.0
+
     def _recording_meta(self) -> dict:
+        """The recording's metadata: kinds, and the effective caps as the loop publishes them
+        (``status --json`` reads the same fields); null while the loop has not published yet."""
         st = self.shared.status
+        known = self._limits_published()
+
+        def cap(name):
+            return float(st[self._st(name)]) if known else None
+
         return {"device_kind": self.settings["device"]["kind"], "tool_kind": self.settings.tool_kind,
-                "force_cap_n": float(st[self._st("force_cap_n")]),
-                "torque_cap_n_m": float(st[self._st("torque_cap_n_m")]),
-                "rate_limit_n_per_step": float(st[self._st("rate_limit_n_per_step")])}
+                "force_cap_n": cap("force_cap_n"), "torque_cap_n_m": cap("torque_cap_n_m"),
+                "rate_limit_n_per_step": cap("rate_limit_n_per_step")}
 
     def start_recording(self, path: str) -> None:
         """Record from now on (the ring's rows from the current head) to the MCAP file ``path``."""
         head, chead = int(self.shared.head[0]), int(self.shared.contact_head[0])  # before the file opens
         from .recording import McapRecorder
 
+        # the metadata record waits for the loop's first published status (service() writes it)
         self.writer = McapRecorder(path, rate_hz=self.settings.rate_hz, config=self.settings.as_dict(),
                                    t0_epoch_ns=self.t0_epoch_ns, flush_rows=self.settings["telemetry"]["flush_rows"],
-                                   meta=self._recording_meta())
+                                   meta=self._recording_meta(), defer_meta=not self._limits_published(),
+                                   shape=self.tool_shape)
         self.writer.start_at(head, chead, 0)
         self.record = str(path)
 
@@ -511,13 +567,33 @@ class Supervisor:
         """What the supervisor does between status requests: drain the recording, log the
         transitions, read the newest contacts, feed the live view."""
         if self.writer is not None:
+            if not self.writer.meta_written and self._limits_published():
+                self.writer.write_meta(self._recording_meta())
             self.writer.drain(self.shared)
         self._log_changes()
         items, self._contact_seq = self.shared.contact_rows_since(self._contact_seq)
         if items:
             self._last_contacts = items[-1]
+        self._take_tools()
         if self.live is not None:
             self.live.publish(self.shared, self._last_contacts, self._last_transition)
+
+    def _take_tools(self) -> None:
+        """The engaged clients' tools from the loop process (``_tell_tools``): the views draw the
+        proxy with the newest one."""
+        conn = self._tools
+        try:
+            while conn is not None and conn.poll():
+                kind, mass, com, inertia = conn.recv()
+                from .scene import ToolShape
+
+                self.tool_shape = ToolShape.from_hello(kind, mass, com, inertia)
+                if self.writer is not None:
+                    self.writer.set_shape(self.tool_shape)
+                if self.live is not None:
+                    self.live.shape = self.tool_shape
+        except (OSError, EOFError, ValueError, TypeError):
+            self._tools = None
 
     def _log_changes(self) -> None:
         """Log every transition the loop wrote since the last call, with its reason."""
@@ -595,6 +671,9 @@ class Supervisor:
 
         snap["device_fault_name"] = DEV_FAULT_NAMES.get(snap["device_fault"], str(snap["device_fault"]))
         snap["last_transition"] = self._last_transition
+        shape = self.tool_shape
+        snap["tool_shape"] = [[list(c), list(q), list(s)] for c, q, s in shape.boxes] if shape else None
+        snap["tool_shape_source"] = shape.source if shape else None
         row = self.shared.latest_row()
         if row is not None:
             snap["latest"] = {"t_s": float(row["t_s"]), "device_pose": row["dev"][:7].tolist(),
@@ -605,10 +684,12 @@ class Supervisor:
             snap["latest"] = None
         c = self._last_contacts
         if c is not None:
-            hdr, _key, _pos, _nrm, sep = c
+            hdr, _key, pos, nrm, sep = c
             snap["last_update"] = {"t_s": float(hdr["t_s"]), "count": int(hdr["count"]),
                                    "min_separation_m": float(sep.min()) if len(sep) else None,
-                                   "penetration_m": max(0.0, -float(sep.min())) if len(sep) else 0.0}
+                                   "penetration_m": max(0.0, -float(sep.min())) if len(sep) else 0.0,
+                                   # the contacts themselves, for a 3-D view (`hapticproxy view`)
+                                   "position_m": pos.tolist(), "normal": nrm.tolist(), "separation_m": sep.tolist()}
         else:
             snap["last_update"] = None
         return snap
@@ -649,6 +730,7 @@ class Supervisor:
                 self.proc.terminate()
                 self.proc.join(2)
         if self.writer is not None and self._closed_shared is False:
+            self.writer.write_meta(self._recording_meta())  # if the loop never published: caps null
             self.writer.drain(self.shared)
         if self.writer is not None:
             self.writer.close()
@@ -658,6 +740,9 @@ class Supervisor:
         if self.sock is not None:
             self.sock.close()
             self.sock = None
+        if self._tools is not None:
+            self._tools.close()
+            self._tools = None
         if not self._closed_shared:
             self.shared.close(unlink=True)
             self._closed_shared = True
@@ -702,6 +787,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="print every key in effect (the device's and the hand's too) as TOML and exit")
     p.add_argument("-q", "--quiet", action="count", default=0, help="fewer log lines (warnings and errors only)")
     args = p.parse_args(argv)
+    # The command line's own SIGINT handler (``hapticproxy.cli.EarlyInterrupt``) records a Ctrl-C
+    # that came while Python imported the server; it stays in place until the supervisor's own
+    # handler replaces it below, which then honours what it recorded.
+    early = signal.getsignal(signal.SIGINT)
     from ..protocol import logs
 
     logs.configure(logging.INFO, quiet=args.quiet)
@@ -744,6 +833,8 @@ def main(argv: list[str] | None = None) -> int:
 
         for sig in signals:
             signal.signal(sig, on_signal)
+        if getattr(early, "pending", False):  # Ctrl-C while starting: stop before the loop runs
+            sup.request_stop()
     finally:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, signals)
     try:

@@ -30,6 +30,7 @@ from __future__ import annotations
 from enum import IntEnum
 from typing import NamedTuple
 
+from ..protocol.devlink import DeviceFault
 from ..protocol.messages import ServerState
 
 LOOP_STATES = ("idle", "engaged", "fading", "fault", "stopping", "stopped", "starting")
@@ -137,9 +138,26 @@ REASON_TEXT = {
 }
 
 
+#: The device fault's own words where the generic advice is wrong for it: a remote device's
+#: link that is down before anything was rendered comes back by itself (``LINK_UP``).
+DEVICE_FAULT_TEXT = {
+    int(DeviceFault.LINK): "device fault 4 (link: no state from the remote device within its link timeout): output off; "
+       "clears by itself when the device program connects before a session engaged (`hapticproxy device "
+       "...`), else re-arm with `hapticproxy status --rearm`",
+}
+
+
 def describe(reason: int, detail: float) -> str:
     try:
-        return REASON_TEXT[Reason(int(reason))].format(detail=detail)
+        why = Reason(int(reason))
+        if why == Reason.DEVICE_FAULT:
+            code = int(detail) if detail == detail else -1
+            if code in DEVICE_FAULT_TEXT:
+                return DEVICE_FAULT_TEXT[code]
+            name = _device_fault_name(code)
+            if name:
+                return f"device fault {code} ({name}): device disabled; re-arm with `hapticproxy status --rearm`"
+        return REASON_TEXT[why].format(detail=detail)
     except (ValueError, KeyError):
         return f"reason {int(reason)}"
 
@@ -185,3 +203,10 @@ FAULT_POLICY: tuple[Policy, ...] = (
     Policy("session_ended", "the session ended (Bye, timeout)", "fade", "a new session engages (ramps in)", Fault.NONE,
            Reason.SESSION_ENDED),
 )
+
+
+def _device_fault_name(code: int) -> str:
+    try:
+        return DeviceFault(code).name.lower().replace("_", " ")
+    except ValueError:
+        return ""

@@ -22,6 +22,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from ..protocol.logs import doc_summary
 
 MIN_SPAN = {"mm": 0.5, "deg": 0.5, "N": 0.01, "N m": 1e-3}
 
@@ -237,7 +238,7 @@ def recording_fields():
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="hapticproxy plot", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="hapticproxy plot", description=doc_summary(__doc__))
     ap.add_argument("file", help="a recording (.mcap, or a legacy .hpt)")
     ap.add_argument("--out", help="directory for the PNGs (default: next to the file)")
     args = ap.parse_args(argv)

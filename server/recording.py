@@ -26,6 +26,22 @@ Every message carries ``t_s``, the loop's time since it started (the telemetry r
 MCAP log time is the same instant as Unix-epoch nanoseconds. A metadata record ``hapticproxy``
 holds the rate, the start time, the device and tool kinds, the caps and the whole config (JSON).
 
+Beside them, the 3-D scene the live view shows, in Foxglove's standard schemas (protobuf, through
+the Foxglove SDK: ``server/scene.py`` builds them), at ``scene.SCENE_HZ`` (30 Hz) from the rows
+and the contacts above, so a run replays in Foxglove's 3D panel (and rerun reads the transforms
+and poses) as it looked live:
+
+==========================  ==============================  ===========================================
+``/tf``                     ``foxglove.FrameTransforms``    world -> device, world -> proxy
+``/device/pose``            ``foxglove.PoseInFrame``        the device handle in ``world``
+``/proxy/pose``             ``foxglove.PoseInFrame``        the proxy's hand point in ``world``
+``/scene``                  ``foxglove.SceneUpdate``        device, the proxy drawn as the tool's shape,
+                                                            contacts, normals, force arrows, state
+==========================  ==============================  ===========================================
+
+The MCAP header's profile is ``hapticproxy`` (the JSON topics' own; the Foxglove topics are
+recognised by their schema names).
+
 Crash safety: messages go into a chunk that is closed, written, flushed and fsync'ed every
 ``flush_rows`` telemetry rows, so after a crash of the loop (or of the supervisor) every closed
 chunk is readable; ``read`` stops at a torn tail and reports its size. A file that lost its
@@ -50,6 +66,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
+from . import scene as scn
 from .lifecycle import LOOP_STATES, Reason, describe
 from .shm import NTEL, ST, TEL, TEL_DTYPE, SharedState, flat_rows
 
@@ -163,6 +180,9 @@ TOPICS = {
 STEP_TOPICS = ("/device", "/proxy", "/command", "/environment_wrench", "/loop")
 META_NAME = "hapticproxy"
 FORMAT = "hapticproxy-mcap-1"
+PROFILE = "hapticproxy"
+#: the standard-schema topics beside ``TOPICS`` (written from them; ``read`` skips them)
+SCENE_TOPICS = ("/tf", "/device/pose", "/proxy/pose", "/scene")
 
 
 def json_schema(tp) -> dict:
@@ -296,6 +316,18 @@ class StepEncoder:
         return out
 
 
+def scene_frame(row, contacts=None) -> scn.Frame:
+    """The 3-D scene's :class:`~.scene.Frame` of one flat telemetry row (columns by name) and the
+    contacts ``(position, normal, separation)`` applied by then."""
+    def cols(prefix, names):
+        return [row[TEL[f"{prefix}_{n}"]] for n in names]
+
+    pose = ("x", "y", "z", "qw", "qx", "qy", "qz")
+    wrench = ("fx", "fy", "fz", "tx", "ty", "tz")
+    return scn.frame_of(row[_T], cols("dev", pose), cols("proxy", pose), cols("cmd", wrench), cols("env", wrench),
+                        contacts, state_name(row[_STATE]), row[_GAIN])
+
+
 def contacts_message(hdr, key, pos, nrm, sep) -> Contacts:
     n = len(sep)
     cs = [Contact([int(k) for k in key[j]], Vector3(*(float(v) for v in pos[j])),
@@ -323,8 +355,10 @@ class McapRecorder:
     before they could be copied; ``contacts_lost`` likewise for the contact ring."""
 
     def __init__(self, path: str | Path, *, rate_hz: float, config: dict | None = None, t0_epoch_ns: int = 0,
-                 flush_rows: int = 512, meta: dict | None = None) -> None:
+                 flush_rows: int = 512, meta: dict | None = None, shape: scn.ToolShape | None = None,
+                 defer_meta: bool = False) -> None:
         import foxglove
+        from foxglove.channels import FrameTransformsChannel, PoseInFrameChannel, SceneUpdateChannel
         from foxglove.mcap import MCAPWriteOptions
 
         self.path = Path(path)
@@ -336,16 +370,33 @@ class McapRecorder:
         # seeking off the SDK keeps the chunk in progress in memory and writes it whole: a crash
         # leaves no half chunk in the file
         self._w = foxglove.open_mcap(self._f, context=self._ctx,
-                                     writer_options=MCAPWriteOptions(chunk_size=None, profile="", disable_seeking=True))
+                                     writer_options=MCAPWriteOptions(chunk_size=None, profile=PROFILE,
+                                                                     disable_seeking=True))
         info = {"format": FORMAT, "rate_hz": repr(float(rate_hz)), "t0_epoch_ns": str(self.t0_epoch_ns),
                 "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.t0_epoch_ns * 1e-9 or None)),
                 "config": json.dumps(config or {}, sort_keys=True)}
         for k, v in (meta or {}).items():
             info[k] = v if isinstance(v, str) else json.dumps(v)
-        self._w.write_metadata(META_NAME, info)
+        self._info = info
+        self.meta_written = False
+        if not defer_meta:  # deferred: ``write_meta`` when what it says is known (at the latest, ``close``)
+            self.write_meta()
         self._ch = {topic: foxglove.Channel(topic, schema=json_schema(tp) | {"title": name}, context=self._ctx).base
                     for topic, (name, tp) in TOPICS.items()}
         self._step_ch = tuple(self._ch[t] for t in STEP_TOPICS)
+        self._tf = FrameTransformsChannel("/tf", context=self._ctx)
+        self._dev_pose = PoseInFrameChannel("/device/pose", context=self._ctx)
+        self._prx_pose = PoseInFrameChannel("/proxy/pose", context=self._ctx)
+        self._scene = SceneUpdateChannel("/scene", context=self._ctx)
+        kind = (meta or {}).get("tool_kind") or (config or {}).get("model", {}).get("tool") or \
+            (config or {}).get("device", {}).get("kind", "")
+        #: what the proxy is drawn as (the tool kind's shape until ``set_shape`` gives the Hello's)
+        self.shape = shape or scn.ToolShape.for_kind(kind)
+        self._scene_period_s = 1.0 / scn.SCENE_HZ
+        self._next_scene_t = -math.inf
+        self._recent: list = []   # contact updates not yet behind the scene's instant: (t_s, pos, nrm, sep)
+        self._contacts_now = None
+        self.scenes_written = 0
         self._enc = msgspec.json.Encoder()
         self._steps = _step_encoder()
         self.rows_written = 0
@@ -361,6 +412,20 @@ class McapRecorder:
         self._trans_seq = 0     # transitions consumed
         self.t_start_ns = 0     # the loop's monotonic start (status t_start_ns), for transition times
         self._sync()
+
+    def write_meta(self, meta: dict | None = None) -> None:
+        """Write the metadata record (with ``meta`` added); once. The supervisor calls it when
+        the loop has published its effective limits (the caps), not before."""
+        if self.meta_written:
+            return
+        for k, v in (meta or {}).items():
+            self._info[k] = v if isinstance(v, str) else json.dumps(v)
+        self._w.write_metadata(META_NAME, self._info)
+        self.meta_written = True
+
+    def set_shape(self, shape: scn.ToolShape) -> None:
+        """Draw the proxy as ``shape`` from now on (a client's Hello arrived)."""
+        self.shape = shape
 
     def _sync(self) -> None:
         self._f.flush()
@@ -405,10 +470,12 @@ class McapRecorder:
         flat = rows if rows.dtype == np.float64 else flat_rows(rows)
         chans = self._step_ch
         t0 = self.t0_epoch_ns
-        for t, msgs in self._steps.encode(flat):
+        for k, (t, msgs) in enumerate(self._steps.encode(flat)):
             ns = t0 + int(round(t * 1e9)) if t == t else t0
             for ch, data in zip(chans, msgs):
                 ch.log(data, ns)
+            if t >= self._next_scene_t:
+                self._add_scene(flat[k], t, ns)
             self._pending += 1
             if self._pending >= self.flush_rows:
                 self.flush()
@@ -417,6 +484,25 @@ class McapRecorder:
         msg = contacts_message(hdr, key, pos, nrm, sep)
         self._ch["/contacts"].log(self._enc.encode(msg), self._log_ns(msg.t_s))
         self.contacts_written += 1
+        self._recent.append((msg.t_s, np.array(pos, dtype=float), np.array(nrm, dtype=float),
+                             np.array(sep, dtype=float)))
+
+    def _add_scene(self, row: np.ndarray, t: float, ns: int) -> None:
+        """The 3-D scene at the row's instant: the newest contact update applied by then."""
+        self._next_scene_t = t + self._scene_period_s
+        recent = self._recent
+        i = 0
+        while i < len(recent) and recent[i][0] <= t:
+            i += 1
+        if i:
+            self._contacts_now = recent[i - 1][1:]
+            del recent[:i]
+        frame = scene_frame(row, self._contacts_now)
+        self._tf.log(scn.foxglove_transforms(frame, ns), log_time=ns)
+        self._dev_pose.log(scn.foxglove_pose(frame.device_pose, ns), log_time=ns)
+        self._prx_pose.log(scn.foxglove_pose(frame.proxy_pose, ns), log_time=ns)
+        self._scene.log(scn.foxglove_scene(frame, self.shape, ns), log_time=ns)
+        self.scenes_written += 1
 
     def add_transition(self, t_s: float, frm: int, to: int, reason: int, detail: float) -> None:
         msg = transition_message(t_s, frm, to, reason, detail)
@@ -434,6 +520,7 @@ class McapRecorder:
     def close(self) -> None:
         if self._f.closed:
             return
+        self.write_meta()  # never a recording without its metadata record
         self.flush()
         self._w.close()
         self._sync()

@@ -23,6 +23,7 @@ import socket
 import sys
 import time
 
+from ..protocol.logs import doc_summary
 from ..protocol.jsonout import print_json
 
 DEFAULT_ADDRESS = "127.0.0.1:9871"
@@ -88,7 +89,8 @@ def _what_the_hand_feels(s: dict) -> list[str]:
     lt = s.get("latest") or {}
     out = []
     dp, pp, cmd = lt.get("device_pose"), lt.get("proxy_pose"), lt.get("command")
-    mm = lambda p: " ".join(f"{a} {1e3 * (v or 0.0):+8.2f}" for a, v in zip("xyz", p[:3]))  # noqa: E731
+    # three decimals: the micrometre, so two positions equal in --json print equal here
+    mm = lambda p: " ".join(f"{a} {1e3 * (v or 0.0):+9.3f}" for a, v in zip("xyz", p[:3]))  # noqa: E731
     if dp and pp:
         out.append(f"device mm    {mm(dp)}    proxy mm {mm(pp)}")
     if cmd:
@@ -160,6 +162,21 @@ def format_status(s: dict) -> str:
     return "\n".join(lines)
 
 
+def format_reply(req: dict, reply: dict, address: str) -> str:
+    """One line saying what a request other than ``status`` did (``--json``: the reply itself)."""
+    cmd = req["cmd"]
+    if cmd == "rearm":
+        return (f"re-arm requested on {address}: a latched fault clears and the force ramps back in "
+                f"(`hapticproxy status` shows the state)")
+    if cmd == "stop":
+        return f"stop requested on {address}: forces ramp down, then the server exits"
+    if cmd == "reset_stats":
+        return f"timing statistics reset on {address}"
+    if cmd == "dump":
+        return f"wrote {reply.get('rows', 0)} telemetry rows to {reply.get('path', req.get('path'))}"
+    return str(reply)
+
+
 def load_key(config: str | None, key_file: str | None) -> tuple[bytes | None, str | None]:
     """(HMAC key, status address from the config) for the command line's options; the
     environment (``HAPTICPROXY_HMAC_KEY_FILE`` / ``HAPTICPROXY_HMAC_KEY``) when neither names one."""
@@ -176,11 +193,11 @@ def load_key(config: str | None, key_file: str | None) -> tuple[bytes | None, st
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="hapticproxy status", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="hapticproxy status", description=doc_summary(__doc__))
     p.add_argument("--address", help=f"the server's status address HOST:PORT (default: the config's, or {DEFAULT_ADDRESS})")
     p.add_argument("--config", help="the server's config file: its status address and HMAC key file")
     p.add_argument("--key-file", help="the HMAC key file (hex) of a server that authenticates requests")
-    p.add_argument("--json", action="store_true", help="print the raw JSON")
+    p.add_argument("--json", action="store_true", help="print the server's reply as strict JSON")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--rearm", action="store_true", help="clear a fault: forces ramp back in")
     g.add_argument("--stop", action="store_true", help="stop the server cleanly")
@@ -188,7 +205,8 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--dump", metavar="FILE", help="write the telemetry and contact rings to the MCAP file FILE")
     g.add_argument("--watch", action="store_true", help="a live terminal view (q quits)")
     p.add_argument("--interval", type=float, default=0.2, help="--watch: seconds between updates")
-    p.add_argument("--timeout", type=float, default=1.0)
+    p.add_argument("--timeout", type=float, default=1.0,
+                   help="seconds to wait for the server's answer (default 1; --watch: per poll)")
     args = p.parse_args(argv)
     try:
         key, cfg_address = load_key(args.config, args.key_file)
@@ -217,8 +235,11 @@ def main(argv: list[str] | None = None) -> int:
     if "error" in reply:
         print(f"hapticproxy status: {reply['error']}", file=sys.stderr)
         return 1
-    if args.json or req["cmd"] != "status":
-        print_json(reply, indent=1 if args.json else None, sort_keys=True)
+    if args.json:
+        print_json(reply, indent=1, sort_keys=True)
+        return 0
+    if req["cmd"] != "status":
+        print(format_reply(req, reply, address), flush=True)
         return 0
     try:
         print(format_status(reply), flush=True)

@@ -4,12 +4,15 @@ It polls the status address (a UDP JSON request, ``status.query``) every ``--int
 shows the state by name with the last transition's reason, faults by name, the device and
 proxy pose, the commanded force and torque against the caps (bars), contacts (count, deepest
 penetration), rates and lateness. ``q`` quits, ``r`` re-arms, ``s`` asks for a clean stop.
+When the server stops answering, every panel is dimmed and titled with the age of what it shows
+(the values are the last ones the server sent, not the present), until it answers again.
 Nothing here touches the loop: the supervisor answers from shared memory.
 """
 from __future__ import annotations
 
 import math
 import os
+import time
 from typing import Callable
 
 from rich.table import Table
@@ -143,6 +146,7 @@ class WatchApp(App):
     #top, #bottom { height: auto; }
     #top Static, #bottom Static { width: 1fr; }
     #conn { border: none; height: 1; }
+    Static.stale { opacity: 45%; color: $text-muted; }
     """
     BINDINGS = [("q", "quit", "quit"), ("r", "rearm", "re-arm"), ("s", "stop_server", "stop server")]
 
@@ -157,6 +161,9 @@ class WatchApp(App):
         self.panels: dict = {}  # panel id -> the rich renderable it shows now
         self.polls = 0
         self.misses = 0
+        #: the panels show an answer that is no longer the present (the server stopped answering)
+        self.stale = False
+        self._last_answer = 0.0
 
     def compose(self) -> ComposeResult:
         yield Header()
@@ -172,8 +179,7 @@ class WatchApp(App):
         yield Footer()
 
     def on_mount(self) -> None:
-        for wid, title in (("state", "state"), ("timing", "rates and timing"), ("pose", "device and proxy pose"),
-                           ("force", "command against the caps"), ("contacts", "contacts")):
+        for wid, title in self.PANELS:
             self.query_one(f"#{wid}", Static).border_title = title
         self.sub_title = self.address
         self.refresh_status()
@@ -192,16 +198,34 @@ class WatchApp(App):
         except (TimeoutError, OSError, ValueError) as exc:
             self.misses += 1
             self.query_one("#conn", Static).update(Text(f"no answer: {exc}", style="bold red"))
+            self._set_stale(True)
             return
         if "error" in s:
             self.query_one("#conn", Static).update(Text(f"server: {s['error']}", style="bold red"))
             return
         self.last = s
+        self._last_answer = time.monotonic()
+        self._set_stale(False)
         self.query_one("#conn", Static).update(Text(f"{s.get('url', '')}  {s.get('live', '')}", style="dim"))
         for wid, make in (("state", state_panel), ("timing", timing_panel), ("pose", pose_panel),
                           ("force", force_panel), ("contacts", contact_panel)):
             self.panels[wid] = make(s)
             self.query_one(f"#{wid}", Static).update(self.panels[wid])
+
+    PANELS = (("state", "state"), ("timing", "rates and timing"), ("pose", "device and proxy pose"),
+              ("force", "command against the caps"), ("contacts", "contacts"))
+
+    def _set_stale(self, stale: bool) -> None:
+        """Dim every panel (and say how old it is) while the server does not answer."""
+        if stale == self.stale and not stale:
+            return
+        self.stale = stale
+        age = f" (stale: last answer {time.monotonic() - self._last_answer:.0f} s ago)" if stale and self._last_answer \
+            else " (stale: no answer yet)" if stale else ""
+        for wid, title in self.PANELS:
+            w = self.query_one(f"#{wid}", Static)
+            w.set_class(stale, "stale")
+            w.border_title = title + age
 
     def panel_text(self, wid: str, width: int = 100) -> str:
         """What panel ``wid`` shows, as plain text (tests, logs)."""

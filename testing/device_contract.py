@@ -11,7 +11,8 @@ each rule of :data:`RULES` checks one promise on a fresh driver in simulated tim
   quaternion, the hand wrench finite or all NaN, time never going back, and nothing a kind
   cannot move (planar: z, tilt and their rates zero; 1dof: identity orientation, no spin);
 - ``disable``: ``disable()`` zeroes the output at once (within one hardware tick) and keeps it
-  zero, whatever is written, until ``enable()``;
+  zero, whatever is written, until ``enable()``; every ``write`` meanwhile returns a non-OK
+  status (``DEV_FAULT_DISABLED``, or a latched fault's code), never ``DEV_OK``;
 - ``non-finite``: a non-finite ``write`` is refused (status ``DEV_FAULT_NONFINITE_COMMAND``),
   zero is rendered, the fault stays latched through finite writes until ``enable()``;
 - ``watchdog``: with ``limits.watchdog_s`` > 0, no ``write`` (nor ``read``) for longer than that
@@ -286,7 +287,8 @@ def rule_disable(h: Harness) -> None:
     assert not d.enabled, "disable(): enabled is still true"
     for i in range(20):
         _, st = h.step(w)
-        assert st != DEV_OK, f"disabled, write returned DEV_OK (step {i})"
+        assert st != DEV_OK, (f"disabled, write returned DEV_OK (step {i}): while disabled it must return "
+                              f"DEV_FAULT_DISABLED or its latched fault (DeviceDriver's safety contract)")
         assert not _renders(h), f"disabled, rendering {h.rendered().tolist()} after {i + 1} writes"
     d.enable()
     for _ in range(3):

@@ -158,3 +158,28 @@ def test_example_config_prints_every_key_and_loads_back_the_same(path, tmp_path)
     assert cfg.load(f).data == s.data
     fast = cfg.load(path, {"preset": "fast"})          # --preset wins over what the file pins
     assert fast.rate_hz == 512.0 and fast["model"]["capacity"] == 16
+
+
+def _pins(path: Path) -> dict:
+    return {ln.split("==")[0].lower(): ln.split("==")[1].strip() for ln in path.read_text().splitlines()
+            if "==" in ln and not ln.startswith("#")}
+
+
+def test_the_server_only_lock_is_the_servers_part_of_the_full_one():
+    """Issue 32, papercut 16: a server image installs the server, not every extra. The server lock
+    pins the same versions as requirements.lock, holds every core dependency of pyproject.toml
+    (and Zenoh, which the shipped configs use), and none of the engines, GUI, plots, viewer or
+    test tools; the container and the systemd unit's instructions install it."""
+    import tomllib
+
+    full, server = _pins(ROOT / "requirements.lock"), _pins(ROOT / "requirements-server.lock")
+    assert all(full.get(k) == v for k, v in server.items()), {k: (v, full.get(k)) for k, v in server.items()}
+    core = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    for dep in core + ["eclipse-zenoh"]:
+        name = re.split(r"[<>=!~ \[]", dep, maxsplit=1)[0].lower()
+        assert name in server, f"{name} (a core dependency) is not in requirements-server.lock"
+    for extra in ("pybullet", "pymunk", "pygame", "matplotlib", "pylint", "box2d", "rerun-sdk", "pyarrow", "pytest",
+                  "textual"):
+        assert extra not in server, extra
+    assert "run.sh --server-only" in (ROOT / "deploy" / "container" / "Containerfile").read_text()
+    assert "run.sh --server-only" in (ROOT / "deploy" / "systemd" / "hapticproxy.service").read_text()

@@ -26,7 +26,10 @@ device advances its own dynamics by one haptic period inside ``write``.
 
 Safety contract every driver keeps (the loop relies on it):
 - ``write`` of a non-finite wrench is refused: zero is rendered and a fault is latched;
-- ``disable()`` zeroes the output at once and keeps it zero until ``enable()``;
+- ``disable()`` zeroes the output at once and keeps it zero until ``enable()``; while disabled,
+  ``read`` and ``write`` return a non-OK status (the latched fault's code, else
+  ``DEV_FAULT_DISABLED``), never ``DEV_OK``: the loop takes a non-OK status as "not rendering"
+  (the contract's ``disable`` rule checks it);
 - a driver whose hardware has its own watchdog (``limits.watchdog_s``) zeroes its output when
   no ``write`` arrives within that time and latches the fault: forces never come back by
   themselves, only through ``enable()``. The loop holds a stall of its own at least that long
@@ -263,7 +266,8 @@ class DeviceDriver(abc.ABC):
 
     @abc.abstractmethod
     def write(self, wrench: np.ndarray) -> int:
-        """Command ``wrench`` (float64[6], N and N m, world frame at the handle); return status."""
+        """Command ``wrench`` (float64[6], N and N m, world frame at the handle); return the status:
+        ``DEV_OK`` only while enabled and rendering, else the latched fault or ``DEV_FAULT_DISABLED``."""
 
     def on_engage(self) -> None:
         """A new session engaged the loop (called once per engagement, outside the hot path).

@@ -550,3 +550,60 @@ def test_a_full_server_is_retried_after_a_first_session_and_refused_before(had_a
         ghost_tr.close()
         runner.close()
         srv.close()
+
+
+def test_a_client_without_its_server_says_so_every_connect_timeout(helpers):
+    """Issue 32, papercut 7: in simulated time the server goes away without a word at 0.3 s; the
+    runner ends the session after the silence timeout (0.2 s), says it is reconnecting, and then
+    says it is still trying every connect_timeout_s (2 s), naming why, until it is stopped."""
+    clock = SimClock()
+    srv = _scripted(clock, heartbeat_interval_s=0.05, silence_timeout_s=0.2)
+    t0 = clock()
+
+    def sleep(s):
+        clock.advance(s)
+        if clock() - t0 < 0.3e9:
+            srv.service()
+
+    lines: list[tuple[float, str]] = []
+    engine = helpers.RecordingEngine(rate_hz=100.0)
+    runner = ClientRunner(engine, srv.url, scene="floor", connect_timeout_s=2.0, handshake_timeout_s=0.5,
+                          clock_ns=clock, sleep=sleep, log=lambda m: lines.append(((clock() - t0) / 1e9, m)))
+    try:
+        st = runner.run(duration_s=7.0)
+    finally:
+        srv.transport.close()
+    assert st["error"] is None and st["sessions"] == 1 and st["sessions_ended"] == 1
+    ended = [t for t, m in lines if m.endswith("; reconnecting")]
+    still = [(t, m) for t, m in lines if "still trying" in m]
+    assert len(ended) == 1
+    # one line 2 s, 4 s and 6 s after the session ended, and no more within 7 s
+    assert [round(t - ended[0]) for t, _ in still] == [2, 4, 6], lines
+    assert all(f"no session with {srv.url} for {k} s" in m for (_, m), k in zip(still, (2, 4, 6)))
+    assert "no answer to Hello" in still[-1][1]
+
+
+def test_the_clients_own_stall_is_counted_and_logged(helpers):
+    """Issue 32, papercut 18: an engine step that keeps the client from sending for 200 ms is the
+    client's stall: counted, its length kept, one line at once naming the advice; two more within
+    5 s are one line later, with their count."""
+    clock = SimClock()
+    srv = _scripted(clock)
+    t0 = clock()
+
+    class Stalling(helpers.RecordingEngine):
+        def step(self, dt_s):
+            super().step(dt_s)
+            if self.steps in (50, 60, 70, 700):   # 0.5 s, then twice within 5 s, then at 7 s
+                clock.advance(0.2)
+
+    lines: list[tuple[float, str]] = []
+    runner = ClientRunner(Stalling(rate_hz=100.0), srv.url, scene="floor", clock_ns=clock, sleep=srv.sleep,
+                          log=lambda m: lines.append(((clock() - t0) / 1e9, m)))
+    st = runner.run(duration_s=8.5)
+    assert st["stalls"] == 4, lines
+    assert 200 <= st["stall_max_ms"] <= 215
+    stalls = [m for _, m in lines if "client stalled" in m]
+    assert len(stalls) == 2, stalls
+    assert stalls[0].startswith("client stalled 2") and "lower priority" in stalls[0]
+    assert stalls[1].startswith("client stalled 3 times since the last report")

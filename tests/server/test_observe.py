@@ -175,6 +175,40 @@ def test_watch_shows_state_pose_force_contacts_and_reason():
     assert misses >= 1  # a missed poll is shown, not fatal
 
 
+def test_watch_dims_every_panel_while_the_server_does_not_answer():
+    """Papercut 8: the server goes away; every panel (not just the header) is dimmed and says how
+    old its values are; when it answers again they are live again."""
+    import asyncio
+
+    from hapticproxy.server.watch import WatchApp
+
+    up = {"on": True}
+
+    def fetch():
+        if not up["on"]:
+            raise TimeoutError("no server answering on 127.0.0.1:9871")
+        return {"loop_state": "stopping", "gain": 0.4, "latest": None}
+
+    async def go():
+        app = WatchApp(fetch, interval_s=0.05)
+        seen = {}
+        async with app.run_test(size=(120, 40)) as pilot:
+            await pilot.pause(0.2)
+            seen["live"] = [app.query_one(f"#{w}").has_class("stale") for w, _ in app.PANELS]
+            up["on"] = False
+            await pilot.pause(0.2)
+            seen["gone"] = [app.query_one(f"#{w}").has_class("stale") for w, _ in app.PANELS]
+            seen["titles"] = [str(app.query_one(f"#{w}").border_title) for w, _ in app.PANELS]
+            up["on"] = True
+            await pilot.pause(0.2)
+            seen["back"] = [app.query_one(f"#{w}").has_class("stale") for w, _ in app.PANELS]
+        return seen
+
+    seen = asyncio.run(go())
+    assert seen["live"] == [False] * 5 and seen["gone"] == [True] * 5 and seen["back"] == [False] * 5
+    assert all("stale: last answer" in t for t in seen["titles"]), seen["titles"]
+
+
 def test_watch_against_a_real_server(rig):
     import asyncio
 
@@ -259,10 +293,12 @@ def test_every_schema_is_plain_json_schema_and_matches_its_messages(tmp_path):
     seen = set()
     with open(p, "rb") as f:
         for schema, channel, message in make_reader(f).iter_messages():
+            seen.add(channel.topic)
+            if channel.topic in recording.SCENE_TOPICS:
+                continue  # Foxglove's own protobuf schemas (test_recording_carries_the_3d_scene...)
             assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
             check(json.loads(schema.data), json.loads(message.data))
-            seen.add(channel.topic)
-    assert seen == set(recording.STEP_TOPICS)
+    assert seen == set(recording.STEP_TOPICS) | set(recording.SCENE_TOPICS)
     rows = recording.read(p).rows
     np.testing.assert_array_equal(rows, sh.ring[:40])  # NaN (null) and all
 
@@ -309,7 +345,11 @@ def test_a_torn_recording_reads_to_its_last_chunk_and_converts_whole(tmp_path):
 
     with open(tmp_path / "fixed.mcap", "rb") as f:
         summary = make_reader(f).get_summary()  # what PlotJuggler reads first
-    assert summary is not None and summary.statistics.message_count == 2000 * len(recording.STEP_TOPICS)
+    assert summary is not None
+    counts = summary.statistics.channel_message_counts
+    assert sum(n for cid, n in counts.items() if summary.channels[cid].topic in recording.STEP_TOPICS) == \
+        2000 * len(recording.STEP_TOPICS)
+    assert sum(n for cid, n in counts.items() if summary.channels[cid].topic == "/scene") in (59, 60)  # 2 s at 30 Hz
 
 
 def test_an_old_hpt_recording_converts_and_plots(tmp_path):
@@ -455,7 +495,7 @@ def test_dump_takes_an_absolute_path_and_creates_no_directory(rig, tmp_path):
         stop.set()
         th.join(5)
     assert out.returncode == 0, out.stderr
-    assert json.loads(out.stdout)["path"] == str(tmp_path / "d.mcap")
+    assert out.stdout.startswith("wrote ") and out.stdout.rstrip().endswith(f"telemetry rows to {tmp_path / 'd.mcap'}")
     assert len(recording.read(tmp_path / "d.mcap").tel) > 100
 
 
@@ -499,3 +539,114 @@ def test_requests_are_refused_without_the_hmac_key(rig, tmp_path):
     assert r.sup.proc.is_alive() and not r.sup._stop_requested  # the unsigned stop did nothing
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout)["loop_state"] in ("idle", "engaged")
+
+
+# ------------------------------------------------------------------------------ the 3-D scene (issue 32)
+def test_recording_carries_the_3d_scene_in_standard_schemas(tmp_path):
+    """Beside the hapticproxy.* topics a recording holds /tf, /device/pose, /proxy/pose and
+    /scene in Foxglove's schemas (protobuf), at 30 Hz, the MCAP header's profile set; each /scene
+    message is byte for byte the scene of its row with the contacts applied by then (a contact
+    update later than the row is not drawn early)."""
+    from mcap.reader import make_reader
+
+    from hapticproxy.server import scene
+
+    n = 1000  # 1 s at 1 kHz
+    flat = np.zeros((n, NTEL))
+    flat[:, TEL["t_s"]] = np.arange(n) * 1e-3
+    flat[:, TEL["dev_x"]] = np.linspace(0.0, 0.01, n)
+    flat[:, TEL["proxy_x"]] = np.linspace(0.0, 0.009, n)
+    flat[:, TEL["proxy_z"]] = 0.02
+    flat[:, TEL["dev_qw"]] = flat[:, TEL["proxy_qw"]] = 1.0
+    flat[:, TEL["cmd_fz"]] = -0.5
+    flat[:, TEL["env_fz"]] = 0.5
+    flat[:, TEL["loop_state"]] = 2
+    flat[:, TEL["gain"]] = 1.0
+    hdr = np.zeros((), dtype=[("t_s", "f8"), ("env_time_s", "f8"), ("update", "i8"), ("count", "i8")])
+    p = tmp_path / "scene.mcap"
+    w = recording.McapRecorder(p, rate_hz=1000.0, config={"device": {"kind": "spatial"}}, t0_epoch_ns=10**18,
+                               meta={"tool_kind": "spatial"})
+    shape = scene.ToolShape.from_hello("spatial", 0.2, (0, 0, 0), (0.2 * 0.0032 / 12,) * 3 + (0, 0, 0))
+    w.set_shape(shape)
+    contacts = []
+    for k, t in enumerate((0.1, 0.5)):
+        pos = np.array([[0.02 * k, 0.0, 0.0], [0.02 * k, 0.04, 0.0]])
+        nrm = np.array([[0.0, 0.0, 1.0]] * 2)
+        sep = np.array([-0.001, -0.002 * (k + 1)])
+        hdr["t_s"], hdr["update"], hdr["count"] = t, k + 1, 2
+        w.add_contacts(hdr, np.zeros((2, 3), dtype=np.int64), pos, nrm, sep)
+        contacts.append((t, (pos, nrm, sep)))
+    w.add_rows(flat)
+    w.close()
+    assert w.scenes_written == 30
+    with open(p, "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_header().profile == "hapticproxy"
+        by_topic: dict = {}
+        for schema, channel, message in reader.iter_messages(topics=list(recording.SCENE_TOPICS)):
+            by_topic.setdefault(channel.topic, []).append((schema.name, channel.message_encoding, message))
+    assert {t: {m[0] for m in ms} for t, ms in by_topic.items()} == {
+        "/tf": {"foxglove.FrameTransforms"}, "/device/pose": {"foxglove.PoseInFrame"},
+        "/proxy/pose": {"foxglove.PoseInFrame"}, "/scene": {"foxglove.SceneUpdate"}}
+    assert all(enc == "protobuf" for ms in by_topic.values() for _, enc, _ in ms)
+    scenes = by_topic["/scene"]
+    assert len(scenes) == 30
+    for _, _, m in scenes:
+        t = (m.log_time - 10**18) * 1e-9
+        i = int(round(t * 1e3))
+        applied = [c for tc, c in contacts if tc <= flat[i, TEL["t_s"]]]
+        frame = recording.scene_frame(flat[i], applied[-1] if applied else None)
+        assert m.data == scene.foxglove_scene(frame, shape, m.log_time).encode(), t
+        assert len(frame.separation) == (0 if t < 0.1 else 2)
+    # the recording still reads as before: every row
+    assert len(recording.read(p).rows) == n
+
+
+def test_the_tool_shape_from_a_hello_is_its_box():
+    from hapticproxy.server.scene import ToolShape
+
+    m, a, b, c = 0.3, 0.08, 0.02, 0.04
+    inertia = (m * (b * b + c * c) / 12, m * (a * a + c * c) / 12, m * (a * a + b * b) / 12, 0, 0, 0)
+    shape = ToolShape.from_hello("spatial", m, (0.0, 0.01, 0.0), inertia)
+    (centre, q, size), = shape.boxes
+    assert shape.source == "hello" and centre == (0.0, 0.01, 0.0)
+    np.testing.assert_allclose(size, (a, b, c), rtol=1e-12)
+    planar = ToolShape.from_hello("planar", m, (0, 0, 0), (0, 0, m * (a * a + b * b) / 12, 0, 0, 0))
+    side = planar.boxes[0][2][0]
+    assert planar.source == "hello" and abs(m * 2 * side * side / 12 - m * (a * a + b * b) / 12) < 1e-15
+    assert ToolShape.from_hello("1dof", m, (0, 0, 0), (0,) * 6).source == "kind"
+    assert ToolShape.from_hello("spatial", m, (0, 0, 0), (0,) * 6).source == "kind"
+
+
+def test_a_recordings_caps_are_the_loops_published_ones_not_a_fresh_blocks_zeros(tmp_path):
+    """Issue 28: the recording started as the loop became ready, before its first published
+    status, and its metadata said the torque cap was 0.0 N m (the block's zero) where `status`
+    said 0.5. The metadata now waits for the loop's first publish (or says null)."""
+    from hapticproxy.server.shm import ST
+
+    settings = cfgmod.load(None, {"transport": {"url": "udp://127.0.0.1:0"}, "status": {"address": "127.0.0.1:0"}})
+    sup = Supervisor(settings)
+    try:
+        st = sup.shared.status
+        st[ST["force_cap_n"]] = 10.0          # written by the loop when it is built
+        st[ST["rate_limit_n_per_step"]] = 1.0
+        st[ST["t_start_ns"]] = 1               # ready, not yet published: torque cap still 0
+        sup.start_recording(str(tmp_path / "a.mcap"))
+        sup.service()
+        st[ST["torque_cap_n_m"]] = 0.5         # the loop's first publish
+        st[ST["t_last_ns"]] = 2
+        sup.service()
+    finally:
+        sup.close()
+    meta = recording.read(tmp_path / "a.mcap").meta
+    assert (meta["force_cap_n"], meta["torque_cap_n_m"], meta["rate_limit_n_per_step"]) == (10.0, 0.5, 1.0)
+
+    sup = Supervisor(settings)  # a loop that never published: the caps are unknown, not zero
+    try:
+        sup.shared.status[ST["force_cap_n"]] = 10.0
+        sup.start_recording(str(tmp_path / "b.mcap"))
+        sup.service()
+    finally:
+        sup.close()
+    meta = recording.read(tmp_path / "b.mcap").meta
+    assert meta["torque_cap_n_m"] is None and meta["force_cap_n"] is None
