@@ -164,6 +164,95 @@ def rate_rows(which: str, seconds: float, tmp: str) -> list[dict]:
     return out
 
 
+def servo_rows(seconds: float, tmp: str, rates=(1000.0, 4000.0)) -> list[dict]:
+    """The Touch's servo thread at each rate, side by side: (a) the driver's Python callback (it
+    takes the GIL each tick) while a Python loop reads and writes it at the same rate; (b) the
+    compiled haptic tick as the callback (``server/servo.py``), the whole server loop running
+    device-clocked. Each: the servo thread's period jitter (p99 and max of |period - nominal|),
+    over ``seconds``; (b) also the ticks held while Python had the tick's lock."""
+    import os
+
+    from ..server import config as cfgmod
+    from ..server.clock import MonotonicClock
+    from ..server.loop import HapticLoop
+    from ..testing.emulators.block import Block
+    from ..testing.emulators.harness import attach_hd_devices
+    from ..testing.emulators.physics import spawn
+
+    out = []
+    for hz in rates:
+        os.environ["HAPTICPROXY_EMU_HD_RATE_HZ"] = str(hz)
+        nominal_us = 1e6 / hz
+        for how in ("python callback", "compiled tick"):
+            folder = os.path.join(tmp, f"servo-{int(hz)}-{how.split()[0]}")
+            os.makedirs(folder, exist_ok=True)
+            blk = Block(os.path.join(folder, "dev.blk"), create=True)
+            procs = [spawn(blk.path, "Touch", vendor="touch", initial_pose=[0.0, 0.0, 0.05, 0.0, 0.0, 0.0])]
+            try:
+                attach_hd_devices({"Default Device": blk.path}, lockstep=False)
+                cfg = {"driver": "touch", "kind": "spatial", "watchdog_s": 0.5, "stale_s": 0.5}
+                if how == "python callback":
+                    from ..server.devices.touch import S_TICK, TICK_RING, make_touch_device
+
+                    d = make_touch_device(cfg, period_s=1.0 / hz)
+                    try:
+                        d.enable()
+                        row, zero = np.zeros(20), np.zeros(6)
+                        period = int(round(1e9 / hz))
+                        t0 = int(d.state[S_TICK])
+                        nxt = time.monotonic_ns()
+                        end = nxt + int(seconds * 1e9)
+                        while nxt < end:  # the loop's Python side at the servo's rate
+                            d.read(row)
+                            d.write(zero)
+                            nxt += period
+                            now = time.monotonic_ns()
+                            if now < nxt:
+                                time.sleep((nxt - now) * 1e-9)
+                        k = int(d.state[S_TICK])
+                        m = min(k - t0, TICK_RING) - 1
+                        ticks = np.array([d.tick_ns[(k - m + i) % TICK_RING] for i in range(m)], dtype=np.int64)
+                        per_us = np.diff(ticks) * 1e-3
+                        held = None
+                    finally:
+                        d.close()
+                else:
+                    settings = cfgmod.load({"loop": {"rate_hz": hz, "realtime": False},
+                                            "transport": {"url": f"mem://bench-servo-{int(hz)}"},
+                                            "device": cfg, "telemetry": {"ring_s": 1.0},
+                                            "controller": {"stiffness_n_per_m": 300.0, "damping_n_s_per_m": 2.0}})
+                    loop = HapticLoop.build(settings, clock=MonotonicClock())
+                    try:
+                        loop.warm_up()
+                        loop.start()
+                        loop.run(duration_s=seconds)
+                        per_us = loop._servo.periods_us()
+                        from ..server.servo import SB_HELD, SB_TICKS
+
+                        held = int(loop._servo.block[SB_HELD])
+                        ran = int(loop._servo.block[SB_TICKS])
+                    finally:
+                        loop.close()
+                dev = np.abs(per_us - nominal_us)
+                r = {"driver": "touch", "kind": "servo", "callback": how, "target_hz": hz,
+                     "reached_hz": round(1e6 / float(np.mean(per_us)), 1) if len(per_us) else 0.0,
+                     "period_jitter_p99_us": round(_pct(dev, 99), 1), "period_jitter_max_us": round(float(dev.max()), 1),
+                     "periods": int(len(per_us))}
+                if held is not None:
+                    r.update(ticks_ran=ran, ticks_held=held)
+                out.append(r)
+            finally:
+                blk["stop"] = 1.0
+                for p in procs:
+                    try:
+                        p.wait(timeout=10)
+                    except Exception:  # noqa: BLE001
+                        p.kill()
+                blk.close()
+        os.environ.pop("HAPTICPROXY_EMU_HD_RATE_HZ", None)
+    return out
+
+
 #: fault -> (block slot, value, whether a driver can see it)
 FAULTS = {"unplugged": ("fault_unplugged", 1.0, True), "device error": ("fault_error", 12.0, True),
           "frozen position": ("fault_frozen", 1.0, False)}
@@ -298,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
                 todo += [lambda w=w, f=f: [fault_row(w, f)] for f in FAULTS]
                 todo += [lambda w=w: [wrong_model_row(w)]]
                 if w == "touch":
-                    todo += [lambda: [late_ticks_row()]]
+                    todo += [lambda: [late_ticks_row()], lambda: servo_rows(args.seconds, tmp)]
                 for job in todo:
                     for r in job():
                         rows.append(r)

@@ -586,11 +586,12 @@ class Controller:
         faxis = taxis = None
         vmax, wmax = saf["max_speed_m_per_s"], saf["max_angular_speed_rad_per_s"]
         if device_limits is not None:  # never command more than the hardware can take
-            fmax = min(fmax, device_limits.max_force_n)
-            tmax = min(tmax, device_limits.max_torque_n_m)
-            # a motor's own limit, where the device declares one tighter than its norm
-            faxis = getattr(device_limits, "max_force_axis_n", None)
-            taxis = getattr(device_limits, "max_torque_axis_n_m", None)
+            # the configured cap is on the norm; a device declares its own norm cap (its motors
+            # saturate together) and a cap per axis (a motor's own limit), each kept
+            fmax = min(fmax, getattr(device_limits, "max_force_norm_n", math.inf))
+            tmax = min(tmax, getattr(device_limits, "max_torque_norm_n_m", math.inf))
+            faxis = device_limits.max_force_n
+            taxis = device_limits.max_torque_n_m
             vmax = min(vmax, device_limits.max_speed_m_per_s)
             wmax = min(wmax, device_limits.max_angular_speed_rad_per_s)
         cp[CP_VMAX] = vmax

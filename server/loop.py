@@ -333,6 +333,7 @@ class HapticLoop:
         self._stall_explains_ns = int(STALL_EXPLAINS_S * 1e9)
         self._speeding = False  # a speed trip while nothing was rendered is logged when it starts
         self._rendered_ever = False  # a session was ever engaged (force rendered, or ramping in)
+        self._servo = None  # device-clocked: the servo callback's binding (``servo.ServoBinding``)
         self._stall_trips_max = int(scfg["stall_trips_max"])
         self._trip_times: list[int] = []
         #: a gap between two steps' device writes longer than this is a stall: half the device's
@@ -546,6 +547,10 @@ class HapticLoop:
         warm = getattr(self.device, "warm_up", None)
         if callable(warm):
             warm()
+        if self.device_clocked:  # the servo callback and the device's C functions (cfuncs: compiled at import)
+            from . import servo  # noqa: F401
+
+            self.device.servo_io()
         self._kernels = package_kernels()
         self._kernels_compiled = sum(len(d.overloads) for d in self._kernels)
 
@@ -625,10 +630,16 @@ class HapticLoop:
             if clock.simulated:
                 clock.charge()
         self._after_tick(rcs, wake)
-        # 2: acknowledge the ContactUpdate the previous step applied, then apply the one received
-        # before. Applying (the model update) and acknowledging (the engine's advice, the
-        # ProxyState's encoding) each cost some us of Python: spread over consecutive steps, no
-        # step pays for two of them (nor for housekeeping), unless updates arrive in every step.
+        self._service(wake)
+        return not self.stopped
+
+    def _service(self, wake: int) -> None:
+        """The step's Python part, after the tick: acknowledge the ContactUpdate the previous step
+        applied, then apply the one received before (applying: the model update; acknowledging:
+        the engine's advice, the ProxyState's encoding: each some us of Python, spread over
+        consecutive steps so that no step pays for two of them nor for housekeeping, unless
+        updates arrive in every step), the environment's silence, the transport, housekeeping."""
+        tk = self.tk
         busy = False
         upd = self._ack_due
         if upd is not None:
@@ -646,7 +657,6 @@ class HapticLoop:
             busy = True
         tk[tick.TK_NEEDS_PYTHON] = 1 if (self._pending is not None or self._ack_due is not None) else 0
         self._maybe_housekeeping(busy)
-        return not self.stopped
 
     def _after_tick(self, rcs: int, wake: int) -> None:
         """What a tick's results ask of the lifecycle: a fault, or a fade that reached zero."""
@@ -1139,6 +1149,12 @@ class HapticLoop:
         st[ST["stall_trips"]] = self.stall_trips
         st[ST["stall_recoveries"]] = self.stall_recoveries
         st[ST["torque_cap_n_m"]] = self.ctrl.torque_cap_n_m
+        st[ST["ticks_compiled"]] = self.tk[tick.TK_TICKS]
+        if self._servo is not None:
+            from .servo import SB_HELD, SB_TICKS
+
+            st[ST["servo_ticks"]] = self._servo.block[SB_TICKS]
+            st[ST["servo_held"]] = self._servo.block[SB_HELD]
 
     # ---------------------------------------------------------------------------- running
     def run(self, *, max_steps: int | None = None, duration_s: float | None = None) -> None:
@@ -1150,7 +1166,9 @@ class HapticLoop:
         written by Python), each step is :meth:`step`."""
         from .clock import MonotonicClock
 
-        if type(self.clock) is not MonotonicClock or self._io == tick.IO_EXTERNAL:
+        if type(self.clock) is MonotonicClock and self.device_clocked:
+            self._run_device_clocked(duration_s)
+        elif type(self.clock) is not MonotonicClock or self._io == tick.IO_EXTERNAL:
             # (a driver in Python is read and written by Python every step)
             self._run_steps(max_steps, duration_s)
         else:
@@ -1198,6 +1216,63 @@ class HapticLoop:
                     self.request_stop()
                 max_steps = None
                 end_ns = None
+
+    @property
+    def device_clocked(self) -> bool:
+        """The device owns the clock (its SDK's servo thread runs the tick: ``server/servo.py``)."""
+        info = getattr(self.device, "info", None)
+        return getattr(info, "clock", "loop") == "device" and callable(getattr(self.device, "servo_io", None))
+
+    def _run_device_clocked(self, duration_s) -> None:
+        """The tick runs in the device's servo thread (``servo.SERVO_CALLBACK``); this thread runs
+        the rest, whenever a datagram arrives and at least every millisecond, with the tick lock
+        held (a servo tick that finds it held writes the previous command again). The tick's
+        results accumulate in ``TK_RC_STICKY`` until taken here."""
+        import select
+
+        from .servo import SERVO_CALLBACK, ServoBinding, lock, unlock
+
+        tk = self.tk
+        io = self.device.servo_io()
+        rate = getattr(self.device.info, "native_rate_hz", None) or self.settings.rate_hz
+        binding = ServoBinding(int(round(1e9 / rate)), io["begin"], io["end"], io["ctx"])
+        lock(tk)
+        try:
+            self._io = tick.IO_NATIVE
+            tk[tick.TK_IO] = tick.IO_NATIVE
+            tk[tick.TK_NATIVE_READ] = io["read"]
+            tk[tick.TK_NATIVE_WRITE] = io["write"]
+            tk[tick.TK_NATIVE_CTX] = io["ctx"]
+            tk[tick.TK_SIMULATED] = 0
+            binding.bind(self._T)
+        finally:
+            unlock(tk)
+        self._servo = binding
+        self.device.schedule(SERVO_CALLBACK, binding.address)
+        fd = int(tk[tick.TK_FD])
+        end_ns = None if duration_s is None else self.clock.now_ns() + int(duration_s * 1e9)
+        try:
+            while not self.stopped:
+                if fd >= 0:
+                    select.select((fd,), (), (), 0.001)
+                else:
+                    time.sleep(0.001)
+                lock(tk)
+                try:
+                    rcs = int(tk[tick.TK_RC_STICKY])
+                    tk[tick.TK_RC_STICKY] = 0
+                    now = self.clock.now_ns()
+                    self._after_tick(rcs, now)
+                    self._service(now)
+                    if self._T is not binding._keep[0]:
+                        binding.bind(self._T)  # an engagement bound the tick to the new model's arrays
+                finally:
+                    unlock(tk)
+                if end_ns is not None and now >= end_ns and not self.stopping:
+                    self.request_stop()
+                    end_ns = None
+        finally:
+            self.device.schedule_python()  # the servo thread must not reach arrays freed after this
 
     def _after_compiled_tick(self) -> None:
         """What a tick run by ``run_ticks`` left for Python: its results, a datagram, housekeeping."""

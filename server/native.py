@@ -167,3 +167,145 @@ def _address_as(dtype):
 
 address_as_f64 = _address_as(types.float64)
 address_as_i64 = _address_as(types.int64)
+
+
+def address_as(arrty):
+    """An intrinsic ``f(addr, shape)``: an array of numba type ``arrty`` (C-contiguous; its dtype a
+    number or a record type, aligned or not as the type says) over memory at a raw address."""
+    ndim = arrty.ndim
+    dtype = arrty.dtype
+
+    @intrinsic
+    def _as(typingctx, addr, shape):
+        if not (isinstance(addr, types.Integer) and isinstance(shape, types.BaseTuple) and len(shape) == ndim):
+            return None
+        sig = arrty(addr, shape)
+
+        def codegen(context, builder, signature, args):
+            ary = context.make_array(arrty)(context, builder)
+            lty = context.get_data_type(dtype)
+            itemsize = context.get_abi_sizeof(lty)
+            data = builder.inttoptr(context.cast(builder, args[0], signature.args[0], types.int64), lty.as_pointer())
+            dims = cgutils.unpack_tuple(builder, args[1], ndim)
+            dims = [context.cast(builder, d, t, types.intp) for d, t in zip(dims, signature.args[1])]
+            strides = []
+            acc = context.get_constant(types.intp, itemsize)
+            for d in reversed(dims):
+                strides.insert(0, acc)
+                acc = builder.mul(acc, d)
+            context.populate_array(ary, data=data, shape=cgutils.pack_array(builder, dims),
+                                   strides=cgutils.pack_array(builder, strides),
+                                   itemsize=context.get_constant(types.intp, itemsize), meminfo=None)
+            return ary._getvalue()
+
+        return sig, codegen
+
+    return _as
+
+
+@intrinsic
+def atomic_cas(typingctx, arr, i, expected, new):
+    """Compare-and-swap ``arr[i]`` (int64[:]): if it holds ``expected`` it becomes ``new``;
+    returns the value it held (sequentially consistent)."""
+    if not (isinstance(arr, types.Array) and arr.dtype == types.int64):
+        return None
+    sig = types.int64(arr, i, expected, new)
+
+    def codegen(context, builder, signature, args):
+        a = context.make_array(signature.args[0])(context, builder, args[0])
+        idx = context.cast(builder, args[1], signature.args[1], types.intp)
+        ptr = builder.gep(a.data, [idx])
+        exp = context.cast(builder, args[2], signature.args[2], types.int64)
+        val = context.cast(builder, args[3], signature.args[3], types.int64)
+        res = builder.cmpxchg(ptr, exp, val, "seq_cst", "seq_cst")
+        return builder.extract_value(res, 0)
+
+    return sig, codegen
+
+
+@intrinsic
+def atomic_store(typingctx, arr, i, v):
+    """``arr[i] = v`` (int64[:]) as one sequentially consistent atomic store."""
+    if not (isinstance(arr, types.Array) and arr.dtype == types.int64):
+        return None
+    sig = types.void(arr, i, v)
+
+    def codegen(context, builder, signature, args):
+        a = context.make_array(signature.args[0])(context, builder, args[0])
+        idx = context.cast(builder, args[1], signature.args[1], types.intp)
+        ptr = builder.gep(a.data, [idx])
+        st = builder.store_atomic(context.cast(builder, args[2], signature.args[2], types.int64), ptr, "seq_cst", 8)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+def _fnptr(builder, context, value, valty, fnty):
+    return builder.inttoptr(context.cast(builder, value, valty, types.int64), fnty.as_pointer())
+
+
+@intrinsic
+def call_v_u32(typingctx, fn, a):
+    """``((void (*)(uint32_t)) fn)(a)``."""
+    if not (isinstance(fn, types.Integer) and isinstance(a, types.Integer)):
+        return None
+    sig = types.void(fn, a)
+
+    def codegen(context, builder, signature, args):
+        fnty = ir.FunctionType(ir.VoidType(), [_I32])
+        f = _fnptr(builder, context, args[0], signature.args[0], fnty)
+        builder.call(f, [builder.trunc(context.cast(builder, args[1], signature.args[1], types.int64), _I32)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def call_v_u32_ptr(typingctx, fn, a, p):
+    """``((void (*)(uint32_t, void *)) fn)(a, p)``: ``p`` an address."""
+    if not all(isinstance(x, types.Integer) for x in (fn, a, p)):
+        return None
+    sig = types.void(fn, a, p)
+
+    def codegen(context, builder, signature, args):
+        ptr = ir.IntType(8).as_pointer()
+        fnty = ir.FunctionType(ir.VoidType(), [_I32, ptr])
+        f = _fnptr(builder, context, args[0], signature.args[0], fnty)
+        pp = builder.inttoptr(context.cast(builder, args[2], signature.args[2], types.int64), ptr)
+        builder.call(f, [builder.trunc(context.cast(builder, args[1], signature.args[1], types.int64), _I32), pp])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def call_struct12_error(typingctx, fn):
+    """The first 32-bit field of a 12-byte struct of three 32-bit integers returned by value by
+    ``fn(void)`` (OpenHaptics' ``HDErrorInfo hdGetError(void)``): on x86-64 System V such a struct
+    comes back in RAX (the first two fields) and EDX (the third)."""
+    if not isinstance(fn, types.Integer):
+        return None
+    sig = types.int64(fn)
+
+    def codegen(context, builder, signature, args):
+        rty = ir.LiteralStructType([_I64, _I32])
+        fnty = ir.FunctionType(rty, [])
+        f = _fnptr(builder, context, args[0], signature.args[0], fnty)
+        r = builder.call(f, [])
+        lo = builder.extract_value(r, 0)
+        return builder.and_(lo, ir.Constant(_I64, 0xFFFFFFFF))
+
+    return sig, codegen
+
+
+@intrinsic
+def voidptr_to_int(typingctx, p):
+    """The address a ``void *`` holds, as int64 (a C callback's user data)."""
+    if not isinstance(p, (types.RawPointer, types.CPointer)) and p != types.voidptr:
+        return None
+    sig = types.int64(p)
+
+    def codegen(context, builder, signature, args):
+        return builder.ptrtoint(args[0], _I64)
+
+    return sig, codegen

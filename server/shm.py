@@ -76,6 +76,10 @@ STATUS_LAYOUT = (
     ("advised_epsilon_m", "f"), ("advised_lead_s", "f"),
     # the port the loop's transport bound (a configured port 0 is the system's pick), 0: none
     ("transport_port", "i"),
+    # who ran the ticks: the compiled loop on its own (the rest were steps Python ran), or the
+    # device's servo thread (device-clocked: ticks it ran, and ticks it held while Python changed
+    # the tick's state, writing the previous command again)
+    ("ticks_compiled", "i"), ("servo_ticks", "i"), ("servo_held", "i"),
 )
 STATUS_DTYPE = np.dtype([(name, np.float64) for name, _ in STATUS_LAYOUT])
 STATUS_FIELDS = STATUS_DTYPE.names

@@ -39,6 +39,7 @@ from numba import njit
 from . import control as ctl
 from .devices.dynamics import sim_read, sim_write_hand
 from .native import call_i32_ptr_ptr, fd_readable, monotonic_ns, sleep_until_ns
+from .lifecycle import LS
 from .rings import account
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
@@ -90,7 +91,9 @@ TK_MISSED = 30          # deadlines missed (whole periods skipped)
 TK_RX_PENDING = 31      # a transport without a socket received something (its thread sets it)
 TK_PREV_WRITE_NS = 32   # the end of the tick before the last (a stall inside the last one shows
                         # as the time from there to its end)
-NTK = 34
+TK_LOCK = 33            # device-clocked: 0 free, 1 a servo tick runs, 2 Python changes the arrays
+TK_RC_STICKY = 34       # device-clocked: every tick's results since Python last took them (OR)
+NTK = 36
 
 IO_EXTERNAL = 0
 IO_SIM = 1
@@ -102,7 +105,7 @@ EV_TICKED = 2      # a tick ran whose aftermath needs Python (a fault, a fade's 
                    # a datagram waiting)
 EV_STOP = 3
 
-_S_ENGAGED = 1     # lifecycle LS codes the checks read (asserted against lifecycle below)
+S_ENGAGED = 1      # lifecycle LS codes the checks read (asserted against lifecycle below)
 _S_FADING = 2
 _S_STOPPING = 4
 
@@ -151,7 +154,7 @@ def _needs_python(T, wake_ns):
         return True
     if wake_ns - tk[TK_LAST_WRITE_NS] > tk[TK_STALL_GAP_NS]:
         return True
-    return tk[TK_STATE] == _S_ENGAGED and wake_ns - tk[TK_QUIET_SINCE_NS] > tk[TK_WATCHDOG_NS]
+    return tk[TK_STATE] == S_ENGAGED and wake_ns - tk[TK_QUIET_SINCE_NS] > tk[TK_WATCHDOG_NS]
 
 
 @njit(**_JIT)
@@ -213,6 +216,9 @@ def run_ticks(T):
         if _after_needs_python(T) or tk[TK_RX_PENDING] != 0 or (tk[TK_FD] >= 0 and fd_readable(tk[TK_FD]) != 0):
             tk[TK_RETURNS] += 1
             return EV_TICKED
+
+
+assert (S_ENGAGED, _S_FADING, _S_STOPPING) == tuple(int(LS[n]) for n in ("engaged", "fading", "stopping"))
 
 
 def new_words(period_ns: int) -> np.ndarray:

@@ -278,6 +278,10 @@ class TouchDevice(VendorDevice):
         self._sched = int(self._lib.hdScheduleAsynchronous(callback_address, user_data, HD_MAX_SCHEDULER_PRIORITY))
         return self._sched
 
+    def schedule_python(self) -> int:
+        """Schedule this driver's own Python callback again (the mailbox of ``read`` / ``write``)."""
+        return self.schedule(ctypes.cast(self._cb, ctypes.c_void_p).value, None)
+
     def _servo(self, _data) -> int:
         lib, h, st, cm = self._lib, self._h, self.state, self.command
         self.tick_ns[int(st[S_TICK]) % TICK_RING] = _monotonic_ns()
@@ -377,7 +381,37 @@ class TouchDevice(VendorDevice):
         self._post(float(wrench[0]), float(wrench[1]), float(wrench[2]), 1.0 if live else 0.0)
         return DEV_OK
 
+    # -- the compiled servo (``server/servo.py``): the tick itself runs in the servo thread ----
+    _x = None
+
+    def servo_io(self) -> dict:
+        """The device's C functions for the haptic tick run in the servo thread (``hd_native``):
+        ``begin``, ``read``, ``write``, ``end`` and their context ``ctx`` (addresses). From the
+        first call on, enabling and disabling arm the compiled write (``X_ARMED``) and its faults
+        are the frames' own (``X_ERROR``); schedule ``server.servo.SERVO_CALLBACK`` with
+        :meth:`schedule` to replace the Python callback."""
+        from . import hd_native
+
+        if self._x is None:
+            self._x, self._x_keep = hd_native.context(self._lib, self._h)
+            self._x[hd_native.X_ARMED] = 1 if self._enabled else 0
+        begin, read, write, end = hd_native.ADDRESSES
+        return {"begin": begin, "read": read, "write": write, "end": end, "ctx": int(self._x.ctypes.data)}
+
     def _io_enable(self, on: bool) -> int:
+        if self._x is not None:  # the compiled servo's context is the device's state now
+            from . import hd_native
+
+            x = self._x
+            if on:
+                err = int(x[hd_native.X_ERROR])
+                if err:
+                    x[hd_native.X_ERROR] = 0  # seen: the next frame says whether it persists
+                    return DEV_FAULT_LINK if err == HD_COMM_ERROR else DEV_FAULT_HARDWARE
+                self._lib.hdMakeCurrentDevice(self._h)
+                self._lib.hdEnable(HD_FORCE_OUTPUT)
+            x[hd_native.X_ARMED] = 1 if on else 0
+            return DEV_OK
         if on:
             st = self.state
             stale = st[S_TICK] == self._last_tick and self._clock() - self._last_tick_ns > self._stale_ns

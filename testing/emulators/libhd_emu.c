@@ -29,6 +29,7 @@
 #include <stdatomic.h>
 #include <stdio.h>
 #include <stdlib.h>
+#include <sched.h>
 #include <string.h>
 #include <sys/mman.h>
 #include <time.h>
@@ -348,9 +349,17 @@ static void tick(void) {
 
 static void *servo(void *arg) {
     (void)arg;
+    /* OpenHaptics runs its servo thread at a high priority: so does the fake, where it may
+       (SCHED_FIFO needs the right to it; without, it runs as an ordinary thread) */
+    struct sched_param sp;
+    sp.sched_priority = 70;
+    pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
     struct timespec next;
     clock_gettime(CLOCK_MONOTONIC, &next);
-    const long period = 1000000;  /* 1 kHz */
+    /* 1 kHz, as OpenHaptics' default; HAPTICPROXY_EMU_HD_RATE_HZ sets another (hdSetSchedulerRate's) */
+    const char *rate_env = getenv("HAPTICPROXY_EMU_HD_RATE_HZ");
+    double rate_hz = rate_env ? atof(rate_env) : 1000.0;
+    const long period = rate_hz > 0.0 ? (long)(1e9 / rate_hz) : 1000000;
     while (!__atomic_load_n(&g_stop, __ATOMIC_ACQUIRE)) {
         struct timespec now;
         clock_gettime(CLOCK_MONOTONIC, &now);
@@ -358,7 +367,7 @@ static void *servo(void *arg) {
         for (int i = 0; i < g_ndev; i++) {
             if (!g_dev[i].open) continue;
             volatile double *b = g_dev[i].b;
-            if (late_us > 1000.0) b[B_SERVO_LATE] += 1.0;
+            if (late_us > period * 1e-3) b[B_SERVO_LATE] += 1.0;
             if (late_us > b[B_SERVO_MAX_LATE_US]) b[B_SERVO_MAX_LATE_US] = late_us;
         }
         tick();

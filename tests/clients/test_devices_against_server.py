@@ -144,3 +144,7 @@ def test_the_wall_is_felt_through_each_vendor_driver(which, tmp_path, monkeypatc
     assert abs(np.mean(last[:, TEL["proxy_z"]]) - 0.020) < 0.002   # the cube rests on the floor
     assert abs(np.mean(last[:, TEL["cmd_fz"]]) - PUSH_N) < 0.05     # the floor pushes back the 0.5 N
     assert device_steps > 1000                                        # the emulated device ran on its own
+    if which == "touch":  # the device owns the clock: its servo thread ran the compiled tick
+        assert snap["servo_ticks"] > 1000 and snap["servo_held"] < snap["servo_ticks"] / 10
+    else:  # the loop owns it: most ticks ran in the compiled loop, without Python
+        assert snap["servo_ticks"] == 0
