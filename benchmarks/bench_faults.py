@@ -17,6 +17,11 @@ stub`` for the analytic one) on loopback. Faults are injected in user space (no 
   watchdog must cut the output and keep it off until ``status --rearm``), and the loop process
   killed (SIGKILL: the device's watchdog cuts the output; the telemetry recording keeps every
   flushed block);
+- **the safety filter and the fault policy** (``faults_safety``: its docstring): torque caps and
+  rate on a spatial device, the norm cap on a diagonal (spatial, and a 1-DOF device on a diagonal
+  axis), the fade envelope under a pushing hand, a device fault 5 s after a recovered stall,
+  the handle thrown while idle, flipped normals under a pushing hand, and ``accurate`` (4 kHz)
+  on a loaded machine;
 - **Zenoh**: the same client over Zenoh through
   :class:`~hapticproxy.testing.impair_tcp.ImpairingTcpProxy` (TCP delay 20 / 100 ms,
   a 400 ms stall, the link reset) and with the messages impaired by
@@ -741,7 +746,7 @@ def machine() -> str:
 
 
 COLUMNS = ("case", "max_force_n", "max_force_step_n", "force_cap_n", "rate_limit_n_per_step", "fade_ms", "unstable",
-           "peak_n", "steady_n", "recover_ms", "stall_trips", "violations")
+           "peak_n", "steady_n", "recover_ms", "stall_trips", "max_force_norm_n", "max_torque_norm_n_m", "violations")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -754,18 +759,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
     args = ap.parse_args(argv)
     from . import faults_lifecycle as lc
+    from . import faults_safety as fs
 
     cases = CASES
     life = lc.cases()
+    safety = fs.cases()
     if args.cases:
         wanted = [w.strip().lower() for w in args.cases.split(",") if w.strip()]
         cases = [c for c in CASES if any(w in c.name.lower() for w in wanted)]
         life = [c for c in life if any(w in c.name.lower() for w in wanted)]
+        safety = [c for c in safety if any(w in c.name.lower() for w in wanted)]
     if args.list:
-        for c in cases + life:
+        for c in cases + life + safety:
             print(c.name)
         return 0
-    if not cases and not life:
+    if not cases and not life and not safety:
         print("hapticproxy bench faults: no case matches --cases", file=sys.stderr)
         return 2
     info = {"machine": machine(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
@@ -774,9 +782,11 @@ def main(argv: list[str] | None = None) -> int:
         print_json({"run": info})
     rows = []
     this = sys.modules[__name__]
-    for c in cases + life:
+    for c in cases + life + safety:
         try:
-            if isinstance(c, lc.LifecycleCase):
+            if isinstance(c, fs.SafetyCase):
+                row = fs.run_case(c)
+            elif isinstance(c, lc.LifecycleCase):
                 row = lc.run_lifecycle_case(c, this, engine=args.engine, realtime=not args.no_realtime)
             else:
                 row = run_case(c, engine=args.engine, realtime=not args.no_realtime, seconds=args.seconds)
