@@ -785,7 +785,7 @@ def main(argv: list[str] | None = None) -> int:
     for c in cases + life + safety:
         try:
             if isinstance(c, fs.SafetyCase):
-                row = fs.run_case(c)
+                row = fs.run_case(c, this)
             elif isinstance(c, lc.LifecycleCase):
                 row = lc.run_lifecycle_case(c, this, engine=args.engine, realtime=not args.no_realtime)
             else:

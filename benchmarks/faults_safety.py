@@ -172,13 +172,14 @@ def _reasons(loop) -> list[str]:
     return [Reason(r[4]).name.lower() for r in loop.shared.transitions_since(0)]
 
 
-def run_case(case: SafetyCase) -> dict:
+def run_case(case: SafetyCase, bf=None) -> dict:
+    """One row; ``bf``: the ``bench_faults`` module (its real-time rig: the ``accurate`` row needs it)."""
     t0 = time.monotonic()
     row = {"case": case.name, "mode": "real time" if case.kind == "accurate" else "simulated time"}
     broken: dict = {}
     try:
         if case.kind == "accurate":
-            _accurate(row, broken)
+            _accurate(row, broken, bf)
         else:
             with tempfile.TemporaryDirectory(prefix="hp-safety-") as folder:
                 _simulated(case, row, broken, folder)
@@ -331,9 +332,8 @@ def _simulated(case: SafetyCase, row: dict, broken: dict, folder: str) -> None:
 
 
 # ------------------------------------------------------------------------------ real time
-def _accurate(row: dict, broken: dict) -> None:
+def _accurate(row: dict, broken: dict, bf) -> None:
     """``--preset accurate`` at 4 kHz beside two processes that burn both cores, with a client."""
-    from . import bench_faults as bf
     from ..server import config as cfgmod
     from ..server.daemon import Supervisor
     from ..server.lifecycle import Fault

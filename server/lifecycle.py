@@ -210,3 +210,13 @@ def _device_fault_name(code: int) -> str:
         return DeviceFault(code).name.lower().replace("_", " ")
     except ValueError:
         return ""
+
+
+def policy_table() -> str:
+    """:data:`FAULT_POLICY` as the markdown table ``docs/architecture.md`` shows (a test keeps the
+    two the same)."""
+    lines = ["| source | output | recovery | fault | reason |", "| --- | --- | --- | --- | --- |"]
+    for p in FAULT_POLICY:
+        lines.append(f"| {p.source} | {p.output} | {p.recovery} | {p.fault.name.lower()} | "
+                     f"{p.reason.name.lower()} |")
+    return "\n".join(lines)

@@ -158,3 +158,9 @@ def test_the_cycle_checker_catches_a_pair():
     assert mutual_imports(mods) == [("hapticproxy.server.a", "hapticproxy.server.b")]
     assert absolute_self_imports("def f():\n    from hapticproxy.server import loop\n") == \
         ["line 2: from hapticproxy.server"]
+
+
+def test_the_architecture_page_shows_the_fault_policy_as_declared():
+    from hapticproxy.server.lifecycle import policy_table
+
+    assert policy_table() in (ROOT / "docs" / "architecture.md").read_text()
