@@ -61,8 +61,10 @@ def test_bench_model_prints_rows_with_the_documented_keys():
     for r in rows:
         for key in ("numba_median_us", "numba_p99_us", "numpy_median_us", "speedup"):
             assert isinstance(r[key], float) and r[key] > 0
-        assert r["speedup"] == round(r["numpy_median_us"] / r["numba_median_us"], 1) or \
-            abs(r["speedup"] - r["numpy_median_us"] / r["numba_median_us"]) < 0.1
+        # (the medians are printed rounded to 3 decimals: at a 700x speed-up that rounding alone
+        # moves the ratio by 0.15, so the check is relative)
+        ratio = r["numpy_median_us"] / r["numba_median_us"]
+        assert abs(r["speedup"] - ratio) <= max(0.1, 1e-3 * ratio)
         assert r["nonfinite"] == 0
     assert rows[1]["collision_steps"] > 0 and rows[1]["resting_steps"] > 0
     assert "warm start" in out.stderr

@@ -18,9 +18,12 @@ def _wall(method, config, push, lag, seed):
 
 
 def test_recovery_puts_a_late_wall_where_it_is_within_two_seconds():
-    # 0.5 N, seed 2: the first contact reaches the model 15 mm beyond the wall (LM0 and LM5 alike)
-    _, paper, _ = _wall("LM5", "paper", 0.5, 0.0, 2)
-    tr, rec, st = _wall("LM5", "recovery", 0.5, 0.0, 2)
+    # 0.5 N, the engine's tool 30 ms behind, seed 2: the first contact reaches the model 16.6 mm
+    # beyond the wall (the device is written first in each step and the update applied after it,
+    # so a scenario's timing differs by a step from the tree this test was written on, where the
+    # same seed without the lag did it)
+    _, paper, _ = _wall("LM5", "paper", 0.5, 0.03, 2)
+    tr, rec, st = _wall("LM5", "recovery", 0.5, 0.03, 2)
     assert paper["surface_error_mm"] > 10.0
     assert abs(rec["surface_error_mm"]) < M.SURFACE_BAND_MM
     assert float(rec["surface_reached_s"]) < 2.0
