@@ -1023,7 +1023,6 @@ class HapticLoop:
         self.fault = Fault.NONE
         self.device_fault = 0
         self.stall_recoveries += 1
-        self.ctrl.cut()  # the device rendered nothing while it was off: ramp in from zero
         if self.model is not None and self.session_id in self.endpoint.sessions:
             self.transition("engaged", Reason.RECOVERED, on_time * 1e-9)
         else:

@@ -327,3 +327,29 @@ def test_a_device_watchdog_is_the_stalls_only_shortly_after_it(rig, after_s, lat
         assert r.loop.state_name == "fault" and r.loop.fault == Fault.DEVICE
     else:  # a stall trip, and on time long enough since the stall: it recovers at once
         assert _reasons(r.loop)[-2:] == [Reason.STALL, Reason.RECOVERED]
+
+
+class ReadFaultDevice(FaultyDevice):
+    """A driver whose ``read`` reports the fault and whose ``write`` does not (a link lost is seen
+    when the state stops arriving)."""
+
+    def write(self, w):
+        self._injected()
+        rc = WatchdogDevice.write(self, w)
+        return DEV_OK if rc == self.fault_code else rc
+
+
+def test_a_fault_only_the_read_reports_cuts_and_latches():
+    clock = SimClock(start_ns=1_000_000_000)
+    settings = make_settings()
+    dev = ReadFaultDevice(clock, hand=PUSH, period_s=settings.period_ns * 1e-9)
+    r = Rig(settings, dev, {"start_pose": (0.0, 0.012, 0.0)}, clock=clock)
+    try:
+        n0 = _engaged(r)
+        r.device.fault_at_ns = r.clock.now_ns()
+        r.device.fault_code = DEV_FAULT_HARDWARE
+        r.run(0.05)
+        _cut(r, n0)
+        _latched(r, Fault.DEVICE, Reason.DEVICE_FAULT, seconds=1.0)
+    finally:
+        r.close()
