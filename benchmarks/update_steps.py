@@ -24,6 +24,8 @@ from ..protocol.transport import open_transport
 
 #: the budget the issue sets: a quarter of a 4 kHz period
 BUDGET_US = 62.5
+#: a quarter of a 10 kHz period: what any step's tick (device read to write) may take
+TICK_BUDGET_US = 25.0
 #: steps per tool kind: an update every 16 steps gives about 1,870 of each update step. With the
 #: 371 of 6,000 steps a p99 was the 4th-largest sample, and seven runs of the same tree on one
 #: day put the costliest update step's p99 anywhere from 32 to 83 us; with 1,870 it is the 19th.
@@ -85,6 +87,8 @@ def measure(kind: str, *, steps: int = STEPS, every: int = 16, contacts: int = 8
         pose = np.array([0.0, 0.05, 0.0, 1.0, 0.0, 0.0, 0.0])
         joints = np.zeros(2) if kind.startswith("linkage") else None
         t = {"receive": [], "apply": [], "ack": [], "housekeeping": [], "other": []}
+        tt = {k: [] for k in t}  # the tick's own share of each step
+        ticks = loop.tick_times = []
         t_env = 0.0
         for i in range(steps):
             now = clock.now_ns()
@@ -108,22 +112,30 @@ def measure(kind: str, *, steps: int = STEPS, every: int = 16, contacts: int = 8
             c0 = time.thread_time_ns()
             loop.step()
             dt = (time.thread_time_ns() - c0) * 1e-3
+            dtick = ticks[-1] * 1e-3  # the tick alone: device read .. write, accounting
             if loop.updates != u0 or pending:
-                t["apply"].append(dt)
+                k = "apply"
             elif ack_due:
-                t["ack"].append(dt)
+                k = "ack"
             elif sent and loop._pending is not None:
-                t["receive"].append(dt)
+                k = "receive"
             elif loop._hk_n != h0:
-                t["housekeeping"].append(dt)
+                k = "housekeeping"
             else:
-                t["other"].append(dt)
+                k = "other"
+            t[k].append(dt)
+            tt[k].append(dtick)
         out = {"tool": kind, "contacts": n, "updates": loop.updates, "faults": loop.faults_total}
         for k, v in t.items():
             a = np.asarray(v[3:]) if len(v) > 10 else np.asarray(v)
             out[f"{k}_us"] = ({"n": int(len(a)), "p50": round(float(np.percentile(a, 50)), 1),
                                "p99": round(float(np.percentile(a, 99)), 1), "max": round(float(a.max()), 1)}
                               if len(a) else None)
+            b = np.asarray(tt[k][3:]) if len(tt[k]) > 10 else np.asarray(tt[k])
+            out[f"{k}_tick_us"] = ({"n": int(len(b)), "p50": round(float(np.percentile(b, 50)), 1),
+                                    "p99": round(float(np.percentile(b, 99)), 1), "max": round(float(b.max()), 1)}
+                                   if len(b) else None)
+        out["tick_kernel_us"] = kernel_cost(loop)
         # the same step types against a plain step of the same run: what handling an update adds,
         # in a figure that a faster or a busier machine changes less than the microseconds
         plain = out["other_us"]["p50"] if out["other_us"] else 0.0
@@ -138,15 +150,60 @@ def measure(kind: str, *, steps: int = STEPS, every: int = 16, contacts: int = 8
         loop.close()
 
 
+def kernel_cost(loop, n: int = 2000) -> dict:
+    """The tick kernel's own cost on this loop's arrays (engaged, as left by the run), called ``n``
+    times from compiled code (no Python between the calls): p50 and p99 [us]."""
+    from ..server import tick
+
+    out = np.zeros(n, dtype=np.int64)
+    _time_ticks(loop._T, out)
+    a = out[10:] * 1e-3
+    return {"p50": round(float(np.percentile(a, 50)), 2), "p99": round(float(np.percentile(a, 99)), 2)}
+
+
+def _time_ticks(T, out):
+    return _TIMER(T, out)
+
+
+def _timer():
+    from numba import njit
+
+    from ..server.native import monotonic_ns
+    from ..server.tick import tick
+
+    @njit(nogil=True, cache=True)
+    def time_ticks(T, out):
+        t = monotonic_ns()
+        for i in range(out.shape[0]):
+            t0 = monotonic_ns()
+            tick(T, t0, 0)
+            out[i] = monotonic_ns() - t0
+        return t
+
+    return time_ticks
+
+
+_TIMER = None
+
+
 def run(kinds=("1dof", "planar", "spatial", "linkage-planar", "linkage-spatial"), **kw) -> dict:
+    global _TIMER
+    if _TIMER is None:
+        _TIMER = _timer()
     rows = [measure(k, **kw) for k in kinds]
     worst = max(r["apply_us"]["p99"] for r in rows if r["apply_us"])
     worst_rx = max(r["receive_us"]["p99"] for r in rows if r["receive_us"])
     worst_ack = max(r["ack_us"]["p99"] for r in rows if r["ack_us"])
+    ticks = [r[f"{k}_tick_us"]["p99"] for r in rows for k in ("receive", "apply", "ack", "housekeeping", "other")
+             if r.get(f"{k}_tick_us")]
     return {"update_steps": rows, "apply_p99_max_us": worst, "receive_p99_max_us": worst_rx,
             "ack_p99_max_us": worst_ack,
             "p50_over_plain_max": max((max(r["p50_over_plain"].values()) for r in rows if r["p50_over_plain"]),
                                       default=0.0),
             "budget_us": BUDGET_US,
             "within_budget": bool(max(worst, worst_rx, worst_ack) < BUDGET_US),
+            # the tick of every step (what the device waits for), against a quarter of a 10 kHz period
+            "tick_p99_max_us": max(ticks) if ticks else None,
+            "tick_budget_us": TICK_BUDGET_US,
+            "tick_within_budget": bool(ticks and max(ticks) <= TICK_BUDGET_US),
             "clock": "thread CPU time (time.thread_time_ns)"}

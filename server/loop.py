@@ -334,6 +334,8 @@ class HapticLoop:
         self._speeding = False  # a speed trip while nothing was rendered is logged when it starts
         self._rendered_ever = False  # a session was ever engaged (force rendered, or ramping in)
         self._servo = None  # device-clocked: the servo callback's binding (``servo.ServoBinding``)
+        #: a list: each Python-run step appends its tick's CPU time [ns] (``bench loop``); None: off
+        self.tick_times = None
         self._stall_trips_max = int(scfg["stall_trips_max"])
         self._trip_times: list[int] = []
         #: a gap between two steps' device writes longer than this is a stall: half the device's
@@ -410,6 +412,10 @@ class HapticLoop:
         self._T = tick.TickArrays(c.cp, c.cs, c.cc, c.cmd, c.hand, c.R, c.c, self.dev, *self._dev_arrays,
                                   par, st_, C, CI, cnt, wk, lmeta, lk, lki, lw,
                                   sh.tel, sh.head, sh.hist_late, sh.hist_step, sh.stat, tk)
+        # Python calls the tick through a descriptor of these arrays (one integer to pass, not
+        # 32 arrays to unbox); the descriptor keeps the arrays it names referenced through _T
+        self._desc = tick.descriptor(self._T)
+        self._desc_addr = int(self._desc.ctypes.data)
         tk[tick.TK_ACTIVE] = 0 if self._margs is None else 1
         tk[tick.TK_LINKAGE] = 1 if self._linkage else 0
         tk[tick.TK_KIND] = int(kind)
@@ -541,9 +547,10 @@ class HapticLoop:
         Tw = tick.TickArrays(c.cp, c.cs, c.cc, c.cmd, c.hand, c.R, c.c, dev, *(a.copy() for a in self._dev_arrays),
                              *tmp.kernel_args()[1:], *(a.copy() for a in _NO_LINKAGE), scratch.tel, scratch.head,
                              scratch.hist_late, scratch.hist_step, scratch.stat, tk)
-        tick.tick(Tw, 0, 0)
+        dw = tick.descriptor(Tw)
+        tick.tick_at(dw.ctypes.data, 0, 0)
         tk[tick.TK_STOP] = 1
-        tick.run_ticks(Tw)
+        tick.run_ticks_at(dw.ctypes.data)
         warm = getattr(self.device, "warm_up", None)
         if callable(warm):
             warm()
@@ -617,7 +624,7 @@ class HapticLoop:
         # 1: the tick
         if self._io == tick.IO_EXTERNAL:
             tk[tick.TK_EXT_RC] = self.device.read(self.dev)
-            rcs = tick.tick(self._T, wake, late)
+            rcs = tick.tick_at(self._desc_addr, wake, late)
             rc_w = self.device.write(self.ctrl.cmd)
             if rc_w:
                 rcs |= (rc_w & 0xFF) << 16
@@ -625,8 +632,14 @@ class HapticLoop:
                 clock.charge()
             # a driver in Python: its write ends the step (the tick accounted up to its call)
             tk[tick.TK_LAST_WRITE_NS] = clock.now_ns()
-        else:
-            rcs = tick.tick(self._T, wake, late)
+        elif self.tick_times is None:
+            rcs = tick.tick_at(self._desc_addr, wake, late)
+            if clock.simulated:
+                clock.charge()
+        else:  # ``bench loop``: the tick's own CPU time, apart from the Python part of the step
+            c0 = time.thread_time_ns()
+            rcs = tick.tick_at(self._desc_addr, wake, late)
+            self.tick_times.append(time.thread_time_ns() - c0)
             if clock.simulated:
                 clock.charge()
         self._after_tick(rcs, wake)
@@ -1196,10 +1209,8 @@ class HapticLoop:
         end_ns = None if duration_s is None else self.clock.now_ns() + int(duration_s * 1e9)
         n0 = int(tk[tick.TK_TICKS])
         steps = 0
-        T = self._T
         while not self.stopped:
-            ev = tick.run_ticks(T)
-            T = self._T  # an engagement binds the tick to the new model's arrays
+            ev = tick.run_ticks_at(self._desc_addr)  # (an engagement binds a new descriptor)
             if ev == tick.EV_STEP:
                 self.step_at(int(tk[tick.TK_WAKE_NS]), int(tk[tick.TK_LATE_NS]))
                 steps += 1

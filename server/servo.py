@@ -26,13 +26,12 @@ start goes into a ring (``SB_RING``), which ``bench devices`` and ``bench loop``
 from __future__ import annotations
 
 import numpy as np
-from numba import cfunc, from_dtype, njit, types
+from numba import cfunc, njit, types
 
 from . import control as ctl
 from . import safety as sf
 from . import tick as tk_
-from .native import address_as, atomic_cas, atomic_store, call_i32_ptr_ptr, monotonic_ns, voidptr_to_int
-from .shm import STATUS_DTYPE, TEL_DTYPE
+from .native import atomic_cas, atomic_store, call_i32_ptr_ptr, monotonic_ns, voidptr_to_int
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -50,71 +49,15 @@ SB_RING_N = 9
 SB_ALL = 10          # callbacks (ticks run + held)
 NSB = 12
 
-_F1 = types.Array(types.float64, 1, "C")
-_F2 = types.Array(types.float64, 2, "C")
-_I1 = types.Array(types.int64, 1, "C")
-_I2 = types.Array(types.int64, 2, "C")
-_TEL = types.Array(from_dtype(TEL_DTYPE), 1, "C", aligned=False)
-_STAT = types.Array(from_dtype(STATUS_DTYPE), 1, "C", aligned=False)
-#: the numba type of each field of ``tick.TickArrays``, in order
-FIELD_TYPES = (_F1, _F1, _I1, _F1, _F1, _F2, _F1,
-               _F1, _F1, _F1, _I1, _I1, _F1, _F2, _F1, _F1,
-               _F1, _F1, _F2, _I2, _I1, _F1, _I1, _F2, _I2, _F2,
-               _TEL, _I1, _I1, _I1, _STAT,
-               _I1)
-assert len(FIELD_TYPES) == len(tk_.TickArrays._fields)
-NFIELDS = len(FIELD_TYPES)
-_f1, _f2, _i1, _i2, _tel, _stat = (address_as(t) for t in (_F1, _F2, _I1, _I2, _TEL, _STAT))
-
-
-def descriptor(T) -> np.ndarray:
-    """int64[3 * NFIELDS]: (address, rows, cols) of each array of ``T`` (a ``TickArrays``), checked
-    against :data:`FIELD_TYPES` (a view the callback builds must be the array Python holds)."""
-    import numba
-
-    d = np.zeros(3 * NFIELDS, dtype=np.int64)
-    for k, (name, a, want) in enumerate(zip(T._fields, T, FIELD_TYPES)):
-        got = numba.typeof(a)
-        if got != want:
-            raise TypeError(f"servo: TickArrays.{name} is {got}, the servo callback builds {want}")
-        d[3 * k] = a.ctypes.data
-        d[3 * k + 1] = a.shape[0]
-        d[3 * k + 2] = a.shape[1] if a.ndim == 2 else 0
-    return d
-
-
-@njit(**_JIT)
-def tick_arrays_at(addr):
-    """The ``TickArrays`` a descriptor at ``addr`` describes, as views (nothing is copied)."""
-    d = address_as_i64_view(addr)
-    return tk_.TickArrays(
-        _f1(d[0], (d[1],)), _f1(d[3], (d[4],)), _i1(d[6], (d[7],)), _f1(d[9], (d[10],)), _f1(d[12], (d[13],)),
-        _f2(d[15], (d[16], d[17])), _f1(d[18], (d[19],)),
-        _f1(d[21], (d[22],)), _f1(d[24], (d[25],)), _f1(d[27], (d[28],)), _i1(d[30], (d[31],)),
-        _i1(d[33], (d[34],)), _f1(d[36], (d[37],)), _f2(d[39], (d[40], d[41])), _f1(d[42], (d[43],)),
-        _f1(d[45], (d[46],)),
-        _f1(d[48], (d[49],)), _f1(d[51], (d[52],)), _f2(d[54], (d[55], d[56])), _i2(d[57], (d[58], d[59])),
-        _i1(d[60], (d[61],)), _f1(d[63], (d[64],)), _i1(d[66], (d[67],)), _f2(d[69], (d[70], d[71])),
-        _i2(d[72], (d[73], d[74])), _f2(d[75], (d[76], d[77])),
-        _tel(d[78], (d[79],)), _i1(d[81], (d[82],)), _i1(d[84], (d[85],)), _i1(d[87], (d[88],)),
-        _stat(d[90], (d[91],)),
-        _i1(d[93], (d[94],)))
-
-
-@njit(**_JIT)
-def address_as_i64_view(addr):
-    return _i1(addr, (3 * NFIELDS,))
-
-
 @njit(**_JIT)
 def servo_tick(blk):
     """One servo tick (the callback's body; ``blk`` the servo block). Returns 1 (continue)."""
     now = monotonic_ns()
     blk[SB_ALL] += 1
     if blk[SB_RING] != 0:
-        ring = _i1(blk[SB_RING], (blk[SB_RING_N],))
+        ring = tk_.as_i64(blk[SB_RING], (blk[SB_RING_N],))
         ring[(blk[SB_ALL] - 1) % blk[SB_RING_N]] = now
-    T = tick_arrays_at(blk[SB_DESC])
+    T = tk_.tick_arrays_at(blk[SB_DESC])
     tk = T.tk
     if blk[SB_BEGIN] != 0:
         call_i32_ptr_ptr(blk[SB_BEGIN], blk[SB_CTX], 0)
@@ -148,7 +91,7 @@ def servo_tick(blk):
 
 @cfunc(types.uint32(types.voidptr), cache=True, nogil=True, error_model="numpy")
 def _servo_callback(data):
-    return servo_tick(_i1(voidptr_to_int(data), (NSB,)))
+    return servo_tick(tk_.as_i64(voidptr_to_int(data), (NSB,)))
 
 #: ``HDCallbackCode callback(void *servo_block)``: the address a device-clocked driver schedules
 SERVO_CALLBACK = _servo_callback.address
@@ -168,11 +111,11 @@ class ServoBinding:
         b[SB_RING] = self.ring.ctypes.data
         b[SB_RING_N] = ring_n
         self._keep = []
-        self.desc = np.zeros(3 * NFIELDS, dtype=np.int64)
+        self.desc = np.zeros(3 * tk_.NFIELDS, dtype=np.int64)
 
     def bind(self, T) -> None:
         """Point the callback at ``T`` (call with the tick lock held, or before the servo runs)."""
-        d = descriptor(T)
+        d = tk_.descriptor(T)
         self._keep = [T, d]  # the arrays and their descriptor live as long as the callback reads them
         self.block[SB_DESC] = d.ctypes.data
         self.desc = d

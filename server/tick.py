@@ -34,13 +34,14 @@ from __future__ import annotations
 from collections import namedtuple
 
 import numpy as np
-from numba import njit
+from numba import from_dtype, njit, types
 
 from . import control as ctl
 from .devices.dynamics import sim_read, sim_write_hand
-from .native import call_i32_ptr_ptr, fd_readable, monotonic_ns, sleep_until_ns
+from .native import address_as, call_i32_ptr_ptr, fd_readable, monotonic_ns, sleep_until_ns
 from .lifecycle import LS
 from .rings import account
+from .shm import STATUS_DTYPE, TEL_DTYPE
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -216,6 +217,76 @@ def run_ticks(T):
         if _after_needs_python(T) or tk[TK_RX_PENDING] != 0 or (tk[TK_FD] >= 0 and fd_readable(tk[TK_FD]) != 0):
             tk[TK_RETURNS] += 1
             return EV_TICKED
+
+
+_F1 = types.Array(types.float64, 1, "C")
+_F2 = types.Array(types.float64, 2, "C")
+_I1 = types.Array(types.int64, 1, "C")
+_I2 = types.Array(types.int64, 2, "C")
+_TEL = types.Array(from_dtype(TEL_DTYPE), 1, "C", aligned=False)
+_STAT = types.Array(from_dtype(STATUS_DTYPE), 1, "C", aligned=False)
+#: the numba type of each field of ``tick.TickArrays``, in order
+FIELD_TYPES = (_F1, _F1, _I1, _F1, _F1, _F2, _F1,
+               _F1, _F1, _F1, _I1, _I1, _F1, _F2, _F1, _F1,
+               _F1, _F1, _F2, _I2, _I1, _F1, _I1, _F2, _I2, _F2,
+               _TEL, _I1, _I1, _I1, _STAT,
+               _I1)
+assert len(FIELD_TYPES) == len(TickArrays._fields)
+NFIELDS = len(FIELD_TYPES)
+_f1, _f2, _i1, _i2, _tel, _stat = (address_as(t) for t in (_F1, _F2, _I1, _I2, _TEL, _STAT))
+#: an int64 array at an address (the servo block, the tick ring)
+as_i64 = _i1
+
+
+def descriptor(T) -> np.ndarray:
+    """int64[3 * NFIELDS]: (address, rows, cols) of each array of ``T`` (a ``TickArrays``), checked
+    against :data:`FIELD_TYPES` (a view the callback builds must be the array Python holds)."""
+    import numba
+
+    d = np.zeros(3 * NFIELDS, dtype=np.int64)
+    for k, (name, a, want) in enumerate(zip(T._fields, T, FIELD_TYPES)):
+        got = numba.typeof(a)
+        if got != want:
+            raise TypeError(f"tick: TickArrays.{name} is {got}, the descriptor's reader builds {want}")
+        d[3 * k] = a.ctypes.data
+        d[3 * k + 1] = a.shape[0]
+        d[3 * k + 2] = a.shape[1] if a.ndim == 2 else 0
+    return d
+
+
+@njit(**_JIT)
+def tick_arrays_at(addr):
+    """The ``TickArrays`` a descriptor at ``addr`` describes, as views (nothing is copied)."""
+    d = address_as_i64_view(addr)
+    return TickArrays(
+        _f1(d[0], (d[1],)), _f1(d[3], (d[4],)), _i1(d[6], (d[7],)), _f1(d[9], (d[10],)), _f1(d[12], (d[13],)),
+        _f2(d[15], (d[16], d[17])), _f1(d[18], (d[19],)),
+        _f1(d[21], (d[22],)), _f1(d[24], (d[25],)), _f1(d[27], (d[28],)), _i1(d[30], (d[31],)),
+        _i1(d[33], (d[34],)), _f1(d[36], (d[37],)), _f2(d[39], (d[40], d[41])), _f1(d[42], (d[43],)),
+        _f1(d[45], (d[46],)),
+        _f1(d[48], (d[49],)), _f1(d[51], (d[52],)), _f2(d[54], (d[55], d[56])), _i2(d[57], (d[58], d[59])),
+        _i1(d[60], (d[61],)), _f1(d[63], (d[64],)), _i1(d[66], (d[67],)), _f2(d[69], (d[70], d[71])),
+        _i2(d[72], (d[73], d[74])), _f2(d[75], (d[76], d[77])),
+        _tel(d[78], (d[79],)), _i1(d[81], (d[82],)), _i1(d[84], (d[85],)), _i1(d[87], (d[88],)),
+        _stat(d[90], (d[91],)),
+        _i1(d[93], (d[94],)))
+
+
+@njit(**_JIT)
+def address_as_i64_view(addr):
+    return _i1(addr, (3 * NFIELDS,))
+
+@njit(**_JIT)
+def tick_at(addr, wake_ns, late_ns):
+    """``tick`` on the arrays a descriptor at ``addr`` describes: a call from Python that passes
+    one integer, not 32 arrays (each array argument costs its unboxing: about 6 us for all)."""
+    return tick(tick_arrays_at(addr), wake_ns, late_ns)
+
+
+@njit(**_JIT)
+def run_ticks_at(addr):
+    """``run_ticks`` on the arrays a descriptor at ``addr`` describes (one argument to unbox)."""
+    return run_ticks(tick_arrays_at(addr))
 
 
 assert (S_ENGAGED, _S_FADING, _S_STOPPING) == tuple(int(LS[n]) for n in ("engaged", "fading", "stopping"))

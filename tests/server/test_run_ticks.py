@@ -48,7 +48,7 @@ def test_plain_ticks_run_without_python_until_housekeeping(loop):
     _plain(loop, 25)
     n0 = int(loop.tk[tick.TK_TICKS])
     head0 = int(loop.shared.head[0])
-    assert tick.run_ticks(loop._T) == tick.EV_TICKED
+    assert tick.run_ticks_at(loop._desc_addr) == tick.EV_TICKED
     assert int(loop.tk[tick.TK_TICKS]) - n0 == 25
     assert int(loop.shared.head[0]) - head0 == 25  # each tick wrote its telemetry row
     assert loop.tk[tick.TK_RC] == 0
@@ -58,7 +58,7 @@ def test_a_step_with_python_work_is_handed_back_untouched(loop):
     _plain(loop, 1000)
     loop.tk[tick.TK_NEEDS_PYTHON] = 1
     n0 = int(loop.tk[tick.TK_TICKS])
-    assert tick.run_ticks(loop._T) == tick.EV_STEP
+    assert tick.run_ticks_at(loop._desc_addr) == tick.EV_STEP
     assert int(loop.tk[tick.TK_TICKS]) == n0  # not ticked: Python runs that step itself
     assert loop.tk[tick.TK_WAKE_NS] >= loop.tk[tick.TK_DEADLINE_NS] - loop.period_ns
 
@@ -67,7 +67,7 @@ def test_a_stall_is_handed_back_before_any_tick(loop):
     _plain(loop, 1000)
     loop.tk[tick.TK_LAST_WRITE_NS] -= 10 * loop.tk[tick.TK_STALL_GAP_NS]  # the loop did not run
     n0 = int(loop.tk[tick.TK_TICKS])
-    assert tick.run_ticks(loop._T) == tick.EV_STEP
+    assert tick.run_ticks_at(loop._desc_addr) == tick.EV_STEP
     assert int(loop.tk[tick.TK_TICKS]) == n0
 
 
@@ -75,7 +75,7 @@ def test_a_device_fault_is_handed_back_after_its_tick(loop):
     _plain(loop, 1000)
     loop.device._ctl[C_FAULT] = DEV_FAULT_WATCHDOG
     n0 = int(loop.tk[tick.TK_TICKS])
-    assert tick.run_ticks(loop._T) == tick.EV_TICKED
+    assert tick.run_ticks_at(loop._desc_addr) == tick.EV_TICKED
     assert int(loop.tk[tick.TK_TICKS]) == n0 + 1
     assert (int(loop.tk[tick.TK_RC]) >> 8) & 0xFF == DEV_FAULT_WATCHDOG
 
@@ -88,11 +88,11 @@ def test_a_waiting_datagram_is_handed_back_after_one_tick(loop):
         a.sendto(b"x", a.getsockname())
         loop.tk[tick.TK_FD] = a.fileno()
         n0 = int(loop.tk[tick.TK_TICKS])
-        assert tick.run_ticks(loop._T) == tick.EV_TICKED
+        assert tick.run_ticks_at(loop._desc_addr) == tick.EV_TICKED
         assert int(loop.tk[tick.TK_TICKS]) == n0 + 1
         loop.tk[tick.TK_RX_PENDING] = 1  # a transport without a socket says so through this word
         loop.tk[tick.TK_FD] = -1
-        assert tick.run_ticks(loop._T) == tick.EV_TICKED and int(loop.tk[tick.TK_TICKS]) == n0 + 2
+        assert tick.run_ticks_at(loop._desc_addr) == tick.EV_TICKED and int(loop.tk[tick.TK_TICKS]) == n0 + 2
     finally:
         loop.tk[tick.TK_FD] = -1
         a.close()
@@ -102,13 +102,13 @@ def test_environment_silence_while_engaged_is_handed_back(loop):
     _plain(loop, 1000)
     loop.tk[tick.TK_STATE] = tick.S_ENGAGED
     loop.tk[tick.TK_QUIET_SINCE_NS] = int(loop.tk[tick.TK_DEADLINE_NS]) - 2 * int(loop.tk[tick.TK_WATCHDOG_NS])
-    assert tick.run_ticks(loop._T) == tick.EV_STEP
+    assert tick.run_ticks_at(loop._desc_addr) == tick.EV_STEP
 
 
 def test_a_stop_request_returns_at_once(loop):
     loop.tk[tick.TK_STOP] = 1
     n0 = int(loop.tk[tick.TK_TICKS])
-    assert tick.run_ticks(loop._T) == tick.EV_STOP and int(loop.tk[tick.TK_TICKS]) == n0
+    assert tick.run_ticks_at(loop._desc_addr) == tick.EV_STOP and int(loop.tk[tick.TK_TICKS]) == n0
 
 
 def test_the_spin_is_at_most_a_quarter_period():
