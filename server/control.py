@@ -87,7 +87,10 @@ CS_PTWIST = 47     # 47..52 proxy hand-point twist, world, after the step
 CS_CMDW = 53       # 53..58 controller command before safety, world
 CS_DRIVE = 59      # 1: the device drives the proxy (hand and coupling channels, model step); 0: held
 CS_SLIDE = 60      # 1: the device->world offset follows the proxy while the force ramps in
-NCS = 61
+CS_EHAND = 61      # the energy the device gave the hand since start, J (``port_energy``)
+CS_EPOSE = 62      # 62..68 the device's pose (device frame) when the last command was written
+CS_EVALID = 69     # 1: CS_EPOSE holds a pose (the ledger pairs the next displacement with it)
+NCS = 70
 
 # ---- counters (int64[NCC])
 CC_SAFETY = 0          # 0..2 the safety filter's counters (``safety.SC_*``)
@@ -194,6 +197,41 @@ def _safety(cp, cs, cc, cmd):
     controller's blocks."""
     return sf.safety_filter(cp[CP_SAFETY:CP_SAFETY + sf.NSP], cs[CS_SAFETY:CS_SAFETY + sf.NSS],
                             cc[CC_SAFETY:CC_SAFETY + sf.NSC], cmd)
+
+
+@njit(**_JIT)
+def port_energy(cs, dev):
+    """The energy ledger at the hand's port: the work the command written last period did on the
+    hand, paired exactly (the force and torque held over the period, device frame, times the
+    displacement and rotation of the handle during it), added to CS_EHAND; then this sample's
+    pose is kept for the next. Call after reading the device, before the new command: the
+    command in ``CS_PREV`` is the one that was held. A rotation counts by its rotation vector
+    (q_new conj(q_old)); a device whose sample is not finite is skipped (its period is lost)."""
+    for j in range(7):
+        if not math.isfinite(dev[j]):
+            cs[CS_EVALID] = 0.0
+            return
+    if cs[CS_EVALID] != 0.0:
+        w = 0.0
+        for j in range(3):
+            w += cs[CS_PREV + j] * (dev[j] - cs[CS_EPOSE + j])
+        # rotation vector of dq = q_new conj(q_old)
+        aw = dev[3]; ax = dev[4]; ay = dev[5]; az = dev[6]
+        bw = cs[CS_EPOSE + 3]; bx = -cs[CS_EPOSE + 4]; by = -cs[CS_EPOSE + 5]; bz = -cs[CS_EPOSE + 6]
+        qw = aw * bw - ax * bx - ay * by - az * bz
+        qx = aw * bx + ax * bw + ay * bz - az * by
+        qy = aw * by - ax * bz + ay * bw + az * bx
+        qz = aw * bz + ax * by - ay * bx + az * bw
+        if qw < 0.0:
+            qw = -qw; qx = -qx; qy = -qy; qz = -qz
+        vn = math.sqrt(qx * qx + qy * qy + qz * qz)
+        if vn > 1e-15:
+            ang = 2.0 * math.atan2(vn, qw) / vn
+            w += ang * (cs[CS_PREV + 3] * qx + cs[CS_PREV + 4] * qy + cs[CS_PREV + 5] * qz)
+        cs[CS_EHAND] += w
+    for j in range(7):
+        cs[CS_EPOSE + j] = dev[j]
+    cs[CS_EVALID] = 1.0
 
 
 @njit(**_JIT)
@@ -404,6 +442,7 @@ def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, han
     ``cmd`` (6): output, device frame. ``active``: a session has engaged the model.
     ``hand`` (6), ``R`` (3x3), ``c`` (3): scratch. Returns RC_*."""
     cc[CC_STEPS] += 1
+    port_energy(cs, dev)
     rc = _device_in(cp, cs, cc, dev, cmd)
     if rc == RC_NONFINITE:
         return rc
@@ -479,6 +518,7 @@ def haptic_step_linkage(cp, cs, cc, dev, cmd, par, lmeta, lk, lki, st, C, CI, cn
     linkages by the config: the device cannot be a whole chain), the model step is
     ``linkage.step_linkage``. Returns RC_*."""
     cc[CC_STEPS] += 1
+    port_energy(cs, dev)
     rc = _device_in(cp, cs, cc, dev, cmd)
     if rc == RC_NONFINITE:
         return rc

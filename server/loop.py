@@ -1162,6 +1162,7 @@ class HapticLoop:
         st[ST["stall_recoveries"]] = self.stall_recoveries
         st[ST["torque_cap_n_m"]] = self.ctrl.torque_cap_n_m
         st[ST["ticks_compiled"]] = self.tk[tick.TK_TICKS]
+        st[ST["energy_hand_j"]] = self.ctrl.cs[ctl.CS_EHAND]
         if self._servo is not None:
             from .servo import SB_HELD, SB_TICKS
 

@@ -140,6 +140,9 @@ class LoopTiming(msgspec.Struct):
     gain: Num
     contacts: int
     updates: int
+    #: the energy the device gave the hand since the server started, J (the ledger at the hand's
+    #: port: each command held over its period times the handle's displacement; absent before it)
+    energy_hand_j: Num = None
 
 
 class Contact(msgspec.Struct):
@@ -214,8 +217,9 @@ def _num(v: float):
 # column indices of the flat telemetry row, once
 _D, _P = TEL["dev_x"], TEL["proxy_x"]
 _CMD, _ENV, _HAND, _CPL = TEL["cmd_fx"], TEL["env_fx"], TEL["hand_fx"], TEL["couple_fx"]
-_T, _LATE, _COMP, _STATE, _GAIN, _NC, _UPD, _SEQ = (TEL[n] for n in ("t_s", "lateness_us", "compute_us", "loop_state",
-                                                                 "gain", "contacts", "updates", "seq"))
+_T, _LATE, _COMP, _STATE, _GAIN, _NC, _UPD, _SEQ, _EHAND = (
+    TEL[n] for n in ("t_s", "lateness_us", "compute_us", "loop_state", "gain", "contacts", "updates", "seq",
+                     "energy_hand_j"))
 
 
 def _pose(r, o) -> Pose:  # pose columns: x y z qw qx qy qz
@@ -247,7 +251,7 @@ def step_messages(r: list, name: str | None = None) -> tuple:
             Command(t, _wrench(r, _CMD), r[_GAIN]),
             Wrench(t, _wrench(r, _ENV)),
             LoopTiming(t, r[_LATE], r[_COMP], _int(r[_STATE]), state_name(r[_STATE]) if name is None else name,
-                       r[_GAIN], _int(r[_NC]), _int(r[_UPD])))
+                       r[_GAIN], _int(r[_NC]), _int(r[_UPD]), r[_EHAND]))
 
 
 _INT_COLS = (_STATE, _NC, _UPD)
@@ -685,6 +689,7 @@ def _rows_from(msgs: dict) -> np.ndarray:
         flat[i, _NC] = lp.contacts
         flat[i, _UPD] = lp.updates
         flat[i, _SEQ] = i  # the ring's seqlock number is not recorded: a row's number in the file
+        flat[i, _EHAND] = _nan(lp.energy_hand_j)
     return out
 
 

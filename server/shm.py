@@ -80,6 +80,9 @@ STATUS_LAYOUT = (
     # device's servo thread (device-clocked: ticks it ran, and ticks it held while Python changed
     # the tick's state, writing the previous command again)
     ("ticks_compiled", "i"), ("servo_ticks", "i"), ("servo_held", "i"),
+    # the energy the device gave the hand since start (the ledger at the hand's port: each
+    # command held over its period times the handle's displacement during it), J
+    ("energy_hand_j", "f"),
 )
 STATUS_DTYPE = np.dtype([(name, np.float64) for name, _ in STATUS_LAYOUT])
 STATUS_FIELDS = STATUS_DTYPE.names
@@ -99,7 +102,7 @@ _POSE13 = ("x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "wx", "wy", 
 #: names (``dev_x``, ``cmd_fy``, ...) index the float64 view: ``ring[:, TEL["cmd_fy"]]``.
 #: ``seq`` is the row's number (as ``head`` counts), -1 while the loop writes it: a seqlock, so a
 #: reader that copied a row while it was rewritten (the ring lapped it) can tell (``rows``).
-TEL_SCALARS = ("t_s", "lateness_us", "compute_us", "loop_state", "gain", "contacts", "updates", "seq")
+TEL_SCALARS = ("t_s", "lateness_us", "compute_us", "loop_state", "gain", "contacts", "updates", "seq", "energy_hand_j")
 TEL_VECTORS = (
     ("dev", _POSE13),     # device handle pose (x y z qw qx qy qz) and twist, world
     ("proxy", _POSE13),   # proxy hand-point pose and twist, world, after the step

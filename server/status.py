@@ -148,6 +148,8 @@ def format_status(s: dict) -> str:
         f"{1e3 * (s.get('advised_epsilon_m') or 0.0):.1f} mm, lead {1e3 * (s.get('advised_lead_s') or 0.0):.1f} ms",
         f"watchdog     {('ok', 'environment silent: fading', 'session ended: fading')[wd] if 0 <= wd < 3 else wd}"
         f"  gain {_f(s.get('gain'), '.3f')}  saturated {s.get('saturated', 0)}  rate-limited {s.get('rate_limited', 0)}",
+        f"hand port    energy given to the hand {1e3 * (s.get('energy_hand_j') or 0.0):+.2f} mJ since start"
+        f" (negative: taken from it)",
     ]
     for why in s.get("outside_stable_region") or ():
         lines.append(f"WARNING      outside the stable region (safety.allow_outside_stable_region): {why}")

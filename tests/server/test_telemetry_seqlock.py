@@ -9,6 +9,7 @@ import threading
 import numpy as np
 from numba import njit
 
+from hapticproxy.server import control as ctl
 from hapticproxy.server.rings import account
 from hapticproxy.server.shm import TEL_DTYPE, SharedState
 
@@ -32,7 +33,7 @@ def _consistent(rows) -> bool:
 
 def test_a_reader_never_gets_a_torn_row():
     sh = SharedState.local(8)  # a tiny ring: the writer laps the reader all the time
-    cs, cnt, dev, cmd = np.zeros(61), np.zeros(19, dtype=np.int64), np.zeros(20), np.zeros(6)
+    cs, cnt, dev, cmd = np.zeros(ctl.NCS), np.zeros(19, dtype=np.int64), np.zeros(20), np.zeros(6)
     args = (sh.tel, sh.head, sh.hist_late, sh.hist_step, sh.stat, cs, cnt, dev, cmd)
     _write_rows(*args, 10)
     done = threading.Event()
@@ -59,7 +60,7 @@ def test_a_reader_never_gets_a_torn_row():
 
 def test_a_row_being_written_is_dropped_and_counted():
     sh = SharedState.local(4)
-    cs, cnt, dev, cmd = np.zeros(61), np.zeros(19, dtype=np.int64), np.zeros(20), np.zeros(6)
+    cs, cnt, dev, cmd = np.zeros(ctl.NCS), np.zeros(19, dtype=np.int64), np.zeros(20), np.zeros(6)
     _write_rows(sh.tel, sh.head, sh.hist_late, sh.hist_step, sh.stat, cs, cnt, dev, cmd, 3)
     assert list(sh.rows(0, 3)["seq"]) == [0.0, 1.0, 2.0]
     sh.tel[1]["seq"] = -1.0  # the loop is writing row 1 (a lapped writer would be on row 5)
