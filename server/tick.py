@@ -94,7 +94,9 @@ TK_PREV_WRITE_NS = 32   # the end of the tick before the last (a stall inside th
                         # as the time from there to its end)
 TK_LOCK = 33            # device-clocked: 0 free, 1 a servo tick runs, 2 Python changes the arrays
 TK_RC_STICKY = 34       # device-clocked: every tick's results since Python last took them (OR)
-NTK = 36
+TK_POLL_EVERY = 35      # a transport without a socket is polled by Python every this many ticks
+TK_POLL_COUNT = 36      # ticks since it was
+NTK = 38
 
 IO_EXTERNAL = 0
 IO_SIM = 1
@@ -214,7 +216,14 @@ def run_ticks(T):
         tick(T, wake, late)
         tk[TK_TICKS] += 1
         tk[TK_HK_COUNT] += 1
-        if _after_needs_python(T) or tk[TK_RX_PENDING] != 0 or (tk[TK_FD] >= 0 and fd_readable(tk[TK_FD]) != 0):
+        polled = False
+        if tk[TK_FD] < 0:  # no socket to watch (Zenoh, memory): Python polls every millisecond
+            tk[TK_POLL_COUNT] += 1
+            if tk[TK_POLL_COUNT] >= tk[TK_POLL_EVERY]:
+                tk[TK_POLL_COUNT] = 0
+                polled = True
+        if (_after_needs_python(T) or polled or tk[TK_RX_PENDING] != 0
+                or (tk[TK_FD] >= 0 and fd_readable(tk[TK_FD]) != 0)):
             tk[TK_RETURNS] += 1
             return EV_TICKED
 
@@ -296,4 +305,5 @@ def new_words(period_ns: int) -> np.ndarray:
     tk = np.zeros(NTK, dtype=np.int64)
     tk[TK_PERIOD_NS] = int(period_ns)
     tk[TK_FD] = -1
+    tk[TK_POLL_EVERY] = max(1, int(round(1_000_000 / int(period_ns))))  # a millisecond of ticks
     return tk

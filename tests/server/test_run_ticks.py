@@ -20,6 +20,7 @@ def _loop(**sections):
     loop.warm_up()
     loop.start()
     loop.tk[tick.TK_HK_EVERY] = 1 << 40  # no housekeeping unless a test asks for it
+    loop.tk[tick.TK_POLL_EVERY] = 1 << 40  # (the memory transport has no socket: polled by count)
     loop.tk[tick.TK_SPIN_NS] = 20_000
     loop.tk[tick.TK_DEADLINE_NS] = MonotonicClock().now_ns() + loop.period_ns
     loop.tk[tick.TK_LAST_WRITE_NS] = MonotonicClock().now_ns()
@@ -123,3 +124,14 @@ def test_the_spin_is_at_most_a_quarter_period():
         assert int(lp.tk[tick.TK_TICKS]) > 0  # the compiled loop ticked
     finally:
         lp.close()
+
+
+def test_a_transport_without_a_socket_is_polled_every_millisecond_of_ticks(loop):
+    _plain(loop, 1000)
+    loop.tk[tick.TK_FD] = -1
+    loop.tk[tick.TK_POLL_COUNT] = 0
+    loop.tk[tick.TK_POLL_EVERY] = 7
+    n0 = int(loop.tk[tick.TK_TICKS])
+    assert tick.run_ticks_at(loop._desc_addr) == tick.EV_TICKED
+    assert int(loop.tk[tick.TK_TICKS]) - n0 == 7
+    assert tick.new_words(250_000)[tick.TK_POLL_EVERY] == 4  # 4 kHz: every 4 ticks
