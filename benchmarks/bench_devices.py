@@ -227,11 +227,11 @@ def servo_rows(seconds: float, tmp: str, rates=(1000.0, 4000.0)) -> list[dict]:
                         loop.warm_up()
                         loop.start()
                         loop.run(duration_s=seconds)
-                        per_us = loop._servo.periods_us()
+                        per_us = loop.servo.periods_us()
                         from ..server.servo import SB_HELD, SB_TICKS
 
-                        held = int(loop._servo.block[SB_HELD])
-                        ran = int(loop._servo.block[SB_TICKS])
+                        held = int(loop.servo.block[SB_HELD])
+                        ran = int(loop.servo.block[SB_TICKS])
                     finally:
                         loop.close()
                 dev = np.abs(per_us - nominal_us)

@@ -69,7 +69,7 @@ def servo_tick(blk):
             if late < 0:
                 late = 0
         # the environment's silence starts the fade here, at once (Python makes it a transition)
-        if tk[tk_.TK_STATE] == tk_.S_ENGAGED and now - tk[tk_.TK_QUIET_SINCE_NS] > tk[tk_.TK_WATCHDOG_NS]:
+        if tk[tk_.TK_STATE] == tk_.LS_ENGAGED and now - tk[tk_.TK_QUIET_SINCE_NS] > tk[tk_.TK_WATCHDOG_NS]:
             T.cs[ctl.CS_TARGET] = 0.0
         rcs = tk_.tick(T, now, late)
         if (rcs >> 8) != 0 or (rcs & 0xFF) == ctl.RC_NONFINITE:

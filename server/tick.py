@@ -108,9 +108,9 @@ EV_TICKED = 2      # a tick ran whose aftermath needs Python (a fault, a fade's 
                    # a datagram waiting)
 EV_STOP = 3
 
-S_ENGAGED = 1      # lifecycle LS codes the checks read (asserted against lifecycle below)
-_S_FADING = 2
-_S_STOPPING = 4
+LS_ENGAGED = 1      # lifecycle LS codes the checks read (asserted against lifecycle below)
+_LS_FADING = 2
+_LS_STOPPING = 4
 
 
 @njit(**_JIT)
@@ -157,7 +157,7 @@ def _needs_python(T, wake_ns):
         return True
     if wake_ns - tk[TK_LAST_WRITE_NS] > tk[TK_STALL_GAP_NS]:
         return True
-    return tk[TK_STATE] == S_ENGAGED and wake_ns - tk[TK_QUIET_SINCE_NS] > tk[TK_WATCHDOG_NS]
+    return tk[TK_STATE] == LS_ENGAGED and wake_ns - tk[TK_QUIET_SINCE_NS] > tk[TK_WATCHDOG_NS]
 
 
 @njit(**_JIT)
@@ -167,7 +167,7 @@ def _after_needs_python(T):
     if tk[TK_RC] != 0:
         return True
     st = tk[TK_STATE]
-    if (st == _S_FADING or st == _S_STOPPING) and T.cs[ctl.CS_GAIN] <= 0.0:
+    if (st == _LS_FADING or st == _LS_STOPPING) and T.cs[ctl.CS_GAIN] <= 0.0:
         return True
     return tk[TK_HK_COUNT] >= tk[TK_HK_EVERY]
 
@@ -247,17 +247,21 @@ _f1, _f2, _i1, _i2, _tel, _stat = (address_as(t) for t in (_F1, _F2, _I1, _I2, _
 as_i64 = _i1
 
 
-def descriptor(T) -> np.ndarray:
-    """int64[3 * NFIELDS]: (address, rows, cols) of each array of ``T`` (a ``TickArrays``), checked
-    against :data:`FIELD_TYPES` (a view the callback builds must be the array Python holds)."""
-    import numba
-
+def descriptor(T, check: bool = False) -> np.ndarray:
+    """int64[3 * NFIELDS]: (address, rows, cols) of each array of ``T`` (a ``TickArrays``).
+    ``check``: each array's numba type against :data:`FIELD_TYPES` (a view the reader builds must
+    be the array Python holds); the loop checks at warm-up, not at every engagement (numba's
+    types cost allocations)."""
     d = np.zeros(3 * NFIELDS, dtype=np.int64)
-    for k, (name, a, want) in enumerate(zip(T._fields, T, FIELD_TYPES)):
-        got = numba.typeof(a)
-        if got != want:
-            raise TypeError(f"tick: TickArrays.{name} is {got}, the descriptor's reader builds {want}")
-        d[3 * k] = a.ctypes.data
+    if check:
+        import numba
+
+        for name, a, want in zip(T._fields, T, FIELD_TYPES):
+            got = numba.typeof(a)
+            if got != want:
+                raise TypeError(f"tick: TickArrays.{name} is {got}, the descriptor's reader builds {want}")
+    for k, a in enumerate(T):
+        d[3 * k] = a.__array_interface__["data"][0]  # (``a.ctypes`` keeps a helper on each array)
         d[3 * k + 1] = a.shape[0]
         d[3 * k + 2] = a.shape[1] if a.ndim == 2 else 0
     return d
@@ -298,7 +302,7 @@ def run_ticks_at(addr):
     return run_ticks(tick_arrays_at(addr))
 
 
-assert (S_ENGAGED, _S_FADING, _S_STOPPING) == tuple(int(LS[n]) for n in ("engaged", "fading", "stopping"))
+assert (LS_ENGAGED, _LS_FADING, _LS_STOPPING) == tuple(int(LS[n]) for n in ("engaged", "fading", "stopping"))
 
 
 def new_words(period_ns: int) -> np.ndarray:

@@ -164,3 +164,44 @@ def test_the_architecture_page_shows_the_fault_policy_as_declared():
     from hapticproxy.server.lifecycle import policy_table
 
     assert policy_table() in (ROOT / "docs" / "architecture.md").read_text()
+
+
+#: the modules that declare array layouts (named columns of the arrays the kernels share)
+LAYOUT_MODULES = ("server/model/layout.py", "server/devices/layout.py", "server/control.py", "server/safety.py",
+                  "server/tick.py", "server/servo.py", "server/devices/hd_native.py", "server/shm.py")
+
+
+#: not columns but vocabulary several layouts share on purpose: return codes (the controller's
+#: extend the safety filter's) and size limits
+SHARED_PREFIXES = ("RC_", "MAX_")
+
+
+def layout_prefixes(sources: dict[str, str]) -> dict[str, set[str]]:
+    """prefix (the name up to its first underscore) -> the layout modules that declare an
+    upper-case integer constant with it (``CS_GAIN`` -> ``CS``)."""
+    out: dict[str, set[str]] = {}
+    for path, src in sources.items():
+        for node in ast.parse(src).body:
+            if not (isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name)):
+                continue
+            name = node.targets[0].id
+            if not name.isupper() or "_" not in name or name.startswith("_") or name.startswith(SHARED_PREFIXES):
+                continue
+            v = node.value
+            if isinstance(v, ast.Constant) and isinstance(v.value, int) or isinstance(v, (ast.BinOp, ast.Attribute)):
+                out.setdefault(name.split("_", 1)[0], set()).add(path)
+    return out
+
+
+def test_no_two_layouts_share_a_prefix():
+    """A column constant names its array by its prefix: ``P_AXIS`` meant 21 in the model's layout
+    and 15 in the simulated device's, ``CS_*`` the controller's state and the model's contact
+    states. Each prefix belongs to one layout module."""
+    sources = {m: (ROOT / m).read_text() for m in LAYOUT_MODULES}
+    shared = {p: sorted(ms) for p, ms in layout_prefixes(sources).items() if len(ms) > 1}
+    assert shared == {}
+
+
+def test_the_prefix_checker_sees_a_collision():
+    got = layout_prefixes({"a.py": "P_AXIS = 21\nCS_GAIN = 0\n", "b.py": "P_AXIS = 15\nTK_X = CS + 1\n"})
+    assert got["P"] == {"a.py", "b.py"} and got["CS"] == {"a.py"} and got["TK"] == {"b.py"}

@@ -101,7 +101,7 @@ def test_a_waiting_datagram_is_handed_back_after_one_tick(loop):
 
 def test_environment_silence_while_engaged_is_handed_back(loop):
     _plain(loop, 1000)
-    loop.tk[tick.TK_STATE] = tick.S_ENGAGED
+    loop.tk[tick.TK_STATE] = tick.LS_ENGAGED
     loop.tk[tick.TK_QUIET_SINCE_NS] = int(loop.tk[tick.TK_DEADLINE_NS]) - 2 * int(loop.tk[tick.TK_WATCHDOG_NS])
     assert tick.run_ticks_at(loop._desc_addr) == tick.EV_STEP
 
