@@ -228,7 +228,8 @@ def print_report(res: dict) -> None:
     rows = res.get("update_steps") or []
     if not rows:
         return
-    print(f"steps run by Python (thread CPU time, us; {rows[0]['contacts']} contacts every 16 steps, simulated time):")
+    print(f"update steps, run by Python (thread CPU time, us; {rows[0]['contacts']} contacts every 16 steps, "
+          f"simulated time):")
     print("  the tick (device read .. write, accounting) first, then the step's Python part; the tick")
     print("  kernel's own cost called from compiled code, for comparison")
     print(f"  {'tool':<16} {'step':<13} {'n':>5} {'tick p50':>8} {'tick p99':>8} {'step p50':>8} {'step p99':>8} "

@@ -162,6 +162,9 @@ def kernel_cost(loop, n: int = 2000) -> dict:
 
 
 def _time_ticks(T, out):
+    global _TIMER
+    if _TIMER is None:
+        _TIMER = _timer()
     return _TIMER(T, out)
 
 
@@ -187,9 +190,6 @@ _TIMER = None
 
 
 def run(kinds=("1dof", "planar", "spatial", "linkage-planar", "linkage-spatial"), **kw) -> dict:
-    global _TIMER
-    if _TIMER is None:
-        _TIMER = _timer()
     rows = [measure(k, **kw) for k in kinds]
     worst = max(r["apply_us"]["p99"] for r in rows if r["apply_us"])
     worst_rx = max(r["receive_us"]["p99"] for r in rows if r["receive_us"])
