@@ -294,3 +294,43 @@ def test_at_an_update_instant_the_force_changes_by_no_more_than_the_recovery_bou
             checked.append(event)
         for _ in range(16):
             m.step(hand)
+
+
+@pytest.mark.parametrize("kind, dynamics", [("1dof", "full"), ("planar", "full"), ("spatial", "full"),
+                                            ("linkage", "full"), ("linkage", "paper")])
+def test_a_placed_contact_carries_the_proxys_normal_speed_there(kind, dynamics):
+    """What decides whether a contact put touching rests or collides (and what the recovery's
+    resting test reads at the next step): n . (the velocity of the proxy's point there) - v_constr,
+    against a finite difference of the point's world position, before any step was taken."""
+    from hapticproxy.server.model.reference import LinkageReference, integrate, rigid_pose
+
+    rng = np.random.default_rng(7)
+    tool = _tool(kind)
+    m = LocalModel(tool, ContactParams(K, B), period_s=DT, linkage_dynamics=dynamics)
+    q = m.q.copy()
+    q[:min(2, len(q))] += rng.normal(size=min(2, len(q))) * 0.01
+    qd = rng.normal(size=m.dof) * 0.2
+    m.reset(q, qd)
+    world = World(kind, rng, m)
+    for _ in range(6):
+        world.add(rng.uniform(-0.004, 0.001))
+    feats, (keys, cp, nrm, d) = world.report(by_order=False)
+    vc = rng.normal(size=len(keys)) * 0.01
+    m.update(keys, cp, nrm, d, vc, tool_q=m.q.copy())
+    snap = m.contacts()
+    h = 1e-7
+    if kind == "linkage":
+        ref = LinkageReference.of(tool, dynamics)
+        q2 = ref.integrate(m.q.copy(), m.qd.copy(), h)
+        Rs2, cs2 = m.link_poses(q2)
+    else:
+        R2, c2 = rigid_pose(m.kind, m.arrays()[0], integrate(m.kind, m.q.copy(), m.qd.copy(), h))
+        Rs2, cs2 = R2[None], c2[None]
+    Rs, cs = m.link_poses()
+    for i, key in enumerate(snap.keys):
+        link = int(key[0])
+        x0 = cs[link] + Rs[link] @ snap.local_point_body_m[i]
+        x1 = cs2[link] + Rs2[link] @ snap.local_point_body_m[i]
+        want = float(snap.normal[i] @ (x1 - x0) / h) - snap.v_constr_m_per_s[i]
+        assert snap.normal_velocity_m_per_s[i] == pytest.approx(want, abs=1e-6), (kind, i)
+    assert len(snap.keys) >= 3
