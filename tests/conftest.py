@@ -1,4 +1,13 @@
-"""Suite-wide: no full garbage collection inside a test.
+"""Suite-wide: kernels compiled from today's sources, and no full garbage collection inside a test.
+
+Numba keys a kernel's cache on its own file only: a kernel that inlines another module's code
+(``inline="always"``, or any call into another file's kernel) keeps running the machine code it
+was compiled with after an edit there (the review saw 28 of 28 tests pass on a changed inlined
+kernel). ``run.sh``, ``hapticproxy warmup`` and the daemon drop such stale caches
+(``server/warm.py``: ``refresh_stale_caches``); the test session does the same before anything is
+collected (``pytest_configure``), so ``python -m pytest`` tests the code in the tree
+(``tests/test_stale_kernels.py`` shows it on a temporary copy).
+
 
 Tests that time real peers in threads of this process (the conformance kits, the transports,
 clients against the server) see a collection as a stall of their own. A full one scans every
@@ -13,6 +22,10 @@ from __future__ import annotations
 
 import gc
 import time
+
+import pytest
+
+_DROPPED = pytest.StashKey[int]()
 
 _FULL_EVERY = 20
 
@@ -37,7 +50,19 @@ def _on_gc(phase: str, info: dict) -> None:
         _stats["longest_gen"] = info.get("generation", -1)
 
 
+def refresh_kernel_caches() -> int:
+    """Drop every cached kernel compiled from other sources than today's (the server's and the
+    engines' kernel modules, as ``hapticproxy warmup`` does); returns how many were dropped."""
+    from hapticproxy.cli.warmup import CLIENT_KERNEL_MODULES
+    from hapticproxy.server.warm import SERVER_KERNEL_MODULES, refresh_stale_caches
+
+    return refresh_stale_caches(SERVER_KERNEL_MODULES + CLIENT_KERNEL_MODULES)
+
+
 def pytest_configure(config) -> None:
+    dropped = refresh_kernel_caches()
+    if dropped:
+        config.stash[_DROPPED] = dropped
     gc.callbacks.append(_on_gc)
     _stats["threshold"] = gc.get_threshold()
     t0, t1, _ = _stats["threshold"]
@@ -61,7 +86,11 @@ def pytest_unconfigure(config) -> None:
         gc.set_threshold(*_stats["threshold"])
 
 
-def pytest_terminal_summary(terminalreporter) -> None:
+def pytest_terminal_summary(terminalreporter, config) -> None:
+    dropped = config.stash.get(_DROPPED, 0)
+    if dropped:
+        terminalreporter.write_line(f"kernel caches compiled from older sources dropped at the start: {dropped} "
+                                    f"(they compiled again when first called)")
     s = _stats
     terminalreporter.write_line(
         f"garbage collection inside tests: {s['n']} collections, the longest {s['longest_s'] * 1e3:.0f} ms "

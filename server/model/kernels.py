@@ -36,14 +36,14 @@ from ...protocol.quaternion import quat_to_matrix_into
 
 from .layout import (
     C_CP, C_D, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
-    CI_AGE, CI_KEY, CI_SLIP, CI_STATE,
+    CI_AGE, CI_FLIPS, CI_KEY, CI_SLIP, CI_STATE,
     CS_COLLIDING, CS_IMPENDING, CS_PENETRATING, CS_SEPARATING,
     E_CONTACT_NONFINITE, E_DUPLICATE_KEY, E_HAND_NONFINITE, E_LINK_OUT_OF_RANGE,
     E_NORMAL_NOT_UNIT, E_NORMAL_OUT_OF_PLANE, E_OK, E_TOO_MANY,
     K_COLLISIONS, K_DEFORMED, K_DROPPED, K_LEFT, K_M, K_N_COLLIDING, K_N_IMPENDING,
     K_N_PENETRATING, K_N_SEPARATING, K_NEW, K_NONFINITE, K_PROXY, K_RANK, K_SLIPPING, K_STEPS,
-    K_FLIPS, K_RECOVERING, K_REKEYED, K_UPDATES,
-    FLIP_DOT, MAX_DOF, NCOLS_F, NCOLS_I, REKEY_COS, REKEY_DISTANCE_M,
+    K_FLIPS, K_FLIPS_TAKEN, K_RECOVERING, K_REKEYED, K_UPDATES,
+    FLIP_DOT, FLIP_REFUSE_MAX, KEY_SLIDE_FACTOR, MAX_DOF, NCOLS_F, NCOLS_I, REKEY_COS, REKEY_DISTANCE_M,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
     P_EPS, P_ORIGIN, P_POLICY, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN,
     POLICY_PAPER_LITERAL, POLICY_RIGID, PS_COLLIDING, PS_FREE, PS_RESTING,
@@ -919,20 +919,94 @@ def _feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, W, a):
     return dsep[j]
 
 
+@njit(inline="always", **_JIT)
+def _same_contact(C, i, W, X, j, k, cp, nrm, dsep, P, Pe, use_qe, a):
+    """A kept key names existing contact ``i`` only where ``i`` is (``layout.KEY_SLIDE_FACTOR``):
+    the reported constraint plane within REKEY_DISTANCE_M of the old one (moved on along its
+    normal since), and along the surface the reported constraint point (the environment's side)
+    or feature (the tool's side, as the proxy carries it: written to ``W[a, _W_XP:]``) within
+    REKEY_DISTANCE_M + KEY_SLIDE_FACTOR x how far the proxy's point of ``i`` now lies from the old
+    constraint point along the surface."""
+    ds = W[i, _W_DS]
+    n0 = nrm[j, 0]
+    n1 = nrm[j, 1]
+    n2 = nrm[j, 2]
+    e0 = cp[j, 0] - C[i, C_CP] - ds * C[i, C_N]
+    e1 = cp[j, 1] - C[i, C_CP + 1] - ds * C[i, C_N + 1]
+    e2 = cp[j, 2] - C[i, C_CP + 2] - ds * C[i, C_N + 2]
+    en = e0 * n0 + e1 * n1 + e2 * n2
+    if abs(en) > REKEY_DISTANCE_M:
+        return False
+    e0 -= en * n0
+    e1 -= en * n1
+    e2 -= en * n2
+    m0 = X[i, 0] - C[i, C_CP] - ds * C[i, C_N]
+    m1 = X[i, 1] - C[i, C_CP + 1] - ds * C[i, C_N + 1]
+    m2 = X[i, 2] - C[i, C_CP + 2] - ds * C[i, C_N + 2]
+    mn = m0 * n0 + m1 * n1 + m2 * n2
+    m0 -= mn * n0
+    m1 -= mn * n1
+    m2 -= mn * n2
+    tol = REKEY_DISTANCE_M + KEY_SLIDE_FACTOR * math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+    tol2 = tol * tol
+    if e0 * e0 + e1 * e1 + e2 * e2 <= tol2:
+        return True
+    _feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, W, a)
+    f0 = X[i, 0] - W[a, _W_XP]
+    f1 = X[i, 1] - W[a, _W_XP + 1]
+    f2 = X[i, 2] - W[a, _W_XP + 2]
+    fn = f0 * n0 + f1 * n1 + f2 * n2
+    f0 -= fn * n0
+    f1 -= fn * n1
+    f2 -= fn * n2
+    return f0 * f0 + f1 * f1 + f2 * f2 <= tol2
+
+
+@njit(inline="always", **_JIT)
+def _refuse_reversal(C, CI, i, W, j, k, cp, nrm, P):
+    """Existing contact ``i`` reported with a reversed normal (contact ``j``, tool link ``k``):
+    refuse the report (``i`` kept as it was) or take it (``i`` leaves, ``j`` is new)? The link's
+    frame origin lies in front of the true plane (``layout.FLIP_DOT``): a report that puts it in
+    front where the held normal puts it behind is taken; one that puts it behind is refused up to
+    FLIP_REFUSE_MAX updates in a row (``CI_FLIPS``), one that cannot be told once."""
+    ph = -W[i, _W_DS]
+    pr = 0.0
+    for q_ in range(3):
+        ph += C[i, C_N + q_] * (P[k, 9 + q_] - C[i, C_CP + q_])
+        pr += nrm[j, q_] * (P[k, 9 + q_] - cp[j, q_])
+    if pr > ph + 2.0 * REKEY_DISTANCE_M:
+        return False
+    limit = FLIP_REFUSE_MAX if ph > pr + 2.0 * REKEY_DISTANCE_M else 1
+    return CI[i, CI_FLIPS] < limit
+
+
 @njit(**_JIT)
 def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_in, nk, sel,
-                 newF, newI, P, Pe, use_qe):
+                 newF, newI, P, Pe, use_qe, Vk):
     """The rule table of the notes on a validated update (``sel[:nk]`` kept). ``P[k]``: pose row
     of tool link k (rotation link -> world row-major, then the link frame's origin, world) at the
-    proxy's configuration, ``Pe[k]`` the same at the engine's (read only when ``use_qe``). A
-    contact's local point is stored in the frame of its link (key column 0). ``X`` (m x 3) and
-    ``W`` (cap x 12): scratch.
+    proxy's configuration, ``Pe[k]`` the same at the engine's (read only when ``use_qe``), ``Vk[k]``
+    the link's angular velocity and its frame origin's velocity (world, 3 + 3). A contact's local
+    point is stored in the frame of its link (key column 0). ``X`` (m x 3) and ``W`` (cap x 12):
+    scratch.
 
-    Two events real engines produce are caught before the rules (``layout.FLIP_DOT``,
-    ``REKEY_COS``, ``REKEY_DISTANCE_M``): a reported normal that reverses an existing contact's
-    is refused for this update (the contact keeps its previous geometry and state, so the force
-    is not turned round into a pull towards the surface), and a new key at the feature of a
-    contact that left in the same update continues that contact (its penetration is kept, as
+    A contact the rules put touching (eq. 4) starts resting on the proxy, not as a collision: its
+    first step applies no impulse unless the proxy moves into it faster than the resting speed
+    ``P_REC_VN`` (the recovery's: 0 with the recovery off, the paper's model, where every
+    approach is a collision). The impulse at a slow approach stopped whatever the proxy was doing
+    in one step (m v / dt: 0.42 -> 4.07 -> 0.07 N for a 0.25 kg tool a recovery moved into the
+    contact at 19 mm/s, ``tests/model/test_update_instant.py``): the force step proxy deformation
+    exists to avoid. Every contact placed carries the proxy's normal speed there (``C_VN``), which
+    the recovery's resting test reads at the next step.
+
+    Events real engines produce are caught before the rules (``layout.FLIP_DOT``,
+    ``FLIP_REFUSE_MAX``, ``KEY_SLIDE_FACTOR``, ``REKEY_COS``, ``REKEY_DISTANCE_M``): a kept key
+    reported elsewhere is another contact (the old one leaves, or continues under its own new
+    key); a reported normal that reverses an existing contact's is refused for this update (the
+    contact keeps its previous geometry and state, so the force is not turned round into a pull
+    towards the surface) when the tool lies in front of the held plane and behind the reported
+    one, and taken when the tool says the held one was the reversed one; a new key at the feature
+    of a contact that left in the same update continues that contact (its penetration is kept, as
     eq. 5 keeps any existing contact's, instead of restarting at zero through eq. 4).
 
     Cost: O(n + m) for the keys (a key table in W once m > _SCAN_MAX_M); then, for each new key
@@ -1008,11 +1082,17 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
         W[a, _W_FOUND] = found
         W[a, _W_FLIP] = 0.0
         if found >= 0:
+            if not _same_contact(C, found, W, X, j, k0, cp, nrm, dsep, P, Pe, use_qe, a):
+                W[a, _W_FOUND] = -1.0         # another contact under a kept key: a new one here
+                continue
             n_found += 1
             W[found, _W_TAKEN] = 1.0
             dot = C[found, C_N] * nrm[j, 0] + C[found, C_N + 1] * nrm[j, 1] + C[found, C_N + 2] * nrm[j, 2]
             if dot < FLIP_DOT:
-                W[a, _W_FLIP] = 1.0
+                if _refuse_reversal(C, CI, found, W, j, k0, cp, nrm, P):
+                    W[a, _W_FLIP] = 1.0
+                else:
+                    W[a, _W_FOUND] = -2.0     # taken: ``found`` leaves, this one is new (not re-keyed)
     # pass 2: new keys at the feature of a contact that left (re-numbered, or reversed): the
     # existing contact i on the same link whose normal is within REKEY_COS of the new one (either
     # way round) and whose constraint plane and proxy point are within REKEY_DISTANCE_M of the
@@ -1055,7 +1135,7 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
                 W[r, _W_LEFT + 3] = C[i, C_N + 2]
                 nc += 1
         for a in range(nk):
-            if W[a, _W_FOUND] >= 0.0:
+            if W[a, _W_FOUND] != -1.0:       # continues a contact, or took a reversal: not re-keyed
                 continue
             j = sel[a]
             k = keys[j, 0]
@@ -1132,7 +1212,10 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
                 W[a, _W_FOUND] = best
                 W[best, _W_TAKEN] = 1.0
                 if best_dot < 0.0:
-                    W[a, _W_FLIP] = 1.0
+                    if _refuse_reversal(C, CI, best, W, j, k, cp, nrm, P):
+                        W[a, _W_FLIP] = 1.0
+                    else:
+                        W[a, _W_FOUND] = -2.0
                 else:
                     n_rekey += 1
                 # out of the candidates: the last row of its bucket takes its place
@@ -1150,12 +1233,15 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
     n_new = 0
     n_def = 0
     n_flip = 0
+    n_flip_taken = 0
     for a in range(nk):
         j = sel[a]
         k = keys[j, 0]
         found = int(W[a, _W_FOUND])
         if found >= 0:
             matched += 1
+        elif found == -2:
+            n_flip_taken += 1
         if found >= 0 and W[a, _W_FLIP] != 0.0:
             # refused for this update: the contact stays exactly as it was (key included)
             for q_ in range(NCOLS_F):
@@ -1163,6 +1249,7 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
             for q_ in range(NCOLS_I):
                 newI[a, q_] = CI[found, q_]
             newI[a, CI_AGE] = CI[found, CI_AGE] + 1
+            newI[a, CI_FLIPS] = CI[found, CI_FLIPS] + 1
             n_flip += 1
             continue
         # the tool feature as the proxy carries it (xp) and its separation dj along n
@@ -1175,6 +1262,7 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
         literal = policy == POLICY_PAPER_LITERAL
         dr = dj - par[P_EPS] if literal else dj
         # offset along n of the target world point from c_p (eq. 1/6: d, eq. 5: s_p, eq. 4: 0)
+        touch = False                         # put touching by eq. 4
         if found >= 0:
             s_p = W[found, _W_SP]
             if policy == POLICY_RIGID or dr > 0.0 or s_p < dr:
@@ -1184,6 +1272,7 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
                 n_def += 1
             else:
                 off = 0.0
+                touch = True
                 n_def += 1
             newF[a, C_S] = C[found, C_S]
             newF[a, C_SPREV] = C[found, C_SPREV]
@@ -1198,6 +1287,7 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
                 off = dr
             else:
                 off = 0.0
+                touch = True
                 n_def += 1
             newF[a, C_S] = np.inf             # has just arisen: next step may be a collision
             newF[a, C_SPREV] = np.inf
@@ -1206,6 +1296,7 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
             newI[a, CI_SLIP] = 0
             newI[a, CI_STATE] = CS_IMPENDING
             newI[a, CI_AGE] = 0
+        newI[a, CI_FLIPS] = 0
         for q_ in range(3):
             newI[a, CI_KEY + q_] = keys[j, q_]
             newF[a, C_CP + q_] = cp[j, q_]
@@ -1216,7 +1307,6 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
         newF[a, C_D] = dsep[j]
         newF[a, C_VC] = vc[j]
         newF[a, C_TU] = t
-        newF[a, C_VN] = 0.0
         newF[a, C_FN] = 0.0
         newF[a, C_IMP] = 0.0
         for q_ in range(3):
@@ -1235,6 +1325,15 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
             newF[a, C_P + q_] = P[k, q_] * w0 + P[k, 3 + q_] * w1 + P[k, 6 + q_] * w2
         if planar:
             newF[a, C_P + 2] = 0.0
+        # the proxy's normal speed at the point, against the constraint's: v_o + w x r - v_constr
+        vn = (newF[a, C_N] * (Vk[k, 3] + Vk[k, 1] * w2 - Vk[k, 2] * w1)
+              + newF[a, C_N + 1] * (Vk[k, 4] + Vk[k, 2] * w0 - Vk[k, 0] * w2)
+              + newF[a, C_N + 2] * (Vk[k, 5] + Vk[k, 0] * w1 - Vk[k, 1] * w0) - vc[j])
+        newF[a, C_VN] = vn
+        if touch:
+            # eq. 4 put the proxy touching: it rests there unless it moves into the contact faster
+            # than the resting speed (then the collision the paper's new contact is)
+            newF[a, C_S] = np.inf if vn <= -par[P_REC_VN] else 0.0
     for a in range(nk):
         for q_ in range(NCOLS_F):
             C[a, q_] = newF[a, q_]
@@ -1247,6 +1346,7 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
     cnt[K_DEFORMED] += n_def
     cnt[K_LEFT] += m - matched
     cnt[K_FLIPS] += n_flip
+    cnt[K_FLIPS_TAKEN] += n_flip_taken
     cnt[K_REKEYED] += n_rekey
 
 
@@ -1276,6 +1376,21 @@ def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, s
     Pe = V[_V_TAU:_V_TAU + 1]
     _rigid_pose(kind, par, st, R, c)
     _pose_row(R, c, P, 0)
+    # the tool's angular velocity and its COM's velocity, world (one more scratch row)
+    Vk = V[_V_QD0:_V_QD0 + 1, 0:6]
+    for a in range(6):
+        Vk[0, a] = 0.0
+    if kind == TOOL_1DOF:
+        for a in range(3):
+            Vk[0, 3 + a] = st[S_QD] * par[P_AXIS + a]
+    elif kind == TOOL_PLANAR:
+        Vk[0, 2] = st[S_QD + 2]
+        Vk[0, 3] = st[S_QD]
+        Vk[0, 4] = st[S_QD + 1]
+    else:
+        for a in range(3):
+            Vk[0, a] = st[S_QD + 3 + a]
+            Vk[0, 3 + a] = st[S_QD + a]
     if use_qe:
         nq = 1 if kind == TOOL_1DOF else (3 if kind == TOOL_PLANAR else 7)
         for a in range(nq):
@@ -1283,5 +1398,5 @@ def update_rigid(kind, par, st, C, CI, cnt, wk, keys, cp, nrm, dsep, vc, n_in, s
         _rigid_pose(kind, par, st_e, Re, ce)
         _pose_row(Re, ce, Pe, 0)
     apply_update(kind == TOOL_PLANAR, par, st, C, CI, cnt, X, Cm, keys, cp, nrm, dsep, vc, n_in, nk,
-                 sel, newF, newI, P, Pe, use_qe)
+                 sel, newF, newI, P, Pe, use_qe, Vk)
     return E_OK

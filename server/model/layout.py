@@ -76,7 +76,8 @@ CI_KEY = 0          # 0..2 stable key: (tool link, environment body, feature)
 CI_STATE = 3        # CS_* of this step
 CI_SLIP = 4         # 1 while the friction bristle slips (kinetic), 0 while it sticks
 CI_AGE = 5          # number of model updates this contact has survived
-NCOLS_I = 6
+CI_FLIPS = 6        # consecutive updates whose reversed normal for this contact was refused (FLIP_*)
+NCOLS_I = 7
 
 # --- parameters (float64) ---------------------------------------------------------------------
 P_DT = 0            # haptic step, s
@@ -149,7 +150,9 @@ K_SLIPPING = 15     # contacts slipping this step
 K_FLIPS = 16        # reported normals refused because they reversed an existing contact's (cumulative)
 K_REKEYED = 17      # new keys that took over a contact that left at the same feature (cumulative)
 K_RECOVERING = 18   # contacts whose deformation was being recovered this step
-NCOUNT = 19
+K_FLIPS_TAKEN = 19  # reversed normals taken, not refused: the held one had the tool behind its surface, or the
+                    # reversal outlasted the refusals (cumulative; the held contact left, the reported one is new)
+NCOUNT = 20
 
 # --- linkages ---------------------------------------------------------------------------------
 JT_ROOT = 0         # joint types, the protocol's JointType values
@@ -224,8 +227,18 @@ TOUCH_TOL_M = 1e-12
 #: An existing key whose reported normal turned by more than 90 deg (n_new . n_old below this)
 #: reversed: an edge-edge normal without a fixed sign, or a feature seen from the wrong side. The
 #: update keeps that contact as it was (its previous geometry and state) instead of pushing the
-#: proxy the other way; counted in K_FLIPS.
+#: proxy the other way; counted in K_FLIPS. Which of the two is wrong is told by the tool: a normal
+#: points from the environment towards the tool, so the contact's link (its frame origin, a
+#: rigid tool's centre of mass) lies in front of the true constraint plane. A reversal that puts
+#: the link in front of its plane while the held normal has it behind (by more than
+#: 2 REKEY_DISTANCE_M between the two) corrects the held one: taken at once (K_FLIPS_TAKEN; the
+#: contact born with a reversed normal would otherwise refuse the true one for ever). One that
+#: puts the link behind is refused, up to FLIP_REFUSE_MAX updates in a row (5-10 s at 30-60 Hz: a
+#: backstop for a tool the test misjudges, a hook whose link origin lies behind the true plane);
+#: one the link cannot tell (it lies on the plane) once. A reversal reported after that is taken:
+#: nothing is refused for ever.
 FLIP_DOT = 0.0
+FLIP_REFUSE_MAX = 300
 #: A new key is the same contact under a new number (engines re-number feature ids) when a
 #: contact that left in the same update has a normal within 5 deg of it, and the proxy's point
 #: of that contact lies within REKEY_DISTANCE_M of the new feature both along the surface and
@@ -235,3 +248,14 @@ FLIP_DOT = 0.0
 #: contact is kept as it was.
 REKEY_COS = 0.9961946980917455   # cos(5 deg)
 REKEY_DISTANCE_M = 0.002
+#: A kept key continues its contact only at that contact: the two constraint planes within
+#: REKEY_DISTANCE_M of each other, and the reported feature along the surface within
+#: REKEY_DISTANCE_M + KEY_SLIDE_FACTOR x how far the proxy's point of the contact now lies from
+#: the old constraint point along the surface, on the tool's side (the proxy's point) or on the
+#: environment's (the constraint point): a vertex sliding on a face keeps the first, a face
+#: sliding over a vertex the second, a crossing edge moves both. A key that comes back elsewhere
+#: (an engine numbering contacts by their order in its list, a reused feature id) is another
+#: contact: the old one leaves (or continues under its own new key), the reported one is new. So
+#: a contact that arrived deep is never taken for one that rested elsewhere, with its
+#: penetration, its age (a recovery would start at once) and its friction.
+KEY_SLIDE_FACTOR = 2.0

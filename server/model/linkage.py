@@ -389,11 +389,43 @@ def update_linkage(par, lmeta, lk, lki, st, C, CI, cnt, wk, lw, keys, cp, nrm, d
         return code
     D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V = _views(wk, cap)
     forward_kinematics(lmeta, lk, lki, st[S_LQ:], lw)
+    link_velocities(lmeta, lki, st, lw)
     if use_qe:
         forward_kinematics(lmeta, lk, lki, qe, lw_e)
     apply_update(planar == 1, par, st, C, CI, cnt, X, Cm, keys, cp, nrm, dsep, vc, n_in, nk, sel,
-                 newF, newI, lw, lw_e, use_qe)
+                 newF, newI, lw, lw_e, use_qe, lw[:, LW_W:LW_W + 6])
     return E_OK
+
+
+@njit(**_JIT)
+def link_velocities(lmeta, lki, st, lw):
+    """Each link's angular velocity (``LW_W``) and its frame origin's velocity (``LW_V``), world,
+    from qd (``st``) and the poses and joint axes ``forward_kinematics`` left in ``lw``: what the
+    update's rules read (a contact's normal speed where they put it)."""
+    nl = lmeta[LM_NLINKS]
+    r = lmeta[LM_R]
+    if lmeta[LM_PLANAR]:
+        lw[0, LW_W] = 0.0; lw[0, LW_W + 1] = 0.0; lw[0, LW_W + 2] = st[S_QD + 2]
+        lw[0, LW_V] = st[S_QD]; lw[0, LW_V + 1] = st[S_QD + 1]; lw[0, LW_V + 2] = 0.0
+    else:
+        for a in range(3):
+            lw[0, LW_V + a] = st[S_QD + a]
+            lw[0, LW_W + a] = st[S_QD + 3 + a]
+    for k in range(1, nl):
+        p = lki[k, LI_PARENT]
+        u = st[S_QD + r + k - 1]
+        w0 = lw[p, LW_W]; w1 = lw[p, LW_W + 1]; w2 = lw[p, LW_W + 2]
+        x0 = lw[k, LW_P] - lw[p, LW_P]; x1 = lw[k, LW_P + 1] - lw[p, LW_P + 1]; x2 = lw[k, LW_P + 2] - lw[p, LW_P + 2]
+        for c in range(3):
+            lw[k, LW_W + c] = lw[p, LW_W + c]
+            lw[k, LW_V + c] = lw[p, LW_V + c]
+        _cross_add(w0, w1, w2, x0, x1, x2, lw, k, LW_V, 1.0)
+        if lki[k, LI_TYPE] == JT_PRISMATIC:
+            for c in range(3):
+                lw[k, LW_V + c] += u * lw[k, LW_A + c]
+        else:
+            for c in range(3):
+                lw[k, LW_W + c] += u * lw[k, LW_A + c]
 
 
 @njit(**_JIT)

@@ -27,7 +27,7 @@ from . import linkage as _lk
 from .layout import (
     C_CP, C_D, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
     CI_AGE, CI_KEY, CI_SLIP, CI_STATE, CONTACT_STATE_NAMES, E_OK, ERROR_FIELDS,
-    K_COLLISIONS, K_DEFORMED, K_DROPPED, K_FLIPS, K_LEFT, K_RECOVERING, K_REKEYED, K_M, K_N_COLLIDING, K_N_IMPENDING,
+    K_COLLISIONS, K_DEFORMED, K_DROPPED, K_FLIPS, K_FLIPS_TAKEN, K_LEFT, K_RECOVERING, K_REKEYED, K_M, K_N_COLLIDING, K_N_IMPENDING,
     K_N_PENETRATING, K_N_SEPARATING, K_NEW, K_NONFINITE, K_PROXY, K_RANK, K_SLIPPING, K_STEPS,
     K_UPDATES, NCOLS_F, NCOLS_I, NCOUNT, NPAR, NSTATE,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_EPS, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK,
@@ -749,7 +749,8 @@ class LocalModel:
             "left": int(c[K_LEFT]), "impending": int(c[K_N_IMPENDING]),
             "colliding": int(c[K_N_COLLIDING]), "penetrating": int(c[K_N_PENETRATING]),
             "separating": int(c[K_N_SEPARATING]), "rank": int(c[K_RANK]),
-            "slipping": int(c[K_SLIPPING]), "flips_refused": int(c[K_FLIPS]), "rekeyed": int(c[K_REKEYED]),
+            "slipping": int(c[K_SLIPPING]), "flips_refused": int(c[K_FLIPS]), "flips_taken": int(c[K_FLIPS_TAKEN]),
+            "rekeyed": int(c[K_REKEYED]),
             "recovering": int(c[K_RECOVERING]),
         }
 

@@ -4,7 +4,14 @@ a spoofed source (another socket with the session's valid token), a wrong protoc
 floods of junk datagrams (20,000 paced ones, 100,000 with ``-m slow``; 100,000 unpaced ones).
 Every attack datagram must be rejected and counted by reason, and
 the session must not notice: same session, the loop stepping on without a fault, engaged at full
-gain, the real client's updates still applied and acknowledged. Counts only, never timings."""
+gain, the real client's updates still applied and acknowledged. Counts only, never timings: what
+a flood does to the loop's rate (the share of steps kept on time, of the client's updates applied)
+is judged on the wall clock, so those tests are marked ``realtime`` (their own step of
+``.ci/run``, not the default run).
+
+One server serves the module while it is healthy; a test that failed, or a server that is no
+longer engaged with its one session and no fault, is replaced by a fresh one before the next test
+(the ``live`` fixture), so one failure does not fail every test after it."""
 from __future__ import annotations
 
 import os
@@ -135,13 +142,52 @@ class Live:
         self.sup.close()
 
 
-@pytest.fixture(scope="module")
-def live():
-    lv = Live()
-    try:
-        lv.start()
-        yield lv
-    finally:
+    def healthy(self) -> bool:
+        """Still what every test starts from: the loop process alive, engaged at full gain with its
+        one session and no fault, the client established, and nothing left in flight (the
+        client paused, two publications alike)."""
+        if not (self.sup.proc is not None and self.sup.proc.is_alive() and self.env is not None
+                and self.env.ep.established and self._thread is not None and self._thread.is_alive()):
+            return False
+        try:
+            self.wait(lambda s: s["loop_state"] == "engaged" and s["gain"] == 1.0, timeout_s=5.0)
+        except AssertionError:
+            return False
+        with self._lock:  # paused well under the environment watchdog (0.5 s)
+            s = _settled(self, timeout_s=0.3, required=False)
+        return (s is not None and s["loop_state"] == "engaged" and s["gain"] == 1.0 and s["fault"] == 0
+                and s["faults_total"] == 0 and s["sessions_opened"] == 1)
+
+
+_SHARED: dict = {}
+
+
+@pytest.fixture
+def live(request):
+    """The module's server, reused while it stays healthy; replaced after a failed test."""
+    lv = _SHARED.get("live")
+    if lv is not None and not lv.healthy():
+        _SHARED.pop("live").close()
+        lv = None
+    if lv is None:
+        lv = Live()
+        try:
+            lv.start()
+        except BaseException:
+            lv.close()
+            raise
+        _SHARED["live"] = lv
+    yield lv
+    rep = getattr(request.node, "rep_call", None)
+    if rep is None or rep.failed:
+        _SHARED.pop("live").close()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _close_the_shared_server():
+    yield
+    lv = _SHARED.pop("live", None)
+    if lv is not None:
         lv.close()
 
 
@@ -315,8 +361,9 @@ def _junk(rng: np.random.Generator, sid: int, token: int, real: bytes) -> list[b
     return out
 
 
-@pytest.mark.parametrize("flood", [FLOOD, pytest.param(100_000, marks=pytest.mark.slow)])
-def test_a_flood_of_junk_is_rejected_and_counted_and_the_session_goes_on(live, flood):
+def _junk_flood(live: Live, flood: int) -> dict:
+    """``flood`` junk datagrams, paced; every one read and refused for its reason. Returns the
+    counts the tests judge."""
     sid, token = live.session()
     real = [p for p in live.captured if isinstance(CODEC.try_decode(p), ContactUpdate)][-1]
     rng = np.random.default_rng(8)
@@ -359,26 +406,45 @@ def test_a_flood_of_junk_is_rejected_and_counted_and_the_session_goes_on(live, f
     assert d["wrong_peer"] == flood // 10 * 2
     assert d["stale_or_duplicate"] == 0 and d["rejects_sent"] == 0
     # the session did not notice: the real client's updates applied all along, no fault, engaged
-    # at full gain in every step, and the loop kept its rate (periods skipped are few)
+    # at full gain in every step
     s = _unaffected(live, b, head0)
-    assert d["updates"] >= 0.9 * (env_sent - 10)  # heartbeats are not updates; newest-wins may merge a few
+    assert d["updates"] > 0
     stepped = s["steps"] - b["steps"]
     missed = s["missed_deadlines"] - b["missed_deadlines"]
-    assert stepped / (stepped + missed) >= 0.9, (stepped, missed)
     print(f"flood: {flood} junk datagrams, {d['steps']} steps, {missed} missed deadlines, "
-          f"{d['updates']} updates applied, kernel drops {drops}, pid {os.getpid()}")
+          f"{d['updates']} updates applied of {env_sent} client datagrams, kernel drops {drops}, pid {os.getpid()}")
+    return dict(updates=d["updates"], env_sent=env_sent, stepped=stepped, missed=missed)
 
 
-def _settled(live: Live) -> dict:
-    """Status once the loop has read everything sent so far (two publications alike)."""
+@pytest.mark.parametrize("flood", [FLOOD, pytest.param(100_000, marks=pytest.mark.slow)])
+def test_a_flood_of_junk_is_rejected_and_counted_and_the_session_goes_on(live, flood):
+    _junk_flood(live, flood)
+
+
+@pytest.mark.realtime
+def test_a_flood_of_junk_does_not_slow_the_loop(live):
+    """The same flood, judged on the wall clock: the loop kept its rate (periods skipped are few)
+    and read the real client's updates as they came (newest-wins merges only a few)."""
+    r = _junk_flood(live, FLOOD)
+    assert r["updates"] >= 0.9 * (r["env_sent"] - 10)  # heartbeats are not updates
+    assert r["stepped"] / (r["stepped"] + r["missed"]) >= 0.9, r
+
+
+def _settled(live: Live, timeout_s: float = WAIT_S, required: bool = True) -> dict | None:
+    """Status once the loop has read everything sent so far (two publications alike); if that did
+    not happen within ``timeout_s``: an AssertionError (``required``), else None."""
     prev = None
-    while True:
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
         time.sleep(0.03)
         s = live.snap()
         key = (s["datagrams_received"], s["dropped_empty"], s["dropped_packets"])
         if key == prev:
             return s
         prev = key
+    if required:
+        raise AssertionError(f"the server did not settle within {timeout_s} s; status {live.snap()}")
+    return None
 
 
 def test_an_unpaced_flood_is_counted_by_the_server_or_the_kernel_and_no_promise_breaks(live):
@@ -442,14 +508,11 @@ def _hellos() -> list[bytes]:
                                env_rate_hz=60.0)) for i in range(500)]
 
 
-@pytest.mark.parametrize("kind", ["nested arrays", "valid hellos"])
-def test_a_flood_of_datagrams_slow_to_refuse_does_not_stretch_the_steps(live, kind):
+def _slow_to_refuse_flood(live: Live, kind: str) -> dict:
     """Datagrams that are slow to refuse: 1 kB msgpack packets of 1,000 nested arrays (~40 us
     each to unpack, ten times other junk), or valid Hellos while the one session slot is taken
-    (each decoded, then refused SERVER_FULL before any model check). Read 32 per step, nested
-    arrays stretched steps to milliseconds. The poll's time budget leaves the rest for the next
-    step: the loop keeps its rate (counts of steps, missed deadlines and budget cuts, never
-    timings)."""
+    (each decoded, then refused SERVER_FULL before any model check), unpaced. Every one is read
+    and refused or dropped by the kernel; the session survives. Returns the counts judged."""
     pool = [b"\x91" * 1023 + b"\x01"] if kind == "nested arrays" else _hellos()
     with live._lock:
         b = _settled(live)
@@ -476,13 +539,28 @@ def test_a_flood_of_datagrams_slow_to_refuse_does_not_stretch_the_steps(live, ki
     assert a["sessions_opened"] == 1
     stepped = a["steps"] - b["steps"]
     missed = a["missed_deadlines"] - b["missed_deadlines"]
-    assert a["poll_budget_cuts"] > b["poll_budget_cuts"]  # the budget did the bounding
+    s = live.wait(lambda s: s["updates"] >= a["updates"] + 10 and s["loop_state"] == "engaged" and s["gain"] == 1.0)
+    assert s["session_id"] == b["session_id"] and s["faults_total"] == 0
+    cuts = int(a["poll_budget_cuts"] - b["poll_budget_cuts"])
+    print(f"{kind} flood: sent {sent}, read by the server {int(a['datagrams_received'] - b['datagrams_received'])}, "
+          f"kernel dropped {drops}, {stepped} steps, {int(missed)} missed deadlines, {cuts} polls cut at the budget")
+    return dict(stepped=stepped, missed=missed, cuts=cuts)
+
+
+@pytest.mark.parametrize("kind", ["nested arrays", "valid hellos"])
+def test_a_flood_of_datagrams_slow_to_refuse_is_refused_and_the_session_goes_on(live, kind):
+    _slow_to_refuse_flood(live, kind)
+
+
+@pytest.mark.realtime
+@pytest.mark.parametrize("kind", ["nested arrays", "valid hellos"])
+def test_a_flood_of_datagrams_slow_to_refuse_does_not_stretch_the_steps(live, kind):
+    """Read 32 per step, nested arrays stretched steps to milliseconds. The poll's time budget
+    leaves the rest for the next step: the loop keeps its rate (the share of steps on time, on the
+    wall clock)."""
+    r = _slow_to_refuse_flood(live, kind)
+    assert r["cuts"] > 0  # the budget did the bounding
     # Unbounded, 32 refusals of ~40 us per step take over a period: every step misses a
     # deadline, so at most half are kept (<= 0.5). Bounded, the loop kept 0.86 (491 of 573) on a
     # 2-core CI box where the unpaced sender itself holds a core; 0.75 separates the two.
-    assert stepped / (stepped + missed) >= 0.75, (stepped, missed)
-    s = live.wait(lambda s: s["updates"] >= a["updates"] + 10 and s["loop_state"] == "engaged" and s["gain"] == 1.0)
-    assert s["session_id"] == b["session_id"] and s["faults_total"] == 0
-    print(f"{kind} flood: sent {sent}, read by the server {int(a['datagrams_received'] - b['datagrams_received'])}, "
-          f"kernel dropped {drops}, {stepped} steps, {int(missed)} missed deadlines, "
-          f"{int(a['poll_budget_cuts'] - b['poll_budget_cuts'])} polls cut at the budget")
+    assert r["stepped"] / (r["stepped"] + r["missed"]) >= 0.75, r

@@ -1,7 +1,9 @@
 """``hapticproxy bench faults``: its promise checker flags what it must (synthetic telemetry), a
 few cases run against the real server in the default suite (client killed mid-contact, 30 %
-bursty loss, the loop stalled with a remote device, a Zenoh link stall, and the baseline through
-the CLI), and the whole matrix runs opt-in (``-m slow``). Counts and promise checks only."""
+bursty loss, the loop process killed, a Zenoh link stall, and the baseline through the CLI), and
+the whole matrix runs opt-in (``-m slow``). Counts and promise checks only; the stall cases, whose
+recovery waits for the loop to be on time on the wall clock, are in the real-time suite
+(``-m realtime``)."""
 from __future__ import annotations
 
 import json
@@ -116,7 +118,11 @@ def test_client_killed_mid_contact_fades_within_the_promise():
     assert row["fades"] >= 1 and row["fade_ms"] is not None and row["detect_ms"] is not None
 
 
+@pytest.mark.realtime
 def test_a_stalled_loop_is_cut_by_the_device_watchdog_and_recovers_by_itself():
+    """Real time: the recovery waits until the loop has been on time for 0.5 s on the wall clock;
+    on a loaded box the 4 s run ended first once ('no recovery after the stall', 112 missed
+    deadlines). The stall rules in simulated time: tests/server/test_stalls.py."""
     row = _run("server loop stalled 100 ms")
     _check(row)
     assert row["state_after_stall"] == "fault"  # the output stayed off right after the stall
@@ -125,8 +131,8 @@ def test_a_stalled_loop_is_cut_by_the_device_watchdog_and_recovers_by_itself():
     assert row["device_first_after_rearm_n"] is not None and row["device_first_after_rearm_n"] <= 0.2
 
 
-@pytest.mark.parametrize("name", ["stall 120 ms while engaged", "re-arm after a device fault, pushing hand",
-                                  "first engagement, pushing hand"])
+@pytest.mark.parametrize("name", [pytest.param("stall 120 ms while engaged", marks=pytest.mark.realtime),
+                                  "re-arm after a device fault, pushing hand", "first engagement, pushing hand"])
 def test_lifecycle_cases_keep_every_promise_on_the_real_server(name):
     from hapticproxy.benchmarks import faults_lifecycle as lc
 

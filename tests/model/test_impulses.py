@@ -102,7 +102,9 @@ def test_peg_in_exact_hole_opposing_walls_give_finite_correct_impulses():
              [[1, 0, 0], [-1, 0, 0], [0, 1, 0]], [0.0, 0.0, -0.001])
     m.step([0.0, 0.0, 0.0])
     snap = m.contacts()
-    assert snap.state == ["colliding", "colliding", "colliding"]
+    # the walls, touched but not approached, start resting; the bottom, approached at 0.2 m/s, is
+    # a collision; eq. 11 acts on the colliding and the penetrating ones alike
+    assert snap.state == ["penetrating", "penetrating", "colliding"]
     assert np.all(np.isfinite(snap.impulse_n_s))
     np.testing.assert_allclose(snap.impulse_n_s, [0.0, 0.0, 0.5 * 0.2], atol=1e-12)
     assert m.counters()["rank"] == 2
@@ -110,7 +112,10 @@ def test_peg_in_exact_hole_opposing_walls_give_finite_correct_impulses():
 
 
 def test_walls_on_both_sides_at_rest_give_zero_finite_impulses():
-    m = LocalModel(ToolSpec.one_dof(1.0), ContactParams(1000.0, 0.0, 0.0), period_s=1e-3)
+    # the paper's model (no recovery, so no resting speed): a contact arising touching is a
+    # collision even at rest
+    m = LocalModel(ToolSpec.one_dof(1.0), ContactParams(1000.0, 0.0, 0.0), period_s=1e-3,
+                   recovery_speed_m_per_s=0.0)
     m.update(np.array([[0, 1, 0], [0, 2, 0]]), [[0.01, 0, 0], [-0.01, 0, 0]], [[-1, 0, 0], [1, 0, 0]], [0.0, 0.0])
     f = m.step([3.0])
     assert m.counters()["collisions"] == 1

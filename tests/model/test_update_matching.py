@@ -1,19 +1,21 @@
-"""The update's matching (same keys, reversed normals, re-numbered keys: ``layout.FLIP_DOT``,
-``REKEY_COS``, ``REKEY_DISTANCE_M``) as the kernel does it gives bit for bit the contact table of
-a straightforward reference: the rule table as first written (a linear scan over the existing
+"""The update's matching (same keys at the same contact, reversed normals refused or taken,
+re-numbered keys: ``layout.FLIP_DOT``, ``FLIP_REFUSE_MAX``, ``KEY_SLIDE_FACTOR``, ``REKEY_COS``,
+``REKEY_DISTANCE_M``) as the kernel does it gives bit for bit the contact table of a
+straightforward reference: the rule table as first written (a linear scan over the existing
 contacts for each incoming key, the full feature test against every contact left), run as plain
 Python on copies of the same arrays, over random chains of updates with kept, re-numbered,
-reversed and new keys, on one or several links, in both frames (``use_qe``) and every policy."""
+reversed, handed-round and new keys, on one or several links, in both frames (``use_qe``) and
+every policy."""
 import numpy as np
 import pytest
 
 from hapticproxy.server.model import kernels as _k
 from hapticproxy.server.model.layout import (
     C_CP, C_D, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
-    CI_AGE, CI_KEY, CI_SLIP, CI_STATE, CS_IMPENDING, FLIP_DOT, K_DEFORMED, K_DROPPED, K_FLIPS,
-    K_LEFT, K_M, K_NEW, K_REKEYED, K_UPDATES, MAX_DOF, NCOLS_F, NCOLS_I, NCOUNT, NLW, NPAR, NSTATE,
-    P_EPS, P_POLICY, POLICY_DEFORM, POLICY_PAPER_LITERAL, POLICY_RIGID, REKEY_COS,
-    REKEY_DISTANCE_M, S_T,
+    CI_AGE, CI_FLIPS, CI_KEY, CI_SLIP, CI_STATE, CS_IMPENDING, FLIP_DOT, FLIP_REFUSE_MAX, K_DEFORMED,
+    K_DROPPED, K_FLIPS, K_FLIPS_TAKEN, K_LEFT, K_M, K_NEW, K_REKEYED, K_UPDATES, KEY_SLIDE_FACTOR, MAX_DOF,
+    NCOLS_F, NCOLS_I, NCOUNT, NLW, NPAR, NSTATE, P_EPS, P_POLICY, P_REC_VN, POLICY_DEFORM, POLICY_PAPER_LITERAL,
+    POLICY_RIGID, REKEY_COS, REKEY_DISTANCE_M, S_T,
 )
 
 # the reference's own scratch columns (the kernel's layout of W is its own business)
@@ -73,8 +75,47 @@ def _ref_same_feature(C, CI, X, t, i, k, xp, cp, nrm, j):
     return dot
 
 
+def _tangential(v, n):
+    """v without its component along n (the kernels' order of operations)."""
+    return v - _sum3(v * n) * n
+
+
+def _ref_same_contact(C, X, t, i, k, cp, nrm, dsep, P, Pe, use_qe, xp, j):
+    """A kept key names existing contact ``i`` only where ``i`` is (``layout.KEY_SLIDE_FACTOR``):
+    the planes within REKEY_DISTANCE_M, and along the surface the reported constraint point or
+    the reported feature within REKEY_DISTANCE_M + KEY_SLIDE_FACTOR x the distance of the proxy's
+    point of ``i`` from its old constraint point (both constraint points where they are now)."""
+    moved = (C[i, C_VC] * (t - C[i, C_TU]) + C[i, C_REC]) * C[i, C_N:C_N + 3]
+    e = cp[j] - C[i, C_CP:C_CP + 3] - moved
+    if abs(_sum3(e * nrm[j])) > REKEY_DISTANCE_M:
+        return False
+    away = X[i, :3] - C[i, C_CP:C_CP + 3] - moved
+    tol = REKEY_DISTANCE_M + KEY_SLIDE_FACTOR * np.sqrt(_sum3(_tangential(away, nrm[j]) ** 2))
+    if _sum3(_tangential(e, nrm[j]) ** 2) <= tol * tol:
+        return True
+    _ref_feature_point(j, k, cp, nrm, dsep, P, Pe, use_qe, xp)
+    return _sum3(_tangential(X[i, :3] - xp, nrm[j]) ** 2) <= tol * tol
+
+
+def _ref_refuse_reversal(C, CI, t, i, k, cp, nrm, P, j):
+    """Refuse a reversed normal for contact ``i`` (kept as it was), or take it? By which of the
+    two normals has the link's frame origin in front of its plane (``layout.FLIP_DOT``)."""
+    origin = P[k, 9:12]
+    held = -(C[i, C_VC] * (t - C[i, C_TU]) + C[i, C_REC])   # the plane moved on since its update
+    for term in C[i, C_N:C_N + 3] * (origin - C[i, C_CP:C_CP + 3]):
+        held += term
+    reported = _sum3(nrm[j] * (origin - cp[j]))
+    if reported > held + 2 * REKEY_DISTANCE_M:
+        return False
+    return CI[i, CI_FLIPS] < (FLIP_REFUSE_MAX if held > reported + 2 * REKEY_DISTANCE_M else 1)
+
+
+#: eq. 4 placements the reference made, by how they start (for the test's coverage count)
+REF_TOUCHES = {"resting": 0, "colliding": 0}
+
+
 def reference_apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_in, nk, sel,
-                 newF, newI, P, Pe, use_qe):
+                           newF, newI, P, Pe, use_qe, Vk):
     """The rule table of the notes on a validated update (``sel[:nk]`` kept). ``P[k]``: pose row
     of tool link k (rotation link -> world row-major, then the link frame's origin, world) at the
     proxy's configuration, ``Pe[k]`` the same at the engine's (read only when ``use_qe``). A
@@ -98,7 +139,7 @@ def reference_apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dse
         for term in C[i, C_N:C_N + 3] * (X[i, :3] - C[i, C_CP:C_CP + 3]):
             s_p += term
         W[i, [_W_SP, _W_TAKEN]] = (s_p, 0.0)
-    # pass 1: the same keys
+    # pass 1: the same keys, at the same contact (-1: a new contact; -2: a reversal taken)
     for a in range(nk):
         j = sel[a]
         found = -1
@@ -107,17 +148,23 @@ def reference_apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dse
                     and CI[i, CI_KEY + 2] == keys[j, 2]:
                 found = i
                 break
-        W[a, _W_FOUND] = found
         W[a, _W_FLIP] = 0.0
+        if found >= 0 and not _ref_same_contact(C, X, t, found, keys[j, 0], cp, nrm, dsep, P, Pe, use_qe,
+                                                W[a, _W_XP:_W_XP + 3], j):
+            found = -1
+        W[a, _W_FOUND] = found
         if found >= 0:
             W[found, _W_TAKEN] = 1.0
             dot = C[found, C_N] * nrm[j, 0] + C[found, C_N + 1] * nrm[j, 1] + C[found, C_N + 2] * nrm[j, 2]
             if dot < FLIP_DOT:
-                W[a, _W_FLIP] = 1.0
+                if _ref_refuse_reversal(C, CI, t, found, keys[j, 0], cp, nrm, P, j):
+                    W[a, _W_FLIP] = 1.0
+                else:
+                    W[a, _W_FOUND] = -2
     # pass 2: new keys at the feature of a contact that left (re-numbered, or reversed)
     n_rekey = 0
     for a in range(nk):
-        if W[a, _W_FOUND] >= 0.0:
+        if W[a, _W_FOUND] != -1.0:
             continue
         j = sel[a]
         k = keys[j, 0]
@@ -131,24 +178,27 @@ def reference_apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dse
             continue
         best, best_dot = max(dots, key=lambda c: (abs(c[1]), -c[0]))
         W[[a, best], [_W_FOUND, _W_TAKEN]] = (best, 1.0)
-        if best_dot < 0.0:
+        if best_dot >= 0.0:
+            n_rekey += 1
+        elif _ref_refuse_reversal(C, CI, t, best, k, cp, nrm, P, j):
             W[a, _W_FLIP] = 1.0
         else:
-            n_rekey += 1
+            W[a, _W_FOUND] = -2
     # pass 3: the rule table, row by row (written as slices, not as the kernel's column loops:
     # the reference states the rules once more in its own form, with the same arithmetic)
     literal = policy == POLICY_PAPER_LITERAL
-    matched = n_new = n_def = n_flip = 0
+    matched = n_new = n_def = n_flip = n_flip_taken = 0
     for a in range(nk):
         j = sel[a]
         k = keys[j, 0]
         found = int(W[a, _W_FOUND])
         matched += found >= 0
+        n_flip_taken += found == -2
         if found >= 0 and W[a, _W_FLIP] != 0.0:
             # refused for this update: the contact stays exactly as it was (key included)
             newF[a, :NCOLS_F] = C[found, :NCOLS_F]
             newI[a, :NCOLS_I] = CI[found, :NCOLS_I]
-            newI[a, CI_AGE] = CI[found, CI_AGE] + 1
+            newI[a, [CI_AGE, CI_FLIPS]] = CI[found, [CI_AGE, CI_FLIPS]] + 1
             n_flip += 1
             continue
         xp = W[a, _W_XP:_W_XP + 3]
@@ -160,6 +210,7 @@ def reference_apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dse
             s_p = W[found, _W_SP]
             rigid = policy == POLICY_RIGID or dr > 0.0 or s_p < dr
             off = dr if rigid else min(s_p, 0.0)
+            touch = not rigid and s_p > 0.0   # eq. 4: the proxy was apart, put touching
             newF[a, [C_S, C_SPREV]] = C[found, [C_S, C_SPREV]]
             newF[a, C_Z:C_Z + 3] = C[found, C_Z:C_Z + 3]
             newI[a, [CI_SLIP, CI_STATE, CI_AGE]] = CI[found, [CI_SLIP, CI_STATE, CI_AGE]] + np.array([0, 0, 1])
@@ -168,17 +219,19 @@ def reference_apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dse
             n_new += 1
             rigid = policy == POLICY_RIGID or literal or dr > 0.0
             off = dr if rigid else 0.0
-            newF[a, [C_S, C_SPREV]] = np.inf
+            touch = not rigid
+            newF[a, [C_S, C_SPREV]] = np.inf  # has just arisen: the next step may be a collision
             newF[a, C_Z:C_Z + 3] = 0.0
             newI[a, [CI_SLIP, CI_STATE, CI_AGE]] = (0, CS_IMPENDING, 0)
         n_def += not rigid
+        newI[a, CI_FLIPS] = 0
         newI[a, CI_KEY:CI_KEY + 3] = keys[j]
         newF[a, C_CP:C_CP + 3] = cp[j]
         newF[a, C_N:C_N + 3] = nrm[j]
         if planar:
             newF[a, [C_CP + 2, C_N + 2]] = 0.0
         newF[a, [C_D, C_VC, C_TU]] = (dsep[j], vc[j], t)
-        newF[a, [C_VN, C_FN, C_IMP, C_REC]] = 0.0
+        newF[a, [C_FN, C_IMP, C_REC]] = 0.0
         newF[a, C_FT:C_FT + 3] = 0.0
         # the deformation to recover: known only in the engine frame
         newF[a, C_DEF] = off - dr if (off > dr and use_qe) else 0.0
@@ -187,11 +240,22 @@ def reference_apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dse
         newF[a, C_P:C_P + 3] = P[k, 0:3] * w[0] + P[k, 3:6] * w[1] + P[k, 6:9] * w[2]
         if planar:
             newF[a, C_P + 2] = 0.0
+        # the proxy's normal speed at the point (link origin's velocity + w x r), less the constraint's
+        omega, v = Vk[k, 0:3], Vk[k, 3:6]
+        point_v = v + np.array([omega[1] * w[2], omega[2] * w[0], omega[0] * w[1]]) \
+            - np.array([omega[2] * w[1], omega[0] * w[2], omega[1] * w[0]])
+        vn = _sum3(newF[a, C_N:C_N + 3] * point_v) - vc[j]
+        newF[a, C_VN] = vn
+        if touch:
+            # resting unless the proxy moves into it faster than the resting speed: then a collision
+            newF[a, C_S] = np.inf if vn <= -par[P_REC_VN] else 0.0
+            REF_TOUCHES["colliding" if vn <= -par[P_REC_VN] else "resting"] += 1
     C[:nk, :NCOLS_F] = newF[:nk, :NCOLS_F]
     CI[:nk, :NCOLS_I] = newI[:nk, :NCOLS_I]
     cnt[K_M] = nk
     for col, added in ((K_UPDATES, 1), (K_DROPPED, n_in - nk), (K_NEW, n_new), (K_DEFORMED, n_def),
-                       (K_LEFT, m - matched), (K_FLIPS, n_flip), (K_REKEYED, n_rekey)):
+                       (K_LEFT, m - matched), (K_FLIPS, n_flip), (K_FLIPS_TAKEN, n_flip_taken),
+                       (K_REKEYED, n_rekey)):
         cnt[col] += added
 
 
@@ -285,6 +349,7 @@ class _Engine:
         rows = []
         offsets = (0.0, 3e-4, 1e-3, 2.5e-3, 6e-3)       # straddle REKEY_DISTANCE_M
         tilts = (0.0, 0.02, 0.06, 0.15)                 # straddle 5 degrees
+        kept = []
         for i in range(m):
             key = [int(v) for v in CI[i, CI_KEY:CI_KEY + 3]]
             cp0, n0 = C[i, C_CP:C_CP + 3].copy(), C[i, C_N:C_N + 3].copy()
@@ -292,8 +357,10 @@ class _Engine:
                                "other-link", "twice", "gone"])
             cp, n = self._near(cp0, n0, rng.choice(offsets), rng.choice(tilts))
             if what == "kept":
+                kept.append(len(rows))
                 rows.append((key, cp, n))
             elif what == "reversed":
+                kept.append(len(rows))
                 rows.append((key, cp, -n))
             elif what == "renumbered":
                 rows.append((self._key(key[0]), cp, n))
@@ -304,6 +371,13 @@ class _Engine:
             elif what == "twice":                       # two new keys compete for one feature
                 rows.append((self._key(key[0]), cp, n))
                 rows.append((self._key(key[0]), *self._near(cp0, n0, 5e-4, 0.03)))
+        if len(kept) > 1 and rng.random() < 0.4:
+            # the keys of some kept contacts handed round (an engine numbering its contacts by
+            # their order in its list): each key comes back at another contact's place
+            turn = [kept[q] for q in rng.permutation(len(kept))[:int(rng.integers(2, len(kept) + 1))]]
+            moved = [rows[q][0] for q in turn]
+            for q, key in zip(turn, moved[1:] + moved[:1]):
+                rows[q] = (key, rows[q][1], rows[q][2])
         rows += self.fresh(int(rng.integers(0, 12)))
         if rng.random() < 0.5:
             rng.shuffle(rows)
@@ -316,10 +390,10 @@ class _Engine:
         return keys, cp, nrm, dsep, vc
 
 
-def _update(planar, arrays, keys, cp, nrm, dsep, vc, sel, nk, P, Pe, use_qe, fn):
+def _update(planar, arrays, keys, cp, nrm, dsep, vc, sel, nk, P, Pe, use_qe, Vk, fn):
     par, st, C, CI, cnt, X, W, newF, newI = arrays
     fn(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, len(keys), nk, sel, newF, newI, P, Pe,
-       use_qe)
+       use_qe, Vk)
 
 
 def _bits(a):
@@ -330,7 +404,9 @@ def _bits(a):
 @pytest.mark.parametrize("use_qe", [0, 1], ids=["eq1", "engine-frame"])
 def test_the_matching_gives_the_reference_contact_table(planar, use_qe):
     rng = np.random.default_rng(1400 + 2 * planar + use_qe)
-    seen = dict(rekeyed=0, flips=0, flips_of_new_keys=0, kept=0, new=0, small_m=0, large_m=0, left=0)
+    touches0 = dict(REF_TOUCHES)
+    seen = dict(rekeyed=0, flips=0, flips_of_new_keys=0, kept=0, new=0, small_m=0, large_m=0, left=0,
+                flips_taken=0, flips_refused_again=0, kept_key_elsewhere=0, touch_resting=0, touch_colliding=0)
     for chain in range(24):
         links = int(rng.integers(1, 4))
         engine = _Engine(rng, links, planar)
@@ -357,11 +433,13 @@ def test_the_matching_gives_the_reference_contact_table(planar, use_qe):
                 keys, cp, nrm, dsep, vc = engine.report(C, CI, m)
                 # what the steps since did to the live contacts (inherited by a continued one)
                 C[:m, C_S] = rng.uniform(-2e-3, 2e-3, m)
+                C[:m, C_VN] = rng.normal(size=m) * 0.05
                 C[:m, C_SPREV] = rng.uniform(-2e-3, 2e-3, m)
                 C[:m, C_Z:C_Z + 3] = rng.normal(size=(m, 3)) * 1e-4
                 C[:m, C_REC] = np.where(rng.random(m) < 0.3, rng.uniform(0.0, 1e-3, m), 0.0)
                 CI[:m, CI_SLIP] = rng.integers(0, 2, m)
                 CI[:m, CI_STATE] = rng.integers(0, 4, m)
+                CI[:m, CI_FLIPS] = np.where(rng.random(m) < 0.5, 0, rng.integers(0, FLIP_REFUSE_MAX + 2, m))
                 st[S_T] += rng.choice([0.0, 1e-3, 0.016])
                 if rng.random() < 0.5:
                     P = _moved(rng, P, planar, 0.01)
@@ -372,10 +450,14 @@ def test_the_matching_gives_the_reference_contact_table(planar, use_qe):
             nk = min(n_in, CAP) if rng.random() < 0.7 else int(rng.integers(0, min(n_in, CAP) + 1))
             sel = (np.arange(n_in, dtype=np.int64) if nk == n_in and rng.random() < 0.5
                    else rng.permutation(n_in).astype(np.int64))
+            # the links' angular and origin velocities (world); the resting speed, now and then 0
+            Vk = rng.normal(size=(links, 6)) * rng.choice([0.0, 0.03, 0.3])
+            par[P_REC_VN] = rng.choice([0.0, 0.03, 0.1])
             theirs = tuple(a.copy() for a in ours)
             before = cnt.copy()
-            _update(planar, ours, keys, cp, nrm, dsep, vc, sel, nk, P, Pe, use_qe, _k.apply_update)
-            _update(planar, theirs, keys, cp, nrm, dsep, vc, sel, nk, P, Pe, use_qe, reference_apply_update)
+            keys_before = {tuple(CI[i, :3]) for i in range(int(cnt[K_M]))}
+            _update(planar, ours, keys, cp, nrm, dsep, vc, sel, nk, P, Pe, use_qe, Vk, _k.apply_update)
+            _update(planar, theirs, keys, cp, nrm, dsep, vc, sel, nk, P, Pe, use_qe, Vk, reference_apply_update)
             for name, a, b in zip(("par", "st", "C", "CI", "cnt"), ours[:5], theirs[:5]):
                 assert np.array_equal(_bits(a), _bits(b)), f"chain {chain} update {u}: {name} differs"
             d = cnt - before
@@ -386,5 +468,13 @@ def test_the_matching_gives_the_reference_contact_table(planar, use_qe):
             seen["kept"] += nk - d[K_NEW]
             incoming = {tuple(keys[j]) for j in sel[:nk]}
             seen["flips_of_new_keys"] += sum(tuple(CI[a, :3]) not in incoming for a in range(nk))
+            seen["flips_taken"] += d[K_FLIPS_TAKEN]
+            # contacts put touching by eq. 4: resting, or (approached fast) colliding
+            seen["touch_resting"] = REF_TOUCHES["resting"] - touches0["resting"]
+            seen["touch_colliding"] = REF_TOUCHES["colliding"] - touches0["colliding"]
+            seen["flips_refused_again"] += int(np.sum(CI[:nk, CI_FLIPS] > 1))
+            # a key kept from before that came back as a new contact (elsewhere, or a reversal taken)
+            seen["kept_key_elsewhere"] += sum(tuple(CI[a, :3]) in keys_before and CI[a, CI_AGE] == 0
+                                              for a in range(nk)) - d[K_FLIPS_TAKEN]
     # every case the matching distinguishes occurred
-    assert all(v > 0 for v in seen.values()), seen
+    assert all(v > 0 for v in seen.values()), " ".join(f"{k}={int(v)}" for k, v in seen.items())

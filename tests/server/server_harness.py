@@ -67,7 +67,8 @@ class PointDevice(DeviceDriver):
 
     ``hand(t) -> (fx, fy, tz)`` is the user's wrench; the device integrates the handle's
     :class:`PointMass` dynamics (``mass_kg`` ... ``rot_damping``) with semi-implicit Euler at
-    ``period_s``.
+    ``period_s``. ``read`` and ``write`` return what a real driver (the ``sim`` one) returns: the
+    latched fault if any, else ``DEV_FAULT_DISABLED`` while disabled, else ``DEV_OK``.
     """
 
     name = "point"
@@ -117,7 +118,13 @@ class PointDevice(DeviceDriver):
         s[19] = self.t
         if self.nan_state_at is not None and len(self.commands) >= self.nan_state_at:
             s[0] = math.nan
-        return self._fault
+        return self.status()
+
+    def status(self) -> int:
+        """The latched fault, else ``DEV_FAULT_DISABLED`` while disabled, else ``DEV_OK``."""
+        if self._fault != DEV_OK:
+            return self._fault
+        return DEV_OK if self._enabled else DEV_FAULT_DISABLED
 
     def write(self, w):
         if not np.all(np.isfinite(w)):
@@ -134,7 +141,7 @@ class PointDevice(DeviceDriver):
         self.v += self.dt * acc
         self.x += self.dt * self.v
         self.t += self.dt
-        return self._fault if self._fault else (DEV_OK if self._enabled else DEV_FAULT_DISABLED * 0)
+        return self.status()
 
 
 class WatchdogDevice(PointDevice):
@@ -165,8 +172,7 @@ class WatchdogDevice(PointDevice):
 
     def read(self, s):
         self._check()
-        super().read(s)
-        return self._fault
+        return super().read(s)
 
     def write(self, w):
         now = self._check()
@@ -179,8 +185,7 @@ class WatchdogDevice(PointDevice):
                 self.commands.pop()
                 self._enabled = en
         self._last_ns = now
-        super().write(w)
-        return self._fault
+        return super().write(w)
 
 
 def contact_arrays(keys, pos, nor, sep):

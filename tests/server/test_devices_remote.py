@@ -164,6 +164,42 @@ def test_server_keeps_the_newest_state_and_counts_what_it_drops():
         srv.close()
 
 
+def test_a_device_fault_latches_only_under_the_full_server_session():
+    """A STATE reporting a fault under this driver's key latches it; under a server session that
+    differs only in its high half (another server's key) it does not, and neither is a device
+    session that differs only in its high half taken for the current device."""
+    clock = FakeClock()
+    srv = RemoteDevice(kind="planar", limits=base.DeviceLimits(10, 0.5, 2, 20), listen=("127.0.0.1", 0),
+                       clock_ns=clock, link_timeout_s=0.1)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    tx.bind(("127.0.0.1", 0))
+    row = np.zeros(base.DEV_NSTATE)
+    dev = 0x0000_0123_4567_89AB
+    try:
+        def state(seq, *, server_session, fault=DEV_OK, session=dev):
+            tx.sendto(STATE.pack(flags=1, device_session=session, server_session=server_session, epoch=srv.epoch,
+                                 period_us=1000, seq=seq, cmd_seq=0, kind=1, fault=fault, state=base.empty_state()),
+                      srv.local_address)
+
+        state(1, server_session=0)
+        assert eventually(lambda: (srv.read(row), srv.counters()["states"])[1] == 1)
+        srv.enable()
+        assert srv.fault == DEV_OK and srv.session >> 32 != 0
+        state(2, server_session=srv.session ^ (1 << 40), fault=DEV_FAULT_WATCHDOG)
+        assert eventually(lambda: (srv.read(row), srv.counters()["states"])[1] == 2)
+        assert srv.fault == DEV_OK and srv.counters()["device_faults"] == 0
+        state(1, server_session=srv.session, session=dev ^ (1 << 44))  # another boot: a restart, not this one
+        assert eventually(lambda: (srv.read(row), srv.counters()["device_restarts"])[1] == 1)
+        assert srv.device_session == dev ^ (1 << 44)
+        srv.enable()
+        state(2, server_session=srv.session, session=dev ^ (1 << 44), fault=DEV_FAULT_WATCHDOG)
+        assert eventually(lambda: (srv.read(row), srv.counters()["device_faults"])[1] == 1)
+        assert srv.fault == DEV_FAULT_WATCHDOG
+    finally:
+        tx.close()
+        srv.close()
+
+
 def test_a_pinned_device_address_is_the_only_one_heard():
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     tx.bind(("127.0.0.1", 0))
@@ -234,6 +270,10 @@ def test_device_epoch_rules_with_crafted_commands():
         cmd(1, device=prog.session + 1)        # addressed to another boot of the device
         tick()
         assert not prog.armed and prog.counters()["foreign_session"] == 1
+        cmd(1, device=prog.session ^ (1 << 40))  # ... one differing only in the high half
+        cmd(1, device=prog.session ^ (1 << 62))
+        tick()
+        assert not prog.armed and prog.counters()["foreign_session"] == 3
         cmd(1)
         tick()
         assert prog.armed and sim.last_command[0] == 1.0
