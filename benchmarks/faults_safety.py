@@ -27,10 +27,12 @@ own promise (``broken`` names the broken ones with counts; ``violations`` is the
   (fault ``device``, zero output until the re-arm);
 - **idle speed**: the handle thrown at 3 m/s (its limit is 2) before any client came: no fault, a
   client then engages as usual;
-- **flipped normals under a pushing hand**: two updates with the floor's normals reversed arrive as
-  the hand starts pressing the tool onto it: the proxy stays on the floor (its lowest point no more
-  than 2 mm into it) and the hand is never pulled (the force along the floor's normal never points
-  into it by more than 0.1 N);
+- **flipped normals under a pushing hand**: the first two updates that carry the wall's contacts
+  report its normals reversed as the hand starts pressing the peg onto it: the true normals that
+  follow are taken (at most two refusals per reversed update: the model once refused every one
+  after them), the proxy stays on the wall (no more than 2 mm beyond where it rests), the hand is
+  never pulled towards the wall from a second after the first contact on (by more than 0.05 N),
+  and the wall carries the push (0.5 N within 0.02 N);
 - **accurate on a loaded machine**: ``--preset accurate`` (4 kHz) with two processes burning both
   cores: the loop never latches on stalls (``stalls_repeated``), whatever it misses.
 """
@@ -164,6 +166,11 @@ class SimRun:
 
     def table(self) -> np.ndarray:
         return np.array(self.rows)
+
+
+def self_rate(r) -> float:
+    """A second of steps of this run."""
+    return r.settings.rate_hz
 
 
 def _reasons(loop) -> list[str]:
@@ -317,14 +324,26 @@ def _simulated(case: SafetyCase, row: dict, broken: dict, folder: str) -> None:
             low = rows[:, TEL["proxy_y"]]
             row["flips_sent"] = flips["n"]
             row["flips_refused"] = int(loop.model.counters()["flips_refused"]) if loop.model is not None else 0
-            pull = rows[:, TEL["cmd_fy"]]  # the hand pushes +y onto the wall: a pull is cmd_fy > 0
-            row["max_pull_n"] = round(float(max(0.0, np.max(pull))), 4)
+            # the hand pushes +y onto the wall: a pull is cmd_fy > 0. The impact itself swings the
+            # command both ways for a moment (the same without flips); from a second after the
+            # first contact on, the device never pulls the hand towards the wall
+            fy = rows[:, TEL["cmd_fy"]]
+            touch = np.nonzero(rows[:, TEL["contacts"]] > 0)[0]
+            after = fy[touch[0] + int(self_rate(r)):] if len(touch) else fy
+            row["max_pull_n"] = round(float(max(0.0, np.max(after))), 4)
             rest = np.median(low[-500:])
             row["proxy_fell_mm"] = round(float(np.max(low) - rest) * 1e3, 3)
-            if row["max_pull_n"] > 0.1:
+            row["final_force_n"] = round(float(-np.mean(fy[-500:])), 4)
+            if row["max_pull_n"] > 0.05:
                 broken["the hand was pulled"] = 1
             if row["proxy_fell_mm"] > 2.0:
                 broken["the proxy fell through the floor"] = 1
+            if abs(row["final_force_n"] - 0.5) > 0.02:
+                broken["the floor does not carry the push"] = 1
+            # the true normals after the two reversed ones are taken: refusing them (the model once
+            # refused 439 true normals after 2 reversed ones here) leaves it without the floor
+            if row["flips_refused"] > 2 * row["flips_sent"]:
+                broken["true normals refused after reversed ones"] = row["flips_refused"]
         row["faults"] = int(loop.faults_total)
         row["transitions"] = _reasons(loop)[-6:]
     finally:
