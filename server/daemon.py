@@ -186,7 +186,11 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
             transport.close()
         st[ST["exit_code"]] = code
         st[ST["loop_state"]] = LOOP_STATES.index("stopped")
-        shared.close()
+        # The supervisor owns the block and unlinks it when it closes. One that died (SIGKILL)
+        # left this process its last user: unlinking it here also unregisters it from the
+        # resource tracker both processes share (spawn), which would otherwise find it at exit,
+        # unlink it and warn of a leaked shared_memory object.
+        shared.close(unlink=os.getppid() != parent)
     sys.exit(code)
 
 
