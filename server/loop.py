@@ -871,6 +871,7 @@ class HapticLoop:
         c = self.ctrl
         c.cs[ctl.CS_PREV:ctl.CS_PREV + 6] = c.cmd  # rate limit continues from the last output
         self.engagements += 1
+        self.shared.publish_tool(self.engagements, hello.tool_kind, hello.mass_kg, hello.com_m, hello.inertia_kg_m2)
         self.last_update_ns = now
         self.env_rate_hz = 0.0
         self._env_n = 0

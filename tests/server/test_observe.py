@@ -650,3 +650,52 @@ def test_a_recordings_caps_are_the_loops_published_ones_not_a_fresh_blocks_zeros
         sup.close()
     meta = recording.read(tmp_path / "b.mcap").meta
     assert meta["torque_cap_n_m"] is None and meta["force_cap_n"] is None
+
+
+def test_the_engaged_tool_reaches_the_supervisor_through_the_shared_block(rig):
+    """The loop writes the engaged client's tool (its Hello's kind, mass, centre of mass and
+    inertia) into the shared status block; the supervisor draws the proxy with that box."""
+    from hapticproxy.server.scene import ToolShape
+
+    r = rig("spatial")
+    assert r.sup.status()["tool_shape"] is None  # nothing engaged yet
+    r.run(20.0, until=lambda: r.sup.tool_shape is not None)
+    hello = r.env.hello
+    want = ToolShape.from_hello("spatial", hello.mass_kg, hello.com_m, hello.inertia_kg_m2)
+    s = r.sup.status()
+    assert s["tool_shape_source"] == "hello" and s["loop_state"] == "engaged"
+    assert s["tool_shape"] == [[list(c), list(q), list(z)] for c, q, z in want.boxes]
+    assert s["tool_kind"] == "spatial" and s["tool_seq"] == 1  # the first engagement
+
+
+def test_the_supervisor_reads_each_engaged_tool_once_and_never_one_half_written():
+    """``publish_tool`` numbers each engaged tool; ``tool_seq`` is -1 while the fields change, so
+    the supervisor keeps the shape it had; a new number is a new shape (the same number again is
+    not read twice)."""
+    from hapticproxy.server.scene import ToolShape
+    from hapticproxy.server.shm import ST
+
+    settings = cfgmod.load(None, {"transport": {"url": "udp://127.0.0.1:0"}, "status": {"address": "127.0.0.1:0"}})
+    sup = Supervisor(settings)
+    try:
+        sh = sup.shared
+        assert sh.engaged_tool() is None
+        box = (2e-4, 3e-4, 4e-4, 0.0, 0.0, 0.0)
+        sh.publish_tool(1, 3, 0.2, (0.0, 0.01, 0.0), box)
+        assert sh.engaged_tool() == (1, 3, 0.2, (0.0, 0.01, 0.0), box)
+        sup.service()
+        first = ToolShape.from_hello("spatial", 0.2, (0.0, 0.01, 0.0), box)
+        assert sup.tool_shape.boxes == first.boxes and sup.tool_shape.source == "hello"
+        sh.status[ST["tool_seq"]] = -1.0  # the loop is writing the next one
+        sh.status[ST["tool_mass_kg"]] = 0.4
+        assert sh.engaged_tool() is None
+        sup.service()
+        assert sup.tool_shape.boxes == first.boxes
+        sh.status[ST["tool_seq"]] = 1.0  # the same number: not read again
+        sup.service()
+        assert sup.tool_shape.boxes == first.boxes
+        sh.publish_tool(2, 2, 0.1, (0.0, 0.0, 0.0), (0.0, 0.0, 1e-4, 0.0, 0.0, 0.0))
+        sup.service()
+        assert sup.tool_shape.boxes == ToolShape.from_hello("planar", 0.1, (0, 0, 0), (0, 0, 1e-4, 0, 0, 0)).boxes
+    finally:
+        sup.close()
