@@ -34,6 +34,7 @@ import time
 import numpy as np
 
 from ..protocol.jsonout import print_json
+from ..protocol.logs import doc_summary
 
 PUSH = np.array([2.0, 0.0, 0.0, 0.0, 0.0, 0.0])
 DRIVERS = ("forcedimension", "haply-serial", "haply-service", "touch")
@@ -272,7 +273,7 @@ def late_ticks_row() -> dict:
 def main(argv: list[str] | None = None) -> int:
     import tempfile
 
-    ap = argparse.ArgumentParser(prog="hapticproxy bench devices", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="hapticproxy bench devices", description=doc_summary(__doc__))
     ap.add_argument("--json", action="store_true", help="one JSON object per line")
     ap.add_argument("--drivers", default=",".join(DRIVERS), help=f"comma-separated subset of {', '.join(DRIVERS)}")
     ap.add_argument("--steps", type=int, default=2000, help="lock-step steps of the cost rows (default 2000)")

@@ -6,10 +6,11 @@ import argparse
 import sys
 
 from ..protocol.jsonout import print_json
+from ..protocol.logs import doc_summary
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="hapticproxy devices", description=__doc__.splitlines()[0].split(": ", 1)[1])
+    p = argparse.ArgumentParser(prog="hapticproxy devices", description=doc_summary(__doc__).split(": ", 1)[1])
     p.add_argument("--json", action="store_true", help="print a JSON list of rows")
     p.add_argument("--touch-name", action="append", default=None, metavar="NAME",
                    help="an OpenHaptics device name to look for (repeatable; default: \"Default Device\")")
