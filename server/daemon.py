@@ -81,7 +81,9 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
     so the supervisor prints one line that names what failed (a taken transport address...)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the supervisor's to handle
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
-    signal.signal(signal.SIGTERM, _raise_stop)
+    # a stop before the try below has nothing to clean up: exit at once (raising then was a
+    # traceback from wherever the signal landed, e.g. inside _die_with_parent)
+    signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
     set_process_title(LOOP_TITLE)
     from ..protocol import logs
 
@@ -98,6 +100,7 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
     loop = None
     transport = None
     running = False
+    signal.signal(signal.SIGTERM, _raise_stop)  # from here a stop unwinds through the finally below
     try:
         from .clock import MonotonicClock, SleepClock, pin_to_cpu, set_timer_slack_ns, try_realtime
         from .loop import HapticLoop
