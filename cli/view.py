@@ -81,13 +81,18 @@ def _arrow(rr, path: str, origin, force, color) -> None:
 
 def recording_frames(path: str | Path):
     """``(t_s, Frame)`` at ``scene.SCENE_HZ`` through a recording, the contacts applied by then,
-    and the tool shape its metadata implies."""
+    and the tool shape: the engaged client's, as recorded, else the one its tool kind implies."""
     from ..server import recording
 
     rec = recording.read(path)
     flat = rec.rows
     kind = rec.meta.get("tool_kind") or (rec.meta.get("config") or {}).get("device", {}).get("kind", "")
-    shape = scn.ToolShape.for_kind(kind)
+    recorded = rec.meta.get("tool_shape")  # the engaged client's (the last one recorded)
+    if recorded and recorded.get("boxes"):
+        shape = scn.ToolShape([(tuple(c), tuple(q), tuple(z)) for c, q, z in recorded["boxes"]],
+                              recorded.get("source", "hello"))
+    else:
+        shape = scn.ToolShape.for_kind(kind)
     out = []
     contacts = rec.contacts
     ci = 0

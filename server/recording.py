@@ -179,6 +179,9 @@ TOPICS = {
 }
 STEP_TOPICS = ("/device", "/proxy", "/command", "/environment_wrench", "/loop")
 META_NAME = "hapticproxy"
+#: the metadata record of each engaged client's tool shape (``McapRecorder.set_shape``), the last
+#: one in a file is its ``Recording.meta["tool_shape"]``: a replay draws the proxy with it
+SHAPE_META_NAME = "hapticproxy.tool_shape"
 FORMAT = "hapticproxy-mcap-1"
 PROFILE = "hapticproxy"
 #: the standard-schema topics beside ``TOPICS`` (written from them; ``read`` skips them)
@@ -424,8 +427,12 @@ class McapRecorder:
         self.meta_written = True
 
     def set_shape(self, shape: scn.ToolShape) -> None:
-        """Draw the proxy as ``shape`` from now on (a client's Hello arrived)."""
+        """Draw the proxy as ``shape`` from now on (a client's Hello arrived); the file keeps it
+        as a metadata record (:data:`SHAPE_META_NAME`) for a replay (``hapticproxy view``)."""
         self.shape = shape
+        self._w.write_metadata(SHAPE_META_NAME, {"boxes": json.dumps([[list(c), list(q), list(z)]
+                                                                      for c, q, z in shape.boxes]),
+                                                 "source": shape.source})
 
     def _sync(self) -> None:
         self._f.flush()
@@ -632,6 +639,11 @@ def _take(rec, channels, msgs, decoders, meta) -> None:
             msgs[topic].append(decoders[topic].decode(rec.data))
     elif isinstance(rec, Channel):
         channels[rec.id] = rec.topic
+    elif isinstance(rec, Metadata) and rec.name == SHAPE_META_NAME:
+        try:
+            meta["tool_shape"] = {"boxes": json.loads(rec.metadata["boxes"]), "source": rec.metadata["source"]}
+        except (KeyError, ValueError):
+            pass
     elif isinstance(rec, Metadata) and rec.name == META_NAME:
         m = dict(rec.metadata)
         for k in ("rate_hz", "t0_epoch_ns", "config"):

@@ -699,3 +699,35 @@ def test_the_supervisor_reads_each_engaged_tool_once_and_never_one_half_written(
         assert sup.tool_shape.boxes == ToolShape.from_hello("planar", 0.1, (0, 0, 0), (0, 0, 1e-4, 0, 0, 0)).boxes
     finally:
         sup.close()
+
+
+def test_a_replay_draws_the_proxy_as_the_recorded_tool_not_the_kinds(tmp_path):
+    """``set_shape`` (a client engaged) leaves a metadata record in the file; ``hapticproxy view
+    FILE.mcap`` draws the proxy with the last one, as the live view did, not the kind's cube."""
+    from hapticproxy.cli.view import recording_frames
+    from hapticproxy.server.scene import ToolShape
+
+    def record(path, shapes):
+        flat = np.zeros((100, NTEL))
+        flat[:, TEL["t_s"]] = np.arange(100) * 1e-3
+        flat[:, TEL["dev_qw"]] = flat[:, TEL["proxy_qw"]] = 1.0
+        w = recording.McapRecorder(path, rate_hz=1000.0, config={"device": {"kind": "spatial"}},
+                                   t0_epoch_ns=10**18, meta={"tool_kind": "spatial"})
+        for shape in shapes:
+            w.set_shape(shape)
+        w.add_rows(flat)
+        w.close()
+
+    inertia = (2e-5, 5e-5, 6e-5, 0.0, 0.0, 0.0)
+    first = ToolShape.from_hello("spatial", 0.2, (0.0, 0.0, 0.0), inertia)
+    second = ToolShape.from_hello("spatial", 0.3, (0.0, 0.01, 0.0), inertia)
+    record(tmp_path / "two.mcap", [first, second])
+    rec = recording.read(tmp_path / "two.mcap")
+    assert rec.meta["tool_shape"]["source"] == "hello"
+    shape, frames = recording_frames(tmp_path / "two.mcap")
+    assert shape.source == "hello" and frames
+    np.testing.assert_allclose(np.array(shape.boxes[0][2]), second.boxes[0][2], rtol=1e-12)
+    np.testing.assert_allclose(shape.boxes[0][0], (0.0, 0.01, 0.0))
+    record(tmp_path / "none.mcap", [])  # no client engaged: the kind's shape
+    shape, _ = recording_frames(tmp_path / "none.mcap")
+    assert shape.source == "kind" and shape.boxes == ToolShape.for_kind("spatial").boxes
