@@ -692,7 +692,7 @@ class Supervisor:
                 return {"error": why}
             try:
                 n = dump_ring(self.shared, path, rate_hz=self.settings.rate_hz, config=self.settings.as_dict(),
-                              t0_epoch_ns=self.t0_epoch_ns, meta=self._recording_meta())
+                              t0_epoch_ns=self.t0_epoch_ns, meta=self._recording_meta(), shape=self.tool_shape)
             except OSError as exc:
                 return {"error": f"cannot write {path}: {exc.strerror}"}
             return {"ok": True, "rows": n, "path": path}

@@ -394,7 +394,9 @@ class McapRecorder:
         kind = (meta or {}).get("tool_kind") or (config or {}).get("model", {}).get("tool") or \
             (config or {}).get("device", {}).get("kind", "")
         #: what the proxy is drawn as (the tool kind's shape until ``set_shape`` gives the Hello's)
-        self.shape = shape or scn.ToolShape.for_kind(kind)
+        self.shape = scn.ToolShape.for_kind(kind)
+        if shape is not None:  # a client engaged before the recording started: kept for a replay too
+            self.set_shape(shape)
         self._scene_period_s = 1.0 / scn.SCENE_HZ
         self._next_scene_t = -math.inf
         self._recent: list = []   # contact updates not yet behind the scene's instant: (t_s, pos, nrm, sep)
@@ -552,12 +554,13 @@ def _contacts_since(shared: SharedState, seq: int):
 
 
 def dump_ring(shared: SharedState, path: str | Path, *, rate_hz: float, config: dict | None = None,
-              t0_epoch_ns: int = 0, meta: dict | None = None) -> int:
-    """Write what the rings hold now (oldest first) as a recording; returns the telemetry rows."""
+              t0_epoch_ns: int = 0, meta: dict | None = None, shape: scn.ToolShape | None = None) -> int:
+    """Write what the rings hold now (oldest first) as a recording, the proxy drawn as ``shape``
+    (the engaged client's tool; None: its kind's); returns the telemetry rows."""
     head = int(shared.head[0])
     n = min(head, shared.ring_rows)
     w = McapRecorder(path, rate_hz=rate_hz, config=config, t0_epoch_ns=t0_epoch_ns, flush_rows=max(16, n),
-                     meta=meta)
+                     meta=meta, shape=shape)
     w.start_at(head - n, 0, 0)
     w.drain(shared)
     w.close()

@@ -652,9 +652,10 @@ def test_a_recordings_caps_are_the_loops_published_ones_not_a_fresh_blocks_zeros
     assert meta["torque_cap_n_m"] is None and meta["force_cap_n"] is None
 
 
-def test_the_engaged_tool_reaches_the_supervisor_through_the_shared_block(rig):
+def test_the_engaged_tool_reaches_the_supervisor_through_the_shared_block(rig, tmp_path):
     """The loop writes the engaged client's tool (its Hello's kind, mass, centre of mass and
-    inertia) into the shared status block; the supervisor draws the proxy with that box."""
+    inertia) into the shared status block; the supervisor draws the proxy with that box, and a
+    dump of the rings keeps it for a replay."""
     from hapticproxy.server.scene import ToolShape
 
     r = rig("spatial")
@@ -666,6 +667,8 @@ def test_the_engaged_tool_reaches_the_supervisor_through_the_shared_block(rig):
     assert s["tool_shape_source"] == "hello" and s["loop_state"] == "engaged"
     assert s["tool_shape"] == [[list(c), list(q), list(z)] for c, q, z in want.boxes]
     assert s["tool_kind"] == "spatial" and s["tool_seq"] == 1  # the first engagement
+    assert r.sup.handle({"cmd": "dump", "path": str(tmp_path / "dump.mcap")})["ok"]
+    assert recording.read(tmp_path / "dump.mcap").meta["tool_shape"]["boxes"] == s["tool_shape"]
 
 
 def test_the_supervisor_reads_each_engaged_tool_once_and_never_one_half_written():
@@ -728,6 +731,10 @@ def test_a_replay_draws_the_proxy_as_the_recorded_tool_not_the_kinds(tmp_path):
     assert shape.source == "hello" and frames
     np.testing.assert_allclose(np.array(shape.boxes[0][2]), second.boxes[0][2], rtol=1e-12)
     np.testing.assert_allclose(shape.boxes[0][0], (0.0, 0.01, 0.0))
+    w = recording.McapRecorder(tmp_path / "late.mcap", rate_hz=1000.0, config={"device": {"kind": "spatial"}},
+                               t0_epoch_ns=10**18, meta={"tool_kind": "spatial"}, shape=first)  # engaged before
+    w.close()
+    assert recording.read(tmp_path / "late.mcap").meta["tool_shape"]["boxes"][0][2] == list(first.boxes[0][2])
     record(tmp_path / "none.mcap", [])  # no client engaged: the kind's shape
     shape, _ = recording_frames(tmp_path / "none.mcap")
     assert shape.source == "kind" and shape.boxes == ToolShape.for_kind("spatial").boxes
