@@ -81,13 +81,18 @@ def _arrow(rr, path: str, origin, force, color) -> None:
 
 def recording_frames(path: str | Path):
     """``(t_s, Frame)`` at ``scene.SCENE_HZ`` through a recording, the contacts applied by then,
-    and the tool shape its metadata implies."""
+    and the tool shape: the engaged client's, as recorded, else the one its tool kind implies."""
     from ..server import recording
 
     rec = recording.read(path)
     flat = rec.rows
     kind = rec.meta.get("tool_kind") or (rec.meta.get("config") or {}).get("device", {}).get("kind", "")
-    shape = scn.ToolShape.for_kind(kind)
+    recorded = rec.meta.get("tool_shape")  # the engaged client's (the last one recorded)
+    if recorded and recorded.get("boxes"):
+        shape = scn.ToolShape([(tuple(c), tuple(q), tuple(z)) for c, q, z in recorded["boxes"]],
+                              recorded.get("source", "hello"))
+    else:
+        shape = scn.ToolShape.for_kind(kind)
     out = []
     contacts = rec.contacts
     ci = 0
@@ -129,8 +134,12 @@ def shape_from_status(s: dict) -> scn.ToolShape:
     return scn.ToolShape.for_kind(s.get("tool_kind") or "")
 
 
-def _start(rr, port: int, grpc_port: int) -> str:
-    uri = rr.serve_grpc(grpc_port=grpc_port)
+def _start(rr, port: int, grpc_port: int, newest_first: bool = False) -> str:
+    """Serve the data (gRPC) and the viewer (HTTP); the page's address. ``newest_first``: a
+    viewer that connects late is sent the newest frames first (live: the present, not a replay of
+    every frame since the view started, which a software-rendered page took minutes to catch up
+    on: 195 s behind in one run), the older ones after."""
+    uri = rr.serve_grpc(grpc_port=grpc_port, newest_first=newest_first)
     rr.serve_web_viewer(web_port=port, open_browser=False, connect_to=uri)
     return f"http://127.0.0.1:{port}/?url={uri}"
 
@@ -194,7 +203,7 @@ def _live(rr, args, stop: threading.Event) -> int:
         rr.save(args.save)
         url = args.save
     else:
-        url = _start(rr, args.port, args.grpc_port)
+        url = _start(rr, args.port, args.grpc_port, newest_first=True)
     rr.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     print(f"{PROG}: live from {address}; open {url}  (Ctrl-C stops)", flush=True)
     t_end = None if args.duration is None else time.monotonic() + args.duration

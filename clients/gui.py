@@ -25,6 +25,7 @@ client). The geometry of a frame (:func:`inflated_outline`, :func:`tool_outlines
 from __future__ import annotations
 
 import math
+import os
 import time
 
 import numpy as np
@@ -33,7 +34,7 @@ from ..protocol.messages import ServerState
 
 from .geometry import planar_angle, planar_chain
 from .scenes import LINK_LENGTH_M, TOOL_LENGTH_M, TOOL_WIDTH_M
-from .views import PROXY_RGB, ViewState, contact_colour, state_style, view_state
+from .views import FORCE_RGB, PROXY_RGB, ViewState, contact_colour, state_style, view_state
 
 __all__ = ["PymunkWindow", "Viewport", "inflated_outline", "tool_outlines", "FORCE_PX_PER_N", "EPSILON_RGB",
            "FORCE_RGB", "BANNER_PX"]
@@ -42,7 +43,6 @@ __all__ = ["PymunkWindow", "Viewport", "inflated_outline", "tool_outlines", "FOR
 FORCE_PX_PER_N = 120.0
 _MAX_ARROW_PX = 250.0
 EPSILON_RGB = (120, 190, 255)
-FORCE_RGB = (150, 0, 170)
 BACKGROUND_RGB = (255, 255, 255)
 #: height of the state banner across the top [px]
 BANNER_PX = 28
@@ -118,11 +118,15 @@ class PymunkWindow:
 
     def __init__(self, engine, size_px: tuple[int, int] = (900, 680), fps: float = 60.0,
                  viewport: Viewport | None = None) -> None:
+        os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")  # its banner on stdout, at import
         import pygame
         import pymunk.pygame_util
 
         self._pg = pygame
-        pygame.init()
+        # the window and its text only: pygame.init() would also open the sound card, and print
+        # ALSA's errors on a machine that has none
+        pygame.display.init()
+        pygame.font.init()
         self.engine = engine
         self.viewport = viewport or Viewport()
         self.screen = pygame.display.set_mode(size_px)

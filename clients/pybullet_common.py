@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import importlib.metadata
 import math
+import os
+import sys
 
 import numpy as np
 from ._pybullet import p
@@ -32,11 +34,55 @@ PYBULLET_VERSION = importlib.metadata.version("pybullet")
 GRAVITY_M_PER_S2 = 9.81
 
 
+#: the GUI connections open; while there is one, the C stdout is muted (:func:`_mute_c_stdout`)
+_GUI_CIDS: set[int] = set()
+_MUTED: dict = {}
+
+
+def _mute_c_stdout(on: bool) -> None:
+    """pybullet's GUI (its example browser, in C threads) prints about 25 lines to the C stdout
+    (threads, X11, the GL context, its shutdown), some from its own thread after ``connect`` has
+    returned: while a GUI is open, fd 1 points at /dev/null and Python's ``sys.stdout`` writes to
+    a copy of the real one, so the command's own output is unchanged."""
+    if on and not _MUTED:
+        try:
+            sys.stdout.flush()
+            python_on_fd1 = sys.stdout.fileno() == 1
+        except (AttributeError, OSError, ValueError):  # not a real stream (captured): it never uses fd 1
+            python_on_fd1 = False
+        saved = os.dup(1)
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, 1)
+        os.close(null)
+        _MUTED["fd"] = saved
+        if python_on_fd1:
+            out = sys.stdout
+            _MUTED["stdout"] = out
+            sys.stdout = open(os.dup(saved), "w", buffering=1 if out.line_buffering else -1,  # noqa: SIM115
+                              encoding=out.encoding, errors=out.errors)
+    elif not on and _MUTED:
+        out = _MUTED.pop("stdout", None)
+        if out is not None:
+            sys.stdout.flush()
+            sys.stdout.close()
+            sys.stdout = out
+        saved = _MUTED.pop("fd")
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 def connect(gui: bool) -> int:
-    """A new physics server (``GUI`` or ``DIRECT``); ``RuntimeError`` if pybullet refuses."""
+    """A new physics server (``GUI`` or ``DIRECT``); ``RuntimeError`` if pybullet refuses. A GUI
+    mutes the C stdout until :func:`close_world` closes it (:func:`_mute_c_stdout`)."""
+    if gui:
+        _mute_c_stdout(True)
     cid = p.connect(p.GUI if gui else p.DIRECT)
     if cid < 0:
+        if gui and not _GUI_CIDS:
+            _mute_c_stdout(False)
         raise RuntimeError("pybullet: could not connect a physics server" + (" (GUI: is there a display?)" if gui else ""))
+    if gui:
+        _GUI_CIDS.add(cid)
     return cid
 
 
@@ -62,6 +108,10 @@ def close_world(cid: int, window=None) -> int:
         window.close()
     if cid >= 0:
         p.disconnect(physicsClientId=cid)
+    if cid in _GUI_CIDS:
+        _GUI_CIDS.discard(cid)
+        if not _GUI_CIDS:
+            _mute_c_stdout(False)
     return -1
 
 

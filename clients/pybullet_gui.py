@@ -10,8 +10,14 @@ proxy as a translucent ghost of the tool, the contact normals and the server sta
 - **Ghost**: a visual-only body (no collision shape, so it never touches anything and no contact
   query sees it) per box of the tool, or a second copy of a linkage's URDF with its collisions
   filtered out, moved to the newest ProxyState's pose and joints.
-- **Contacts**: one debug line per reported contact from ``c_p`` along the normal
-  (:data:`NORMAL_LENGTH_M`), reusing its line ids (pybullet redraws a replaced item in place).
+- **Contacts**: one debug line per reported contact along its normal (:data:`NORMAL_LENGTH_M`),
+  drawn beside the contact, :data:`NORMAL_OFFSET_M` away from it, outwards from the tool's centre
+  (perpendicular to the normal): from ``c_p`` itself the normal runs inside the tool (a cube on
+  the floor: its corners' normals run up its edges, hidden by its faces). Line ids are reused
+  (pybullet redraws a replaced item in place).
+- **Force on the hand**: an arrow (:data:`FORCE_M_PER_N`, at most :data:`MAX_ARROW_M`) along the
+  force the hand feels, from the hand point pushed out of the proxy's ghost along the arrow (by
+  the ghost's bounding radius), so no body hides it.
 - **State**: a line of text above the scene in the state's colour.
 
 Drawing costs pybullet round trips to its GUI thread, so :meth:`PybulletView.update` draws at
@@ -27,10 +33,10 @@ import numpy as np
 from ._pybullet import p
 
 from .geometry import IDENTITY_WXYZ, xyzw_from_wxyz
-from .views import PROXY_RGB, contact_colour, state_style, view_state
+from .views import FORCE_RGB, PROXY_RGB, contact_colour, state_style, view_state
 
-__all__ = ["PybulletView", "frame_camera", "normal_segments", "project", "GUI_FOV_DEG", "GUI_ASPECT",
-           "NORMAL_LENGTH_M"]
+__all__ = ["PybulletView", "frame_camera", "normal_segments", "force_segments", "project", "GUI_FOV_DEG",
+           "GUI_ASPECT", "NORMAL_LENGTH_M", "NORMAL_OFFSET_M", "FORCE_M_PER_N", "MAX_ARROW_M"]
 
 #: the vertical field of view [deg] and aspect we frame for: pybullet's GUI camera (60 deg in its
 #: example browser) is at least this wide, so what fits here fits the window
@@ -38,6 +44,14 @@ GUI_FOV_DEG = 50.0
 GUI_ASPECT = 4.0 / 3.0
 #: drawn length of a contact normal [m]
 NORMAL_LENGTH_M = 0.01
+#: how far beside its contact a normal is drawn, outwards from the tool [m]
+NORMAL_OFFSET_M = 0.004
+#: the force arrow's length per newton [m/N], and its longest [m]
+FORCE_M_PER_N = 0.04
+MAX_ARROW_M = 0.1
+#: the arrow's head: its length as a fraction of the arrow's, and half its opening [deg]
+_HEAD_FRACTION = 0.25
+_HEAD_HALF_ANGLE_DEG = 25.0
 _GHOST_ALPHA = 0.35
 
 
@@ -77,13 +91,51 @@ def project(points, view, proj) -> np.ndarray:
     return h[:, :3] / h[:, 3:4]
 
 
-def normal_segments(position_m, normal, separation_m, length_m: float = NORMAL_LENGTH_M) -> list[tuple]:
-    """``(from, to, rgb 0..1)`` of each contact's normal line: from ``c_p`` along the normal."""
+def normal_segments(position_m, normal, separation_m, length_m: float = NORMAL_LENGTH_M, *, centre_m=None,
+                    offset_m: float = NORMAL_OFFSET_M) -> list[tuple]:
+    """``(from, to, rgb 0..1)`` of each contact's normal line, along the normal. With the tool's
+    ``centre_m`` it starts ``offset_m`` beside ``c_p``, outwards from the centre (the component of
+    ``c_p - centre_m`` across the normal; at ``c_p`` when that is nil); without, at ``c_p``."""
     out = []
+    centre = None if centre_m is None else np.asarray(centre_m, dtype=float)[:3]
     for c, nrm, d in zip(position_m, normal, separation_m):
+        c = np.asarray(c, dtype=float)
+        n = np.asarray(nrm, dtype=float)
+        start = c
+        if centre is not None and offset_m > 0.0:
+            r = c - centre
+            across = r - float(r @ n) * n
+            norm = float(np.linalg.norm(across))
+            if norm > 1e-9:
+                start = c + (offset_m / norm) * across
         rgb = tuple(v / 255.0 for v in contact_colour(float(d)))
-        out.append((tuple(float(v) for v in c), tuple(float(a + length_m * b) for a, b in zip(c, nrm)), rgb))
+        out.append((tuple(float(v) for v in start), tuple(float(v) for v in start + length_m * n), rgb))
     return out
+
+
+def force_segments(hand_point_m, force_n, clear_m: float = 0.0, *, m_per_n: float = FORCE_M_PER_N,
+                   max_m: float = MAX_ARROW_M) -> list[tuple]:
+    """``(from, to)`` of the force arrow's lines (the shaft, then four lines of its head, so it
+    reads as an arrow from any side): along ``force_n``, ``m_per_n`` long per newton (at most
+    ``max_m``), starting ``clear_m`` from ``hand_point_m`` along it. None for a force below 1 mN."""
+    f = np.asarray(force_n, dtype=float)[:3]
+    mag = float(np.linalg.norm(f))
+    if not (math.isfinite(mag) and mag > 1e-3):
+        return []
+    u = f / mag
+    start = np.asarray(hand_point_m, dtype=float)[:3] + clear_m * u
+    length = min(max_m, m_per_n * mag)
+    tip = start + length * u
+    side = np.cross(u, [0.0, 0.0, 1.0] if abs(u[2]) < 0.9 else [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    other = np.cross(u, side)
+    head = _HEAD_FRACTION * length
+    back = head * math.cos(math.radians(_HEAD_HALF_ANGLE_DEG))
+    spread = head * math.sin(math.radians(_HEAD_HALF_ANGLE_DEG))
+    out = [(start, tip)]
+    for w in (side, -side, other, -other):
+        out.append((tip, tip - back * u + spread * w))
+    return [(tuple(float(v) for v in a), tuple(float(v) for v in b)) for a, b in out]
 
 
 def scene_bounds(cid: int, bodies) -> tuple[np.ndarray, np.ndarray]:
@@ -124,6 +176,8 @@ class PybulletView:
         p.resetDebugVisualizerCamera(**self.camera, physicsClientId=cid)
         self._ghosts: list[int] = []
         self._ghost_rgb = None
+        #: how far the force arrow starts from the hand point: the ghost's bounding radius [m]
+        self.clear_m = max((float(np.linalg.norm(half)) for half in ghost_boxes), default=0.0)
         rgba = [v / 255.0 for v in PROXY_RGB] + [_GHOST_ALPHA]
         for half in ghost_boxes:
             vis = p.createVisualShape(p.GEOM_BOX, halfExtents=list(half), rgbaColor=rgba, physicsClientId=cid)
@@ -136,11 +190,17 @@ class PybulletView:
                 p.setCollisionFilterGroupMask(g, link, 0, 0, physicsClientId=cid)
                 p.changeVisualShape(g, link, rgbaColor=rgba, physicsClientId=cid)
             self._ghost_urdf = g
+            last = p.getNumJoints(g, physicsClientId=cid) - 1
+            lo, hi = p.getAABB(g, last, physicsClientId=cid)  # the hand's link (the last)
+            self.clear_m = 0.5 * float(np.linalg.norm(np.subtract(hi, lo)))
         self._lines: list[int] = []
+        self._arrow: list[int] = []
         self._text = -1
         self.frames = 0
-        #: what the last frame drew (the normals' segments, the state line and its colour)
+        #: what the last frame drew (the normals' segments, the force arrow's, the state line and
+        #: its colour)
         self.last_segments: list = []
+        self.last_arrow: list = []
         self.last_text = ""
         self.last_rgb = (0, 0, 0)
 
@@ -180,22 +240,44 @@ class PybulletView:
             if self._ghost_urdf is not None:
                 self._place_linkage_ghost(vs, rgba if recolour else None)
             self._ghost_rgb = ghost_rgb
-        segments = normal_segments(vs.contact_position_m, vs.contact_normal, vs.contact_separation_m)
-        for k, (a, b, colour) in enumerate(segments):
-            if k < len(self._lines):
-                p.addUserDebugLine(a, b, colour, 2.0, replaceItemUniqueId=self._lines[k], physicsClientId=cid)
-            else:
-                self._lines.append(p.addUserDebugLine(a, b, colour, 2.0, physicsClientId=cid))
-        for k in range(len(segments), len(self._lines)):  # unused lines collapse to nothing
-            p.addUserDebugLine([0, 0, -10], [0, 0, -10], [0, 0, 0], 1.0, replaceItemUniqueId=self._lines[k],
-                               physicsClientId=cid)
+        centre = vs.tool_pose[:3] if vs.tool_pose is not None else None
+        segments = normal_segments(vs.contact_position_m, vs.contact_normal, vs.contact_separation_m,
+                                   centre_m=centre)
+        self._draw_lines(self._lines, segments, 2.0)
+        arrow = []
+        if vs.proxy_pose is not None:
+            arrow = force_segments(self._hand_point(vs), vs.hand_wrench[:3], self.clear_m)
+        force_rgb = tuple(v / 255.0 for v in FORCE_RGB)
+        self._draw_lines(self._arrow, [(a, b, force_rgb) for a, b in arrow], 3.0)
         target = self.camera["cameraTargetPosition"]
         where = [target[0], target[1], target[2] + 0.45 * self.camera["cameraDistance"]]
         text = f"{label}   contacts {len(segments)}   |F| {float(np.linalg.norm(vs.hand_wrench[:3])):.2f} N"
         kw = {"replaceItemUniqueId": self._text} if self._text >= 0 else {}
         self._text = p.addUserDebugText(text, where, [v / 255.0 for v in rgb], 1.3, physicsClientId=cid, **kw)
-        self.last_segments, self.last_text, self.last_rgb = segments, text, rgb
+        self.last_segments, self.last_arrow, self.last_text, self.last_rgb = segments, arrow, text, rgb
         self.frames += 1
+
+    def _draw_lines(self, ids: list, segments, width: float) -> None:
+        """Draw ``(from, to, rgb)`` segments on the debug lines ``ids`` (grown as needed, the
+        unused ones collapsed to nothing below the floor)."""
+        cid = self.cid
+        for k, (a, b, colour) in enumerate(segments):
+            if k < len(ids):
+                p.addUserDebugLine(a, b, colour, width, replaceItemUniqueId=ids[k], physicsClientId=cid)
+            else:
+                ids.append(p.addUserDebugLine(a, b, colour, width, physicsClientId=cid))
+        for k in range(len(segments), len(ids)):
+            p.addUserDebugLine([0, 0, -10], [0, 0, -10], [0, 0, 0], 1.0, replaceItemUniqueId=ids[k],
+                               physicsClientId=cid)
+
+    def _hand_point(self, vs):
+        """Where the hand holds the proxy (world): the tool frame's origin; a linkage's, its last
+        link's frame (the ghost placed at the proxy first)."""
+        if self._ghost_urdf is not None:
+            last = p.getNumJoints(self._ghost_urdf, physicsClientId=self.cid) - 1
+            if last >= 0:
+                return p.getLinkState(self._ghost_urdf, last, physicsClientId=self.cid)[4]
+        return vs.proxy_pose[:3]
 
     def _place_linkage_ghost(self, vs, rgba) -> None:
         from .geometry import compose

@@ -24,12 +24,14 @@ import numpy as np
 from ..protocol.messages import ServerState
 
 __all__ = ["ViewState", "view_state", "state_style", "contact_colour", "PENETRATING_RGB", "PREDICTED_RGB",
-           "PROXY_RGB"]
+           "PROXY_RGB", "FORCE_RGB"]
 
 PENETRATING_RGB = (220, 30, 30)
 PREDICTED_RGB = (240, 150, 20)
 #: the ghost's colour while the proxy is rendered
 PROXY_RGB = (40, 80, 220)
+#: the arrow of the force on the hand
+FORCE_RGB = (150, 0, 170)
 
 _STYLES = {
     ServerState.ENGAGED: ("ENGAGED", (30, 160, 60)),

@@ -74,15 +74,16 @@ LOOP_TITLE = "hapticproxy-loop"
 
 
 def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes | None, naive: bool = False,
-                      report=None, tools=None) -> None:
+                      report=None) -> None:
     """Entry point of the loop process (spawned). ``naive``: the comparison baseline of
     ``bench loop``: the same work paced by ``time.sleep`` alone, with none of the tuning.
     ``report``: the sending end of a pipe; a start-up failure sends ``(message, exit code)`` on it,
-    so the supervisor prints one line that names what failed (a taken transport address...).
-    ``tools``: the sending end of a pipe; each engaged client's tool goes on it (``_tell_tools``)."""
+    so the supervisor prints one line that names what failed (a taken transport address...)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the supervisor's to handle
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
-    signal.signal(signal.SIGTERM, _raise_stop)
+    # a stop before the try below has nothing to clean up: exit at once (raising then was a
+    # traceback from wherever the signal landed, e.g. inside _die_with_parent)
+    signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
     set_process_title(LOOP_TITLE)
     from ..protocol import logs
 
@@ -99,6 +100,7 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
     loop = None
     transport = None
     running = False
+    signal.signal(signal.SIGTERM, _raise_stop)  # from here a stop unwinds through the finally below
     try:
         from .clock import MonotonicClock, SleepClock, pin_to_cpu, set_timer_slack_ns, try_realtime
         from .loop import HapticLoop
@@ -111,7 +113,6 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         st[ST["transport_port"]] = bound[1] if isinstance(bound, tuple) and len(bound) >= 2 else 0
         loop = HapticLoop.build(settings, clock=clock, transport=transport, shared=shared, hmac_key=hmac_key)
         loop.parent_pid = parent  # a loop whose supervisor died stops (forces fade, Bye, exit)
-        _tell_tools(loop, tools)
         llog.debug("pid %d: transport %s open, %s device %r built", os.getpid(), transport.url,
                    settings["device"]["kind"], settings["device"]["driver"])
         _send_device_info(report, loop.device)
@@ -186,7 +187,11 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
             transport.close()
         st[ST["exit_code"]] = code
         st[ST["loop_state"]] = LOOP_STATES.index("stopped")
-        shared.close()
+        # The supervisor owns the block and unlinks it when it closes. One that died (SIGKILL)
+        # left this process its last user: unlinking it here also unregisters it from the
+        # resource tracker both processes share (spawn), which would otherwise find it at exit,
+        # unlink it and warn of a leaked shared_memory object.
+        shared.close(unlink=os.getppid() != parent)
     sys.exit(code)
 
 
@@ -202,33 +207,6 @@ def _send_device_info(conn, device) -> None:
         conn.send((DEVICE_INFO, device.info.as_dict()))
     except Exception:  # noqa: BLE001 - a driver whose info cannot be read: status shows none
         pass
-
-
-def _tell_tools(loop, conn) -> None:
-    """Send the tool of every Hello the loop engages (kind, mass, centre of mass, inertia) to the
-    supervisor, which draws the proxy with it in the recording and the live view. The loop keeps
-    the Hello to itself, so this observes its model factory's ``take`` (called once per
-    engagement, never per step); the send is non-blocking and a full pipe drops the message.
-    Nothing is observed when the loop has no such factory: the views then draw the tool kind's
-    shape. (The lasting place for this is the shared block; see ``scene.ToolShape``.)"""
-    models = getattr(loop, "models", None)
-    take = getattr(models, "take", None)
-    if conn is None or take is None:
-        return
-    os.set_blocking(conn.fileno(), False)
-
-    def take_and_tell(hello, *args, **kwargs):
-        built = take(hello, *args, **kwargs)
-        try:
-            from ..protocol.vocab import TOOL_KIND_NAMES
-
-            conn.send((TOOL_KIND_NAMES.get(hello.tool_kind, "?"), float(hello.mass_kg), tuple(hello.com_m),
-                       tuple(hello.inertia_kg_m2)))
-        except (OSError, ValueError, AttributeError):
-            pass
-        return built
-
-    models.take = take_and_tell
 
 
 def _report(conn, message: str, code: int) -> None:
@@ -378,7 +356,7 @@ class Supervisor:
         self._contact_seq = 0
         self._last_contacts = None  # the newest contact-ring row read: (header, key, pos, normal, sep)
         self._last_transition = None
-        self._tools = None          # the loop's engaged tools (a pipe's receiving end)
+        self._tool_seq = 0          # the engaged tool last read from the shared block
         self.tool_shape = None      # the newest engaged client's tool (scene.ToolShape)
         self.auth = StatusAuth(self._hmac_key())
         self.exit_code = 0
@@ -417,10 +395,9 @@ class Supervisor:
             from . import recording  # noqa: F401 - imported now, so the recording starts with the loop
         ctx = mp.get_context("spawn")
         reports, report = ctx.Pipe(duplex=False)
-        self._tools, tools = ctx.Pipe(duplex=False)
         self.proc = ctx.Process(target=loop_process_main, name=LOOP_TITLE,
                                 args=(self.settings.as_dict(), self.shared.name, self.ring_rows, self.auth.key, self.naive,
-                                      report, tools),
+                                      report),
                                 daemon=False)
         # The child starts with SIGINT blocked (a Ctrl-C while it imports would print a
         # traceback there); it ignores SIGINT, then unblocks it. The supervisor gets it meanwhile.
@@ -430,7 +407,6 @@ class Supervisor:
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         report.close()  # the child holds its own end
-        tools.close()
         log.debug("loop process %d started", self.proc.pid)
         failure = None
         try:
@@ -579,21 +555,21 @@ class Supervisor:
             self.live.publish(self.shared, self._last_contacts, self._last_transition)
 
     def _take_tools(self) -> None:
-        """The engaged clients' tools from the loop process (``_tell_tools``): the views draw the
-        proxy with the newest one."""
-        conn = self._tools
-        try:
-            while conn is not None and conn.poll():
-                kind, mass, com, inertia = conn.recv()
-                from .scene import ToolShape
+        """The engaged client's tool, which the loop writes into the shared block at each
+        engagement (``SharedState.publish_tool``): the views draw the proxy with the newest one."""
+        got = self.shared.engaged_tool()
+        if got is None or got[0] == self._tool_seq:
+            return
+        from ..protocol.vocab import TOOL_KIND_NAMES
+        from .scene import ToolShape
 
-                self.tool_shape = ToolShape.from_hello(kind, mass, com, inertia)
-                if self.writer is not None:
-                    self.writer.set_shape(self.tool_shape)
-                if self.live is not None:
-                    self.live.shape = self.tool_shape
-        except (OSError, EOFError, ValueError, TypeError):
-            self._tools = None
+        seq, kind, mass, com, inertia = got
+        self._tool_seq = seq
+        self.tool_shape = ToolShape.from_hello(TOOL_KIND_NAMES.get(kind, "?"), mass, com, inertia)
+        if self.writer is not None:
+            self.writer.set_shape(self.tool_shape)
+        if self.live is not None:
+            self.live.shape = self.tool_shape
 
     def _log_changes(self) -> None:
         """Log every transition the loop wrote since the last call, with its reason."""
@@ -716,7 +692,7 @@ class Supervisor:
                 return {"error": why}
             try:
                 n = dump_ring(self.shared, path, rate_hz=self.settings.rate_hz, config=self.settings.as_dict(),
-                              t0_epoch_ns=self.t0_epoch_ns, meta=self._recording_meta())
+                              t0_epoch_ns=self.t0_epoch_ns, meta=self._recording_meta(), shape=self.tool_shape)
             except OSError as exc:
                 return {"error": f"cannot write {path}: {exc.strerror}"}
             return {"ok": True, "rows": n, "path": path}
@@ -740,9 +716,6 @@ class Supervisor:
         if self.sock is not None:
             self.sock.close()
             self.sock = None
-        if self._tools is not None:
-            self._tools.close()
-            self._tools = None
         if not self._closed_shared:
             self.shared.close(unlink=True)
             self._closed_shared = True

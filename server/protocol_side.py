@@ -421,6 +421,7 @@ class ProtocolSide:
         c = lp.ctrl
         c.cs[ctl.CS_PREV:ctl.CS_PREV + 6] = c.cmd  # rate limit continues from the last output
         self.engagements += 1
+        lp.shared.publish_tool(self.engagements, hello.tool_kind, hello.mass_kg, hello.com_m, hello.inertia_kg_m2)
         self.last_update_ns = now
         self.env_rate_hz = 0.0
         self._env_n = 0

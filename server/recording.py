@@ -182,6 +182,9 @@ TOPICS = {
 }
 STEP_TOPICS = ("/device", "/proxy", "/command", "/environment_wrench", "/loop")
 META_NAME = "hapticproxy"
+#: the metadata record of each engaged client's tool shape (``McapRecorder.set_shape``), the last
+#: one in a file is its ``Recording.meta["tool_shape"]``: a replay draws the proxy with it
+SHAPE_META_NAME = "hapticproxy.tool_shape"
 FORMAT = "hapticproxy-mcap-1"
 PROFILE = "hapticproxy"
 #: the standard-schema topics beside ``TOPICS`` (written from them; ``read`` skips them)
@@ -395,7 +398,9 @@ class McapRecorder:
         kind = (meta or {}).get("tool_kind") or (config or {}).get("model", {}).get("tool") or \
             (config or {}).get("device", {}).get("kind", "")
         #: what the proxy is drawn as (the tool kind's shape until ``set_shape`` gives the Hello's)
-        self.shape = shape or scn.ToolShape.for_kind(kind)
+        self.shape = scn.ToolShape.for_kind(kind)
+        if shape is not None:  # a client engaged before the recording started: kept for a replay too
+            self.set_shape(shape)
         self._scene_period_s = 1.0 / scn.SCENE_HZ
         self._next_scene_t = -math.inf
         self._recent: list = []   # contact updates not yet behind the scene's instant: (t_s, pos, nrm, sep)
@@ -428,8 +433,12 @@ class McapRecorder:
         self.meta_written = True
 
     def set_shape(self, shape: scn.ToolShape) -> None:
-        """Draw the proxy as ``shape`` from now on (a client's Hello arrived)."""
+        """Draw the proxy as ``shape`` from now on (a client's Hello arrived); the file keeps it
+        as a metadata record (:data:`SHAPE_META_NAME`) for a replay (``hapticproxy view``)."""
         self.shape = shape
+        self._w.write_metadata(SHAPE_META_NAME, {"boxes": json.dumps([[list(c), list(q), list(z)]
+                                                                      for c, q, z in shape.boxes]),
+                                                 "source": shape.source})
 
     def _sync(self) -> None:
         self._f.flush()
@@ -549,12 +558,13 @@ def _contacts_since(shared: SharedState, seq: int):
 
 
 def dump_ring(shared: SharedState, path: str | Path, *, rate_hz: float, config: dict | None = None,
-              t0_epoch_ns: int = 0, meta: dict | None = None) -> int:
-    """Write what the rings hold now (oldest first) as a recording; returns the telemetry rows."""
+              t0_epoch_ns: int = 0, meta: dict | None = None, shape: scn.ToolShape | None = None) -> int:
+    """Write what the rings hold now (oldest first) as a recording, the proxy drawn as ``shape``
+    (the engaged client's tool; None: its kind's); returns the telemetry rows."""
     head = int(shared.head[0])
     n = min(head, shared.ring_rows)
     w = McapRecorder(path, rate_hz=rate_hz, config=config, t0_epoch_ns=t0_epoch_ns, flush_rows=max(16, n),
-                     meta=meta)
+                     meta=meta, shape=shape)
     w.start_at(head - n, 0, 0)
     w.drain(shared)
     w.close()
@@ -636,6 +646,11 @@ def _take(rec, channels, msgs, decoders, meta) -> None:
             msgs[topic].append(decoders[topic].decode(rec.data))
     elif isinstance(rec, Channel):
         channels[rec.id] = rec.topic
+    elif isinstance(rec, Metadata) and rec.name == SHAPE_META_NAME:
+        try:
+            meta["tool_shape"] = {"boxes": json.loads(rec.metadata["boxes"]), "source": rec.metadata["source"]}
+        except (KeyError, ValueError):
+            pass
     elif isinstance(rec, Metadata) and rec.name == META_NAME:
         m = dict(rec.metadata)
         for k in ("rate_hz", "t0_epoch_ns", "config"):

@@ -83,7 +83,15 @@ STATUS_LAYOUT = (
     # the energy the device gave the hand since start (the ledger at the hand's port: each
     # command held over its period times the handle's displacement during it), J
     ("energy_hand_j", "f"),
+    # the engaged tool as its Hello declared it (``publish_tool``, read by ``engaged_tool``):
+    # its number (the engagement that wrote it; -1 while written, 0 none yet), kind (vocab
+    # ToolKind), mass [kg], centre of mass [m, tool frame], inertia [Ixx Iyy Izz Ixy Ixz Iyz, kg m^2]
+    ("tool_seq", "i"), ("tool_kind", "i"), ("tool_mass_kg", "f"), ("tool_com_x_m", "f"), ("tool_com_y_m", "f"),
+    ("tool_com_z_m", "f"), ("tool_ixx_kg_m2", "f"), ("tool_iyy_kg_m2", "f"), ("tool_izz_kg_m2", "f"),
+    ("tool_ixy_kg_m2", "f"), ("tool_ixz_kg_m2", "f"), ("tool_iyz_kg_m2", "f"),
 )
+_TOOL_FIELDS = ("tool_kind", "tool_mass_kg", "tool_com_x_m", "tool_com_y_m", "tool_com_z_m", "tool_ixx_kg_m2",
+                "tool_iyy_kg_m2", "tool_izz_kg_m2", "tool_ixy_kg_m2", "tool_ixz_kg_m2", "tool_iyz_kg_m2")
 STATUS_DTYPE = np.dtype([(name, np.float64) for name, _ in STATUS_LAYOUT])
 STATUS_FIELDS = STATUS_DTYPE.names
 #: status field -> index into the float64 view ``SharedState.status``
@@ -348,6 +356,26 @@ class SharedState:
                 out.append((k, int(r["t_ns"]), int(r["from_state"]), int(r["to_state"]), int(r["reason"]),
                             float(r["detail"])))
         return out
+
+    def publish_tool(self, seq: int, kind: int, mass_kg: float, com_m, inertia_kg_m2) -> None:
+        """The loop, at an engagement (never per step): the engaged tool as its Hello declared it,
+        numbered ``seq`` (> 0). ``tool_seq`` is -1 while the fields are written, so a reader that
+        copied them meanwhile can tell (``engaged_tool``)."""
+        st = self.status
+        st[ST["tool_seq"]] = -1.0
+        for name, v in zip(_TOOL_FIELDS, (kind, mass_kg, *tuple(com_m)[:3], *tuple(inertia_kg_m2)[:6])):
+            st[ST[name]] = float(v)
+        st[ST["tool_seq"]] = float(seq)
+
+    def engaged_tool(self) -> tuple[int, int, float, tuple, tuple] | None:
+        """The newest engaged tool ``(seq, kind, mass_kg, com_m, inertia_kg_m2)`` (the supervisor),
+        or None before the first or while the loop writes one."""
+        st = self.status
+        seq = st[ST["tool_seq"]]
+        got = [float(st[ST[name]]) for name in _TOOL_FIELDS]
+        if not seq > 0 or st[ST["tool_seq"]] != seq:
+            return None
+        return int(seq), int(got[0]), got[1], tuple(got[2:5]), tuple(got[5:11])
 
     def request(self, name: str) -> int:
         self.control[CT[name]] += 1

@@ -681,16 +681,22 @@ class _Parser(argparse.ArgumentParser):
 
 def _build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="hapticproxy device",
-                description="Run a simulated haptic device as a remote device: stream its state to a "
-                            "server over UDP and render the wrenches it sends back.")
-    p.add_argument("--kind", choices=DEVICE_KINDS, default=None, help="device kind (default: planar, or the config's)")
+                description="Bridge a haptic device on this machine to a server's remote driver: run any "
+                            "registered device driver (the simulated device by default), stream its state to "
+                            "the server over UDP and render the wrenches it sends back.")
+    p.add_argument("--driver", default=None, metavar="NAME",
+                   help="the device driver (`hapticproxy plugins --kind device` lists them; default: the "
+                        "config's device.driver unless it is remote, else sim)")
+    p.add_argument("--kind", choices=DEVICE_KINDS, default=None,
+                   help="device kind (default: the config's, else the driver's: planar for sim)")
     p.add_argument("--server", required=True, metavar="HOST:PORT", help="the server driver's listen address")
     p.add_argument("--rate", type=float, default=1000.0, metavar="HZ", help="device rate [Hz] (default 1000)")
     p.add_argument("--hand", default=None, metavar="SPEC",
-                   help='the simulated hand: a type name (none, constant, sinusoid, steps, impedance) or a '
+                   help='the simulated hand (--driver sim only): a type name (none, constant, sinusoid, steps, impedance) or a '
                         'JSON table, e.g. \'{"type": "sinusoid", "amplitude": [0, 0.5, 0], "frequency_hz": 2.5}\'')
     p.add_argument("--config", default=None, metavar="FILE",
-                   help="a TOML file whose [device] table configures the simulated device (sim keys)")
+                   help="a TOML file whose [device] table configures the driver (its keys; a server's file "
+                        "with driver = \"remote\" configures the simulated device, its link keys ignored)")
     p.add_argument("--watchdog-s", type=float, default=DEFAULT_DEVICE_WATCHDOG_S, metavar="S",
                    help="no command this long -> zero output, latched until the server re-enables (default 0.05)")
     p.add_argument("--bind", default=None, metavar="HOST:PORT", help="local address of the device socket")
@@ -699,11 +705,14 @@ def _build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _device_from_args(args) -> tuple[DeviceProgram, float]:
+def _device_from_args(args) -> tuple[DeviceProgram, str]:
+    """The device program the command line asks for: the driver (``--driver``, else the config's
+    ``device.driver`` unless it is ``remote``, else ``sim``) built by :func:`base.load_device` from
+    the config's ``[device]`` table (less the remote link's keys) and the flags."""
     import json
     import tomllib
 
-    from .sim import SimDevice, parse_sim_config
+    from .base import load_device
 
     if not (math.isfinite(args.rate) and 10.0 <= args.rate <= 20000.0):
         raise ValueError(f"--rate: expected 10..20000 Hz, got {args.rate:g}")
@@ -727,12 +736,22 @@ def _device_from_args(args) -> tuple[DeviceProgram, float]:
         if not isinstance(doc.get("device", {}), dict):
             raise ValueError(f"--config: [device] in {args.config} is not a table")
         cfg = dict(doc.get("device", {}))
-        if cfg.get("driver", "sim") != "sim":
-            cfg.pop("driver")
-        for k in ("listen", "device_address", "link_timeout_s", "connect_timeout_s"):
+        for k, _, _ in _LINK_KEYS:
             cfg.pop(k, None)  # the server side's keys, when the same file configures both
+        named = doc.get("device", {}).get("driver", "")
+        if not isinstance(named, str):
+            raise ValueError(f"--config: device.driver in {args.config} is not a name")
+    else:
+        named = ""
+    driver = args.driver or (named if named and named != "remote" else "sim")
+    if driver == "remote":
+        raise ValueError("--driver: remote is the server's end of this link; name the driver of the device "
+                         "here (sim, or one `hapticproxy plugins --kind device` lists)")
+    cfg["driver"] = driver
     if args.kind:
         cfg["kind"] = args.kind
+    if args.hand is not None and driver != "sim":
+        raise ValueError(f"--hand: only the simulated device has a simulated hand (--driver sim), not {driver}")
     if args.hand is not None:
         spec = args.hand.strip()
         if spec.startswith("{"):
@@ -744,18 +763,22 @@ def _device_from_args(args) -> tuple[DeviceProgram, float]:
             hand = {"type": spec}
         cfg["hand"] = hand
     period_s = 1.0 / args.rate
-    sim = SimDevice(parse_sim_config(cfg, period_s=period_s))
-    prog = DeviceProgram(sim, server, watchdog_s=args.watchdog_s, bind=bind, period_s=period_s)
-    return prog, period_s
+    dev = load_device(driver, cfg, period_s=period_s)
+    try:
+        prog = DeviceProgram(dev, server, watchdog_s=args.watchdog_s, bind=bind, period_s=period_s)
+    except BaseException:
+        dev.close()
+        raise
+    return prog, driver
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``hapticproxy device --kind KIND --server HOST:PORT [--rate HZ] [--hand SPEC] ...``"""
+    """``hapticproxy device --server HOST:PORT [--driver NAME] [--kind KIND] [--rate HZ] [--hand SPEC] ...``"""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = _build_parser()
     try:
         args = parser.parse_args(argv)
-        prog, _ = _device_from_args(args)
+        prog, driver = _device_from_args(args)
     except _UsageError as exc:
         print(f"hapticproxy device: error: {exc}", file=sys.stderr)
         return 2
@@ -773,8 +796,10 @@ def main(argv: list[str] | None = None) -> int:
     log = logging.getLogger("hapticproxy.device")
     drv = prog.driver
     host, port = prog.server
-    log.info("%s sim device -> %s:%s at %g Hz (session %s, watchdog %g s)", drv.kind, host, port, args.rate,
-             prog.session, args.watchdog_s)
+    log.info("%s %s device -> %s:%s at %g Hz (session %s, watchdog %g s)", drv.kind, driver, host, port,
+             args.rate, prog.session, args.watchdog_s)
+    if driver != "sim":
+        log.info("%s", drv.info.summary())
     stop = threading.Event()
     previous = None
     if threading.current_thread() is threading.main_thread():

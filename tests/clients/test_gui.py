@@ -6,6 +6,11 @@ per contact), on a DIRECT physics client since no display is available here."""
 from __future__ import annotations
 
 import math
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
 
 import numpy as np
 import pytest
@@ -228,3 +233,131 @@ def test_the_view_puts_the_ghost_at_the_proxy_and_draws_one_normal_per_contact(m
     buf = ContactBuffer(16)
     n = e.contacts(buf, 16)
     assert n > 0 and ghost not in set(buf.keys[:n, 1].tolist())
+
+
+# ------------------------------------------------------------------------------ quiet windows (issue 32, papercut 15)
+def _run_python(code: str, env_extra: dict, drop=()) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k not in drop}
+    env.update(env_extra)
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=300,
+                          env=env)
+
+
+def test_the_pymunk_window_prints_nothing_and_leaves_the_sound_card_alone():
+    """pygame's banner (stdout, at import) and pygame.init()'s mixer, which printed four ALSA
+    errors on a machine without sound: the window opens the display and fonts only."""
+    pytest.importorskip("pygame")
+    out = _run_python("""
+        from hapticproxy.clients.pymunk_engine import PymunkEngine
+        e = PymunkEngine(gui=True)
+        e.load_scene("wall")
+        import pygame
+        print("mixer", pygame.mixer.get_init(), "display", pygame.display.get_init(), flush=True)
+        e.close()
+        """, {"SDL_VIDEODRIVER": "dummy"}, drop=("SDL_AUDIODRIVER", "PYGAME_HIDE_SUPPORT_PROMPT"))
+    assert out.returncode == 0, out.stderr
+    assert out.stdout == "mixer None display True\n", out.stdout
+    assert out.stderr == "", out.stderr
+
+
+def test_the_c_stdout_is_muted_while_a_pybullet_gui_is_open_and_pythons_is_not():
+    """pybullet's GUI prints its chatter on the C stdout, from its own thread too: fd 1 goes to
+    /dev/null while a GUI is open; what Python prints still reaches the real stdout, in order."""
+    pytest.importorskip("pybullet")
+    out = _run_python("""
+        import os, sys
+        from hapticproxy.clients.pybullet_common import _mute_c_stdout
+        print("before", flush=True)
+        _mute_c_stdout(True)
+        os.write(1, b"C chatter\\n")
+        print("python while muted")
+        _mute_c_stdout(False)
+        os.write(1, b"C after\\n")
+        print("python after")
+        """, {})
+    assert out.returncode == 0, out.stderr
+    assert out.stdout == "before\npython while muted\nC after\npython after\n"
+
+
+@pytest.mark.skipif(shutil.which("xvfb-run") is None,
+                    reason="xvfb-run is not installed (Debian: apt-get install xvfb): pybullet's GUI needs a display")
+def test_the_pybullet_client_window_prints_no_banner():
+    """``client pybullet --gui`` on a virtual display: nothing from pybullet's GUI on stdout or
+    stderr (it printed about 25 lines: threads, X11, the GL context, its shutdown)."""
+    pytest.importorskip("pybullet")
+    out = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 800x600x24", sys.executable, "-c", textwrap.dedent("""
+        from hapticproxy.clients.pybullet_engine import PybulletEngine
+        e = PybulletEngine(gui=True)
+        e.load_scene("loose")
+        for _ in range(30):
+            e.step(1 / 60)
+        e.close()
+        print("closed")
+        """)], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout == "closed\n" and out.stderr == "", (out.stdout, out.stderr)
+
+
+class _SpyP:
+    """pybullet as the view sees it, with every debug line requested recorded."""
+
+    def __init__(self, real) -> None:
+        self._real = real
+        self.lines: list = []
+
+    def __getattr__(self, name):
+        return getattr(self._real, name)
+
+    def addUserDebugLine(self, a, b, rgb, width, **kw):  # noqa: N802 - pybullet's name
+        self.lines.append((tuple(a), tuple(b), tuple(rgb)))
+        return self._real.addUserDebugLine(a, b, rgb, width, **kw)
+
+
+def test_the_pybullet_view_draws_the_normals_beside_the_tool_and_the_force_arrow_outside_it(make_pybullet,
+                                                                                           monkeypatch):
+    """A 40 mm cube resting on the floor, its four bottom corners in contact (normals +z), the
+    hand feeling 0.5 N up: each normal is a line requested beside its corner, outside the cube
+    (from the corner itself it ran up the cube's edge, hidden by its faces); the force arrow, a
+    shaft and a four-line head, starts outside the ghost and points along the force."""
+    import pybullet
+
+    from hapticproxy.clients import pybullet_gui
+    from hapticproxy.clients.pybullet_gui import (FORCE_M_PER_N, NORMAL_LENGTH_M, NORMAL_OFFSET_M,
+                                                  PybulletView)
+    from hapticproxy.clients.views import FORCE_RGB, contact_colour
+
+    spy = _SpyP(pybullet)
+    monkeypatch.setattr(pybullet_gui, "p", spy)
+    e = make_pybullet("loose")
+    half = 0.02
+    bodies = [b for n, b in e.scene_info.facts["body_ids"].items() if n != "floor"]
+    view = PybulletView(e.client_id, bodies, ghost_boxes=[(half, half, half)])
+    corners = np.array([[sx * half, sy * half, 0.0] for sx in (-1, 1) for sy in (-1, 1)])
+    centre = np.array([0.0, 0.0, half])
+    vs = ViewState(server_state=ServerState.ENGAGED, proxy_pose=np.array([*centre, 1.0, 0.0, 0.0, 0.0]),
+                   hand_wrench=np.array([0.0, 0.0, 0.5, 0.0, 0.0, 0.0]),
+                   tool_pose=np.array([*centre, 1.0, 0.0, 0.0, 0.0]), epsilon_m=EPS, following=True,
+                   contact_position_m=corners, contact_normal=np.tile([0.0, 0.0, 1.0], (4, 1)),
+                   contact_separation_m=np.full(4, -0.0005))
+    view.draw(vs)
+    red = tuple(v / 255.0 for v in contact_colour(-0.0005))
+    normals = [(np.array(a), np.array(b)) for a, b, rgb in spy.lines if rgb == red]
+    assert len(normals) == 4
+    for (a, b), c in zip(normals, corners):
+        np.testing.assert_allclose(b - a, [0.0, 0.0, NORMAL_LENGTH_M], atol=1e-12)  # along the normal
+        assert np.linalg.norm(a - c) == pytest.approx(NORMAL_OFFSET_M)             # beside its contact
+        for q in (a, b, 0.5 * (a + b)):
+            assert max(abs(q[0]), abs(q[1])) > half + 1e-3                          # outside the cube
+    purple = tuple(v / 255.0 for v in FORCE_RGB)
+    arrow = [(np.array(a), np.array(b)) for a, b, rgb in spy.lines if rgb == purple]
+    assert len(arrow) == 5 and [(tuple(a), tuple(b)) for a, b in arrow] == view.last_arrow
+    (s0, tip), head = arrow[0], arrow[1:]
+    assert np.linalg.norm(s0 - centre) >= math.sqrt(3) * half - 1e-12            # outside the ghost
+    np.testing.assert_allclose(tip - s0, [0.0, 0.0, FORCE_M_PER_N * 0.5], atol=1e-12)  # along the force
+    assert all(np.allclose(a, tip) and b[2] < tip[2] for a, b in head)
+    # no force, no contacts: every line collapses below the floor
+    spy.lines.clear()
+    vs.hand_wrench[:] = 0.0
+    vs.contact_position_m, vs.contact_normal, vs.contact_separation_m = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+    view.draw(vs)
+    assert len(spy.lines) == 9 and all(a[2] == -10 and b[2] == -10 for a, b, _ in spy.lines)

@@ -225,3 +225,49 @@ def test_the_loop_stops_when_its_supervisor_dies(server):
         except ProcessLookupError:
             alive = False
     assert not alive, "the loop process outlived its supervisor"
+
+
+def _exited(pid: int, timeout_s: float) -> bool:
+    """Whether process ``pid`` has exited (gone, or a zombie its new parent has not reaped yet)."""
+    t_end = time.monotonic() + timeout_s
+    while True:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                if f.read().rpartition(")")[2].split()[0] == "Z":
+                    return True
+        except FileNotFoundError:
+            return True
+        if time.monotonic() > t_end:
+            return False
+        time.sleep(0.05)
+
+
+def _shm_blocks(pid: int) -> set[str]:
+    """The POSIX shared-memory blocks process ``pid`` has mapped (names under /dev/shm)."""
+    with open(f"/proc/{pid}/maps") as f:
+        return {ln.split("/dev/shm/", 1)[1].strip() for ln in f if "/dev/shm/" in ln}
+
+
+def test_a_supervisor_killed_mid_contact_leaks_no_shared_memory(server):
+    """Papercut 6: SIGKILL of the supervisor while a client is in contact. The loop process, now
+    the block's last user, stops by itself, unlinks the block and tells Python's resource tracker
+    (which the loop shares with its dead supervisor under ``spawn``), so the tracker finds nothing
+    to clean up: no 'leaked shared_memory objects' warning, no block left in /dev/shm."""
+    proc, url, status = server()
+    env = WallEnv(url, MonotonicClock(), rate_hz=60.0)
+    try:
+        _drive(env, 1.5)
+        s = query(status)
+        assert s["loop_state"] == "engaged" and s["contacts"] >= 1  # mid-contact
+        loop_pid = int(s["pid"])
+        blocks = _shm_blocks(loop_pid)
+        assert len(blocks) == 1, blocks
+        proc.kill()
+        # the pipe reaches EOF once every holder is gone: the supervisor, its loop process and
+        # the resource tracker (which writes its warning there before it exits)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        env.close()
+    assert _exited(loop_pid, 20.0), "the loop process outlived its supervisor"
+    assert "leaked" not in err and "resource_tracker" not in err, err
+    assert not any(os.path.exists(f"/dev/shm/{b}") for b in blocks), blocks

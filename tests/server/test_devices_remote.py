@@ -2,6 +2,7 @@
 counted drops, the device-side watchdog and the epoch rules, link loss, and the CLI."""
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
@@ -509,3 +510,96 @@ def test_both_ends_run_over_any_transport_in_lock_step():
     finally:
         prog.close()
         srv.close()
+
+
+# ---------------------------------------------------------------- any driver (issue 32, papercut 3)
+@pytest.mark.parametrize("config, argv, want", [
+    (None, [], "sim"),                                                      # no config: the simulated device
+    ('driver = "remote"\nkind = "spatial"', [], "sim"),                     # the server's own file
+    ('driver = "haply"\nport = "/dev/ttyACM0"', [], "haply"),               # a device-side file
+    ('driver = "haply"', ["--driver", "sim"], "sim"),                       # --driver wins
+    (None, ["--driver", "touch", "--kind", "spatial"], "touch"),
+])
+def test_device_cli_bridges_the_driver_asked_for(tmp_path, monkeypatch, config, argv, want):
+    """``--driver NAME``, else the config's ``device.driver`` unless it is ``remote``, else sim;
+    built by ``base.load_device`` from the ``[device]`` table less the remote link's keys."""
+    built = {}
+
+    def fake_load(name, cfg, *, period_s, clock_ns=None):
+        built.update(name=name, cfg=dict(cfg), period_s=period_s)
+        return make_sim_device({"kind": cfg.get("kind", "planar")}, period_s=period_s)
+
+    monkeypatch.setattr(base, "load_device", fake_load)
+    args = ["--server", "127.0.0.1:9", "--rate", "250", *argv]
+    if config is not None:
+        (tmp_path / "d.toml").write_text(f'[device]\n{config}\nlisten = "127.0.0.1:9"\nlink_timeout_s = 0.2\n')
+        args += ["--config", str(tmp_path / "d.toml")]
+    prog, driver = remote._device_from_args(remote._build_parser().parse_args(args))
+    prog.close()
+    assert driver == built["name"] == built["cfg"]["driver"] == want
+    assert not {"listen", "link_timeout_s", "device_address", "connect_timeout_s"} & set(built["cfg"])
+    assert built["period_s"] == pytest.approx(1 / 250)
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--driver", "touch", "--hand", "constant"], "--hand: only the simulated device"),
+    (["--driver", "remote"], "--driver: remote is the server's end"),
+    (["--driver", "nosuch"], "device.driver"),
+])
+def test_device_cli_refuses_a_driver_it_cannot_bridge_in_one_line(argv, says, capsys):
+    assert remote.main(["--server", "127.0.0.1:9", *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"hapticproxy device: error: {says}"), err
+
+
+def test_device_cli_bridges_a_vendor_driver_over_its_emulator(tmp_path):
+    """``hapticproxy device`` with the Force Dimension driver on the unmodified forcedimension-core
+    over the fake libdrd, whose physics runs in its own process in real time: the server's remote
+    driver sees the device's state, arms it, and the push it sends moves the handle and is what
+    the emulated motors render; a disarm zeroes them."""
+    import importlib.util
+
+    if importlib.util.find_spec("forcedimension_core") is None:
+        pytest.skip("forcedimension-core is not installed (the devices extra)")
+    from hapticproxy.testing.emulators.block import Block
+    from hapticproxy.testing.emulators.harness import sdk_root
+    from hapticproxy.testing.emulators.physics import spawn
+
+    block = Block(tmp_path / "dev.blk", create=True)
+    physics = spawn(block.path, 33, vendor="forcedimension", serial=4242)  # an omega.3
+    srv = load_device("remote", {"kind": "spatial", "listen": "127.0.0.1:0", "link_timeout_s": 1.0}, period_s=DT)
+    cfg = tmp_path / "device.toml"
+    # the firmware watchdog off: a stall of this shared machine's scheduler is not under test here
+    cfg.write_text('[device]\ndriver = "forcedimension"\nwatchdog_s = 0.0\n')
+    env = dict(os.environ, FDSDK=str(sdk_root()), HAPTICPROXY_EMU_BLOCKS=block.path)
+    proc = subprocess.Popen([EXE, "device", "--config", str(cfg), "--server", f"127.0.0.1:{srv.local_address[1]}",
+                             "--rate", "500", "--watchdog-s", "0.5", "--duration", "120"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        t_end = time.monotonic() + 120.0
+        while not srv.wait_for_link(0.2):
+            assert proc.poll() is None, f"the device program exited: {proc.communicate()[1]}"
+            assert time.monotonic() < t_end, "no state from the device program"
+        row = np.zeros(base.DEV_NSTATE)
+        srv.read(row)
+        x0 = row[0]
+        srv.enable()
+        assert eventually(lambda: (srv.read(row), srv.write(F1), srv.device_armed and row[0] > x0 + 0.002)[2],
+                          timeout_s=60.0)
+        assert block.view("rendered")[0] == pytest.approx(1.0)
+        srv.disable()
+        assert eventually(lambda: (srv.read(row), not srv._dev_armed and block.view("rendered")[0] == 0.0)[1],
+                          timeout_s=30.0)
+    finally:
+        err = stop_process(proc)
+        srv.close()
+        block["stop"] = 1.0
+        try:
+            physics.wait(10)
+        except subprocess.TimeoutExpired:
+            physics.kill()
+            physics.wait()
+        block.close()
+    assert proc.returncode == 0, err
+    assert "spatial forcedimension device -> 127.0.0.1" in err and "Force Dimension omega.3 #4242" in err, err
+    assert "Traceback" not in err and "states_sent" in err

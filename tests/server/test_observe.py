@@ -650,3 +650,91 @@ def test_a_recordings_caps_are_the_loops_published_ones_not_a_fresh_blocks_zeros
         sup.close()
     meta = recording.read(tmp_path / "b.mcap").meta
     assert meta["torque_cap_n_m"] is None and meta["force_cap_n"] is None
+
+
+def test_the_engaged_tool_reaches_the_supervisor_through_the_shared_block(rig, tmp_path):
+    """The loop writes the engaged client's tool (its Hello's kind, mass, centre of mass and
+    inertia) into the shared status block; the supervisor draws the proxy with that box, and a
+    dump of the rings keeps it for a replay."""
+    from hapticproxy.server.scene import ToolShape
+
+    r = rig("spatial")
+    assert r.sup.status()["tool_shape"] is None  # nothing engaged yet
+    r.run(20.0, until=lambda: r.sup.tool_shape is not None)
+    hello = r.env.hello
+    want = ToolShape.from_hello("spatial", hello.mass_kg, hello.com_m, hello.inertia_kg_m2)
+    s = r.sup.status()
+    assert s["tool_shape_source"] == "hello" and s["loop_state"] == "engaged"
+    assert s["tool_shape"] == [[list(c), list(q), list(z)] for c, q, z in want.boxes]
+    assert s["tool_kind"] == "spatial" and s["tool_seq"] == 1  # the first engagement
+    assert r.sup.handle({"cmd": "dump", "path": str(tmp_path / "dump.mcap")})["ok"]
+    assert recording.read(tmp_path / "dump.mcap").meta["tool_shape"]["boxes"] == s["tool_shape"]
+
+
+def test_the_supervisor_reads_each_engaged_tool_once_and_never_one_half_written():
+    """``publish_tool`` numbers each engaged tool; ``tool_seq`` is -1 while the fields change, so
+    the supervisor keeps the shape it had; a new number is a new shape (the same number again is
+    not read twice)."""
+    from hapticproxy.server.scene import ToolShape
+    from hapticproxy.server.shm import ST
+
+    settings = cfgmod.load(None, {"transport": {"url": "udp://127.0.0.1:0"}, "status": {"address": "127.0.0.1:0"}})
+    sup = Supervisor(settings)
+    try:
+        sh = sup.shared
+        assert sh.engaged_tool() is None
+        box = (2e-4, 3e-4, 4e-4, 0.0, 0.0, 0.0)
+        sh.publish_tool(1, 3, 0.2, (0.0, 0.01, 0.0), box)
+        assert sh.engaged_tool() == (1, 3, 0.2, (0.0, 0.01, 0.0), box)
+        sup.service()
+        first = ToolShape.from_hello("spatial", 0.2, (0.0, 0.01, 0.0), box)
+        assert sup.tool_shape.boxes == first.boxes and sup.tool_shape.source == "hello"
+        sh.status[ST["tool_seq"]] = -1.0  # the loop is writing the next one
+        sh.status[ST["tool_mass_kg"]] = 0.4
+        assert sh.engaged_tool() is None
+        sup.service()
+        assert sup.tool_shape.boxes == first.boxes
+        sh.status[ST["tool_seq"]] = 1.0  # the same number: not read again
+        sup.service()
+        assert sup.tool_shape.boxes == first.boxes
+        sh.publish_tool(2, 2, 0.1, (0.0, 0.0, 0.0), (0.0, 0.0, 1e-4, 0.0, 0.0, 0.0))
+        sup.service()
+        assert sup.tool_shape.boxes == ToolShape.from_hello("planar", 0.1, (0, 0, 0), (0, 0, 1e-4, 0, 0, 0)).boxes
+    finally:
+        sup.close()
+
+
+def test_a_replay_draws_the_proxy_as_the_recorded_tool_not_the_kinds(tmp_path):
+    """``set_shape`` (a client engaged) leaves a metadata record in the file; ``hapticproxy view
+    FILE.mcap`` draws the proxy with the last one, as the live view did, not the kind's cube."""
+    from hapticproxy.cli.view import recording_frames
+    from hapticproxy.server.scene import ToolShape
+
+    def record(path, shapes):
+        flat = np.zeros((100, NTEL))
+        flat[:, TEL["t_s"]] = np.arange(100) * 1e-3
+        flat[:, TEL["dev_qw"]] = flat[:, TEL["proxy_qw"]] = 1.0
+        w = recording.McapRecorder(path, rate_hz=1000.0, config={"device": {"kind": "spatial"}},
+                                   t0_epoch_ns=10**18, meta={"tool_kind": "spatial"})
+        for shape in shapes:
+            w.set_shape(shape)
+        w.add_rows(flat)
+        w.close()
+
+    inertia = (2e-5, 5e-5, 6e-5, 0.0, 0.0, 0.0)
+    first = ToolShape.from_hello("spatial", 0.2, (0.0, 0.0, 0.0), inertia)
+    second = ToolShape.from_hello("spatial", 0.3, (0.0, 0.01, 0.0), inertia)
+    record(tmp_path / "two.mcap", [first, second])
+    rec = recording.read(tmp_path / "two.mcap")
+    assert rec.meta["tool_shape"]["source"] == "hello"
+    shape, frames = recording_frames(tmp_path / "two.mcap")
+    assert shape.source == "hello" and frames
+    np.testing.assert_allclose(np.array(shape.boxes[0][2]), second.boxes[0][2], rtol=1e-12)
+    np.testing.assert_allclose(shape.boxes[0][0], (0.0, 0.01, 0.0))
+    w = recording.McapRecorder(tmp_path / "late.mcap", rate_hz=1000.0, config={"device": {"kind": "spatial"}},
+                               t0_epoch_ns=10**18, meta={"tool_kind": "spatial"}, shape=first)  # engaged before
+    w.close()
+    assert recording.read(tmp_path / "late.mcap").meta["tool_shape"]["boxes"][0][2] == list(first.boxes[0][2])
+    record(tmp_path / "none.mcap", [])  # no client engaged: the kind's shape
+    shape, _ = recording_frames(tmp_path / "none.mcap")
+    assert shape.source == "kind" and shape.boxes == ToolShape.for_kind("spatial").boxes
