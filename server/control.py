@@ -41,7 +41,10 @@ from ..protocol.vocab import CONTROLLERS
 from . import safety as sf
 from .readonly import ArrayBool, ArrayFloat, ArrayInt
 from .model.kernels import _rigid_pose, hand_to_world, step_rigid
-from .model.layout import LM_PLANAR, P_AXIS, P_HAND, P_ORIGIN, S_FENV, S_Q, S_QD, TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL
+from .model.layout import (
+    DIVERGE_STEPS, INTEG_EXPLICIT, K_OSC_RUN, LM_PLANAR, P_AXIS, P_CPL_BR, P_CPL_BT, P_CPL_KR, P_CPL_KT, P_HAND, P_INTEG, P_ORIGIN, S_FCPL,
+    S_FENV, S_Q, S_QD, TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL,
+)
 from .model.linkage import hand_state_linkage, step_linkage
 from .model.model import quat_to_matrix
 from .prediction import advice_update
@@ -106,6 +109,7 @@ NCC = 7
 RC_OK = sf.RC_OK
 RC_NONFINITE = sf.RC_NONFINITE
 RC_SPEED = 2
+RC_DIVERGED = 3     # the model's integration diverged (model.layout DIVERGE_STEPS): forces fade, device on
 
 
 @njit(**_JIT)
@@ -437,6 +441,55 @@ def _ramp_slide(cp, cs, dev, mode, ctype):
 
 
 @njit(**_JIT)
+def _coupling_to_model(cp, cs, par, ctype):
+    """Hand the model the coupling's spring-damper on the proxy's hand point (``_coupling``), so
+    its implicit step takes it in; no spring while the slide re-indexes it every step (it never
+    stretches). Direct coupling has none, and its model steps explicitly: the device sets the
+    proxy every step, so the model integrates nothing and renders the penalty of the device's
+    own state (the intermediate representation as Berkelman's)."""
+    on = 0.0 if ctype == CTRL_DIRECT else 1.0
+    if ctype == CTRL_DIRECT:
+        par[P_INTEG] = INTEG_EXPLICIT
+    spring = 0.0 if cs[CS_SLIDE] != 0.0 else on
+    par[P_CPL_KT] = spring * cp[CP_KT]
+    par[P_CPL_BT] = on * cp[CP_BT]
+    par[P_CPL_KR] = spring * cp[CP_KR]
+    par[P_CPL_BR] = on * cp[CP_BR]
+
+
+@njit(**_JIT)
+def _diverged(cs, cnt, rc):
+    """The model flagged its integration as diverged (a velocity flipping every step without
+    decaying for DIVERGE_STEPS steps): the force it renders is the instability's, not the
+    contact's. The gain's target is held at zero while it lasts (a re-arm cannot ramp a diverging
+    proxy back in); the step it is first flagged returns RC_DIVERGED (lifecycle.FAULT_POLICY:
+    fade, re-arm), unless the step already had a fault of its own."""
+    run = cnt[K_OSC_RUN]
+    if run < DIVERGE_STEPS:
+        return rc
+    cs[CS_TARGET] = 0.0
+    if run == DIVERGE_STEPS and rc == RC_OK:
+        return RC_DIVERGED
+    return rc
+
+
+@njit(**_JIT)
+def _coupling_from_model(kind, par, st, cs):
+    """The coupling wrench at the end of the model's implicit step (``S_FCPL``: what its motion
+    changed), so the device gets the reaction of what the proxy felt."""
+    if kind == TOOL_1DOF:
+        for j in range(3):
+            cs[CS_FC + j] += st[S_FCPL] * par[P_AXIS + j]
+    elif kind == TOOL_PLANAR:
+        cs[CS_FC] += st[S_FCPL]
+        cs[CS_FC + 1] += st[S_FCPL + 1]
+        cs[CS_FC + 5] += st[S_FCPL + 2]
+    else:
+        for j in range(6):
+            cs[CS_FC + j] += st[S_FCPL + j]
+
+
+@njit(**_JIT)
 def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, hand, R, c):
     """One haptic step after the device read. ``dev``: device state row (see devices.base);
     ``cmd`` (6): output, device frame. ``active``: a session has engaged the model.
@@ -502,8 +555,11 @@ def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, han
         else:
             _hand_channel(cp, cs, cc, dev, ctype)
         _hand_in(kind, par, cs, hand)
+        _coupling_to_model(cp, cs, par, ctype)
         if step_rigid(kind, par, st, C, CI, cnt, wk, hand) != 0:
             return _fault_zero(cs, cc, cmd)
+        rc = _diverged(cs, cnt, rc)
+        _coupling_from_model(kind, par, st, cs)
         _env_from_state(kind, par, st, cs)
         proxy_hand_state(kind, par, st, R, c, cs, CS_PPOSE)
         return _command_out(cp, cs, cc, cmd, ctype, rc)
@@ -534,8 +590,11 @@ def haptic_step_linkage(cp, cs, cc, dev, cmd, par, lmeta, lk, lki, st, C, CI, cn
     _hand_channel(cp, cs, cc, dev, ctype)
     # the hand wrench in the tool's hand space, at the held link's frame origin
     _hand_in(kind, par, cs, hand)
+    _coupling_to_model(cp, cs, par, ctype)
     if step_linkage(par, lmeta, lk, lki, st, C, CI, cnt, wk, lw, hand) != 0:
         return _fault_zero(cs, cc, cmd)
+    rc = _diverged(cs, cnt, rc)
+    _coupling_from_model(kind, par, st, cs)
     _env_from_state(kind, par, st, cs)
     hand_state_linkage(lmeta, lk, lki, st, lw, cs, CS_PPOSE)
     return _command_out(cp, cs, cc, cmd, ctype, rc)

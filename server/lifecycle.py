@@ -68,6 +68,7 @@ class Fault(IntEnum):
     SPEED = 3           # the device moved faster than its limit: forces faded, device on
     STALL = 4           # the device's watchdog tripped because the loop was late: recovers by itself
     STALLS_REPEATED = 5  # more stall trips than allowed in the window: latched
+    DIVERGED = 6        # the model's integration diverged: forces faded, device on
 
 
 FAULT_TEXT = {
@@ -77,6 +78,7 @@ FAULT_TEXT = {
     Fault.SPEED: "device speed over its limit (forces faded)",
     Fault.STALL: "device watchdog tripped by a late loop (recovers once the loop is on time)",
     Fault.STALLS_REPEATED: "device watchdog tripped by late loops too often (latched)",
+    Fault.DIVERGED: "the proxy's integration diverged (forces faded)",
 }
 #: Faults that clear by themselves; every other one waits for ``status --rearm``.
 SELF_CLEARING = frozenset({Fault.STALL})
@@ -110,6 +112,7 @@ class Reason(IntEnum):
     STOPPED = 17
     UPDATE_ERROR = 18     # an update raised: treated as a non-finite value
     SPEED_IDLE = 19       # the handle moved faster than its limit while nothing was rendered
+    DIVERGED = 20         # the model flagged its integration as diverged
 
 
 REASON_TEXT = {
@@ -135,6 +138,8 @@ REASON_TEXT = {
                          "`hapticproxy status --rearm`",
     Reason.SPEED_IDLE: "the handle moved faster than its limit while nothing was rendered (counted; nothing "
                        "to fade)",
+    Reason.DIVERGED: "the proxy's integration diverged (a velocity flipping every step without decaying): forces "
+                     "faded; re-arm with `hapticproxy status --rearm`",
 }
 
 
@@ -198,6 +203,9 @@ FAULT_POLICY: tuple[Policy, ...] = (
     Policy("speed_engaged", "device faster than its limit while force is rendered", "fade", "re-arm", Fault.SPEED, Reason.SPEED),
     Policy("speed_idle", "device faster than its limit while nothing is rendered", "none", "nothing to recover: counted and "
            "logged", Fault.NONE, Reason.SPEED_IDLE),
+    Policy("diverged", "the model's integration diverged (a velocity flipping every step without decaying for "
+           "model.layout.DIVERGE_STEPS steps; the force held at zero while it lasts)", "fade", "re-arm", Fault.DIVERGED,
+           Reason.DIVERGED),
     Policy("env_silent", "environment silent for safety.watchdog_s", "fade", "by itself when updates resume (the force "
            "ramps in)", Fault.NONE, Reason.SILENT),
     Policy("session_ended", "the session ended (Bye, timeout)", "fade", "a new session engages (ramps in)", Fault.NONE,

@@ -167,6 +167,9 @@ class Lifecycle:
                 return
             self.fault = Fault.SPEED  # fade out (the kernel dropped the gain target), device stays on
             why = Reason.SPEED
+        elif rc == ctl.RC_DIVERGED and not dev_code:
+            self.fault = Fault.DIVERGED  # fade out (the kernel holds the gain target at zero), device on
+            why = Reason.DIVERGED
         elif dev_code:
             self.fault = Fault.DEVICE
             self.device_fault = dev_code

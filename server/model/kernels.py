@@ -5,8 +5,13 @@ Two entry points per tool family, each one compiled call per haptic step / model
 - ``step_rigid(kind, par, st, C, CI, cnt, wk, hand)``: local collision detection (eq. 3), the
   contact state machine (section IV-A), simultaneous collision impulses (eq. 11) rendered as the
   impulsive wrench (eq. 12), penalty + stick-slip friction (eq. 7), the force to the hand through
-  the dynamically consistent inverse of the hand Jacobian (eq. 8), and one semi-implicit Euler
-  step of the proxy.
+  the dynamically consistent inverse of the hand Jacobian (eq. 8), and one step of the proxy:
+  by default (``P_INTEG`` = ``INTEG_IMPLICIT``) with its spring-dampers -- the controller's
+  coupling at the hand point, the penalty contacts along their normals, sticking friction --
+  linearised implicitly, (D + dt B + dt^2 K) dv = dt F (``_implicit_step``: stable for any
+  mass, inertia, stiffness and damping; the forces rendered are the ones the proxy felt over the
+  step), or the paper's semi-implicit Euler with every force explicit (``INTEG_EXPLICIT``).
+  ``_watch_divergence`` counts a velocity that flips sign every step without decaying.
 - ``update_rigid(kind, ..., keys, cp, n, d, vc, n_in, sel, newF, newI)``: validation, the
   capacity rule, and the update rule table of the notes (eqs. 1/4/5/6).
 
@@ -46,8 +51,10 @@ from .layout import (
     FLIP_DOT, FLIP_REFUSE_MAX, KEY_SLIDE_FACTOR, MAX_DOF, NCOLS_F, NCOLS_I, REKEY_COS, REKEY_DISTANCE_M,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
     P_EPS, P_ORIGIN, P_POLICY, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN,
+    P_CPL_BR, P_CPL_BT, P_CPL_KR, P_CPL_KT, P_INTEG, INTEG_IMPLICIT, K_DIVERGED, K_OSC_RUN,
+    DIVERGE_DECAY, DIVERGE_SPEED, DIVERGE_STEPS,
     POLICY_PAPER_LITERAL, POLICY_RIGID, PS_COLLIDING, PS_FREE, PS_RESTING,
-    S_EREC, S_RECF, S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_Q, S_QD, S_T,
+    S_EREC, S_RECF, S_FCPL, S_FENV, S_FH, S_QDP, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_Q, S_QD, S_T,
     TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL, TOUCH_TOL_M, UNIT_TOL,
 )
 
@@ -69,7 +76,12 @@ _V_TAUG = 6    # generalized gravity force
 _V_GIMP = 7    # generalized impulse
 _V_TOT = 8     # total generalized force
 _V_HV = 9      # hand-space temporaries
+_V_DV = 10     # the implicit step's velocity change
+_V_BASE = 11   # the implicit step's generalized force without the contacts
 _NVEC = 12
+#: Most solves of the implicit step per haptic step: the contacts that push at its end are found
+#: by solving with a guess (those pushing at its start), then again while the set changes.
+IMPLICIT_MAX_SOLVES = 8
 
 
 def workspace_size(capacity: int) -> int:
@@ -641,10 +653,16 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
         for r in range(h):
             s += Jh[r, a] * st[S_FH + r]
         tot[a] = s
-    _fwd(L, tot, tot, d)
-    _bwd(L, tot, tot, d)
-    for a in range(d):
-        qd[a] += dt * tot[a]
+    if par[P_INTEG] == INTEG_IMPLICIT:
+        if not _implicit_step(d, h, par, st, C, CI, cnt, Jh, Jpt, Jn, D, G, Y, Cm, Zn, V, m):
+            return False
+    else:
+        _fwd(L, tot, tot, d)
+        _bwd(L, tot, tot, d)
+        for a in range(d):
+            qd[a] += dt * tot[a]
+        for r in range(h):
+            st[S_FCPL + r] = 0.0
 
     # what the hand feels: penalty + friction (eq. 8) and the impulsive wrench (eq. 12)
     fpen = V[_V_T2]
@@ -668,6 +686,311 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
         if not math.isfinite(st[S_FENV + r]):
             ok = False
     return ok
+
+
+@njit(**_JIT)
+def _implicit_step(d, h, par, st, C, CI, cnt, Jh, Jpt, Jn, D, A, LA, W, Zn, V, m):
+    """The proxy's velocity update with its stiff and damped terms linearised implicitly:
+    (D + dt B + dt^2 K) dv = dt F, F the generalized force at the start of the step (``V[_V_TOT]``,
+    as the explicit step has it), B and K the spring-dampers acting on the proxy: the controller's
+    coupling at the hand point (``P_CPL_*``, hand space through J_h), each contact that pushes
+    (k, b along its normal through J_n) and each sticking friction bristle (k_t, b_t in its
+    tangent plane). As dt B + dt^2 K << D it is the explicit step; for any stiffness, damping and
+    mass it neither flips nor grows (a spring alone keeps its energy, any damper dissipates): a
+    gram-light tool on the coupling and the contacts of a kilogram one is stable.
+
+    Contacts are one-sided and friction is bounded, both at the step's end: a touching contact is
+    in the system when its linearised normal force there, f_e = f_0 - (b + dt k) J_n dv (f_0 =
+    -k s - b v_n now, unclamped), pushes; with friction its bristle sticks, the stick force
+    there t_0 - (b_t + dt k_t) (I - n n^T) J_i dv (t_0 the stick force now, as the friction
+    pass has it), while that stays within mu_s f_e; once it leaves the cone it slips at mu_k f_0
+    (the friction pass's kinetic level) against that stick force (and it sticks again if its
+    stick force would be inside). The guess is the friction
+    pass's (the contacts pushing now, its stick / slip); the step is solved again while a
+    contact enters or leaves the system or its bristle changes between stick and slip (at most
+    ``IMPLICIT_MAX_SOLVES`` solves; if they run out, a stick force is cut to the cone). Without that, a contact creeping out of
+    an overdamped penetration (its force about zero) entered and left the system on alternate
+    steps, and whether a contact had friction was decided by a rounding-sized force at the start.
+
+    The hand wrench came with the velocity before the step's collision impulse: its coupling
+    damper is taken at the velocity the impulse left (-B J_h (qd - qd0) more), as the contacts'
+    dampers are.
+
+    On return ``V[_V_QD]`` holds the new velocity, ``V[_V_TAU]`` the generalized contact force the
+    proxy felt over the step (what eq. 8 renders), C_FN and C_FT that force per contact, CI_SLIP
+    and the bristles (Zn) where the step left them, ``S_FCPL`` the coupling's change. ``W``
+    (cap x MAX_DOF) is scratch: per contact 0: in the system; 1: f_0; 2: friction mode (0 none,
+    1 stick, 2 slip as the friction pass found it, 3 slip after breaking away, 4 stick after
+    slipping); 3..5: t_0; 6..8: the bristle the stick force t_0 stretches; 9..11: the
+    kinetic force. False: not finite."""
+    dt = par[P_DT]
+    k = par[P_K]
+    b = par[P_B]
+    kt = par[P_KT]
+    bt = par[P_BT]
+    mus = par[P_MUS]
+    muk = par[P_MUK]
+    tot = V[_V_TOT]
+    tau = V[_V_TAU]
+    base = V[_V_BASE]
+    dv = V[_V_DV]
+    qd = V[_V_QD]
+    rhs = V[_V_T1]
+    for a in range(d):
+        base[a] = tot[a] - tau[a]
+    # the coupling's damper at the velocity the collision impulse left (the hand wrench came with
+    # the velocity before it): -B J_h (qd - qd0), hand space, kept in S_FCPL for the controller
+    qd0 = V[_V_QD0]
+    b_t = par[P_CPL_BT]
+    b_r = par[P_CPL_BR]
+    for r in range(h):
+        s = 0.0
+        for a in range(d):
+            s += Jh[r, a] * (qd[a] - qd0[a])
+        s *= -(b_r if ((h == 3 and r == 2) or (h == 6 and r >= 3)) else b_t)
+        st[S_FCPL + r] = s
+        for a in range(d):
+            base[a] += Jh[r, a] * s
+    friction = mus > 0.0 or muk > 0.0
+    for i in range(m):
+        W[i, 0] = 1.0 if C[i, C_FN] > 0.0 else 0.0
+        W[i, 1] = -k * C[i, C_S] - b * C[i, C_VN]
+        W[i, 2] = 0.0
+        for j in range(3, 12):
+            W[i, j] = 0.0
+        if friction and C[i, C_S] <= TOUCH_TOL_M:
+            # the stick force now and its bristle, as the friction pass computes them
+            n0 = C[i, C_N]; n1 = C[i, C_N + 1]; n2 = C[i, C_N + 2]
+            v0 = 0.0; v1 = 0.0; v2 = 0.0
+            for a in range(d):
+                v0 += Jpt[i, 0, a] * qd[a]
+                v1 += Jpt[i, 1, a] * qd[a]
+                v2 += Jpt[i, 2, a] * qd[a]
+            vdn = v0 * n0 + v1 * n1 + v2 * n2
+            v0 -= vdn * n0; v1 -= vdn * n1; v2 -= vdn * n2
+            z0 = C[i, C_Z]; z1 = C[i, C_Z + 1]; z2 = C[i, C_Z + 2]
+            zdn = z0 * n0 + z1 * n1 + z2 * n2
+            z0 += dt * v0 - zdn * n0
+            z1 += dt * v1 - zdn * n1
+            z2 += dt * v2 - zdn * n2
+            W[i, 3] = -kt * z0 - bt * v0
+            W[i, 4] = -kt * z1 - bt * v1
+            W[i, 5] = -kt * z2 - bt * v2
+            W[i, 6] = z0
+            W[i, 7] = z1
+            W[i, 8] = z2
+            # its kinetic force if the friction pass found it slipping: the bristle held at
+            # mu_k f_0, the friction pass's breakaway
+            zn = math.sqrt(z0 * z0 + z1 * z1 + z2 * z2)
+            f0 = W[i, 1] if W[i, 1] > 0.0 else 0.0
+            sc = -muk * f0 / zn if (zn > 0.0 and kt > 0.0) else 0.0
+            W[i, 9] = sc * z0
+            W[i, 10] = sc * z1
+            W[i, 11] = sc * z2
+            W[i, 2] = 2.0 if (C[i, C_FN] > 0.0 and CI[i, CI_SLIP] != 0) else 1.0   # the friction pass's guess
+    cn = dt * b + dt * dt * k
+    ctan = dt * bt + dt * dt * kt
+    for _solve in range(IMPLICIT_MAX_SOLVES):
+        _implicit_matrix(d, h, par, Jh, Jpt, Jn, D, A, W, m)
+        for a in range(d):
+            rhs[a] = base[a]
+        for i in range(m):
+            if W[i, 0] != 0.0:
+                f0 = W[i, 1]
+                o = 3 if (W[i, 2] == 1.0 or W[i, 2] == 4.0) else 9  # mode 0: both are zero
+                f_0 = f0 * C[i, C_N] + W[i, o]
+                f_1 = f0 * C[i, C_N + 1] + W[i, o + 1]
+                f_2 = f0 * C[i, C_N + 2] + W[i, o + 2]
+                for a in range(d):
+                    rhs[a] += Jpt[i, 0, a] * f_0 + Jpt[i, 1, a] * f_1 + Jpt[i, 2, a] * f_2
+        if not _chol(A, LA, d):
+            return False
+        _fwd(LA, rhs, dv, d)
+        _bwd(LA, dv, dv, d)
+        for a in range(d):
+            dv[a] *= dt
+        changed = False
+        for i in range(m):
+            if C[i, C_S] > TOUCH_TOL_M:
+                continue
+            dn = 0.0
+            for a in range(d):
+                dn += Jn[i, a] * dv[a]
+            fe = W[i, 1] - cn / dt * dn
+            pushes = fe > 0.0
+            if pushes != (W[i, 0] != 0.0):
+                W[i, 0] = 1.0 if pushes else 0.0
+                changed = True
+            elif pushes and W[i, 2] != 0.0 and W[i, 2] != 3.0:
+                # the stick force at the step's end: a sticking bristle whose force leaves the
+                # friction cone breaks away (it slips at the kinetic level, for the rest of the
+                # step); one the friction pass found slipping whose force would be inside it
+                # sticks (once): no contact turns more than twice, the solves end
+                u0, u1, u2 = _tangential(i, d, C, Jpt, dv)
+                c = ctan / dt
+                t0 = W[i, 3] - c * u0
+                t1 = W[i, 4] - c * u1
+                t2 = W[i, 5] - c * u2
+                tn = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+                sticking = W[i, 2] == 1.0 or W[i, 2] == 4.0
+                if sticking and tn > mus * fe:
+                    # against the motion that breaks it away, at mu_k f_0 (the friction pass's
+                    # level: the start's normal force, whichever solve decides it)
+                    f0 = W[i, 1] if W[i, 1] > 0.0 else 0.0
+                    sc = muk * f0 / tn
+                    W[i, 9] = sc * t0
+                    W[i, 10] = sc * t1
+                    W[i, 11] = sc * t2
+                    W[i, 2] = 3.0
+                    changed = True
+                elif W[i, 2] == 2.0 and tn <= mus * fe:
+                    W[i, 2] = 4.0
+                    changed = True
+        if not changed:
+            break
+    # the coupling's wrench at the step's end differs from the one handed in by -(B + dt K) J_h dv:
+    # the controller renders that one to the device (equal and opposite coupling forces)
+    bk_t = par[P_CPL_BT] + dt * par[P_CPL_KT]
+    bk_r = par[P_CPL_BR] + dt * par[P_CPL_KR]
+    for r in range(h):
+        s = 0.0
+        for a in range(d):
+            s += Jh[r, a] * dv[a]
+        st[S_FCPL + r] -= (bk_r if ((h == 3 and r == 2) or (h == 6 and r >= 3)) else bk_t) * s
+    # what each contact gave over the step: its linearised force at the step's end
+    for a in range(d):
+        qd[a] += dv[a]
+        tau[a] = 0.0
+    n_slip = 0
+    for i in range(m):
+        CI[i, CI_SLIP] = 0
+        if W[i, 0] == 0.0:
+            C[i, C_FN] = 0.0
+            for j in range(3):
+                C[i, C_FT + j] = 0.0
+                Zn[i, j] = 0.0
+            continue
+        n0 = C[i, C_N]; n1 = C[i, C_N + 1]; n2 = C[i, C_N + 2]
+        dn = 0.0
+        for a in range(d):
+            dn += Jn[i, a] * dv[a]
+        fn = W[i, 1] - cn / dt * dn
+        if fn < 0.0:
+            fn = 0.0                          # the set did not settle: never pulling
+        C[i, C_FN] = fn
+        if W[i, 2] == 1.0 or W[i, 2] == 4.0:
+            # sticking: the bristle moved with the new tangential velocity (within the cone
+            # unless the solves ran out first)
+            u0, u1, u2 = _tangential(i, d, C, Jpt, dv)
+            c = ctan / dt
+            t0 = W[i, 3] - c * u0
+            t1 = W[i, 4] - c * u1
+            t2 = W[i, 5] - c * u2
+            tn = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+            sc = mus * fn / tn if tn > mus * fn else 1.0
+            C[i, C_FT] = sc * t0
+            C[i, C_FT + 1] = sc * t1
+            C[i, C_FT + 2] = sc * t2
+            Zn[i, 0] = W[i, 6] + dt * u0
+            Zn[i, 1] = W[i, 7] + dt * u1
+            Zn[i, 2] = W[i, 8] + dt * u2
+        elif W[i, 2] != 0.0:
+            # slipping: the bristle holds the kinetic force (as the friction pass leaves it)
+            for j in range(3):
+                C[i, C_FT + j] = W[i, 9 + j]
+                Zn[i, j] = -W[i, 9 + j] / kt if kt > 0.0 else 0.0
+            CI[i, CI_SLIP] = 1
+            n_slip += 1
+        else:
+            for j in range(3):
+                C[i, C_FT + j] = 0.0
+                Zn[i, j] = 0.0
+        f_0 = fn * n0 + C[i, C_FT]
+        f_1 = fn * n1 + C[i, C_FT + 1]
+        f_2 = fn * n2 + C[i, C_FT + 2]
+        for a in range(d):
+            tau[a] += Jpt[i, 0, a] * f_0 + Jpt[i, 1, a] * f_1 + Jpt[i, 2, a] * f_2
+    cnt[K_SLIPPING] = n_slip
+    for a in range(d):
+        if not math.isfinite(qd[a]):
+            return False
+    return True
+
+
+@njit(inline="always", **_JIT)
+def _tangential(i, d, C, Jpt, dv):
+    """The change dv makes to contact i's tangential velocity, (I - n n^T) J_i dv (world)."""
+    n0 = C[i, C_N]; n1 = C[i, C_N + 1]; n2 = C[i, C_N + 2]
+    u0 = 0.0; u1 = 0.0; u2 = 0.0
+    for a in range(d):
+        u0 += Jpt[i, 0, a] * dv[a]
+        u1 += Jpt[i, 1, a] * dv[a]
+        u2 += Jpt[i, 2, a] * dv[a]
+    un = u0 * n0 + u1 * n1 + u2 * n2
+    return u0 - un * n0, u1 - un * n1, u2 - un * n2
+
+
+@njit(**_JIT)
+def _implicit_matrix(d, h, par, Jh, Jpt, Jn, D, A, W, m):
+    """The lower triangle of A = D + dt B + dt^2 K (d x d) of ``_implicit_step``: the coupling in
+    hand space (translational rows, then rotational ones), and each contact in the system
+    (``W[:, 0]``): k, b along its normal, plus k_t, b_t in its tangent plane while its bristle
+    sticks (``W[:, 2]`` = 1 or 4)."""
+    dt = par[P_DT]
+    dt2 = dt * dt
+    for a in range(d):
+        for b2 in range(a + 1):
+            A[a, b2] = D[a, b2]
+    ct_t = dt * par[P_CPL_BT] + dt2 * par[P_CPL_KT]
+    ct_r = dt * par[P_CPL_BR] + dt2 * par[P_CPL_KR]
+    for r in range(h):
+        # hand space: 1 (the axis), 3 (x, y, about z) or 6 (x, y, z, about x, y, z)
+        c = ct_r if ((h == 3 and r == 2) or (h == 6 and r >= 3)) else ct_t
+        if c != 0.0:
+            for a in range(d):
+                ja = c * Jh[r, a]
+                for b2 in range(a + 1):
+                    A[a, b2] += ja * Jh[r, b2]
+    cn = dt * par[P_B] + dt2 * par[P_K]
+    ctan = dt * par[P_BT] + dt2 * par[P_KT]
+    for i in range(m):
+        if W[i, 0] == 0.0:
+            continue
+        cni = cn
+        if (W[i, 2] == 1.0 or W[i, 2] == 4.0) and ctan != 0.0:
+            # sticking: k_t, b_t on the tangential velocity (I - n n^T) J_i qd
+            cni = cn - ctan
+            for a in range(d):
+                for b2 in range(a + 1):
+                    A[a, b2] += ctan * (Jpt[i, 0, a] * Jpt[i, 0, b2] + Jpt[i, 1, a] * Jpt[i, 1, b2]
+                                        + Jpt[i, 2, a] * Jpt[i, 2, b2])
+        for a in range(d):
+            ja = cni * Jn[i, a]
+            for b2 in range(a + 1):
+                A[a, b2] += ja * Jn[i, b2]
+
+
+@njit(inline="always", **_JIT)
+def _watch_divergence(d, st, cnt, V):
+    """K_OSC_RUN: steps in a row at whose start some coordinate of the proxy's velocity had
+    reversed since the previous step's start without decaying (by DIVERGE_DECAY at most),
+    faster than DIVERGE_SPEED;
+    K_DIVERGED counts each time the run reaches DIVERGE_STEPS (``layout``: a numerical
+    instability's signature, never a tool's motion). Starts, not ends: with direct coupling the
+    device sets the velocity a step starts from."""
+    qd0 = V[_V_QD0]
+    osc = False
+    for a in range(d):
+        p = st[S_QDP + a]
+        if qd0[a] * p < 0.0 and abs(qd0[a]) >= (1.0 - DIVERGE_DECAY) * abs(p) and abs(qd0[a]) > DIVERGE_SPEED:
+            osc = True
+        st[S_QDP + a] = qd0[a]
+    if osc:
+        cnt[K_OSC_RUN] += 1
+        if cnt[K_OSC_RUN] == DIVERGE_STEPS:
+            cnt[K_DIVERGED] += 1
+    else:
+        cnt[K_OSC_RUN] = 0
 
 
 @njit(**_JIT)
@@ -730,6 +1053,7 @@ def end_step(ok, d, par, st, C, cnt, D, Zn, V, m):
     either way. Returns ``ok``: the caller's integrator then moves q by qd = ``V[_V_QD]``."""
     if ok:
         commit_velocity(d, st, C, D, Zn, V, m)
+        _watch_divergence(d, st, cnt, V)
     else:
         _zero_outputs(st)
         cnt[K_NONFINITE] += 1

@@ -106,7 +106,23 @@ P_REC_AGE = 35      # deformation recovery: only contacts that survived at least
                     # updates are recovered (stored as float)
 P_REC_VN = 36       # deformation recovery: only while the proxy's normal speed at the contact is at
                     # most this, m/s (a resting contact, not an impact or a shaken one; 0: no gate)
-NPAR = 37
+P_CPL_KT = 37       # the controller's coupling spring between the device and the proxy's hand point,
+                    # translational, N/m (the controller writes it every step it drives the proxy;
+                    # 0: no coupling, as with direct coupling or a bare model)
+P_CPL_BT = 38       # ... its translational damper, N s/m
+P_CPL_KR = 39       # ... its rotational spring, N m/rad
+P_CPL_BR = 40       # ... its rotational damper, N m s/rad
+P_INTEG = 41        # INTEG_*: how the step treats the stiff and damped terms (stored as float)
+NPAR = 42
+
+# --- integrators (P_INTEG) --------------------------------------------------------------------
+#: Semi-implicit Euler with every force explicit (the paper's step): M dv = dt F(q, qd). Stable
+#: only while k dt^2 / m and b dt / m stay small for every spring-damper on every coordinate.
+INTEG_EXPLICIT = 0
+#: The spring-dampers (the device coupling at the hand point, penalty contacts along their
+#: normals, sticking friction) linearised implicitly: (M + dt B + dt^2 K) dv = dt F(q, qd).
+INTEG_IMPLICIT = 1
+INTEGRATOR_NAMES = {"explicit": INTEG_EXPLICIT, "implicit": INTEG_IMPLICIT}
 
 # --- state (float64) --------------------------------------------------------------------------
 S_T = 0             # model time, s
@@ -128,7 +144,13 @@ S_EREC = 72         # energy the deformation recovery gave the proxy since reset
                     # normal force times the recovered distance: the moving constraint's work)
 S_RECF = 73         # penalty force the recovery added at this step at a fixed pose, k x sum of the
                     # distances recovered, N (what the recovery's force-rate bound limits)
-NSTATE = 74
+S_FCPL = 74         # 74..79 the implicit step's change of the coupling wrench over the step, hand space
+                    # (as S_FH): -(B + dt K) J_h dv, so the coupling wrench the proxy felt is S_FH's
+                    # coupling part plus this; the controller renders the same to the device (0 with
+                    # the explicit step)
+S_QDP = 80          # 80..91 the velocity qd at the start of the previous step (the divergence watch
+                    # compares the starts of consecutive steps: with direct coupling the device sets it)
+NSTATE = 92
 
 # --- counters (int64) -------------------------------------------------------------------------
 K_M = 0             # live contacts
@@ -152,7 +174,11 @@ K_REKEYED = 17      # new keys that took over a contact that left at the same fe
 K_RECOVERING = 18   # contacts whose deformation was being recovered this step
 K_FLIPS_TAKEN = 19  # reversed normals taken, not refused: the held one had the tool behind its surface, or the
                     # reversal outlasted the refusals (cumulative; the held contact left, the reported one is new)
-NCOUNT = 20
+K_OSC_RUN = 20      # consecutive steps at whose start a coordinate of the proxy's velocity had reversed
+                    # since the previous step's start without decaying, above DIVERGE_SPEED (a
+                    # numerical instability's signature)
+K_DIVERGED = 21     # times K_OSC_RUN reached DIVERGE_STEPS (cumulative): the proxy's integration diverged
+NCOUNT = 22
 
 # --- linkages ---------------------------------------------------------------------------------
 JT_ROOT = 0         # joint types, the protocol's JointType values
@@ -247,6 +273,16 @@ FLIP_REFUSE_MAX = 300
 #: Reported in reverse (n_new . n_old below -REKEY_COS) at the same point, it is a flip: the old
 #: contact is kept as it was.
 REKEY_COS = 0.9961946980917455   # cos(5 deg)
+#: A coordinate of the proxy's velocity that reverses from one step to the next without decaying
+#: (by less than DIVERGE_DECAY: |qd_new| >= (1 - DIVERGE_DECAY) |qd_old|), faster than
+#: DIVERGE_SPEED (m/s or rad/s), oscillates at the haptic rate's Nyquist frequency: no motion
+#: of a physical tool does that, an unstable step does (an explicit damper with b dt / m > 2
+#: flips the sign each step and grows; one-sided contacts can hold such a flip at a constant
+#: size, give or take rounding). DIVERGE_STEPS such steps in a row: the proxy's integration
+#: diverged (K_OSC_RUN; K_DIVERGED counts the times, and stays non-zero for the model's life).
+DIVERGE_SPEED = 1e-3
+DIVERGE_DECAY = 0.01
+DIVERGE_STEPS = 8
 REKEY_DISTANCE_M = 0.002
 #: A kept key continues its contact only at that contact: the two constraint planes within
 #: REKEY_DISTANCE_M of each other, and the reported feature along the surface within

@@ -31,7 +31,8 @@ from .layout import (
     K_N_PENETRATING, K_N_SEPARATING, K_NEW, K_NONFINITE, K_PROXY, K_RANK, K_SLIPPING, K_STEPS,
     K_UPDATES, NCOLS_F, NCOLS_I, NCOUNT, NPAR, NSTATE,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_EPS, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK,
-    P_MUS, P_ORIGIN, P_POLICY, POLICY_PAPER_LITERAL, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN, POLICY_NAMES, PROXY_STATE_NAMES,
+    P_MUS, P_ORIGIN, P_POLICY, POLICY_PAPER_LITERAL, P_CPL_BR, P_CPL_BT, P_CPL_KR, P_CPL_KT, P_INTEG,
+    INTEGRATOR_NAMES, K_DIVERGED, K_OSC_RUN, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN, POLICY_NAMES, PROXY_STATE_NAMES,
     S_EREC, S_RECF, S_FENV, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
     TOOL_1DOF, TOOL_DIMS, TOOL_KIND_NAMES, TOOL_LINKAGE, TOOL_PLANAR, TOOL_SPATIAL, UNIT_TOL,
     JT_PRISMATIC, JT_REVOLUTE, JT_ROOT, LI_CHAIN, LI_NCHAIN, LI_PARENT, LI_TYPE,
@@ -296,17 +297,19 @@ class ContactParams:
                 raise ValueError(f"contact.{name}: must be >= 0, got {v!r}")
 
 
-#: The haptic step (semi-implicit Euler) is unstable beyond these for a contact acting through
-#: the tool's COM: the spring when omega dt > 2 (k dt^2 / m > 4), the damper when it overshoots
-#: (b dt / m > 2). Necessary, not sufficient: a contact far from the COM of a tool with a small
-#: inertia has a smaller effective mass (EXPERIMENTS.md, "stable region").
+#: The explicit haptic step (``integrator="explicit"``, semi-implicit Euler with every force
+#: explicit, the paper's) is unstable beyond these for a contact acting through the tool's COM:
+#: the spring when omega dt > 2 (k dt^2 / m > 4), the damper when it overshoots (b dt / m > 2).
+#: Necessary, not sufficient: a contact far from the COM of a tool with a small inertia has a
+#: smaller effective mass, and the coupling's damper acts too (EXPERIMENTS.md, "Light tools").
+#: The implicit step (the default) has no such limit (``check_proxy_inertia``).
 STEP_K_DT2_PER_M_MAX = 4.0
 STEP_B_DT_PER_M_MAX = 2.0
 
 
 def check_step_stability(mass_kg: float, contact: "ContactParams", period_s: float) -> None:
-    """Refuse contact parameters the haptic step cannot integrate stably for a rigid tool of
-    ``mass_kg`` (``ValueError`` naming the field, the ratio, the limit and what would do)."""
+    """Refuse contact parameters the explicit haptic step cannot integrate stably for a rigid tool
+    of ``mass_kg`` (``ValueError`` naming the field, the ratio, the limit and what would do)."""
     m = float(mass_kg)
     dt = float(period_s)
     rate = 1.0 / dt
@@ -329,6 +332,50 @@ def check_step_stability(mass_kg: float, contact: "ContactParams", period_s: flo
                 f"integrates stably (b dt / m = {rb:.3g} > {STEP_B_DT_PER_M_MAX:g}): at most "
                 f"{STEP_B_DT_PER_M_MAX * m / dt:.4g} N s/m at this rate, or a rate of at least "
                 f"{b / (STEP_B_DT_PER_M_MAX * m):.4g} Hz")
+
+
+#: The lightest tools the implicit step (``integrator="implicit"``) is stable for, as measured: a
+#: rigid tool of 1e-12 kg and 1e-18 kg m^2 comes to rest on a floor under a 1 N push on every
+#: kind at 500 Hz and 4 kHz with the default coupling and contacts (tests/model/light_rig.py);
+#: these floors keep three and three orders of magnitude from there (below them, the rendering's
+#: J_h D^-1 J_h^T nears the float range). A linkage's links: a chain of 1 g links settles there,
+#: one of 0.3 g links keeps rocking after 3 s at 500 Hz and one of 3 mg links is thrown about
+#: (tens of rad/s): its free links have no damping of their own, so each link must have at least
+#: LINK_MASS_MIN_KG (and LINK_INERTIA_MIN_KG_M2 in every moment that enters its D(q)).
+TOOL_MASS_MIN_KG = 1e-9
+TOOL_INERTIA_MIN_KG_M2 = 1e-15
+LINK_MASS_MIN_KG = 1e-3
+LINK_INERTIA_MIN_KG_M2 = 1e-9
+
+
+def check_proxy_inertia(tool: "ToolSpec") -> None:
+    """Refuse a tool lighter than the implicit step was measured stable for (``ValueError``
+    naming the field, the value and the smallest that works): a rigid tool's mass and principal
+    moments (a 1dof tool's mass only; a planar tool's I_zz), each link of a linkage."""
+    if tool.kind == "linkage":
+        for i, ln in enumerate(tool.links):
+            if float(ln.mass_kg) < LINK_MASS_MIN_KG:
+                raise ValueError(
+                    f"tool.links[{i}].mass_kg: {float(ln.mass_kg):g} kg is lighter than a linkage's links may be: "
+                    f"a link without damping of its own that light is thrown about by the contacts of a "
+                    f"haptic step; at least {LINK_MASS_MIN_KG:g} kg")
+            # a planar link turns about z only; a spatial one about every axis
+            least = ln.inertia_matrix()[2, 2] if tool.planar else float(np.linalg.eigvalsh(ln.inertia_matrix())[0])
+            if least < LINK_INERTIA_MIN_KG_M2:
+                raise ValueError(
+                    f"tool.links[{i}].inertia_kg_m2: a moment of {least:g} kg m^2 is below what a linkage's "
+                    f"links may have; at least {LINK_INERTIA_MIN_KG_M2:g} kg m^2")
+        return
+    if float(tool.mass_kg) < TOOL_MASS_MIN_KG:
+        raise ValueError(f"tool.mass_kg: {float(tool.mass_kg):g} kg is below the lightest tool the haptic step "
+                         f"is stable for; at least {TOOL_MASS_MIN_KG:g} kg")
+    if tool.kind == "1dof":
+        return
+    inertia = np.asarray(tool.inertia_kg_m2, dtype=np.float64)
+    least = inertia[2, 2] if tool.kind == "planar" else float(np.linalg.eigvalsh(inertia)[0])
+    if least < TOOL_INERTIA_MIN_KG_M2:
+        raise ValueError(f"tool.inertia_kg_m2: a moment of {least:g} kg m^2 is below the smallest the haptic step "
+                         f"is stable for; at least {TOOL_INERTIA_MIN_KG_M2:g} kg m^2")
 
 
 @dataclass
@@ -369,7 +416,11 @@ class LocalModel:
     ----------
     tool: the virtual tool (mass, inertia, hand point).
     contact: stiffness, damping, restitution and friction of the local contacts.
-    period_s: the haptic step (fixed-step semi-implicit Euler).
+    period_s: the haptic step.
+    integrator: ``"implicit"`` (default): the step treats its spring-dampers (the controller's
+        coupling, ``set_coupling``; the contacts; sticking friction) implicitly, stable for any
+        tool at least ``check_proxy_inertia``'s floors; ``"explicit"``: semi-implicit Euler with
+        every force explicit (the paper's step), stable within ``check_step_stability``.
     policy: ``"rigid"`` (eq. 1 at every update: the no-deformation baseline), ``"lm0"`` (proxy
         deformation, eqs. 4/5/6, with active geometry only: epsilon must be 0) or ``"lm"`` (proxy
         deformation with epsilon-active geometry, any epsilon >= 0; alias ``"deformation"``).
@@ -402,6 +453,7 @@ class LocalModel:
         recovery_tau_s: float = RECOVERY_TAU_S,
         recovery_min_age_updates: int = RECOVERY_MIN_AGE_UPDATES,
         recovery_normal_speed_max_m_per_s: float | None = None,
+        integrator: str = "implicit",
         warm: bool = True,
     ) -> None:
         tool.validated()
@@ -420,8 +472,13 @@ class LocalModel:
             raise ValueError(f"capacity: must be a positive integer, got {capacity!r}")
         if not isinstance(max_update_contacts, (int, np.integer)) or max_update_contacts < capacity:
             raise ValueError(f"max_update_contacts: must be an integer >= capacity, got {max_update_contacts!r}")
-        if tool.kind in ("1dof", "planar", "spatial"):
-            check_step_stability(tool.mass_kg, contact, dt)
+        if integrator not in INTEGRATOR_NAMES:
+            raise ValueError(f"integrator: expected one of {sorted(INTEGRATOR_NAMES)}, got {integrator!r}")
+        if integrator == "explicit":
+            if tool.kind in ("1dof", "planar", "spatial"):
+                check_step_stability(tool.mass_kg, contact, dt)
+        else:
+            check_proxy_inertia(tool)
         grav = _vec3("gravity_m_per_s2", gravity_m_per_s2)
         if linkage_dynamics not in LINKAGE_DYNAMICS:
             raise ValueError(f"linkage_dynamics: expected one of {LINKAGE_DYNAMICS}, got {linkage_dynamics!r}")
@@ -456,6 +513,8 @@ class LocalModel:
         par[P_HAND:P_HAND + 3] = tool.hand_point_m
         par[P_POLICY] = POLICY_NAMES[policy]
         par[P_EPS] = eps
+        par[P_INTEG] = INTEGRATOR_NAMES[integrator]
+        self.integrator = integrator
         self._par = par
         self.set_recovery(recovery_speed_m_per_s, recovery_force_rate_n_per_s, recovery_tau_s,
                           recovery_min_age_updates, recovery_normal_speed_max_m_per_s)
@@ -555,6 +614,40 @@ class LocalModel:
         p[P_REC_AGE] = float(min_age_updates)
         p[P_REC_VN] = vn
 
+    def set_coupling(self, stiffness_n_per_m: float = 0.0, damping_n_s_per_m: float = 0.0,
+                     rot_stiffness_n_m_per_rad: float = 0.0, rot_damping_n_m_s_per_rad: float = 0.0) -> None:
+        """The spring-damper through which a controller drives the proxy's hand point (the hand
+        wrench of ``step`` then contains ``K (x_dev - x_hand) + B (v_dev - v_hand)``): the implicit
+        integrator takes it into the step's matrix, so a light tool on a stiff coupling stays
+        stable. ``control.haptic_step`` writes it every step it drives the proxy; a caller that
+        steps the model with its own coupling calls this. Zeros (the default): no coupling.
+        ``ValueError`` naming the field, nothing changed."""
+        vals = []
+        for name, v in (("stiffness_n_per_m", stiffness_n_per_m), ("damping_n_s_per_m", damping_n_s_per_m),
+                        ("rot_stiffness_n_m_per_rad", rot_stiffness_n_m_per_rad),
+                        ("rot_damping_n_m_s_per_rad", rot_damping_n_m_s_per_rad)):
+            x = _finite_float(f"coupling.{name}", v)
+            if x < 0:
+                raise ValueError(f"coupling.{name}: must be >= 0, got {x!r}")
+            vals.append(x)
+        p = self._par
+        p[P_CPL_KT], p[P_CPL_BT], p[P_CPL_KR], p[P_CPL_BR] = vals
+
+    @property
+    def coupling(self) -> dict:
+        """The coupling the step's matrix holds (``set_coupling``; the controller's, once it drove)."""
+        p = self._par
+        return {"stiffness_n_per_m": float(p[P_CPL_KT]), "damping_n_s_per_m": float(p[P_CPL_BT]),
+                "rot_stiffness_n_m_per_rad": float(p[P_CPL_KR]), "rot_damping_n_m_s_per_rad": float(p[P_CPL_BR])}
+
+    @property
+    def diverged(self) -> bool:
+        """The proxy's velocity flipped sign every step without decaying for ``DIVERGE_STEPS`` steps
+        in a row, at some time since ``reset`` (``layout.DIVERGE_*``): its integration went
+        unstable; what it renders is not the tool's. Latched for the model's life. The loop
+        reads the counter ``K_DIVERGED`` of ``kernel_args()[5]`` (non-zero)."""
+        return int(self._cnt[K_DIVERGED]) > 0
+
     @property
     def recovery(self) -> dict:
         """The deformation recovery settings (``set_recovery``)."""
@@ -567,12 +660,14 @@ class LocalModel:
         """Reproductions of the paper's Fig. 14 numbers only (``experiments``; the server never
         calls it): from the next update on, the update rules render the epsilon-inflated tool
         (``s - epsilon`` of eq. 6 with ``s`` the reported real-tool separation) and place new
-        contacts by eq. 6 too (no eq. 4). Deformation recovery is turned off (the paper has none).
-        A rigid policy stays rigid."""
+        contacts by eq. 6 too (no eq. 4). Deformation recovery is turned off (the paper has none)
+        and the step is the paper's (``integrator="explicit"``). A rigid policy stays rigid."""
         if self._par[P_POLICY] != 0.0:
             self._par[P_POLICY] = float(POLICY_PAPER_LITERAL)
             self.policy = "paper-literal"
         self.set_recovery(0.0)
+        self._par[P_INTEG] = INTEGRATOR_NAMES["explicit"]
+        self.integrator = "explicit"
 
     @property
     def recovering(self) -> int:
@@ -751,7 +846,8 @@ class LocalModel:
             "separating": int(c[K_N_SEPARATING]), "rank": int(c[K_RANK]),
             "slipping": int(c[K_SLIPPING]), "flips_refused": int(c[K_FLIPS]), "flips_taken": int(c[K_FLIPS_TAKEN]),
             "rekeyed": int(c[K_REKEYED]),
-            "recovering": int(c[K_RECOVERING]),
+            "recovering": int(c[K_RECOVERING]), "oscillating_steps": int(c[K_OSC_RUN]),
+            "diverged": int(c[K_DIVERGED]),
         }
 
     def contacts(self) -> ContactSnapshot:

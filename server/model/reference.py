@@ -19,7 +19,12 @@ from .layout import (
     P_ORIGIN, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN, PS_COLLIDING, PS_FREE, PS_RESTING,
     S_EREC, S_RECF, S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
     TOOL_1DOF, TOOL_DIMS, TOOL_PLANAR, TOUCH_TOL_M, CI_KEY,
+    DIVERGE_DECAY, DIVERGE_SPEED, DIVERGE_STEPS, INTEG_IMPLICIT, S_FCPL, S_QDP, K_DIVERGED, K_OSC_RUN, P_CPL_BR, P_CPL_BT, P_CPL_KR, P_CPL_KT,
+    P_INTEG,
 )
+
+#: Most solves of the implicit step (``kernels.IMPLICIT_MAX_SOLVES``, written again here).
+IMPLICIT_MAX_SOLVES = 8
 
 #: Relative singular-value cut of the pseudo-inverse (rank decisions as in the kernels).
 PINV_RCOND = 1e-12
@@ -300,6 +305,76 @@ def recover(par, st, C, CI, cnt, m: int) -> None:
     Cm[elig, C_REC] += step
 
 
+def implicit_velocity(par, h, D, J, Jh, n, s, vn, touching, fn, ft, slip, z_prev, base, qd):
+    """The implicit step's velocity (``kernels._implicit_step``) from its definition: with the
+    contacts S that push at the step's end, (D + dt B + dt^2 K) dv = dt (base + sum_S J^T (f_0 n
+    + t)), B = J_h^T diag(b_c) J_h + sum_S (b n n^T + b_t (I - n n^T) [sticking]) through J, K
+    alike. A touching contact is in S when f_e = f_0 - (b + dt k) n^T J dv > 0 (f_0 = -k s -
+    b v_n); with friction, t is its stick force t_0 = -k_t z - b_t v_t now (z the bristle
+    stretched by dt v_t) while t_0 - (b_t + dt k_t) (I - n n^T) J dv stays within mu_s f_e, else
+    mu_k f_0 along that force (-mu_k f_0 z / |z| where the friction pass found it slipping; a
+    slipping one whose stick force would be inside sticks); the guess is the friction pass's (``fn`` > 0, ``slip``,
+    its kinetic forces ``ft``). Returns (qd + dv, the generalized contact force, fn, ft, bristles,
+    slip flags)."""
+    dt, k, b, kt, bt = par[P_DT], par[P_K], par[P_B], par[P_KT], par[P_BT]
+    mus, muk = par[P_MUS], par[P_MUK]
+    m = len(s)
+    rot = np.arange(h) >= (2 if h == 3 else (3 if h == 6 else h))
+    c_hand = np.where(rot, dt * par[P_CPL_BR] + dt * dt * par[P_CPL_KR], dt * par[P_CPL_BT] + dt * dt * par[P_CPL_KT])
+    a_hand = D + Jh.T @ (c_hand[:, None] * Jh)
+    Jn = np.einsum("ij,ijk->ik", n, J)
+    proj_t = np.eye(3)[None] - n[:, :, None] * n[:, None, :]
+    Jt = np.einsum("iab,ibk->iak", proj_t, J)                                # tangential point Jacobian
+    cn = dt * b + dt * dt * k
+    ctan = dt * bt + dt * dt * kt
+    f0 = np.where(touching, -k * s - b * vn, 0.0)
+    friction = touching & ((mus > 0) | (muk > 0))
+    v = np.einsum("ijk,k->ij", J, qd)
+    v_t = v - np.einsum("ij,ij->i", v, n)[:, None] * n
+    zs = z_prev + dt * v_t - np.einsum("ij,ij->i", z_prev, n)[:, None] * n
+    t0 = -kt * zs - bt * v_t
+    zn = np.linalg.norm(zs, axis=1)
+    # the kinetic force: the bristle held at mu_k f_0, as the friction pass's breakaway
+    t_slip = np.where(((zn > 0) & (kt > 0))[:, None],
+                      -(muk * np.maximum(f0, 0.0) / np.where(zn > 0, zn, 1.0))[:, None] * zs, 0.0)
+    slipping = friction & (fn > 0) & (slip != 0)
+    mode = np.where(slipping, 2, np.where(friction, 1, 0))
+    inS = fn > 0.0
+    for _ in range(IMPLICIT_MAX_SOLVES):
+        stick = inS & ((mode == 1) | (mode == 4))
+        A = (a_hand + cn * np.einsum("i,ia,ib->ab", inS * 1.0, Jn, Jn)
+             + ctan * np.einsum("i,iqa,iqb->ab", stick * 1.0, Jt, Jt))
+        t = np.where(((mode == 1) | (mode == 4))[:, None], t0, t_slip)
+        f_s = np.where(inS[:, None], f0[:, None] * n + t, 0.0)
+        dv = dt * np.linalg.solve(A, base + np.einsum("ijk,ij->k", J, f_s))
+        f_end = f0 - (b + dt * k) * (Jn @ dv)
+        pushes = touching & (f_end > 0.0)
+        moved = pushes != inS
+        t_end = t0 - (bt + dt * kt) * np.einsum("iak,k->ia", Jt, dv)
+        tn = np.linalg.norm(t_end, axis=1)
+        # modes: 1 stick, 2 slip (the friction pass's), 3 slip after breaking away (final), 4 stick
+        # after slipping (may break away once more)
+        brk = ~moved & pushes & ((mode == 1) | (mode == 4)) & (tn > mus * f_end)
+        holds = ~moved & pushes & (mode == 2) & (tn <= mus * f_end)
+        t_slip = np.where(brk[:, None], (muk * np.maximum(f0, 0.0) / np.where(brk, tn, 1.0))[:, None] * t_end, t_slip)
+        mode = np.where(brk, 3, np.where(holds, 4, mode))
+        inS = pushes
+        if not (np.any(moved) or np.any(brk) or np.any(holds)):
+            break
+    fn1 = np.where(inS, np.maximum(f0 - (b + dt * k) * (Jn @ dv), 0.0), 0.0)
+    u = np.einsum("iak,k->ia", Jt, dv)                                       # tangential velocity change
+    stick = (inS & ((mode == 1) | (mode == 4)))[:, None]
+    slid = (inS & ((mode == 2) | (mode == 3)))[:, None]
+    t_end = t0 - (bt + dt * kt) * u
+    tn = np.linalg.norm(t_end, axis=1)
+    t_end *= np.where(tn > mus * fn1, mus * fn1 / np.where(tn > 0, tn, 1.0), 1.0)[:, None]   # within the cone
+    ft1 = np.where(stick, t_end, np.where(slid, t_slip, 0.0))
+    z1 = np.where(stick, zs + dt * u, np.where(slid, -t_slip / kt if kt > 0 else 0.0, 0.0))
+    slip1 = slid[:, 0].astype(np.int64)
+    tau = np.einsum("ijk,ij->k", J, fn1[:, None] * n + ft1) if m else np.zeros(len(qd))
+    return qd + dv, tau, fn1, ft1, z1, slip1
+
+
 def reference_step(kind, par, st, C, CI, cnt, hand, linkage: LinkageReference | None = None):
     """One haptic step in numpy. Returns new (st, C, CI, cnt); inputs are not modified.
     ``linkage``: the tool's ``LinkageReference`` for a linkage model (its q is at ``S_LQ``)."""
@@ -398,8 +473,24 @@ def reference_step(kind, par, st, C, CI, cnt, hand, linkage: LinkageReference | 
     f = fn[:, None] * n + ft
     tau = np.einsum("ijk,ij->k", J, f) if m else np.zeros(d)
 
-    qdd = np.linalg.solve(D, tau + Jh.T @ hand + taug)                          # eq. 7
-    qd = qd + dt * qdd
+    if par[P_INTEG] == INTEG_IMPLICIT:
+        rot = np.arange(h) >= (2 if h == 3 else (3 if h == 6 else h))
+        b_c = np.where(rot, par[P_CPL_BR], par[P_CPL_BT])
+        bk = np.where(rot, par[P_CPL_BR] + dt * par[P_CPL_KR], par[P_CPL_BT] + dt * par[P_CPL_KT])
+        # the coupling's damper at the velocity the impulse left, then its change over the step
+        f_imp = -b_c * (Jh @ (qd - qd0))
+        qd1, tau, fn, ft, z_new, slip = implicit_velocity(par, h, D, J, Jh, n, s, vn1, touching, fn, ft, slip,
+                                                          Cm[:, C_Z:C_Z + 3], Jh.T @ (hand + f_imp) + taug, qd)
+        Cm[:, C_FN] = fn
+        Cm[:, C_FT:C_FT + 3] = ft
+        CI[:m, CI_SLIP] = slip
+        cnt[K_SLIPPING] = int(slip.sum())
+        st[S_FCPL:S_FCPL + h] = f_imp - bk * (Jh @ (qd1 - qd))                 # the coupling's change
+        qd = qd1
+    else:
+        qdd = np.linalg.solve(D, tau + Jh.T @ hand + taug)                      # eq. 7
+        qd = qd + dt * qdd
+        st[S_FCPL:S_FCPL + h] = 0.0
     jbar_t = np.linalg.inv(Jh @ Dinv @ Jh.T) @ Jh @ Dinv                        # eq. 8
     fpen = jbar_t @ tau
     fimp = jbar_t @ (gimp / dt)                                                 # eq. 12
@@ -407,6 +498,13 @@ def reference_step(kind, par, st, C, CI, cnt, hand, linkage: LinkageReference | 
     st[S_FIMP:S_FIMP + h] = fimp
     st[S_FENV:S_FENV + h] = fpen + fimp
     if np.all(np.isfinite(qd)) and np.all(np.isfinite(fpen + fimp)):
+        prev = st[S_QDP:S_QDP + d].copy()
+        osc = np.any((qd0 * prev < 0.0) & (np.abs(qd0) >= (1.0 - DIVERGE_DECAY) * np.abs(prev))
+                     & (np.abs(qd0) > DIVERGE_SPEED))
+        st[S_QDP:S_QDP + d] = qd0
+        cnt[K_OSC_RUN] = cnt[K_OSC_RUN] + 1 if osc else 0
+        if osc and cnt[K_OSC_RUN] == DIVERGE_STEPS:
+            cnt[K_DIVERGED] += 1
         st[S_QD:S_QD + d] = qd
         Cm[:, C_Z:C_Z + 3] = z_new
         st[q_at:q_at + nq] = linkage.integrate(q, qd, dt) if linkage is not None else integrate(kind, q, qd, dt)

@@ -42,10 +42,11 @@ def floor(kind: str, origin=0.0):
     return keys, cp, np.tile([0.0, 1.0, 0.0], (n, 1)), np.zeros(n), np.zeros(n)
 
 
-def press(kind, mass, k, b, rate, *, seconds=0.25, e=0.0, origin=0.0, force=None, v0=-0.05):
+def press(kind, mass, k, b, rate, *, seconds=0.25, e=0.0, origin=0.0, force=None, v0=-0.05, integrator="implicit"):
     """Put the bar on the floor moving down at ``v0``, press it with ``force`` (default: what
     makes 0.5 mm of penetration) and an off-centre torque; returns what happened."""
-    m = LocalModel(tool_of(kind, mass, origin), ContactParams(k, b, e), period_s=1.0 / rate, capacity=16, warm=False)
+    m = LocalModel(tool_of(kind, mass, origin), ContactParams(k, b, e), period_s=1.0 / rate, capacity=16, warm=False,
+                   integrator=integrator)
     half = 0.0 if kind == "1dof" else 0.01
     if kind == "1dof":
         m.reset([0.0], [v0])
@@ -83,33 +84,42 @@ def _stable_params(mass, k, rate) -> bool:
 
 
 # ------------------------------------------------------------------ stiffness, mass, rate
+@pytest.mark.parametrize("integrator", ["explicit", "implicit"])
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("mass", [1e-3, 1.0, 1e3])
 @pytest.mark.parametrize("k", [1e3, 1e6])
 @pytest.mark.parametrize("rate", [100.0, 1000.0, 20000.0])
-def test_stiffness_mass_rate_extremes_are_stable_or_refused(kind, mass, k, rate):
+def test_stiffness_mass_rate_extremes_are_stable_or_refused(kind, mass, k, rate, integrator):
     b = 0.0075 * k  # the paper's damping per stiffness (30 at 4000 N/m)
-    if not _stable_params(mass, k, rate):
+    if integrator == "explicit" and not _stable_params(mass, k, rate):
         with pytest.raises(ValueError, match=r"contact\.(stiffness|damping)_n(_s)?_per_m: .* at most .* or a rate of at least"):
-            LocalModel(tool_of(kind, mass), ContactParams(k, b), period_s=1.0 / rate, warm=False)
+            LocalModel(tool_of(kind, mass), ContactParams(k, b), period_s=1.0 / rate, warm=False, integrator="explicit")
         return
-    r = press(kind, mass, k, b, rate, seconds=0.1 if rate > 10000 else 0.25)
+    # the implicit step refuses none of them: every one is held, passively
+    r = press(kind, mass, k, b, rate, seconds=0.1 if rate > 10000 else 0.25, integrator=integrator)
     assert r["finite"] and r["nonfinite"] == 0
     assert r["travel_m"] < 0.02                      # pressed 0.5 mm into the floor: it stays there
     assert r["excess"] < PASSIVE_TOL, r
 
 
 def test_the_refusal_names_the_limit_and_what_would_do():
+    explicit = dict(warm=False, integrator="explicit")
     with pytest.raises(ValueError) as exc:
-        LocalModel(tool_of("planar", 0.25), ContactParams(1e6, 30.0), period_s=1 / 256, warm=False)
+        LocalModel(tool_of("planar", 0.25), ContactParams(1e6, 30.0), period_s=1 / 256, **explicit)
     msg = str(exc.value)
     assert msg.startswith("contact.stiffness_n_per_m: 1e+06 N/m on a 0.25 kg tool at 256 Hz")
     assert "at most 6.554e+04 N/m" in msg and "a rate of at least 1000 Hz" in msg
     with pytest.raises(ValueError, match=r"^contact\.damping_n_s_per_m: 30 N s/m on a 0\.001 kg tool at 1000 Hz"):
-        LocalModel(tool_of("1dof", 1e-3), ContactParams(1000.0, 30.0), period_s=1e-3, warm=False)
+        LocalModel(tool_of("1dof", 1e-3), ContactParams(1000.0, 30.0), period_s=1e-3, **explicit)
     with pytest.raises(ValueError, match=r"^contact\.tangential_stiffness_n_per_m"):
         LocalModel(tool_of("1dof", 1.0), ContactParams(1000.0, 1.0, tangential_stiffness_n_per_m=1e7),
-                   period_s=1e-3, warm=False)
+                   period_s=1e-3, **explicit)
+    # the implicit step (the server's) holds all three; it refuses only a tool below its floors
+    for tool, contact in ((tool_of("planar", 0.25), ContactParams(1e6, 30.0)),
+                          (tool_of("1dof", 1e-3), ContactParams(1000.0, 30.0))):
+        LocalModel(tool, contact, period_s=1 / 256, warm=False)
+    with pytest.raises(ValueError, match=r"^tool\.mass_kg: 1e-10 kg is below .* at least 1e-09 kg$"):
+        LocalModel(tool_of("1dof", 1e-10), ContactParams(), warm=False)
 
 
 # ------------------------------------------------------------------ far from the origin
@@ -287,15 +297,19 @@ def test_haptic_rates_from_100_hz_to_20_khz(rate):
     _safe_output(tr)
     assert tr.faults == 0 and tr.model_nonfinite == 0
     m = M.static_contact_metrics(tr)
-    assert m["energy_injected_mj"] <= M.ACTIVE_TOLERANCE_MJ          # passive at both ends
+    # passive at both ends, but for the recovery's designed work
+    assert m["energy_injected_mj"] <= M.ACTIVE_TOLERANCE_MJ + 1e3 * tr.extra["recovery_energy_j"]
     assert 0.09 < tr.dev[:, 1].min() + 0.2 and tr.dev[:, 1].max() < 0.16   # bounded near the wall
+    # at both rates the peg comes to rest on the wall (with the explicit step it bounced for
+    # seconds at 100 Hz: EXPERIMENTS.md, "Light tools"); at 100 Hz the contact arrives some 13 mm
+    # deep and the deformation recovery lifts the hand back out onto the wall: the work it does
+    # is the injected energy
+    assert 0.0 <= m["wall_error_mm"] < 20.0
+    assert m["final_force_n"] == pytest.approx(-0.5, abs=0.01)
     if rate > 1000:
-        assert m["settled"] and 0.0 <= m["wall_error_mm"] < 20.0
-        assert m["final_force_n"] == pytest.approx(-0.5, abs=0.01)
+        assert m["settled"]
     else:
-        # 100 Hz: each collision impulse is rendered over a 10 ms step (eq. 12), the peg bounces
-        # off the wall for seconds (EXPERIMENTS.md: it settles from about 200 Hz)
-        assert m["limit_cycle_amplitude_mm"] > 1.0
+        assert abs(m["wall_error_mm"]) < 0.5 and tr.dev_vel[-200:, 1].max() < 1e-4
 
 
 def test_stiffness_of_a_million_at_20_khz_holds_the_peg_in_the_hole():
@@ -320,14 +334,21 @@ def test_a_very_fast_hand_trips_the_speed_limit_and_fades():
     assert np.all(tr.cmd[-50:] == 0.0)                     # and the force faded to zero
 
 
-def test_a_tool_the_model_refuses_is_rejected_in_the_handshake_and_the_loop_keeps_running():
+def test_a_tool_the_model_refuses_is_rejected_in_the_handshake_and_the_loop_keeps_running(monkeypatch):
     from hapticproxy.clients.stub_engine import StubEngine
     from hapticproxy.experiments.harness import SimEnvClient
     from hapticproxy.server import config as cfgmod
     from hapticproxy.server.clock import SimClock
     from hapticproxy.server.loop import HapticLoop
 
-    # the paper's peg (0.25 kg) with 50000 N/m and 375 N s/m at 256 Hz: b dt / m = 5.9 > 2
+    # the paper's peg (0.25 kg) with 50000 N/m and 375 N s/m at 256 Hz: b dt / m = 5.9 > 2, which
+    # the explicit step (the paper's, here made the model's) refuses
+    import functools
+
+    from hapticproxy.server.model import model as model_mod
+
+    monkeypatch.setattr(model_mod.LocalModel, "__init__",
+                        functools.partialmethod(model_mod.LocalModel.__init__, integrator="explicit"))
     settings = cfgmod.load({"loop": {"rate_hz": 256.0}, "transport": {"url": "mem://extremes-refused"},
                             "model": {"stiffness_n_per_m": 5e4, "damping_n_s_per_m": 375.0},
                             # outside the stable region at 256 Hz: the config refuses it unless told
@@ -354,12 +375,15 @@ def test_a_tool_the_model_refuses_is_rejected_in_the_handshake_and_the_loop_keep
 
 
 def test_beyond_the_refusal_the_model_alone_gains_energy(monkeypatch):
-    """Why the refusal exists: built with the check disabled, a 1 g tool with 1 kN/m and
-    7.5 N s/m at 1 kHz (k dt^2 / m = 1, b dt / m = 7.5 > 2) gains energy it was never given."""
+    """Why the explicit step's refusal exists: built with the check disabled, a 1 g tool with
+    1 kN/m and 7.5 N s/m at 1 kHz (k dt^2 / m = 1, b dt / m = 7.5 > 2) gains energy it was never
+    given. The implicit step holds the same tool, passively."""
     from hapticproxy.server.model import model as model_mod
 
     monkeypatch.setattr(model_mod, "check_step_stability", lambda *a, **k: None)
-    r = press("1dof", 1e-3, 1000.0, 7.5, 1000.0)
+    r = press("1dof", 1e-3, 1000.0, 7.5, 1000.0, integrator="explicit")
     assert r["finite"]
     assert r["excess"] > 0.5                     # most of its energy came from nowhere: not passive
     assert r["travel_m"] > 0.005                 # pressed 0.5 mm into the floor, it leaves by centimetres
+    r = press("1dof", 1e-3, 1000.0, 7.5, 1000.0)
+    assert r["finite"] and r["excess"] < 0.0 and r["travel_m"] < 0.001

@@ -16,7 +16,8 @@ from hapticproxy.server.model.reference import reference_step
 @pytest.fixture
 def make_model():
     def _make(kind="1dof", *, k=4000.0, b=0.0, e=0.0, mus=0.0, muk=0.0, policy="deformation",
-              dt=1e-3, capacity=64, mass=1.0, inertia=1e-2, hand=None, gravity=(0.0, 0.0, 0.0), **kw):
+              dt=1e-3, capacity=64, mass=1.0, inertia=1e-2, hand=None, gravity=(0.0, 0.0, 0.0),
+              integrator="implicit", **kw):
         if kind == "1dof":
             tool = ToolSpec.one_dof(mass, **kw)
         elif kind == "planar":
@@ -25,7 +26,7 @@ def make_model():
             tool = ToolSpec.spatial(mass, inertia if np.ndim(inertia) else (inertia,) * 3,
                                     hand_point_m=hand or (0.0, 0.0, 0.0))
         return LocalModel(tool, ContactParams(k, b, e, mus, muk), period_s=dt, policy=policy,
-                          capacity=capacity, gravity_m_per_s2=gravity)
+                          capacity=capacity, gravity_m_per_s2=gravity, integrator=integrator)
     return _make
 
 

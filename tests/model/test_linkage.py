@@ -175,15 +175,19 @@ def test_a_one_link_linkage_is_the_rigid_tool(planar):
 
 @pytest.mark.parametrize("n_links,planar", [(3, True), (10, True), (3, False), (7, False)])
 def test_numba_and_numpy_agree_on_random_linkage_scenes(n_links, planar, against_reference):
+    from test_reference_oracle import random_coupling
+
     rng = np.random.default_rng(21 + n_links + planar)
     collisions = 0
-    for _ in range(15):
+    for i in range(16):
         tool = random_linkage(rng, n_links, planar)
         mus = rng.uniform(0, 1)
         m = LocalModel(tool, ContactParams(rng.uniform(1e3, 1e4), rng.uniform(0, 50), rng.uniform(0, 1), mus,
                                            rng.uniform(0, mus)),
                        capacity=64, gravity_m_per_s2=rng.normal(size=3) * (np.r_[1, 1, 0] if planar else 1),
-                       policy=str(rng.choice(["rigid", "deformation"])), warm=False)
+                       policy=str(rng.choice(["rigid", "deformation"])), warm=False,
+                       integrator=("explicit", "implicit")[i % 2])
+        random_coupling(rng, m)
         m.reset(random_q(rng, tool), rng.normal(size=m.dof) * 0.1)
         n = int(rng.integers(0, 40))
         nrm = random_normals(rng, n, "planar" if planar else "spatial")

@@ -19,6 +19,7 @@ from hapticproxy.server.devices.base import (
     DEV_FAULT_DISABLED, DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_WATCHDOG, DEV_OK,
 )
 from hapticproxy.server.lifecycle import FAULT_POLICY, STALL_EXPLAINS_S, Fault, Reason
+from hapticproxy.server.model.layout import DIVERGE_STEPS, K_OSC_RUN, S_QD, S_QDP
 from hapticproxy.testing.cleanup import made_then_ended
 
 PUSH_N = 0.5
@@ -271,6 +272,21 @@ def speed_idle(r):
     assert r.loop.state_name == "engaged" and abs(r.device.commands[-1][1] - PUSH_N) < 0.02
 
 
+def diverged(r):
+    """The model's divergence watch fires (its signature injected: a velocity that reversed
+    without decaying on the step before a run of DIVERGE_STEPS - 1): the force fades from that
+    step with the device on, latched; a re-arm ramps it back in (the proxy no longer diverges)."""
+    n0 = _engaged(r)
+    _, st, _, _, cnt = r.loop.model.arrays()
+    st[S_QD + 1] = 0.01
+    st[S_QDP + 1] = -0.01
+    cnt[K_OSC_RUN] = DIVERGE_STEPS - 1
+    r.run(0.05)
+    _faded(r, n0 + 1)
+    _latched(r, Fault.DIVERGED, Reason.DIVERGED)
+    _rearm_ramps_in(r)
+
+
 def env_silent(r):
     n0 = _engaged(r)
     r.env.alive = False
@@ -294,7 +310,7 @@ def session_ended(r):
 
 SCENARIOS = {f.__name__: f for f in (
     stall_explained, own_stall_engaged, own_stall_idle, watchdog_unexplained, hardware, link_lost, link_not_up,
-    nonfinite, update_error, speed_engaged, speed_idle, env_silent, session_ended)}
+    nonfinite, update_error, speed_engaged, speed_idle, diverged, env_silent, session_ended)}
 
 
 def test_every_row_has_a_scenario():

@@ -374,12 +374,22 @@ def test_steps_leave_no_memory_behind(rig_factory):
 
 
 def test_a_tool_the_model_cannot_integrate_is_refused_in_the_handshake(rig_factory):
-    # 0.1 g tool on 4000 N/m contacts at 1 kHz: k dt^2 / m = 40, far past what the step integrates
-    r = rig_factory(device=PointDevice(hand=PUSH), env_kwargs={"mass_kg": 1e-4})
+    # 1e-10 kg: below the lightest tool the (implicit) step was measured stable for
+    r = rig_factory(device=PointDevice(hand=PUSH), env_kwargs={"mass_kg": 1e-10})
     r.run(0.3)
     assert r.env.ep.state == "rejected"
-    assert "stiffness" in r.env.ep.reject.reason
+    assert "tool.mass_kg" in r.env.ep.reject.reason and "at least 1e-09 kg" in r.env.ep.reject.reason
     assert r.loop.model is None and r.loop.engagements == 0
+
+
+def test_a_tenth_of_a_gram_tool_is_accepted_and_rests_on_the_wall(rig_factory):
+    # 0.1 g on 4000 N/m contacts at 1 kHz (k dt^2 / m = 40): the explicit step refused it, the
+    # implicit one holds it
+    r = rig_factory(device=PointDevice(hand=PUSH), env_kwargs={"mass_kg": 1e-4, "inertia": 1e-8})
+    rows = r.run(2.0)
+    assert r.env.ep.state == "established" and r.loop.engagements == 1 and r.loop.state_name == "engaged"
+    assert r.loop.model.counters()["nonfinite"] == 0 and not r.loop.model.diverged
+    assert np.max(np.abs(r.loop.model.qd)) < 1e-3
 
 
 def test_an_exception_while_applying_an_update_faults_safely_instead_of_killing_the_loop(rig_factory):
