@@ -46,8 +46,9 @@ from ..protocol.session import ServerConfig, ServerEndpoint
 
 from . import control as ctl
 from . import egress, ingest, tick
+from .devices import safe
 from .devices.base import (
-    DEV_FAULT_LINK, DEV_FAULT_NAMES, DEV_FAULT_WATCHDOG, DEV_NSTATE, DS_TIME, empty_state, load_device,
+    DEV_FAULT_LINK, DEV_FAULT_NAMES, DEV_FAULT_WATCHDOG, DEV_NSTATE, DS_BUTTONS, DS_TIME, empty_state, load_device,
 )
 from .lifecycle import LOOP_STATES, LS, SERVER_STATE_BY_CODE, STALL_EXPLAINS_S, TRANSITIONS, Fault, Reason
 from .prediction import EngineAdvice, advice_update, tool_radius_m, warm_up as advice_warm_up
@@ -230,11 +231,17 @@ class HapticLoop:
             if own_d:
                 device = load_device(settings["device"]["driver"], dict(settings["device"]),
                                      period_s=settings.period_ns * 1e-9, clock_ns=clock.now_ns)
-            loop = cls(settings, clock=clock, transport=transport, device=device, shared=shared, hmac_key=hmac_key,
+            # the gains the device renders stably at this rate (devices/safe.py): defaults
+            # lowered, a set value beyond them refused (ConfigError) unless the override is on
+            derived = safe.derive(settings, device.info)
+            safe.log_derived(settings, derived)
+            loop = cls(derived, clock=clock, transport=transport, device=device, shared=shared, hmac_key=hmac_key,
                        **kw)
         except BaseException:
             if own_t:
                 transport.close()
+            if own_d and device is not None:
+                device.close()
             raise
         loop._owns_transport, loop._owns_device = own_t, own_d
         return loop
@@ -364,6 +371,8 @@ class HapticLoop:
         self._ack_pose = self._scratch_pose[:7]
         self._ack_twist = self._scratch_pose[7:13]
         self._ack_wrench = self.ctrl.cs[ctl.CS_HAND:ctl.CS_HAND + 6]
+        #: the device's inputs (buttons, gripper) of the newest read: a view of the state row
+        self._ack_inputs = self.dev[DS_BUTTONS:DS_BUTTONS + 3]
         self._R = np.zeros((3, 3))
         self._c = np.zeros(3)
         self._st_missed = ST["missed_deadlines"]
@@ -811,7 +820,7 @@ class HapticLoop:
             if self.endpoint.send_proxy_state(self.session_id, now, pose, twist, wrench, server_time_s=m.time_s,
                                               joint_position=jq, joint_velocity=jqd, joint_effort=effort,
                                               server_state=state, epsilon_m=adv.epsilon_m, lead_s=adv.lead_s,
-                                              ack_seq=upd.seq, trusted=True):
+                                              ack_seq=upd.seq, trusted=True, inputs=self._ack_inputs):
                 self.acks += 1
             return
         mg = self._margs
@@ -819,7 +828,7 @@ class HapticLoop:
                       upd.tool_pose, upd.separation_m)
         if self.endpoint.send_proxy_state(self.session_id, now, self._ack_pose, self._ack_twist, self._ack_wrench,
                                           server_time_s=m.time_s, server_state=state, epsilon_m=adv.epsilon_m,
-                                          lead_s=adv.lead_s, ack_seq=upd.seq, trusted=True):
+                                          lead_s=adv.lead_s, ack_seq=upd.seq, trusted=True, inputs=self._ack_inputs):
             self.acks += 1
 
     def _engage(self, upd, now: int) -> None:
