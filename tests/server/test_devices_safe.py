@@ -259,3 +259,24 @@ def test_status_lists_the_lowered_defaults_and_the_override():
         assert "WARNING      outside the stable region" in format_status(snap)
     finally:
         sup.close()
+
+
+_TOUCH_STATES_NO_DAMPING = """
+import dataclasses
+from hapticproxy.server.devices import models
+real = models.TOUCH["Touch"]
+models.TOUCH["Touch"] = dataclasses.replace(real, max_damping_n_s_per_m=None)
+from hapticproxy.testing.emulators.harness import TouchHarness, hd_folder
+hd_folder()                      # the fake libHD built from that table: HD_NOMINAL_MAX_DAMPING is 0
+models.TOUCH["Touch"] = real     # the driver's table: CHAI3D's 4 N s/m
+h = TouchHarness()
+print(h.driver.info.max_damping_n_s_per_m, h.driver.info.max_stiffness_n_per_m)
+h.close()
+"""
+
+
+@pytest.mark.skipif(importlib.util.find_spec("pyOpenHaptics") is None, reason="pyopenhaptics is not installed")
+def test_a_touch_that_states_no_damping_gets_chai3ds_figure():
+    r = subprocess.run([sys.executable, "-c", _TOUCH_STATES_NO_DAMPING], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split()[-2:] == ["4.0", "400.0"]
