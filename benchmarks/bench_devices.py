@@ -35,6 +35,7 @@ import numpy as np
 
 from ..protocol.jsonout import print_json
 from ..protocol.logs import doc_summary
+from ..server.devices.base import DEV_NSTATE
 
 PUSH = np.array([2.0, 0.0, 0.0, 0.0, 0.0, 0.0])
 DRIVERS = ("forcedimension", "haply-serial", "haply-service", "touch")
@@ -114,7 +115,7 @@ def rate_rows(which: str, seconds: float, tmp: str) -> list[dict]:
         d = make(cfg, period_s=1e-3)
         try:
             d.enable()
-            row = np.zeros(20)
+            row = np.zeros(DEV_NSTATE)
             zero = np.zeros(6)
             if which == "touch":
                 from ..server.devices.touch import S_TICK, TICK_RING

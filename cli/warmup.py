@@ -36,6 +36,9 @@ def warm_server() -> int:
             n += 1
         finally:
             loop.close()
+    from ..server.devices import mapping
+
+    mapping.warm_up()  # the workspace mapping's kernels (a device with a [device] mapping runs them)
     return n
 
 

@@ -168,6 +168,15 @@ class Engine(abc.ABC):
         are computed at; sent as ``ContactUpdate.tool_joint_position``) and return it."""
         raise NotImplementedError(f"{type(self).__name__} has no linkage tool")
 
+    def device_inputs(self, buttons: int, gripper_angle_rad: float, gripper_velocity_rad_per_s: float,
+                      reported: int) -> None:
+        """The haptic device's inputs of the newest ProxyState (protocol 1.3): ``buttons`` a bit
+        mask (bit i: button i held), the gripper's angle and rate, ``reported`` which of them the
+        device has (``ProxyState.device_inputs``: bit 0 buttons, 1 angle, 2 rate; 0 from an
+        older server). Called by the runner for every ProxyState it takes, whatever the server's
+        state, before ``drive_tool``. An engine uses them as the scene's controls (grasp while a
+        button is held, ...). Default: nothing."""
+
     @abc.abstractmethod
     def tool_pose(self, out: np.ndarray) -> np.ndarray:
         """Fill and return ``out`` (7,) with the engine's tool pose (tool frame, world)."""

@@ -61,11 +61,21 @@ Contacts (``contacts``)
     pybullet's ``getClosestPoints`` for random poses. ``contacts_found`` is the count before
     clustering (the runner counts clustered steps by it).
 
+Grasping (the device's buttons, protocol 1.3: ``device_inputs``)
+  * While the device's button ``grasp_button`` (0) is held, the loose body nearest the tool within
+    ``grasp_reach_m`` (5 mm) when it was pressed is carried: a ``JOINT_FIXED`` constraint from the
+    tool to it at their relative pose then; released with the button. The carried body is part
+    of the tool meanwhile: its contacts with the tool are not reported (the server's model would
+    feel the tool holding it as a contact), nor are its own contacts with the world (the hand
+    does not feel the carried body touch things). ``grasped`` names the body, ``grasp_events``
+    lists ``(engine time, "grasp" or "release", body id)``; each is logged.
+
 GUI (``gui=True``): pybullet's own window, framed on the scene, with the proxy as a ghost and the
 contact normals (:mod:`.pybullet_gui`); ``window.update(runner)`` draws the session's state.
 """
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -79,6 +89,8 @@ from .pybullet_common import (GRAVITY_M_PER_S2, PYBULLET_VERSION, PoseDrive, Pyb
                               make_sphere, reset_world, show_world)
 
 __all__ = ["PybulletEngine", "EDGE_EDGE"]
+
+_log = logging.getLogger("hapticproxy.client")
 
 
 class PybulletEngine(PybulletBase):
@@ -106,7 +118,8 @@ class PybulletEngine(PybulletBase):
     def __init__(self, *, gui: bool = False, rate_hz: float = 500.0,
                  max_drive_force_n: float = 50.0, drive_erp: float = 0.8,
                  max_speed_m_per_s: float = 0.5, max_angular_speed_rad_per_s: float = 5.0,
-                 solver_iterations: int = 20, cluster_normal_weight_m: float = NORMAL_WEIGHT_M) -> None:
+                 solver_iterations: int = 20, cluster_normal_weight_m: float = NORMAL_WEIGHT_M,
+                 grasp_button: int = 0, grasp_reach_m: float = 0.005) -> None:
         self._init_drive(gui=gui, rate_hz=rate_hz, max_drive_force_n=max_drive_force_n, drive_erp=drive_erp,
                          max_speed_m_per_s=max_speed_m_per_s, max_angular_speed_rad_per_s=max_angular_speed_rad_per_s,
                          solver_iterations=solver_iterations, cluster_normal_weight_m=cluster_normal_weight_m)
@@ -122,6 +135,14 @@ class PybulletEngine(PybulletBase):
         self.raw_overflows = 0
         self.guard_freezes = 0
         self._guard_buf = ContactBuffer(1)
+        if not (isinstance(grasp_button, int) and 0 <= grasp_button < 32):
+            raise ValueError(f"grasp_button: a button's bit, 0..31, got {grasp_button!r}")
+        if not (math.isfinite(grasp_reach_m) and grasp_reach_m >= 0.0):
+            raise ValueError(f"grasp_reach_m: must be finite and >= 0, got {grasp_reach_m!r}")
+        self.grasp_button = grasp_button
+        self.grasp_reach_m = float(grasp_reach_m)
+        #: (engine time, "grasp" or "release", body id) of every grasp (the device's button)
+        self.grasp_events: list[tuple[float, str, int]] = []
         self._reset_state()
 
     # ------------------------------------------------------------------ helpers
@@ -138,6 +159,9 @@ class PybulletEngine(PybulletBase):
         self._rows = np.zeros(0, dtype=np.int64)
         self._bounding_radius = 0.0
         self._tool_half = (0.0, 0.0, 0.0)
+        self._held = False        # the grasp button, as the last ProxyState had it
+        self.grasped: int | None = None  # the body carried (pybullet id)
+        self._grasp_c = -1
 
     @property
     def scene_info(self) -> SceneInfo | None:
@@ -324,8 +348,8 @@ class PybulletEngine(PybulletBase):
             rows = self._rows
             for body, _link in overlapping:
                 row = row_of.get(body)
-                if row is None:
-                    continue  # the tool itself (or the GUI's ghost)
+                if row is None or body == self.grasped:
+                    continue  # the tool itself (or the GUI's ghost), or the body it carries
                 if self._dynamic_rows[row]:
                     bpos, born = p.getBasePositionAndOrientation(body, physicsClientId=cid)
                     lin, ang = p.getBaseVelocity(body, physicsClientId=cid)
@@ -343,6 +367,52 @@ class PybulletEngine(PybulletBase):
     @property
     def time_s(self) -> float:
         return self._time
+
+    def device_inputs(self, buttons: int, gripper_angle_rad: float, gripper_velocity_rad_per_s: float,
+                      reported: int) -> None:
+        """Grasp while the device's ``grasp_button`` is held (module docstring)."""
+        if self._scene is None:
+            return
+        held = bool(reported & 1) and bool((int(buttons) >> self.grasp_button) & 1)
+        if held and not self._held:
+            self._grasp()
+        elif not held and self._held:
+            self._release()
+        self._held = held
+
+    def _grasp(self) -> None:
+        cid = self._cid
+        best, body = self.grasp_reach_m, None
+        for row, dynamic in enumerate(self._dynamic_rows):
+            if not dynamic:
+                continue
+            b = int(self._env_int[row, 0])
+            for pt in p.getClosestPoints(self._tool, b, self.grasp_reach_m, physicsClientId=cid) or ():
+                if pt[8] <= best:
+                    best, body = pt[8], b
+        if body is None:
+            _log.info("button %d held: nothing within %.1f mm of the tool to grasp", self.grasp_button,
+                      self.grasp_reach_m * 1e3)
+            return
+        tpos, torn = p.getBasePositionAndOrientation(self._tool, physicsClientId=cid)
+        bpos, born = p.getBasePositionAndOrientation(body, physicsClientId=cid)
+        ipos, iorn = p.invertTransform(tpos, torn)
+        rpos, rorn = p.multiplyTransforms(ipos, iorn, bpos, born)  # the body in the tool's frame
+        self._grasp_c = p.createConstraint(self._tool, -1, body, -1, p.JOINT_FIXED, (0.0, 0.0, 0.0), rpos,
+                                           (0.0, 0.0, 0.0), rorn, (0.0, 0.0, 0.0, 1.0), physicsClientId=cid)
+        p.changeConstraint(self._grasp_c, maxForce=self.max_drive_force_n, physicsClientId=cid)
+        self.grasped = body
+        self.grasp_events.append((self._time, "grasp", body))
+        _log.info("button %d held: grasped body %d (%.1f mm from the tool)", self.grasp_button, body, best * 1e3)
+
+    def _release(self) -> None:
+        if self.grasped is None:
+            return
+        p.removeConstraint(self._grasp_c, physicsClientId=self._cid)
+        self.grasp_events.append((self._time, "release", self.grasped))
+        _log.info("button %d released: body %d let go", self.grasp_button, self.grasped)
+        self.grasped = None
+        self._grasp_c = -1
 
     # ------------------------------------------------------------------ extras (not in Engine)
     def reset_tool_pose(self, pose: np.ndarray) -> None:

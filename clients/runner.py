@@ -26,6 +26,9 @@ What it does, in one thread (its own, or a background thread of another program)
   (``drive_tool`` with the engine's own pose and zero twist and wrench, once; a linkage's joints
   likewise) and the proxy states that follow are not applied (``proxy_held``) until it is engaged
   again, when the newest proxy is followed at once.
+- **The device's inputs** (``ProxyState.buttons``, ``gripper_angle_rad``,
+  ``gripper_velocity_rad_per_s``, ``device_inputs``, protocol 1.3): handed to
+  ``Engine.device_inputs`` with every ProxyState taken, so a scene can grasp while a button is held.
 - **Heartbeats and silence**: the session layer sends a ``Heartbeat`` after
   ``heartbeat_interval_s`` without traffic and ends the session (Bye 61) after
   ``silence_timeout_s`` without a valid packet from the server.
@@ -433,6 +436,10 @@ class ClientRunner:
         self.last_proxy = newest
         follow = int(getattr(newest, "server_state", 0) or 0) in _FOLLOW
         engine = self.engine
+        # the device's buttons and gripper (protocol 1.3; 0 and none reported from an older server)
+        engine.device_inputs(int(getattr(newest, "buttons", 0)), float(getattr(newest, "gripper_angle_rad", 0.0)),
+                             float(getattr(newest, "gripper_velocity_rad_per_s", 0.0)),
+                             int(getattr(newest, "device_inputs", 0)))
         if follow:
             c["proxy_applied"] += 1
             if self._linkage:

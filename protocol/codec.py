@@ -38,6 +38,9 @@ import numpy as np
 from .messages import (
     CONTACT_FLOATS,
     HEADER_LEN,
+    INPUT_BUTTONS,
+    INPUT_GRIPPER,
+    INPUT_GRIPPER_RATE,
     KEY_INTS,
     MAX_ABS_FLOAT,
     MESSAGE_CLASSES,
@@ -54,6 +57,7 @@ from .messages import (
     ProxyState,
     Reject,
     Welcome,
+    device_inputs_fields,
     fields_of,
 )
 from .vocab import ErrorCode, JointType, MessageType, ServerState, ToolKind
@@ -368,6 +372,9 @@ _maximum = np.maximum.reduce
 _vdot = np.vdot
 _EMPTY = np.zeros(0)
 _EMPTY.flags.writeable = False
+#: no device inputs reported (``encode_proxy_state(inputs=None)``)
+_NO_INPUTS = np.full(3, np.nan)
+_NO_INPUTS.flags.writeable = False
 _EMPTY_3 = np.zeros((0, 3))
 _EMPTY_3.flags.writeable = False
 _EMPTY_K = np.zeros((0, 3), dtype=np.int64)
@@ -549,7 +556,7 @@ class Codec:
         self.limits = limits or Limits()
         #: ``proxy_state_packer(minor, session_id, token, seq, ack_seq, server_time_s, pose, twist,
         #: wrench, joint_position, joint_velocity, joint_effort, server_state, epsilon_m, lead_s,
-        #: has_state) -> bytes | None``: may pack a trusted ProxyState (the same bytes as this
+        #: has_state, inputs, has_inputs) -> bytes | None``: may pack a trusted ProxyState (the same bytes as this
         #: codec's; ``None``: not sure, and this codec packs it, naming any bad field)
         self._ps_packer = proxy_state_packer
         #: ``contact_check(cols, normal, keys) -> bool``: may vouch that a ContactUpdate's
@@ -579,6 +586,7 @@ class Codec:
         self._ps_decode = ps.decoder.decode
         self._cu_minor_fields = sum(1 for s in cu.since if s <= minor)
         self._ps_has_state = minor >= 2
+        self._ps_has_inputs = minor >= 3
         # Per-thread ContactUpdate decode plans, one per contact count n, built on first use
         # (see _cu_plan). Per thread because a plan holds a scratch row the validation writes:
         # two threads sharing one codec must never validate against each other's numbers.
@@ -917,10 +925,14 @@ class Codec:
                 msg.position_m, msg.normal, msg.separation_m, msg.v_constr_m_per_s, check=True,
                 tool_joint_position=msg.tool_joint_position)
         if tid == MessageType.PROXY_STATE:
+            fl = int(msg.device_inputs)
+            inputs = (msg.buttons if fl & INPUT_BUTTONS else math.nan,
+                      msg.gripper_angle_rad if fl & INPUT_GRIPPER else math.nan,
+                      msg.gripper_velocity_rad_per_s if fl & INPUT_GRIPPER_RATE else math.nan)
             return self.encode_proxy_state(
                 msg.session_id, msg.token, msg.seq, msg.ack_seq, msg.server_time_s, msg.proxy_pose, msg.proxy_twist,
                 msg.wrench, msg.joint_position, msg.joint_velocity, msg.joint_effort, msg.server_state,
-                epsilon_m=msg.epsilon_m, lead_s=msg.lead_s)
+                epsilon_m=msg.epsilon_m, lead_s=msg.lead_s, inputs=inputs)
         lay = self._layouts.get(int(tid))
         if lay is None or not isinstance(msg, lay.cls):
             raise ValueError(f"message type {type(msg).__name__} not declared in this codec")
@@ -958,9 +970,14 @@ class Codec:
     def encode_proxy_state(self, session_id: int, token: int, seq: int, ack_seq: int, server_time_s: float,
                            proxy_pose, proxy_twist, wrench, joint_position=_EMPTY, joint_velocity=_EMPTY,
                            joint_effort=_EMPTY, server_state: int = 0, *, epsilon_m: float = 0.0,
-                           lead_s: float = 0.0, trusted: bool = False) -> bytes:
+                           lead_s: float = 0.0, trusted: bool = False, inputs=None) -> bytes:
         """Encode a ProxyState from arrays (the server's acknowledgement). Every value rule of the
         decoder is applied (one vectorised test); ``ValueError`` names the bad field.
+
+        ``inputs``: the device's inputs as the device state row holds them (3 floats: the buttons'
+        bit mask, the gripper's angle and rate; NaN where the device does not report one), or
+        ``None`` (none reported); encoded as 1.3's ``buttons``, ``gripper_angle_rad``,
+        ``gripper_velocity_rad_per_s`` and ``device_inputs`` (:func:`device_inputs_fields`).
 
         ``trusted``: the caller's own state in float64 arrays of the right shapes (the server
         loop's kernel output: its pose quaternion is unit by construction, the session ids and
@@ -969,7 +986,8 @@ class Codec:
         if trusted and self._ps_packer is not None:
             packet = self._ps_packer(self.minor, session_id, token, seq, ack_seq, server_time_s, proxy_pose,
                                      proxy_twist, wrench, joint_position, joint_velocity, joint_effort,
-                                     server_state, epsilon_m, lead_s, self._ps_has_state)
+                                     server_state, epsilon_m, lead_s, self._ps_has_state, inputs,
+                                     self._ps_has_inputs)
             if packet is not None:
                 self.counters.encoded += 1
                 return packet
@@ -983,6 +1001,8 @@ class Codec:
                 fields = [PROTOCOL_MAJOR, self.minor, 5, session_id, token, seq, ack_seq, t, *bins]
                 if self._ps_has_state:
                     fields += (int(server_state), float(epsilon_m), float(lead_s))
+                if self._ps_has_inputs:
+                    fields += device_inputs_fields(_NO_INPUTS if inputs is None else inputs)
                 packet = self._enc(fields)
                 self.counters.encoded += 1
                 return packet
@@ -1026,6 +1046,10 @@ class Codec:
                   int(seq), _u(ack_seq, "ack_seq", _U64_MAX), t, *bins]
         if self._ps_has_state:
             fields += (state, eps, lead)
+        if self._ps_has_inputs:
+            if inputs is not None and len(inputs) != 3:
+                raise ValueError(f"inputs must be 3 numbers (buttons, gripper angle, gripper rate), got {len(inputs)}")
+            fields += device_inputs_fields(_NO_INPUTS if inputs is None else inputs)
         packet = self._enc(fields)
         self.counters.encoded += 1
         return packet

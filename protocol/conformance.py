@@ -42,6 +42,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import msgpack
+import msgspec
 import numpy as np
 
 from .codec import Bye, Codec, ContactUpdate, Error, Heartbeat, Hello, ProtocolError, ProxyState, Reject, Welcome
@@ -71,6 +72,17 @@ UPDATE_WATCHDOG_S = 0.1
 # a poll this much later than the previous one means the checker was not running (its own loop
 # sleeps 0.3 ms between polls)
 OWN_STALL_S = 0.02
+#: ProxyState's element index of ``buttons`` (1.3; ``gripper_angle_rad`` follows it)
+_PS_BUTTONS = 5 + [f.name for f in msgspec.structs.fields(ProxyState)[5:]].index("buttons")
+
+
+def _inputs(seq: int) -> np.ndarray:
+    """The device inputs the scripted server reports in ProxyState ``seq``: buttons that change
+    every 25 states, a gripper opening and closing (as a device state row holds them)."""
+    a = 0.25 + 0.2 * math.sin(0.05 * seq)
+    return np.array([float((seq // 25) % 4), a, 0.2 * 0.05 * math.cos(0.05 * seq) * 60.0])
+
+
 #: states in which a client follows the proxy (UNKNOWN: a 1.0/1.1 server that does not say)
 _FOLLOW_STATES = (ServerState.UNKNOWN, ServerState.ENGAGED)
 
@@ -93,6 +105,9 @@ CLIENT_RULES = {
     "proxy-invalid": "invalid datagrams (NaN, non-unit quaternion, truncated, junk, another major) are ignored",
     "error-reply": "an invalid ProxyState of the session is answered with an Error",
     "server-state": "the tool does not follow a proxy that is fading, in fault or idle; it follows again once engaged",
+    "device-inputs": "ProxyStates carry the device's buttons and gripper (1.3, changing in every one): a 1.3 client "
+                     "follows them and ignores those whose button mask or gripper angle is invalid (a 1.2 client "
+                     "ignores the fields: section 6)",
     "heartbeats-only": "with only Heartbeats from the server the client keeps its session and keeps updating",
     "silence-timeout": "a server silent for the granted silence_timeout_s is left with Bye 61, not earlier",
     "reconnect": "after a session ends the client opens a new one (new nonce, seq from 1, tool held at its pose)",
@@ -263,6 +278,7 @@ class _ScriptedServer:
         self.decoy_pose = IDENTITY.copy()
         self._ids = iter(range(0x5EC0_0001, 0x5EC0_1000))
         self._invalid_i = 0
+        self._inputs_i = 0
         self._addr_i = 0
         self.t_follow = 0.5  # seconds the tool took to follow a move half-way (measured)
         self.reject_nonce = 0
@@ -285,7 +301,20 @@ class _ScriptedServer:
         wrench = np.concatenate([-0.5 * self.u, np.zeros(3)])
         return self.codec.encode_proxy_state(
             s.session_id if session_id is None else session_id, s.token if token is None else token, seq, ack,
-            time.monotonic() - s.opened, pose, twist, wrench, j, np.zeros_like(j), np.zeros_like(j), int(state))
+            time.monotonic() - s.opened, pose, twist, wrench, j, np.zeros_like(j), np.zeros_like(j), int(state),
+            inputs=_inputs(seq))
+
+    def _invalid_inputs_packet(self, s: _Session, seq: int) -> bytes:
+        """A 1.3 ProxyState at the decoy pose whose button mask (beyond u32) or gripper angle (NaN)
+        is invalid, by turns."""
+        good = self._proxy_packet(s, seq, self.decoy_pose, _ZERO6, ServerState.ENGAGED)
+        obj = msgpack.unpackb(good)
+        self._inputs_i += 1
+        if self._inputs_i % 2:
+            obj[_PS_BUTTONS] = 1 << 40
+        else:
+            obj[_PS_BUTTONS + 1] = math.nan
+        return msgpack.packb(obj)
 
     def _invalid_packet(self, s: _Session, seq: int) -> bytes | None:
         kind = self.DECOYS_INVALID[self._invalid_i % len(self.DECOYS_INVALID)]
@@ -460,6 +489,9 @@ class _ScriptedServer:
             bad = self._invalid_packet(s, s.proxy_seq)
             if bad:
                 self._emit(bad, s.peer)
+        elif m.decoy == "inputs":
+            s.proxy_seq += 1
+            self._emit(self._invalid_inputs_packet(s, s.proxy_seq), s.peer)
 
     # ------------------------------------------------------------------ targets and measures
     def _hold(self, t: float):
@@ -544,9 +576,10 @@ class _ScriptedServer:
                                 ("invalid", "proxy-invalid")):
                 self._decoy(decoy, rule)
             self._server_state()
+            self._device_inputs()
         else:
             for rule in ("proxy-stale", "proxy-duplicate", "proxy-reordered", "proxy-address", "proxy-invalid",
-                         "error-reply", "server-state"):
+                         "error-reply", "server-state", "device-inputs"):
                 rep.fail(rule, "not judged: the tool does not follow the proxy (rule follow)")
         self._heartbeats_only()
         self._silence()
@@ -672,7 +705,8 @@ class _ScriptedServer:
         worst = max(moved)
         ok = worst <= self.hold_tol
         what = {"stale": "seq 1", "duplicate": "the newest seq", "reordered": "seq one below the newest",
-                "address": "a wrong token or session id", "invalid": "invalid content"}[decoy]
+                "address": "a wrong token or session id", "invalid": "invalid content",
+                "inputs": "an invalid button mask or gripper angle"}[decoy]
         self.rep.check(rule, ok, f"the tool moved {worst * 1e3:.1f} mm towards the proxy of ProxyStates with {what}")
         errors = [e for t, e in s.errors[n_err:]]
         if decoy == "address":
@@ -707,6 +741,18 @@ class _ScriptedServer:
             rep.check("server-state", True)
         self._move(self.step_m, 0.0)
         self.pump(0.2)
+
+    def _device_inputs(self) -> None:
+        """Every ProxyState so far carried changing buttons and gripper values (``_inputs``), and
+        the client followed them (rule follow). A 1.3 client must also ignore ProxyStates whose
+        inputs are invalid; a 1.2 one reads none of those fields (they trail its layout)."""
+        if self.sess.welcome.version[1] < 3:
+            self.rep.check("device-inputs", True)
+            return
+        self._decoy("inputs", "device-inputs")
+        # (a client that followed the decoys comes back before the next scenario)
+        self.mode = _Mode(self._static(0.0))
+        self.pump(self.decoy_s)
 
     def _heartbeats_only(self) -> None:
         s = self.sess

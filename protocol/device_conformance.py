@@ -66,6 +66,8 @@ SERVER_RULES = {
     "state-seq": "state_seq echoes the newest STATE: never ahead of what was sent, never back (a stale or "
                  "duplicate STATE is not taken)",
     "malformed-states": "a malformed STATE (size, magic, version, type, non-finite pose/time) is not taken",
+    "state-v1": "a STATE of layout version 1 (216 bytes: an older device program, or a device without inputs) is "
+                "taken",
     "foreign-states": "a STATE from another address is not taken and gets no command",
     "old-session": "a STATE of an older device session, while this one is alive, is ignored",
     "link-loss": "no STATE for longer than link_timeout_s: enable clear (+ slack); re-armed only with a newer key",
@@ -265,7 +267,7 @@ class DeviceCheck(_Scripted):
             self.foreign += 1
             return
         try:
-            s = STATE.unpack(data)
+            s = dl.unpack_state(data)  # either layout (version 1: a device without inputs)
         except ValueError as exc:
             self._problem(str(exc))
             return
@@ -758,8 +760,22 @@ class ServerCheck(_Scripted):
             seen = yield from self._alone(raw=self._malformed(crafted, **fields))
             if any(c.state_seq == crafted for c in seen):
                 bad[what] = True
-        R.check("malformed-states", not bad, "7 kinds of malformed STATE (size, magic, version, type, NaN) not taken",
+        # (a version-1 STATE with version 2's byte, and a version-2 size with version 1's, are neither layout)
+        for what, fields in (("version 2 at 216 bytes", dict(version=dl.STATE.version, v1=True)),
+                             ("version 1 at 240 bytes", dict(version=dl.STATE_V1.version))):
+            self.seq += 1
+            crafted = self.seq
+            seen = yield from self._alone(raw=self._malformed(crafted, **fields))
+            if any(c.state_seq == crafted for c in seen):
+                bad[what] = True
+        R.check("malformed-states", not bad, "9 kinds of malformed STATE (size, magic, version, type, NaN) not taken",
                 "taken: " + ", ".join(bad))
+        # state-v1: the layout an older device program sends, as the next seq, alone
+        self.seq += 1
+        crafted = self.seq
+        seen = yield from self._alone(raw=self._malformed(crafted, v1=True))
+        R.check("state-v1", any(c.state_seq == crafted for c in seen), "a version-1 STATE was taken",
+                "a version-1 STATE (216 bytes) was not taken")
         enabled_after = yield from self._wait_enabled(self.clock())
         if enabled_after is None:
             R.fail("malformed-states", "the server stopped arming the device after malformed states")
@@ -881,14 +897,17 @@ class ServerCheck(_Scripted):
         return row
 
     def _malformed(self, seq: int, *, extra: int = 0, magic: bytes | None = None, version: int | None = None,
-                   type_id: int | None = None, nan: int | None = None) -> bytes:
-        row = np.array(self.row)
+                   type_id: int | None = None, nan: int | None = None, v1: bool = False) -> bytes:
+        """A STATE as this device would send it, then spoilt as asked (``v1``: in layout version
+        1, which is not spoilt by itself)."""
+        layout = dl.STATE_V1 if v1 else STATE
+        row = np.array(self.row[:layout.block.count])
         if nan is not None:
             row[nan] = math.nan
-        data = bytearray(STATE.pack(flags=F_ARMED if self.armed else 0, device_session=self.session,
-                                    server_session=self.key[0], epoch=self.key[1],
-                                    period_us=int(round(self.period_s * 1e6)), seq=seq, cmd_seq=self.cmd_seq,
-                                    kind=self.kind, fault=self.fault, state=row))
+        data = bytearray(layout.pack(flags=F_ARMED if self.armed else 0, device_session=self.session,
+                                     server_session=self.key[0], epoch=self.key[1],
+                                     period_us=int(round(self.period_s * 1e6)), seq=seq, cmd_seq=self.cmd_seq,
+                                     kind=self.kind, fault=self.fault, state=row))
         if magic is not None:
             data[0:4] = magic
         if version is not None:

@@ -35,14 +35,19 @@ import numpy as np
 __all__ = [
     "COMMAND", "DATAGRAMS", "DEFAULT_LINK_TIMEOUT_S", "DEFAULT_PORT", "DEFAULT_WATCHDOG_S", "Datagram",
     "DeviceFault", "DeviceKind", "F_ARMED", "F_ENABLE", "Field", "MAGIC", "MAX_DATAGRAM_BYTES", "MAX_DRAIN",
-    "PREFIX_BYTES", "ROW_COLUMNS", "ROW_FLOATS", "STATE", "VERSION", "WRENCH_FLOATS", "DatagramType",
-    "new_session",
+    "PREFIX_BYTES", "ROW_COLUMNS", "ROW_FLOATS", "ROW_FLOATS_V1", "STATE", "STATE_V1", "VERSION", "WRENCH_FLOATS",
+    "DatagramType", "new_session", "state_datagram_for", "unpack_state",
 ]
 
 MAGIC = b"HPDV"
-#: Layout version of both datagrams. A receiver drops a datagram of any other version (there is
-#: no negotiation: both programs ship together, and a mismatch must fail closed, not guess).
-VERSION = 1
+#: The newest layout version (the prefix's version byte). Each datagram type has its own: STATE 2
+#: (the row with the device's inputs appended), COMMAND 1. A receiver takes the (version, size)
+#: pairs it knows and drops anything else (there is no negotiation: a mismatch fails closed, never
+#: guesses): a server takes STATE 2 and the STATE 1 of an older device program (the first 20
+#: floats of the row, the inputs then unknown: NaN); a device program sends STATE 1 when its
+#: device has no inputs (no buttons, no gripper), so a server of the version-1 layout still takes
+#: it (:func:`state_datagram_for`).
+VERSION = 2
 #: The constant prefix of every datagram: magic (4 bytes), version (u8), type (u8).
 PREFIX_BYTES = 6
 
@@ -119,10 +124,18 @@ ROW_COLUMNS: tuple[RowColumn, ...] = (
     RowColumn("hand", 13, 6, "N, N m", "wrench the user's hand applies to the handle (a force sensor's "
                                        "reading); NaN in all six if the device has no sensor"),
     RowColumn("time", 19, 1, "s", "device clock of this sample"),
+    RowColumn("buttons", 20, 1, "-", "the device's buttons as a bit mask (bit i set while button i is held), an "
+                                     "integer held in a float64; NaN if the device has no buttons (or in STATE "
+                                     "version 1)"),
+    RowColumn("gripper", 21, 2, "rad, rad/s", "the gripper's opening angle, then its rate; NaN where the device has "
+                                              "no gripper or does not measure the rate"),
 )
-ROW_FLOATS = 20
+ROW_FLOATS = 23
+#: The row of STATE version 1: the columns before the device's inputs were appended.
+ROW_FLOATS_V1 = 20
 WRENCH_FLOATS = 6
-#: Row columns that must be finite for a STATE to be taken (the hand may be NaN: no sensor).
+#: Row columns that must be finite for a STATE to be taken (the hand and the inputs may be NaN:
+#: not measured).
 ROW_FINITE = ((0, 13), (19, 20))
 
 _WIRE = {"4s": ("bytes[4]", 4), "B": ("u8", 1), "H": ("u16", 2), "I": ("u32", 4), "Q": ("u64", 8),
@@ -159,9 +172,9 @@ class Field:
         return self.code == "x"
 
 
-def _prefix(type_doc: str) -> tuple[Field, ...]:
+def _prefix(type_doc: str, version: int) -> tuple[Field, ...]:
     return (Field("magic", "4s", 'b"HPDV"'),
-            Field("version", "B", f"layout version ({VERSION})"),
+            Field("version", "B", f"layout version ({version})"),
             Field("type", "B", type_doc))
 
 
@@ -174,8 +187,10 @@ class Datagram:
     """
 
     def __init__(self, name: str, type_id: DatagramType, direction: str, doc: str,
-                 fields: tuple[Field, ...]) -> None:
+                 fields: tuple[Field, ...], version: int = 1) -> None:
         self.name = name
+        #: this layout's version byte
+        self.version = int(version)
         self.type_id = DatagramType(type_id)
         self.direction = direction
         self.doc = doc
@@ -207,7 +222,7 @@ class Datagram:
     def new_buffer(self) -> bytearray:
         """A zeroed buffer of :attr:`size` with the constant prefix written (pack the rest into it)."""
         buf = bytearray(self.size)
-        struct.pack_into("<4sBB", buf, 0, MAGIC, VERSION, int(self.type_id))
+        struct.pack_into("<4sBB", buf, 0, MAGIC, self.version, int(self.type_id))
         return buf
 
     def floats(self, buf) -> np.ndarray:
@@ -215,7 +230,7 @@ class Datagram:
         return np.frombuffer(buf, dtype="<f8", count=self.block.count, offset=self.block_offset)
 
     def prefix_ok(self, magic: bytes, version: int, type_id: int) -> bool:
-        return magic == MAGIC and version == VERSION and type_id == self.type_id
+        return magic == MAGIC and version == self.version and type_id == self.type_id
 
     # -- conveniences (allocate) ---------------------------------------------------------------
     def pack(self, **values) -> bytes:
@@ -249,25 +264,32 @@ class Datagram:
         return self.Decoded(*h[3:], block)
 
 
-STATE = Datagram("STATE", DatagramType.STATE, "device -> server",
-                 "The device's state, one per device tick, from the device program's socket.", (
-    *_prefix("1 = STATE"),
-    Field("flags", "H", "bit 0 (F_ARMED): the output is armed"),
-    Field("device_session", "Q", "the device program's boot epoch", "ns since 1970"),
-    Field("server_session", "Q", "echo: server_session of the command key the device is in (0 before any)"),
-    Field("epoch", "I", "echo: epoch of that key (0 before any)"),
-    Field("period_us", "I", "the device tick", "us"),
-    Field("seq", "Q", "state sequence number: 1 for the first datagram of a device session, +1 per datagram"),
-    Field("cmd_seq", "Q", "echo: seq of the last command accepted (0 before any)"),
-    Field("kind", "B", "device kind (DeviceKind: 0 1dof, 1 planar, 2 spatial)"),
-    Field("fault", "B", "the device's latched fault (DeviceFault), 0 if none"),
-    Field("pad", "x", "zero", count=6),
-    Field("state", "d", "the device state row (table below), world frame, at the handle", count=ROW_FLOATS),
-))
+def _state(version: int, floats: int, row_doc: str) -> Datagram:
+    return Datagram("STATE", DatagramType.STATE, "device -> server",
+                    "The device's state, one per device tick, from the device program's socket.", (
+        *_prefix("1 = STATE", version),
+        Field("flags", "H", "bit 0 (F_ARMED): the output is armed"),
+        Field("device_session", "Q", "the device program's boot epoch", "ns since 1970"),
+        Field("server_session", "Q", "echo: server_session of the command key the device is in (0 before any)"),
+        Field("epoch", "I", "echo: epoch of that key (0 before any)"),
+        Field("period_us", "I", "the device tick", "us"),
+        Field("seq", "Q", "state sequence number: 1 for the first datagram of a device session, +1 per datagram"),
+        Field("cmd_seq", "Q", "echo: seq of the last command accepted (0 before any)"),
+        Field("kind", "B", "device kind (DeviceKind: 0 1dof, 1 planar, 2 spatial)"),
+        Field("fault", "B", "the device's latched fault (DeviceFault), 0 if none"),
+        Field("pad", "x", "zero", count=6),
+        Field("state", "d", row_doc, count=floats),
+    ), version=version)
+
+
+STATE = _state(VERSION, ROW_FLOATS, "the device state row (table below), world frame, at the handle")
+#: STATE of layout version 1 (an older device program, or one whose device has no inputs): the
+#: same header and the row's first 20 floats (pose, twist, hand, time).
+STATE_V1 = _state(1, ROW_FLOATS_V1, "the first 20 floats of the device state row (pose, twist, hand, time)")
 
 COMMAND = Datagram("COMMAND", DatagramType.COMMAND, "server -> device",
                    "The wrench to render, one per haptic step, sent to the address the device's state comes from.", (
-    *_prefix("2 = COMMAND"),
+    *_prefix("2 = COMMAND", 1),
     Field("flags", "H", "bit 0 (F_ENABLE): render the wrench; clear: zero the output now"),
     Field("device_session", "Q", "the device session this command is for (from its STATE)"),
     Field("server_session", "Q", "the server driver's boot epoch", "ns since 1970"),
@@ -283,11 +305,24 @@ DATAGRAMS: tuple[Datagram, ...] = (STATE, COMMAND)
 
 # The hot paths (server/devices/remote.py) destructure the headers by position: these are the
 # orders they were written against (a change of the declaration must change them too).
-assert STATE.header_names == ("magic", "version", "type", "flags", "device_session", "server_session", "epoch",
+assert STATE.header_names == STATE_V1.header_names == ("magic", "version", "type", "flags", "device_session", "server_session", "epoch",
                               "period_us", "seq", "cmd_seq", "kind", "fault")
 assert COMMAND.header_names == ("magic", "version", "type", "flags", "device_session", "server_session", "epoch",
                                 "engagements", "seq", "state_seq")
-assert STATE.size == 216 and COMMAND.size == 96
+assert STATE.size == 240 and STATE_V1.size == 216 and COMMAND.size == 96
+assert STATE.block_offset == STATE_V1.block_offset
+
+
+def unpack_state(data):
+    """A STATE of either layout (by its size: version 2, or version 1's 20-float row), decoded;
+    ``ValueError`` saying why it is neither."""
+    return (STATE_V1 if len(data) == STATE_V1.size else STATE).unpack(data)
+
+
+def state_datagram_for(has_inputs: bool) -> Datagram:
+    """The STATE layout a device program sends: version 2 when its device has inputs (buttons or
+    a gripper) to report, else version 1, which every server takes."""
+    return STATE if has_inputs else STATE_V1
 
 
 def row_finite(row: np.ndarray) -> bool:

@@ -58,7 +58,8 @@ __all__ = [
     "HEADER_LEN", "Heartbeat", "Hello", "JointType", "KEY_COLUMNS", "KEY_INTS", "LINK_FIELDS", "Link",
     "MAX_ABS_FLOAT", "MESSAGES", "MESSAGES_BY_ID", "MESSAGE_CLASSES", "Message", "MessageDoc", "MessageType",
     "PROTOCOL_MAJOR", "PROTOCOL_MINOR", "ProxyState", "REQUIRED", "Reject", "ServerState", "ToolKind",
-    "UNIT_TOLERANCE", "Welcome", "check_declarations", "fields_of",
+    "UNIT_TOLERANCE", "Welcome", "check_declarations", "fields_of", "INPUT_BUTTONS", "INPUT_GRIPPER",
+    "INPUT_GRIPPER_RATE", "device_inputs_fields",
     "TOOL_KIND_NAMES", "TOOL_KINDS_BY_NAME", "JOINT_TYPE_NAMES", "JOINT_TYPES_BY_NAME", "SERVER_STATE_NAMES",
 ]
 
@@ -67,8 +68,9 @@ PROTOCOL_MAJOR = 1
 #: Highest minor version of :data:`PROTOCOL_MAJOR` this code speaks. 1.1 appended
 #: ``ContactUpdate.tool_joint_position`` (a linkage engine's joint positions); 1.2 appended
 #: ``ProxyState.server_state`` (whether the proxy is being rendered) and the scene bounds and
-#: ``note`` of ``Welcome``.
-PROTOCOL_MINOR = 2
+#: ``note`` of ``Welcome``; 1.3 appended the device's inputs to ``ProxyState`` (``buttons``,
+#: ``gripper_angle_rad``, ``gripper_velocity_rad_per_s``, ``device_inputs``), so a scene can grasp.
+PROTOCOL_MINOR = 3
 #: Tolerance on unit vectors and quaternions: | |x| - 1 | <= UNIT_TOLERANCE.
 UNIT_TOLERANCE = 1e-6
 #: Bound on the magnitude of every float (after the finite check). Generous for metres, newtons
@@ -367,6 +369,41 @@ class ProxyState(Message, kw_only=True):
     lead_s: f64("track proxy_pose advanced along proxy_twist by lead_s plus the time since this ProxyState "
                 "arrived (the server measures the engine tool's lag behind the proxy; 0: track the pose as it "
                 "is)", "s", rule="nonneg", since=2) = 0.0
+    buttons: uint("u32", "the device's buttons held at the haptic step, a bit mask (bit i: the device's button i); "
+                         "0 when none is held or the device has none (device_inputs bit 0)", since=3) = 0
+    gripper_angle_rad: f64("the device's gripper opening angle at the haptic step; 0 when it has none "
+                           "(device_inputs bit 1)", "rad", since=3) = 0.0
+    gripper_velocity_rad_per_s: f64("the gripper's opening rate; 0 when not measured (device_inputs bit 2)", "rad/s",
+                                    since=3) = 0.0
+    device_inputs: uint("u8", "what the device reports: bit 0 its buttons, bit 1 the gripper's angle, bit 2 the "
+                              "gripper's rate (0: none, or a server before 1.3)", since=3) = 0
+
+
+#: ``ProxyState.device_inputs`` bits: the device reports its buttons, its gripper's angle, its rate.
+INPUT_BUTTONS, INPUT_GRIPPER, INPUT_GRIPPER_RATE = 1, 2, 4
+
+
+def device_inputs_fields(inputs) -> tuple[int, float, float, int]:
+    """``(buttons, gripper_angle_rad, gripper_velocity_rad_per_s, device_inputs)`` of the device
+    state row's input columns (``inputs``: buttons, gripper angle, gripper rate; NaN where the
+    device does not report one, as ``protocol/devlink.py``'s row has them). A value that is NaN,
+    not finite within the float bound, or (buttons) outside [0, 2^32) is not reported: 0 and its
+    bit clear. ``server/egress.py`` packs the same rule in its kernel."""
+    b, g, gr = float(inputs[0]), float(inputs[1]), float(inputs[2])
+    flags = 0
+    bi = 0
+    if 0.0 <= b <= 4294967295.0:
+        bi = int(b)
+        flags |= INPUT_BUTTONS
+    ga = 0.0
+    if -MAX_ABS_FLOAT <= g <= MAX_ABS_FLOAT:
+        ga = g
+        flags |= INPUT_GRIPPER
+    gv = 0.0
+    if -MAX_ABS_FLOAT <= gr <= MAX_ABS_FLOAT:
+        gv = gr
+        flags |= INPUT_GRIPPER_RATE
+    return bi, ga, gv, flags
 
 
 class Heartbeat(Message, kw_only=True):

@@ -478,10 +478,13 @@ class ServerEndpoint:
     def send_proxy_state(self, session_id: int, now_ns: int | None, proxy_pose, proxy_twist, wrench,
                          joint_position=None, joint_velocity=None, joint_effort=None,
                          server_time_s: float | None = None, server_state: int = 0, epsilon_m: float = 0.0,
-                         lead_s: float = 0.0, ack_seq: int | None = None, trusted: bool = False) -> bool:
+                         lead_s: float = 0.0, ack_seq: int | None = None, trusted: bool = False,
+                         inputs=None) -> bool:
         """Acknowledge with the proxy state: ``ack_seq`` the seq of the ContactUpdate it answers
         (default: the newest accepted; a server that answers an update a step after applying it
-        passes that update's seq, as newer ones may have arrived meanwhile).
+        passes that update's seq, as newer ones may have arrived meanwhile). ``inputs``: the
+        device's buttons, gripper angle and gripper rate as its state row holds them (NaN: not
+        reported; ``None``: no device inputs), sent as the 1.3 fields (``Codec.encode_proxy_state``).
 
         Poses/twists/wrenches as in SPEC.md (world frame; pose x y z qw qx qy qz). Returns
         ``False`` if the session does not exist (e.g. it just timed out). Raises ``ValueError``
@@ -500,7 +503,7 @@ class ServerEndpoint:
             empty if joint_position is None else joint_position,
             empty if joint_velocity is None else joint_velocity,
             empty if joint_effort is None else joint_effort, server_state, epsilon_m=epsilon_m, lead_s=lead_s,
-            trusted=trusted)
+            trusted=trusted, inputs=inputs)
         self._emit(packet, s.peer)
         s.last_tx_ns = now
         return True

@@ -296,8 +296,10 @@ _DEVICE_KIND_DOCS = {
 
 def render_devlink() -> str:
     """SPEC's tables of the remote-device link, from :mod:`.devlink`'s declaration."""
-    parts = [f"Layout version of these tables: **{dl.VERSION}** (magic `{dl.MAGIC.decode()}`); every integer and "
-             "float is little-endian, with no padding other than the declared pad bytes.", ""]
+    parts = [f"Layout versions of these tables: STATE **{dl.STATE.version}**, COMMAND **{dl.COMMAND.version}** "
+             f"(magic `{dl.MAGIC.decode()}`); STATE version {dl.STATE_V1.version} ({dl.STATE_V1.size} bytes) is the "
+             f"same header and the row's first {dl.ROW_FLOATS_V1} floats. Every integer and float is little-endian, "
+             "with no padding other than the declared pad bytes.", ""]
     parts.append(_table(["type", "datagram", "direction", "bytes", "purpose"], [
         [int(d.type_id), f"`{d.name}`", d.direction, d.size, d.doc] for d in dl.DATAGRAMS]))
     for d in dl.DATAGRAMS:

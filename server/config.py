@@ -27,7 +27,9 @@ Layout (all keys optional)::
                  max_speed_m_per_s, max_angular_speed_rad_per_s, watchdog_s, fade_s, ramp_in_s,
                  stall_recover_s, stall_trips_max, stall_window_s, allow_outside_stable_region
     [device]     driver (entry point name) and the driver's own keys (its Structs: devices/sim.py,
-                 devices/remote.py, devices/hands.py for [device.hand])
+                 devices/remote.py, devices/hands.py for [device.hand]); the workspace mapping:
+                 workspace_scale, workspace_offset_m, workspace_rotation, clutch_button,
+                 clutch_ramp_s (devices/mapping.py)
     [telemetry]  ring_s, record, flush_rows
     [status]     address
 
@@ -256,11 +258,16 @@ class Settings:
     """Validated configuration: ``settings["model"]["policy"]`` is a plain dict of that table.
 
     ``outside_stable_region``: the settings that are outside the measured stable region and were
-    accepted because ``safety.allow_outside_stable_region`` is set, as ``(key, reason)``."""
+    accepted because ``safety.allow_outside_stable_region`` is set, as ``(key, reason)``.
+    ``given``: the dotted keys the file or the command line set (the rest are defaults, which
+    ``devices/safe.py`` may lower to what the device takes); ``lowered``: the defaults it
+    lowered, as ``(key, was, now, reason)``."""
 
     data: dict
     source: str = "<defaults>"
     outside_stable_region: tuple = ()
+    given: frozenset = frozenset()
+    lowered: tuple = ()
 
     def __getitem__(self, section: str) -> dict:
         return self.data[section]
@@ -391,7 +398,17 @@ def load(source: str | Path | dict | None = None, overrides: dict | None = None)
     data["device"] = device
     preset = data.pop("preset")
     data = {"preset": preset, **data}
-    return Settings(data, name, tuple(outside))
+    return Settings(data, name, tuple(outside), frozenset(_dotted(raw)) | frozenset(_dotted(over)))
+
+
+def _dotted(table: dict, prefix: str = ""):
+    """The dotted keys of a nested table (its leaves; ``preset`` left out: its values are defaults)."""
+    for k, v in table.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict) and key != "device.hand":
+            yield from _dotted(v, key + ".")
+        elif key != "preset":
+            yield key
 
 
 def _hostport(key: str, v: str) -> None:
@@ -406,17 +423,20 @@ def device_config(table: dict, *, period_s: float) -> dict:
     factory: ``factory.effective_config(table, period_s=...) -> dict``, raising
     ``ValueError("device.<key>: ...")``). A driver without the hook validates its table when it
     is built; its table is passed on as written."""
+    from .devices import mapping
     from .devices.base import device_factory
 
     try:
         factory = device_factory(table["driver"])
     except ValueError as exc:
         raise ConfigError("device.driver", str(exc).removeprefix("device.driver: ")) from None
+    # the workspace mapping's keys are the server's (devices/mapping.py), the rest the driver's
+    table, asked = mapping.split(copy.deepcopy(table))
     hook = getattr(factory, "effective_config", None)
-    if hook is None:
-        return copy.deepcopy(table)
     try:
-        return hook(copy.deepcopy(table), period_s=period_s)
+        out = copy.deepcopy(table) if hook is None else hook(table, period_s=period_s)
+        kind = out.get("kind", table.get("kind", "planar"))
+        m, _ = mapping.parse_mapping(asked, kind=kind, period_s=period_s)
     except ConfigError:
         raise
     except ValueError as exc:
@@ -424,6 +444,9 @@ def device_config(table: dict, *, period_s: float) -> dict:
         if sep and key.startswith("device"):
             raise ConfigError(key, why) from None
         raise ConfigError("device", str(exc)) from None
+    if asked:  # printed when the config names them (a table without them maps nothing)
+        out.update(mapping.effective(m))
+    return out
 
 
 def to_toml(data: dict) -> str:

@@ -21,6 +21,8 @@ change). In ``ps`` the supervisor is ``hapticproxy serve ARGS`` and the loop ``h
 from __future__ import annotations
 
 import argparse
+import copy
+import dataclasses
 import errno
 import gc
 import hmac
@@ -73,12 +75,13 @@ def set_process_title(title: str) -> None:
 LOOP_TITLE = "hapticproxy-loop"
 
 
-def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes | None, naive: bool = False,
+def loop_process_main(data, shm_name: str, ring_rows: int, hmac_key: bytes | None, naive: bool = False,
                       report=None) -> None:
     """Entry point of the loop process (spawned). ``naive``: the comparison baseline of
     ``bench loop``: the same work paced by ``time.sleep`` alone, with none of the tuning.
     ``report``: the sending end of a pipe; a start-up failure sends ``(message, exit code)`` on it,
-    so the supervisor prints one line that names what failed (a taken transport address...)."""
+    so the supervisor prints one line that names what failed (a taken transport address...).
+    ``data``: the supervisor's ``Settings`` (or their tables as a dict)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the supervisor's to handle
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     # a stop before the try below has nothing to clean up: exit at once (raising then was a
@@ -105,7 +108,7 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         from .clock import MonotonicClock, SleepClock, pin_to_cpu, set_timer_slack_ns, try_realtime
         from .loop import HapticLoop
 
-        settings = cfgmod.Settings(data, "<supervisor>")
+        settings = data if isinstance(data, cfgmod.Settings) else cfgmod.Settings(data, "<supervisor>")
         lcfg = settings["loop"]
         clock = SleepClock() if naive else MonotonicClock()
         transport = open_server_transport(settings["transport"]["url"])
@@ -115,7 +118,7 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         loop.parent_pid = parent  # a loop whose supervisor died stops (forces fade, Bye, exit)
         llog.debug("pid %d: transport %s open, %s device %r built", os.getpid(), transport.url,
                    settings["device"]["kind"], settings["device"]["driver"])
-        _send_device_info(report, loop.device)
+        _send_device_info(report, loop.device, settings, loop.settings)
         from .warm import refresh_stale_caches
 
         refresh_stale_caches()  # kernels compiled from older sources would run the old code
@@ -165,9 +168,10 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
         _report(report, str(exc), exc.code)
         code = exc.code
     except ValueError as exc:
-        if running or not str(exc).startswith("device"):
+        if running or not (str(exc).startswith("device") or isinstance(exc, cfgmod.ConfigError)):
             raise
-        _report(report, str(exc), 2)  # a device that cannot be used as configured: its one line, the fix in it
+        # a device that cannot be used as configured, or a gain it cannot take: one line, the fix in it
+        _report(report, str(exc), 2)
         code = 2
     except Exception as exc:  # noqa: BLE001 - reported to the supervisor, then exit non-zero
         why = f"{type(exc).__name__}: {exc}"
@@ -199,12 +203,19 @@ def loop_process_main(data: dict, shm_name: str, ring_rows: int, hmac_key: bytes
 DEVICE_INFO = "\0device-info"
 
 
-def _send_device_info(conn, device) -> None:
-    """Tell the supervisor what the device is (``status`` shows it)."""
+def _send_device_info(conn, device, before=None, after=None) -> None:
+    """Tell the supervisor what the device is (``status`` shows it), with what the gains became
+    on it (``derived``: the defaults lowered to what the device takes, the set gains let through
+    beyond it by the research override; ``devices/safe.py``)."""
     if conn is None:
         return
     try:
-        conn.send((DEVICE_INFO, device.info.as_dict()))
+        info = device.info.as_dict()
+        if before is not None and after is not None:
+            info["derived"] = {"lowered": [list(x) for x in after.lowered[len(before.lowered):]],
+                               "outside": [list(x) for x in
+                                           after.outside_stable_region[len(before.outside_stable_region):]]}
+        conn.send((DEVICE_INFO, info))
     except Exception:  # noqa: BLE001 - a driver whose info cannot be read: status shows none
         pass
 
@@ -396,7 +407,7 @@ class Supervisor:
         ctx = mp.get_context("spawn")
         reports, report = ctx.Pipe(duplex=False)
         self.proc = ctx.Process(target=loop_process_main, name=LOOP_TITLE,
-                                args=(self.settings.as_dict(), self.shared.name, self.ring_rows, self.auth.key, self.naive,
+                                args=(self.settings, self.shared.name, self.ring_rows, self.auth.key, self.naive,
                                       report),
                                 daemon=False)
         # The child starts with SIGINT blocked (a Ctrl-C while it imports would print a
@@ -452,9 +463,22 @@ class Supervisor:
                 break
             if message == DEVICE_INFO:
                 self.device_info = code
+                self._adopt_derived((code or {}).get("derived") or {})
             else:
                 failure = (message, code)
         return failure
+
+    def _adopt_derived(self, derived: dict) -> None:
+        """The gains the loop lowered to what its device takes: the supervisor's settings (the
+        recordings' config, ``status``) say what runs."""
+        lowered = [tuple(x) for x in derived.get("lowered", ())]
+        if not lowered:
+            return
+        data = copy.deepcopy(self.settings.data)
+        for key, _was, now, _why in lowered:
+            section, name = key.split(".")
+            data[section][name] = now
+        self.settings = dataclasses.replace(self.settings, data=data, lowered=self.settings.lowered + tuple(lowered))
 
     def _stop_during_startup(self) -> None:
         """Stop the loop process before it ever ran (it unwinds and closes its device at SIGTERM)."""
@@ -631,7 +655,10 @@ class Supervisor:
         snap["telemetry_rows_lost"] = self.writer.rows_lost if self.writer else 0
         snap["config_source"] = self.settings.source
         snap["url"] = self.settings["transport"]["url"]
-        snap["outside_stable_region"] = [f"{k}: {why}" for k, why in self.settings.outside_stable_region]
+        derived = (self.device_info or {}).get("derived") or {}
+        snap["outside_stable_region"] = [f"{k}: {why}" for k, why in self.settings.outside_stable_region] + [
+            f"{k}: {why}" for k, why in derived.get("outside", ())]
+        snap["lowered"] = [f"{k} {was:g} -> {now:.6g}: {why}" for k, was, now, why in derived.get("lowered", ())]
         snap["device_kind"] = self.settings["device"]["kind"]
         snap["device_info"] = self.device_info
         snap["tool_kind"] = self.settings.tool_kind
@@ -832,7 +859,9 @@ def warn_outside_stable_region(settings: cfgmod.Settings) -> None:
 
 
 def _check_device(settings: cfgmod.Settings) -> None:
-    """Build the device once in the supervisor so a bad [device] table fails before any process starts."""
+    """Build the device once in the supervisor so a bad [device] table, or a gain the device
+    cannot take (``devices/safe.py``), fails before any process starts."""
+    from .devices import safe
     from .devices.base import load_device
 
     dev = load_device(settings["device"]["driver"], dict(settings["device"]), period_s=settings.period_ns * 1e-9)
@@ -841,5 +870,6 @@ def _check_device(settings: cfgmod.Settings) -> None:
         want = settings["device"]["kind"] if settings.tool_kind == "linkage" else settings.tool_kind
         if dev.kind != want:
             raise cfgmod.ConfigError("device.kind", f"driver built a {dev.kind} device, config says {want}")
+        safe.derive(settings, dev.info)  # (the loop process derives them again, and logs what it changed)
     finally:
         dev.close()

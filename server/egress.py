@@ -15,10 +15,16 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ..protocol.messages import MAX_ABS_FLOAT, PROTOCOL_MAJOR, MessageType
+from ..protocol.messages import (
+    INPUT_BUTTONS, INPUT_GRIPPER, INPUT_GRIPPER_RATE, MAX_ABS_FLOAT, PROTOCOL_MAJOR, MessageType,
+)
 
 _TYPE_ID = int(MessageType.PROXY_STATE)
 _MAJOR = int(PROTOCOL_MAJOR)
+_IN_BUTTONS, _IN_GRIPPER, _IN_GRIPPER_RATE = int(INPUT_BUTTONS), int(INPUT_GRIPPER), int(INPUT_GRIPPER_RATE)
+#: scalars of a 1.3 ProxyState (5 header integers, seq, ack_seq, server_state, buttons,
+#: device_inputs; server_time_s, epsilon_m, lead_s and the gripper's two floats), 9 bytes each at most
+_SCALARS_MAX = 17
 
 
 @njit(cache=True)
@@ -95,19 +101,23 @@ def _put_bin(out, i, a, scratch):
 @njit(cache=True)
 def pack_proxy_state(out, scratch, minor, session_id, token_hi, token_lo, seq, ack_seq, server_time_s, pose, twist,
                      wrench, joint_position, joint_velocity, joint_effort, server_state, epsilon_m, lead_s,
-                     has_state):
+                     has_state, inputs, has_inputs):
     """The ProxyState's bytes into ``out``; returns their count, or -1 (not sure: a value out of
     the rules, or ``out`` too small). The token as two 32-bit halves (it may use all 64 bits);
-    ``scratch``: one float64."""
-    # at most: the array header, 10 integers and 3 floats of 9 bytes, 6 bin headers, the values
-    need = 3 + 13 * 9 + 6 * 3 + 8 * (7 + 6 + 6 + joint_position.shape[0] + joint_velocity.shape[0]
-                                     + joint_effort.shape[0])
+    ``scratch``: one float64. ``inputs``: the device row's input columns (buttons, gripper angle,
+    gripper rate; NaN: not reported), turned into the 1.3 fields by the rule of
+    ``protocol.messages.device_inputs_fields`` (``has_inputs``: the codec writes 1.3)."""
+    # at most: the array header, 12 integers and 5 floats of 9 bytes, 6 bin headers, the values
+    need = 3 + _SCALARS_MAX * 9 + 6 * 3 + 8 * (7 + 6 + 6 + joint_position.shape[0] + joint_velocity.shape[0]
+                                               + joint_effort.shape[0])
     if out.shape[0] < need or pose.shape[0] != 7 or twist.shape[0] != 6 or wrench.shape[0] != 6:
+        return -1
+    if has_inputs and inputs.shape[0] != 3:
         return -1
     for x in (server_time_s, epsilon_m, lead_s):
         if not (-MAX_ABS_FLOAT <= x <= MAX_ABS_FLOAT):
             return -1
-    count = 17 if has_state else 14
+    count = 21 if has_inputs else (17 if has_state else 14)
     if count <= 15:
         out[0] = 0x90 + count
         i = 1
@@ -138,33 +148,61 @@ def pack_proxy_state(out, scratch, minor, session_id, token_hi, token_lo, seq, a
         i = _put_bin(out, i, joint_effort, scratch)
     if i < 0:
         return -1
-    if has_state:
+    if has_state or has_inputs:
         i = _put_uint(out, i, server_state)
         i = _put_f64(out, i, epsilon_m, scratch)
         i = _put_f64(out, i, lead_s, scratch)
+    if has_inputs:
+        # a value not reported (NaN, beyond the bound, a mask outside u32) is 0 with its bit clear
+        b = inputs[0]
+        flags = 0
+        bi = 0
+        if 0.0 <= b <= 4294967295.0:
+            bi = int(b)
+            flags |= _IN_BUTTONS
+        g = inputs[1]
+        ga = 0.0
+        if -MAX_ABS_FLOAT <= g <= MAX_ABS_FLOAT:
+            ga = g
+            flags |= _IN_GRIPPER
+        gr = inputs[2]
+        gv = 0.0
+        if -MAX_ABS_FLOAT <= gr <= MAX_ABS_FLOAT:
+            gv = gr
+            flags |= _IN_GRIPPER_RATE
+        i = _put_uint(out, i, bi)
+        i = _put_f64(out, i, ga, scratch)
+        i = _put_f64(out, i, gv, scratch)
+        i = _put_uint(out, i, flags)
     return i
 
 
 class ProxyStatePacker:
     """``Codec(proxy_state_packer=ProxyStatePacker())``: ``packer(minor, session_id, token, seq,
     ack_seq, server_time_s, pose, twist, wrench, joint_position, joint_velocity, joint_effort,
-    server_state, epsilon_m, lead_s, has_state) -> bytes | None`` (the arrays float64, 1-D)."""
+    server_state, epsilon_m, lead_s, has_state, inputs, has_inputs) -> bytes | None`` (the arrays
+    float64, 1-D; ``inputs`` 3 floats)."""
 
     def __init__(self, max_links: int = 64) -> None:
-        self._out = np.zeros(3 + 13 * 9 + 6 * 3 + 8 * (19 + 3 * max_links), dtype=np.uint8)  # the kernel's bound
+        self._out = np.zeros(3 + _SCALARS_MAX * 9 + 6 * 3 + 8 * (19 + 3 * max_links), dtype=np.uint8)  # the kernel's bound
         self._scratch = np.zeros(1)
         self._mv = memoryview(self._out)
         self.packed = 0  # ProxyStates this packer packed (the rest the codec did)
 
     def __call__(self, minor, session_id, token, seq, ack_seq, server_time_s, pose, twist, wrench, joint_position,
-                 joint_velocity, joint_effort, server_state, epsilon_m, lead_s, has_state):
+                 joint_velocity, joint_effort, server_state, epsilon_m, lead_s, has_state, inputs=None,
+                 has_inputs=False):
         if seq > _I64_MAX or ack_seq > _I64_MAX:
             return None
+        if inputs is None:
+            inputs = _NO_INPUTS
+        elif type(inputs) is not np.ndarray or inputs.dtype != np.float64 or inputs.ndim != 1:
+            return None  # the codec's path converts (and names a bad value)
         # every scalar converted, so the kernel sees the one signature warm_up compiled
         n = pack_proxy_state(self._out, self._scratch, int(minor), int(session_id), token >> 32, token & 0xFFFF_FFFF,
                              int(seq), int(ack_seq), float(server_time_s), pose, twist, wrench, joint_position,
                              joint_velocity, joint_effort, int(server_state), float(epsilon_m), float(lead_s),
-                             bool(has_state))
+                             bool(has_state), inputs, bool(has_inputs))
         if n < 0:
             return None
         self.packed += 1
@@ -172,6 +210,7 @@ class ProxyStatePacker:
 
 
 _I64_MAX = (1 << 63) - 1
+_NO_INPUTS = np.full(3, np.nan)
 
 
 def warm_up() -> None:
@@ -182,4 +221,6 @@ def warm_up() -> None:
     ro = np.zeros(0)
     ro.flags.writeable = False
     for joints in (z, ro):
-        p(2, 1, 1, 1, 1, 0.0, np.zeros(7), np.zeros(6), np.zeros(6), joints, joints, joints, 0, 0.0, 0.0, 1)
+        # the loop's inputs are a view of its device row (contiguous float64, writable)
+        p(3, 1, 1, 1, 1, 0.0, np.zeros(7), np.zeros(6), np.zeros(6), joints, joints, joints, 0, 0.0, 0.0, 1,
+          np.zeros(23)[20:23], 1)

@@ -36,6 +36,7 @@ import numpy as np
 
 from . import control as ctl
 from . import egress, ingest, tick
+from .devices import safe
 from .devices.base import DEV_FAULT_NAMES, DEV_NSTATE, DS_TIME, empty_state, load_device
 from .lifecycle import LOOP_STATES, LS, Fault, Reason
 from .loop_lifecycle import WD_OK, WD_SESSION_ENDED, WD_SILENT, Lifecycle  # noqa: F401 - re-exported
@@ -85,11 +86,17 @@ class HapticLoop:
             if own_d:
                 device = load_device(settings["device"]["driver"], dict(settings["device"]),
                                      period_s=settings.period_ns * 1e-9, clock_ns=clock.now_ns)
-            loop = cls(settings, clock=clock, transport=transport, device=device, shared=shared, hmac_key=hmac_key,
+            # the gains the device renders stably at this rate (devices/safe.py): defaults
+            # lowered, a set value beyond them refused (ConfigError) unless the override is on
+            derived = safe.derive(settings, device.info)
+            safe.log_derived(settings, derived)
+            loop = cls(derived, clock=clock, transport=transport, device=device, shared=shared, hmac_key=hmac_key,
                        **kw)
         except BaseException:
             if own_t:
                 transport.close()
+            if own_d and device is not None:
+                device.close()
             raise
         loop._owns_transport, loop._owns_device = own_t, own_d
         return loop

@@ -20,6 +20,7 @@ from ..protocol.session import ServerConfig, ServerEndpoint
 from ..protocol.vocab import JOINT_TYPE_NAMES, TOOL_KIND_NAMES, TOOL_KINDS_BY_NAME
 from . import control as ctl
 from . import egress, ingest, tick
+from .devices.base import DS_BUTTONS
 from .lifecycle import LS, SERVER_STATE_BY_CODE, Fault, Reason
 from .loop_lifecycle import WD_SILENT
 from .model.layout import K_M
@@ -225,6 +226,8 @@ class ProtocolSide:
         self._ack_pose = self._scratch_pose[:7]
         self._ack_twist = self._scratch_pose[7:13]
         self._ack_wrench = loop.ctrl.cs[ctl.CS_HAND:ctl.CS_HAND + 6]
+        #: the device's inputs (buttons, gripper) of the newest read: a view of the state row
+        self._ack_inputs = loop.dev[DS_BUTTONS:DS_BUTTONS + 3]
         self._R = np.zeros((3, 3))
         self._c = np.zeros(3)
         # arrays the tick gets while no model is engaged (active = 0: never stepped)
@@ -360,7 +363,7 @@ class ProtocolSide:
             if self.endpoint.send_proxy_state(self.session_id, now, pose, twist, wrench, server_time_s=m.time_s,
                                               joint_position=jq, joint_velocity=jqd, joint_effort=effort,
                                               server_state=state, epsilon_m=adv.epsilon_m, lead_s=adv.lead_s,
-                                              ack_seq=upd.seq, trusted=True):
+                                              ack_seq=upd.seq, trusted=True, inputs=self._ack_inputs):
                 self.acks += 1
             return
         mg = self._margs
@@ -368,7 +371,7 @@ class ProtocolSide:
                       upd.tool_pose, upd.separation_m)
         if self.endpoint.send_proxy_state(self.session_id, now, self._ack_pose, self._ack_twist, self._ack_wrench,
                                           server_time_s=m.time_s, server_state=state, epsilon_m=adv.epsilon_m,
-                                          lead_s=adv.lead_s, ack_seq=upd.seq, trusted=True):
+                                          lead_s=adv.lead_s, ack_seq=upd.seq, trusted=True, inputs=self._ack_inputs):
             self.acks += 1
 
     def engage(self, upd, now: int) -> None:

@@ -126,6 +126,27 @@ def device_spring_limit_n_per_m(mass_kg: float, rate_hz: float) -> float:
     return DEVICE_SPRING_STABILITY * float(mass_kg) * float(rate_hz) ** 2
 
 
+#: B dt / m at most this for a damper acting on the device's own mass (half the explicit step's
+#: bound of 2, the margin the spring's bound keeps of its 4)
+DEVICE_DAMPER_STABILITY = 1.0
+#: the rate the devices' stiffness and damping figures are stated at (CHAI3D's ``cHapticDeviceInfo``,
+#: OpenHaptics' ``HD_NOMINAL_*``: what the device renders stably in a 1 kHz servo loop) [Hz]
+DEVICE_FIGURES_RATE_HZ = 1000.0
+
+
+def device_damper_limit_n_s_per_m(mass_kg: float, rate_hz: float) -> float:
+    """The most damping the device's own mass takes at this rate: m rate."""
+    return DEVICE_DAMPER_STABILITY * float(mass_kg) * float(rate_hz)
+
+
+def device_stiffness_at_rate(k_at_1khz: float, rate_hz: float) -> float:
+    """A device's stiffness figure (stated at 1 kHz) at another rate, by Colgate and Schenkel's
+    passivity bound for a sampled spring K and damper B on a device with physical damping b,
+    ``K < 2 (b - |B|) / T``: the device's b fixed, the stiffest spring grows with the rate,
+    ``K(rate) = K(1 kHz) rate / 1 kHz`` (and shrinks below it)."""
+    return float(k_at_1khz) * float(rate_hz) / DEVICE_FIGURES_RATE_HZ
+
+
 def above_device_limits(*, rate_hz: float, controller: str, device_mass_kg: float | None, stiffness_n_per_m: float,
                         coupling_stiffness_n_per_m: float) -> list[tuple[str, str]]:
     """Springs stiffer than the device's mass takes at this rate (the device's own limit): the

@@ -153,6 +153,8 @@ def format_status(s: dict) -> str:
     ]
     for why in s.get("outside_stable_region") or ():
         lines.append(f"WARNING      outside the stable region (safety.allow_outside_stable_region): {why}")
+    for what in s.get("lowered") or ():
+        lines.append(f"lowered      {what}")
     lines[2:2] = _what_the_hand_feels(s)
     tr = s.get("last_transition")
     if tr:

@@ -32,6 +32,7 @@ SERVER_KERNEL_MODULES = (
     "hapticproxy.server.rings",
     "hapticproxy.server.devices.dynamics",
     "hapticproxy.server.devices.hands",
+    "hapticproxy.server.devices.mapping",
 )
 
 

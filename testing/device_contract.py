@@ -7,9 +7,10 @@ each rule of :data:`RULES` checks one promise on a fresh driver in simulated tim
 - ``identity``: a ``DeviceDriver`` with a known ``kind`` and a ``name``;
 - ``limits``: ``limits`` is a ``DeviceLimits`` with positive, finite caps, a workspace box with
   min < max, a finite ``watchdog_s`` >= 0;
-- ``state-row``: ``read`` fills the float64[20] row: finite pose, twist and time, a unit
-  quaternion, the hand wrench finite or all NaN, time never going back, and nothing a kind
-  cannot move (planar: z, tilt and their rates zero; 1dof: identity orientation, no spin);
+- ``state-row``: ``read`` fills the float64[23] row: finite pose, twist and time, a unit
+  quaternion, the hand wrench finite or all NaN, the inputs (buttons a bit mask or NaN, the
+  gripper's angle and rate finite or NaN), time never going back, and nothing a kind cannot
+  move (planar: z, tilt and their rates zero; 1dof: identity orientation, no spin);
 - ``disable``: ``disable()`` zeroes the output at once (within one hardware tick) and keeps it
   zero, whatever is written, until ``enable()``; every ``write`` meanwhile returns a non-OK
   status (``DEV_FAULT_DISABLED``, or a latched fault's code), never ``DEV_OK``;
@@ -56,7 +57,8 @@ from collections.abc import Callable
 import numpy as np
 
 from ..server.devices.base import (
-    DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_NSTATE, DEV_OK, DEVICE_KINDS, DeviceDriver, DeviceLimits,
+    DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_NSTATE, DEV_OK, DEVICE_KINDS, DS_BUTTONS, DS_GRIPPER,
+    DeviceDriver, DeviceLimits,
 )
 
 __all__ = ["RULES", "FakeClock", "Harness", "RemoteHarness", "SimHarness", "check", "harness_for", "run"]
@@ -254,6 +256,12 @@ def _check_row(kind: str, r: np.ndarray) -> None:
     assert abs(float(q @ q) - 1.0) <= 1e-6, f"quaternion {q.tolist()} is not unit"
     hand = r[13:19]
     assert np.all(np.isfinite(hand)) or np.all(np.isnan(hand)), f"hand wrench {hand.tolist()}: finite or all NaN"
+    b, g, gr = r[DS_BUTTONS], r[DS_GRIPPER], r[DS_GRIPPER + 1]
+    assert math.isnan(b) or (0.0 <= b <= 0xFFFF_FFFF and b == int(b)), \
+        f"buttons {b!r}: a bit mask (an integer in [0, 2^32)) or NaN (no buttons)"
+    assert math.isnan(g) or math.isfinite(g), f"gripper angle {g!r}: finite or NaN (no gripper)"
+    assert math.isnan(gr) or (math.isfinite(gr) and math.isfinite(g)), \
+        f"gripper rate {gr!r}: finite (with an angle) or NaN (not measured)"
     if kind == "planar":
         assert r[2] == 0.0 and r[9] == 0.0, "a planar device moved in z"
         assert r[4] == 0.0 and r[5] == 0.0 and r[10] == 0.0 and r[11] == 0.0, "a planar device tilted"

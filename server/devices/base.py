@@ -14,7 +14,16 @@ columns    name   meaning
 13:19      hand   wrench the user's hand applies to the handle [N, N m], as a force sensor
                   measures it; NaN in all six if the device has no sensor
 19         time   device clock [s] of this sample
+20         buttons the device's buttons as a bit mask (bit i set while button i is held), an
+                  integer in a float64; NaN if the device has no buttons
+21:23      gripper the gripper's opening angle [rad], then its rate [rad/s]; NaN where the device
+                  has no gripper or does not measure the rate
 =========  =====  ======================================================================
+
+The device's inputs (buttons, gripper) were appended after the time column (the state row's
+earlier columns keep their numbers); the loop reads them and passes them on to the engine in
+every ``ProxyState`` (``buttons``, ``gripper_angle_rad``, ``gripper_velocity_rad_per_s``,
+``device_inputs``).
 
 A 1-DOF device moves along its ``axis`` (world, unit) only: pose is ``origin + x axis`` with
 identity orientation; a planar device moves in world x-y and turns about +z (z = 0, quaternion
@@ -39,6 +48,7 @@ Safety contract every driver keeps (the loop relies on it):
 from __future__ import annotations
 
 import abc
+import importlib
 import math
 from dataclasses import dataclass, fields
 
@@ -50,7 +60,9 @@ from ...protocol.vocab import DEVICE_KINDS  # noqa: F401 - re-exported
 
 # The state row and the status codes are the remote-device link's (protocol/devlink.py): one set
 # of numbers for every driver and for the wire.
-DS_POSE, DS_TWIST, DS_HAND, DS_TIME = (c.start for c in ROW_COLUMNS)
+DS_POSE, DS_TWIST, DS_HAND, DS_TIME, DS_BUTTONS, DS_GRIPPER = (c.start for c in ROW_COLUMNS)
+#: the gripper's rate (the second gripper column)
+DS_GRIPPER_RATE = DS_GRIPPER + 1
 DEV_NSTATE = ROW_FLOATS
 #: Wrench components a kind renders (the rest are ignored): fx fy fz tx ty tz.
 KIND_WRENCH_MASK = {
@@ -131,6 +143,9 @@ class DeviceInfo:
     max_damping_n_s_per_m: float | None = None
     max_rot_stiffness_n_m_per_rad: float | None = None
     max_rot_damping_n_m_s_per_rad: float | None = None
+    #: the mass moving with the handle [kg], without the hand (None: not stated); bounds the
+    #: coupling's stiffness and damping at the loop's rate (``server/devices/safe.py``)
+    moving_mass_kg: float | None = None
     #: radius of the sphere the handle reaches [m]
     workspace_radius_m: float | None = None
     workspace_min_m: tuple = (-0.1, -0.1, -0.1)
@@ -305,25 +320,44 @@ def device_factory(name: str):
     return DEVICE_REGISTRY.load(name)
 
 
+#: what wraps a driver in a workspace mapping (``mapped.py``; loaded by name as the drivers are)
+MAPPED = "hapticproxy.server.devices.mapped:wrap_mapped"
+#: the ``[device]`` keys of the workspace mapping (``mapping.MAPPING_KEYS``): not the driver's
+MAPPING_KEYS = ("workspace_scale", "workspace_offset_m", "workspace_rotation", "clutch_button", "clutch_ramp_s")
+
+
 def load_device(name: str, config: dict, *, period_s: float, clock_ns=None) -> DeviceDriver:
     """Build the driver registered as ``name`` (:data:`DEVICE_REGISTRY`).
 
     The factory is called as ``factory(config, period_s=..., clock_ns=...)`` where ``config`` is
-    the ``[device]`` table of the server config (a dict) and ``clock_ns`` a callable returning
-    the loop's clock in ns (the injected clock; ``None`` means ``time.monotonic_ns``).
-    Raises ``ValueError`` naming the choices when ``name`` is unknown.
+    the ``[device]`` table of the server config (a dict) without the mapping's keys
+    (:data:`MAPPING_KEYS`) and ``clock_ns`` a callable returning the loop's clock in ns (the
+    injected clock; ``None`` means ``time.monotonic_ns``). When the table asks for a workspace
+    mapping (a scale, offset, rotation or clutch: ``mapping.py``), the driver is returned
+    wrapped in it (``mapped.MappedDevice``). Raises ``ValueError`` naming the choices when
+    ``name`` is unknown.
     """
-    dev = device_factory(name)(config, period_s=period_s, clock_ns=clock_ns)
+    table = dict(config)
+    mapping = {k: table.pop(k) for k in MAPPING_KEYS if k in table}
+    dev = device_factory(name)(table, period_s=period_s, clock_ns=clock_ns)
     if not isinstance(dev, DeviceDriver):
         raise ValueError(f"device.driver: {name!r} did not build a DeviceDriver (got {type(dev).__name__})")
     if dev.kind not in DEVICE_KINDS:
         raise ValueError(f"device.driver: {name!r} has unknown kind {dev.kind!r}")
+    if mapping:
+        try:
+            module, _, attr = MAPPED.partition(":")
+            dev = getattr(importlib.import_module(module), attr)(dev, mapping, period_s=period_s)
+        except BaseException:
+            dev.close()
+            raise
     return dev
 
 
 def empty_state() -> np.ndarray:
-    """A state row with NaN hand wrench and identity orientation (for initialisation)."""
+    """A state row with NaN hand wrench and inputs and identity orientation (for initialisation)."""
     s = np.zeros(DEV_NSTATE)
     s[DS_POSE + 3] = 1.0
     s[DS_HAND:DS_HAND + 6] = np.nan
+    s[DS_BUTTONS:DEV_NSTATE] = np.nan
     return s

@@ -41,7 +41,7 @@ from numba import njit
 from .base import (
     DEV_FAULT_DISABLED, DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_NSTATE, DEV_OK,
 )
-from .hands import hand_eval
+from .hands import hand_eval, inputs_eval
 from .layout import (
     C_ENABLED, C_FAULT, C_LAST_NS, C_WD_NS,
     HO_B, HO_BR, HO_I, HO_K, HO_KR, HO_M, HO_VT, HO_W, HO_XT,
@@ -360,18 +360,21 @@ def sim_write(par, st, cnt, ctl, hout, wrench, now_ns):
 def sim_write_hand(par, st, cnt, ctl, hp, tab, hout, wrench, cmd, now_ns):
     """One step of ``SimDevice.write`` in one call (a call per step costs us on a cold cache):
     keep the command (``cmd``, float64[6], as ``wrench``: float64[6], checked by the caller),
-    evaluate the hand's script at the device time (``hands.hand_eval``), then ``sim_write``."""
+    evaluate the hand's script at the device time (``hands.hand_eval``), ``sim_write``, then
+    the hand's input scripts (buttons, gripper) at the new device time (``hands.inputs_eval``)."""
     for i in range(6):
         cmd[i] = wrench[i]
     hand_eval(hp, tab, st, hout)
-    return sim_write(par, st, cnt, ctl, hout, cmd, now_ns)
+    rc = sim_write(par, st, cnt, ctl, hout, cmd, now_ns)
+    inputs_eval(hp, tab, st)
+    return rc
 
 
 @njit(**_JIT)
 def sim_read(st, ctl, cnt, out, now_ns):
     """Copy the state row into ``out`` (float64[>= DEV_NSTATE]); check the watchdog; status."""
     if out.shape[0] < DEV_NSTATE:  # numba does not bounds-check the writes below
-        raise ValueError("state_out: expected float64[20] (DEV_NSTATE)")
+        raise ValueError("state_out: expected float64[23] (DEV_NSTATE)")
     _watchdog(ctl, cnt, now_ns)
     for i in range(DEV_NSTATE):
         out[i] = st[i]

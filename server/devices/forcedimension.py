@@ -49,7 +49,9 @@ from msgspec import Meta
 
 from . import _check as ck
 from . import models
-from .base import DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_WATCHDOG, DEV_OK, DeviceInfo
+from .base import (
+    DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_WATCHDOG, DEV_OK, DS_BUTTONS, DS_GRIPPER, DS_GRIPPER_RATE, DeviceInfo,
+)
 from .vendor import DeviceUnavailable, VendorDevice, check_force_cap, missing, quat_from_matrix
 
 PACKAGE = "forcedimension_core"
@@ -175,6 +177,7 @@ class ForceDimensionDevice(VendorDevice):
         self._w = Vec3()
         self._R = Mat3x3()
         self._grip = ctypes.c_double()
+        self._grip_w = ctypes.c_double()
         self._f = np.zeros(3)
         self._t = np.zeros(3)
         self._rot = "rotation" in info.sensed
@@ -187,6 +190,9 @@ class ForceDimensionDevice(VendorDevice):
         self._direct = fdc.dhd.direct
         self._set = dhd.setForceAndTorqueAndGripperForce
         self._mask_bits = dhd.getButtonMask
+        self._has_buttons = info.buttons > 0
+        self._grip_angle = dhd.getGripperAngleRad
+        self._grip_rate = dhd.getGripperAngularVelocityRad
 
     def _identify(self, c: ForceDimensionConfig) -> DeviceInfo:
         dhd, drd, fdc = self._dhd, self._fdc.drd, self._fdc
@@ -260,9 +266,18 @@ class ForceDimensionDevice(VendorDevice):
             row[10:13] = 0.0
         row[13:19] = np.nan
         row[19] = self._clock() * 1e-9
-        if self._has_grip and self._dhd.getGripperAngleRad(self._grip, i) >= 0:
-            self.gripper_angle_rad = self._grip.value
-        self.buttons = int(self._mask_bits(i))
+        # the inputs (buttons, gripper) reach the engine through the state row (base.py)
+        if self._has_buttons:
+            self.buttons = int(self._mask_bits(i))
+            row[DS_BUTTONS] = self.buttons
+        else:
+            row[DS_BUTTONS] = np.nan
+        row[DS_GRIPPER] = row[DS_GRIPPER_RATE] = np.nan
+        if self._has_grip:
+            if self._grip_angle(self._grip, i) >= 0:
+                self.gripper_angle_rad = row[DS_GRIPPER] = self._grip.value
+            if self._grip_rate(self._grip_w, i) >= 0:
+                row[DS_GRIPPER_RATE] = self._grip_w.value
         self._reads += 1
         if self._enabled and self._fault == DEV_OK and self._reads % STATUS_EVERY == 0:
             # the device may have cut its forces itself (its watchdog, its force button, ...)

@@ -53,6 +53,17 @@ Hand types and their keys (defaults in brackets):
     ``wrench``, the reduced wrench or a 6-vector. ``.npz``: arrays ``t_s`` and ``pose`` (n x 7,
     n x reduced or n x 6) or ``wrench``. Times strictly increasing; relative paths are relative
     to the working directory.
+
+Every hand type also takes the device's inputs as scripts on the same clock (``start``):
+
+``buttons`` [``[]``: the device has no buttons]
+    ``[[t_s, mask], ...]``: the buttons held (a bit mask, bit i = button i), each from its time
+    to the next, none before the first; strictly increasing times. The state row's ``buttons``
+    column (NaN without a script).
+``gripper`` [``[]``: the device has no gripper]
+    ``[[t_s, angle_rad], ...]``: the gripper's opening angle, piecewise linear (the first angle
+    before the first time, the last after), its rate the slope. The state row's gripper columns
+    (NaN without a script).
 """
 from __future__ import annotations
 
@@ -68,7 +79,7 @@ from numba import njit
 
 from ..readonly import ArrayFloat
 from . import _check as ck
-from .layout import HO_B, HO_BR, HO_I, HO_K, HO_KR, HO_M, HO_VT, HO_W, HO_XT, NHO, ST_TIME
+from .layout import HO_B, HO_BR, HO_I, HO_K, HO_KR, HO_M, HO_VT, HO_W, HO_XT, NHO, ST_BUTTONS, ST_GRIP, ST_TIME
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -90,7 +101,11 @@ HP_PHASE = 22     # 22..27 [rad]
 HP_OFF = 28       # 28..33 constant value / sinusoid offset / value before the first step
 HP_T0 = 34        # device time [s] at which the script started (its t = 0)
 HP_WAIT = 35      # 1: the script waits for the first engagement (the handle is free until then)
-NHP = 36
+HP_BROW = 36      # first row of the button script in the table
+HP_BN = 37        # its rows (0: the device has no buttons)
+HP_GROW = 38      # first row of the gripper script in the table
+HP_GN = 39        # its rows (0: the device has no gripper)
+NHP = 40
 
 MODE_NONE = 0
 MODE_WRENCH = 1
@@ -101,8 +116,10 @@ PROF_SINUSOID = 1
 PROF_HOLD = 2      # zero-order hold over the table (steps)
 PROF_LINEAR = 3    # piecewise linear over the table (waypoints, replay)
 
-#: table columns: t_s, then the 6-vector
+#: table columns: t_s, then the 6-vector (the input scripts' rows: t_s, then their one value)
 NTAB = 7
+#: largest button mask a script may hold (the ProxyState field is a u32)
+MAX_BUTTON_MASK = 0xFFFF_FFFF
 
 
 @njit(**_JIT)
@@ -119,6 +136,56 @@ def _row_at(tab, n, t):
         else:
             hi = mid - 1
     return lo
+
+
+@njit(**_JIT)
+def _row_from(tab, r0, n, t):
+    """Largest row index i in [r0, r0 + n) with tab[i, 0] <= t, or -1."""
+    if n == 0 or t < tab[r0, 0]:
+        return -1
+    lo = r0
+    hi = r0 + n - 1
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if tab[mid, 0] <= t:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+@njit(**_JIT)
+def inputs_eval(hp, tab, st):
+    """The button and gripper scripts at the device time ``st[ST_TIME]``, into the state row's
+    input columns: NaN where the hand has no script (the device has none). On the hand's clock:
+    while it waits for the engagement nothing is held and the gripper rests at its first angle."""
+    t = st[ST_TIME] - hp[HP_T0]
+    wait = hp[HP_WAIT] != 0.0
+    nb = int(hp[HP_BN])
+    if nb == 0:
+        st[ST_BUTTONS] = np.nan
+    else:
+        j = -1 if wait else _row_from(tab, int(hp[HP_BROW]), nb, t)
+        st[ST_BUTTONS] = 0.0 if j < 0 else tab[j, 1]
+    ng = int(hp[HP_GN])
+    if ng == 0:
+        st[ST_GRIP] = np.nan
+        st[ST_GRIP + 1] = np.nan
+        return
+    g0 = int(hp[HP_GROW])
+    last = g0 + ng - 1
+    j = -1 if wait else _row_from(tab, g0, ng, t)
+    if j < 0:
+        st[ST_GRIP] = tab[g0, 1]
+        st[ST_GRIP + 1] = 0.0
+    elif j >= last:
+        st[ST_GRIP] = tab[last, 1]
+        st[ST_GRIP + 1] = 0.0
+    else:
+        span = tab[j + 1, 0] - tab[j, 0]
+        rate = (tab[j + 1, 1] - tab[j, 1]) / span
+        st[ST_GRIP] = tab[j, 1] + (t - tab[j, 0]) * rate
+        st[ST_GRIP + 1] = rate
 
 
 @njit(**_JIT)
@@ -200,6 +267,10 @@ class _HandTable(Struct, forbid_unknown_fields=True, kw_only=True):
     #: handle free, until a client engages, so a client attached later finds the script at its
     #: start), or when the server starts
     start: Literal["engagement", "server"] = "engagement"
+    #: the button script ``[[t_s, mask], ...]`` (empty: the device has no buttons)
+    buttons: Rows = msgspec.field(default_factory=list)
+    #: the gripper script ``[[t_s, angle_rad], ...]`` (empty: the device has no gripper)
+    gripper: Rows = msgspec.field(default_factory=list)
 
 
 class HandNone(_HandTable):
@@ -299,6 +370,17 @@ class Hand:
 
     mass_kg = ArrayFloat("hp", HP_M, doc="Mass of a gripping hand (it moves with the handle), kg.")
     inertia_kg_m2 = ArrayFloat("hp", HP_I, doc="Rotational inertia of a gripping hand, kg m^2.")
+
+    @property
+    def buttons(self) -> int:
+        """Buttons the button script presses (its highest bit, plus one); 0: no script."""
+        r0, n = int(self.hp[HP_BROW]), int(self.hp[HP_BN])
+        return max((int(v).bit_length() for v in self.tab[r0:r0 + n, 1]), default=0) if n else 0
+
+    @property
+    def gripper(self) -> bool:
+        """The hand has a gripper script (the simulated device has a gripper)."""
+        return int(self.hp[HP_GN]) > 0
 
 
 def _first_unit(kind: str, axis: np.ndarray, value: float) -> np.ndarray:
@@ -454,6 +536,32 @@ def _load_recording(key: str, path: str, mode: str, *, kind, axis, origin) -> np
     return out
 
 
+def _input_rows(key: str, rows, *, mask: bool) -> np.ndarray:
+    """``[[t_s, value], ...]`` -> (n, NTAB) rows (t_s, value, zeros): strictly increasing times,
+    a button mask an integer in [0, MAX_BUTTON_MASK], a gripper angle in [-pi, pi]."""
+    if not isinstance(rows, (list, tuple)):
+        raise ck.fail(key, f"expected a list of [t_s, {'mask' if mask else 'angle_rad'}] (empty: none), got {rows!r}")
+    out = np.zeros((len(rows), NTAB))
+    for i, row in enumerate(rows):
+        rk = f"{key}[{i}]"
+        if not isinstance(row, (list, tuple)) or len(row) != 2:
+            raise ck.fail(rk, f"expected [t_s, {'mask' if mask else 'angle_rad'}], got {row!r}")
+        t = ck.num(f"{rk}[0]", row[0], lo=0.0)
+        if mask:
+            v = row[1]
+            if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= MAX_BUTTON_MASK:
+                raise ck.fail(f"{rk}[1]", f"a button mask is an integer in [0, {MAX_BUTTON_MASK}] (bit i: button i), "
+                              f"got {v!r}")
+            v = float(v)
+        else:
+            v = ck.num(f"{rk}[1]", row[1], lo=-math.pi, hi=math.pi)
+        out[i, 0] = t
+        out[i, 1] = v
+        if i and not t > out[i - 1, 0]:
+            raise ck.fail(rk, f"times must increase strictly ({out[i - 1, 0]:g} then {t:g})")
+    return out
+
+
 def parse_hand(cfg, *, kind: str, axis, origin, rest_pose6, prefix: str = "device.hand",
                rest_reduced=None) -> Hand:
     """Validate a ``[device.hand]`` table (:data:`HANDS`) and build the kernel's arrays.
@@ -476,7 +584,9 @@ def parse_hand(cfg, *, kind: str, axis, origin, rest_pose6, prefix: str = "devic
     tab = np.zeros((1, NTAB))
     geo = dict(kind=kind, axis=axis, origin=origin)
     eff: dict = {"type": htype, "start": c.start}
-    if htype != "none":
+    btab = _input_rows(f"{prefix}.buttons", c.buttons, mask=True)
+    gtab = _input_rows(f"{prefix}.gripper", c.gripper, mask=False)
+    if htype != "none" or len(btab) or len(gtab):
         hp[HP_WAIT] = 1.0 if c.start == "engagement" else 0.0
     if htype == "none":
         hp[HP_MODE] = MODE_NONE
@@ -538,4 +648,9 @@ def parse_hand(cfg, *, kind: str, axis, origin, rest_pose6, prefix: str = "devic
         hp[HP_PERIOD] = _repeat(f"{prefix}.repeat_period_s", c.repeat_period_s, tab)
         eff.update(file=c.file, mode=c.mode, repeat_period_s=c.repeat_period_s, **grip)
     hp[HP_NROWS] = len(tab)
-    return Hand(htype, hp, np.ascontiguousarray(tab), eff)
+    # the input scripts' rows follow the hand's own in the one table
+    hp[HP_BROW], hp[HP_BN] = len(tab), len(btab)
+    hp[HP_GROW], hp[HP_GN] = len(tab) + len(btab), len(gtab)
+    eff["buttons"] = [[float(t), int(v)] for t, v in btab[:, :2]]
+    eff["gripper"] = [[float(t), float(v)] for t, v in gtab[:, :2]]
+    return Hand(htype, hp, np.ascontiguousarray(np.vstack([tab, btab, gtab])), eff)

@@ -60,7 +60,7 @@ from msgspec import Meta
 
 from . import _check as ck
 from . import models
-from .base import DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_OK, DeviceInfo
+from .base import DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_OK, DS_BUTTONS, DS_GRIPPER, DS_GRIPPER_RATE, DeviceInfo
 from .vendor import DeviceUnavailable, VendorDevice, missing
 
 UDEV_RULE = "deploy/udev/99-hapticproxy.rules"
@@ -268,6 +268,9 @@ class HaplyDevice(VendorDevice):
         row[10:13] = 0.0
         row[13:19] = np.nan
         row[19] = self._clock() * 1e-9
+        # a VerseGrip's buttons (none without one); an Inverse3 has no gripper
+        row[DS_BUTTONS] = self.buttons if self._grip_id is not None else np.nan
+        row[DS_GRIPPER] = row[DS_GRIPPER_RATE] = np.nan
         return DEV_OK
 
     def _io_write(self, wrench: np.ndarray) -> int:

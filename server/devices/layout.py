@@ -10,7 +10,7 @@ cache only notices changes to the kernel's own source file: after changing a num
 """
 from __future__ import annotations
 
-from .base import DEV_NSTATE, DS_HAND, DS_POSE, DS_TIME, DS_TWIST
+from .base import DEV_NSTATE, DS_BUTTONS, DS_GRIPPER, DS_HAND, DS_POSE, DS_TIME, DS_TWIST
 
 KIND_1DOF = 0
 KIND_PLANAR = 1
@@ -47,12 +47,14 @@ ST_POSE = DS_POSE     # 0..6
 ST_TWIST = DS_TWIST   # 7..12
 ST_HAND = DS_HAND     # 13..18 hand wrench over the last step (ideal force sensor)
 ST_TIME = DS_TIME     # 19 device clock [s]
-ST_S = 20             # 1dof: position along the axis [m]
-ST_SD = 21            # 1dof: velocity along the axis [m/s]
-ST_TH = 22            # planar: theta [rad], not wrapped
-ST_CMD = 23           # 23..28 wrench rendered in the last step (masked, capped), world
-ST_STOP = 29          # 29..34 end-stop wrench of the last step, world
-NST = 36
+ST_BUTTONS = DS_BUTTONS  # 20 the hand's button script (NaN: no buttons)
+ST_GRIP = DS_GRIPPER  # 21..22 the hand's gripper script: angle [rad], rate [rad/s] (NaN: no gripper)
+ST_S = 23             # 1dof: position along the axis [m]
+ST_SD = 24            # 1dof: velocity along the axis [m/s]
+ST_TH = 25            # planar: theta [rad], not wrapped
+ST_CMD = 26           # 26..31 wrench rendered in the last step (masked, capped), world
+ST_STOP = 32          # 32..37 end-stop wrench of the last step, world
+NST = 39
 assert ST_S >= DEV_NSTATE
 
 # -- control words (int64[NCTL]) ----------------------------------------------------------------

@@ -87,7 +87,8 @@ for _t, _m in FORCEDIMENSION.items():
 #: 3D Systems / SensAble models by their HD model string (``hdGetString(HD_DEVICE_MODEL_TYPE)``):
 #: the CHAI3D figures; the driver prefers the device's own nominal figures (HD_NOMINAL_*).
 TOUCH: dict[str, ModelSpec] = {
-    "Touch": ModelSpec("Touch", "3D Systems", 3.3, max_stiffness_n_per_m=400.0, workspace_radius_m=0.075,
+    "Touch": ModelSpec("Touch", "3D Systems", 3.3, max_stiffness_n_per_m=400.0, max_damping_n_s_per_m=4.0,
+                       workspace_radius_m=0.075,
                        sensed=_PR, actuated=_P, buttons=2, emu_mass_kg=0.045, emu_damping_n_s_per_m=0.5),
     "PHANTOM Omni": ModelSpec("PHANTOM Omni", "SensAble Technologies", 3.3, max_stiffness_n_per_m=700.0,
                               max_damping_n_s_per_m=8.0, workspace_radius_m=0.10, sensed=_PR, actuated=_P, buttons=2,

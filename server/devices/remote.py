@@ -60,7 +60,7 @@ import numpy as np
 from msgspec import Meta
 
 from ...protocol import devlink as dl
-from ...protocol.devlink import COMMAND, F_ARMED, F_ENABLE, PREFIX_BYTES, STATE, new_session
+from ...protocol.devlink import COMMAND, F_ARMED, F_ENABLE, PREFIX_BYTES, STATE, STATE_V1, new_session
 from ...protocol.transport import Transport, UdpTransport
 
 from ..readonly import ReadOnly
@@ -68,7 +68,7 @@ from . import _check as ck
 from . import sim as _sim
 from .base import (
     DEV_FAULT_DISABLED, DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_NAMES,
-    DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_NSTATE, DEV_OK, DEVICE_KINDS, DS_HAND, DS_POSE,
+    DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_NSTATE, DEV_OK, DEVICE_KINDS, DS_BUTTONS, DS_HAND, DS_POSE,
     DS_TIME, DS_TWIST, DeviceDriver, DeviceInfo, DeviceLimits, info_from_limits,
 )
 from .layout import KIND_IDS
@@ -76,7 +76,8 @@ from .layout import KIND_IDS
 # The link carries the drivers' state row, kinds and fault codes: base.py takes them from devlink.
 assert KIND_IDS == {name: int(k) for k, name in dl.KIND_NAMES.items()}
 
-STATE_SIZE = STATE.size            # 216
+STATE_SIZE = STATE.size            # 240 (layout version 2: the row with the device's inputs)
+STATE_V1_SIZE = STATE_V1.size      # 216 (version 1: the first 20 floats; an older device program)
 COMMAND_SIZE = COMMAND.size        # 96
 
 DEFAULT_LISTEN = f"127.0.0.1:{dl.DEFAULT_PORT}"
@@ -202,12 +203,14 @@ class RemoteDevice(DeviceDriver, _LinkEnd):
         self.session = session if session is not None else new_session()
         self._rx = bytearray(max(dl.MAX_DATAGRAM_BYTES, transport.max_packet_bytes))
         self._rx_state = STATE.floats(self._rx)
+        self._rx_state_v1 = STATE_V1.floats(self._rx)  # the same bytes, the first 20 floats
         self._tx = COMMAND.new_buffer()
         self._tx_wrench = COMMAND.floats(self._tx)
         self._finite = np.zeros(13, dtype=bool)
         self._state = np.zeros(DEV_NSTATE)
         self._state[3] = 1.0
         self._state[13:19] = np.nan
+        self._state[DS_BUTTONS:] = np.nan
         self._cnt = dict.fromkeys(REMOTE_COUNTERS, 0)
         self._enabled = False
         self._fault = DEV_FAULT_LINK
@@ -353,12 +356,18 @@ class RemoteDevice(DeviceDriver, _LinkEnd):
     def _accept(self, n: int, peer, now: int) -> None:
         addr = _peer_id(peer)
         cnt = self._cnt
-        if n != STATE_SIZE:
+        # the layout by its size: version 2 (with the device's inputs), or 1 (an older device
+        # program, or a device without inputs: they are NaN then)
+        if n == STATE_SIZE:
+            layout = STATE
+        elif n == STATE_V1_SIZE:
+            layout = STATE_V1
+        else:
             cnt["malformed"] += 1
             return
         (magic, version, ptype, flags, dev_session, srv_session, epoch, _period_us, seq, _cmd_seq,
          kind, fault) = STATE.header.unpack_from(self._rx, 0)
-        if not STATE.prefix_ok(magic, version, ptype):
+        if not layout.prefix_ok(magic, version, ptype):
             cnt["malformed"] += 1
             return
         np.isfinite(self._rx_state[:13], out=self._finite)
@@ -398,7 +407,11 @@ class RemoteDevice(DeviceDriver, _LinkEnd):
             return
         self._cnt_kind_bad = False
         cnt["states"] += 1
-        self._state[:] = self._rx_state
+        if layout is STATE:
+            self._state[:] = self._rx_state
+        else:
+            self._state[:DS_BUTTONS] = self._rx_state_v1
+            self._state[DS_BUTTONS:] = np.nan
         self._dev_armed = bool(flags & F_ARMED)
         self._dev_key = (srv_session, epoch)
         self._dev_fault = fault
@@ -511,8 +524,12 @@ class DeviceProgram(_LinkEnd):
         self._kind_id = KIND_IDS[driver.kind]
         self._rx = bytearray(max(dl.MAX_DATAGRAM_BYTES, transport.max_packet_bytes))
         self._rx_wrench = COMMAND.floats(self._rx)
-        self._tx = STATE.new_buffer()
-        self._tx_state = STATE.floats(self._tx)
+        # STATE version 2 carries the device's inputs (buttons, gripper); a device without any
+        # sends version 1, which a server of the older layout takes too
+        info = driver.info
+        self._layout = dl.state_datagram_for(info.buttons > 0 or info.gripper)
+        self._tx = self._layout.new_buffer()
+        self._tx_state = self._layout.floats(self._tx)
         self._state = np.zeros(DEV_NSTATE)
         self._cmd = np.zeros(6)
         self._zero = np.zeros(6)
@@ -597,7 +614,7 @@ class DeviceProgram(_LinkEnd):
         fault = self._fault or (drv_fault if drv_fault not in (DEV_OK, DEV_FAULT_DISABLED) else DEV_OK)
         STATE.body.pack_into(self._tx, PREFIX_BYTES, F_ARMED if self._armed else 0, self.session, self._key[0],
                              self._key[1], self._period_us, self._seq, self._cmd_seq, self._kind_id, fault)
-        self._tx_state[:] = self._state
+        self._tx_state[:] = self._state[:self._layout.block.count]
         if self._tr.send(self._tx, self._peer):
             self._cnt["states_sent"] += 1
         else:

@@ -77,7 +77,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Annotated, Literal, Optional, Union
 
 import msgspec
@@ -423,10 +423,14 @@ class SimDevice(DeviceDriver):
 
     @property
     def info(self) -> DeviceInfo:
-        """A simulated device: its figures are its config's; it advances inside ``write``, so
-        the loop owns the clock."""
-        return info_from_limits(self.kind, self.spec.limits, model=f"simulated {self.kind}", vendor="hapticproxy",
+        """A simulated device: its figures are its config's (its moving mass, the buttons and
+        gripper its hand's scripts use); it advances inside ``write``, so the loop owns the clock."""
+        info = info_from_limits(self.kind, self.spec.limits, model=f"simulated {self.kind}", vendor="hapticproxy",
                                 driver=self.name, source="config")
+        hand = self.spec.hand
+        return replace(info, buttons=hand.buttons, gripper=hand.gripper,
+                       sensed=info.sensed + (("gripper",) if hand.gripper else ()),
+                       moving_mass_kg=float(self.spec.par[P_MASS]))
 
     def enable(self) -> None:
         """Arm the output; clears a latched fault (a simulated device's causes are all gone)."""
@@ -463,6 +467,7 @@ class SimDevice(DeviceDriver):
             self._hp[_hands.HP_T0] = self._st[ST_TIME]
             self._hp[_hands.HP_WAIT] = 0.0
             _hands.hand_eval(self._hp, self._tab, self._st, self._hout)
+            _hands.inputs_eval(self._hp, self._tab, self._st)
             _dyn.sim_hand_now(self._par, self._st, self._hout)  # the sensor reads the hand at once
 
     def _copy_command(self, wrench) -> None:
@@ -513,6 +518,7 @@ class SimDevice(DeviceDriver):
             st[ST_POSE + 3:ST_POSE + 7] = _dyn.qexp(*pose6[3:])
             st[ST_TWIST:ST_TWIST + 6] = twist6
         _hands.hand_eval(self._hp, self._tab, st, self._hout)
+        _hands.inputs_eval(self._hp, self._tab, st)
         _dyn.sim_hand_now(self._par, st, self._hout)
 
     @property
@@ -600,6 +606,7 @@ def warm_up() -> None:
             hp[_hands.HP_PROF] = prof
             hp[_hands.HP_NROWS] = 2
             _hands.hand_eval(hp, tab, st, hout)
+            _hands.inputs_eval(hp, tab, st)
             _dyn.sim_write(par, st, cnt, ctl, hout, w, 0)
             _dyn.sim_write_hand(par, st, cnt, ctl, hp, tab, hout, w, np.zeros(6), 0)
         _dyn.sim_hand_now(par, st, hout)

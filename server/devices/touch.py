@@ -58,7 +58,9 @@ from msgspec import Meta
 
 from . import _check as ck
 from . import models
-from .base import DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_WATCHDOG, DEV_OK, DeviceInfo
+from .base import (
+    DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_WATCHDOG, DEV_OK, DS_BUTTONS, DS_GRIPPER, DS_GRIPPER_RATE, DeviceInfo,
+)
 from .vendor import DeviceUnavailable, VendorDevice, check_force_cap, missing, quat_from_matrix
 
 HD_INVALID_HANDLE = 0xFFFFFFFF
@@ -259,13 +261,15 @@ class TouchDevice(VendorDevice):
         return DeviceInfo(
             model=model, vendor=vendor, driver="touch", serial=serial, sensed=("position", "rotation"),
             actuated=("position",), max_force_n=cont, peak_force_n=peak,
-            max_stiffness_n_per_m=dv(HD_NOMINAL_MAX_STIFFNESS)[0] * 1e3 or None,
-            max_damping_n_s_per_m=dv(HD_NOMINAL_MAX_DAMPING)[0] * 1e3 or None,
+            # the device's own nominal figures; where it states none, CHAI3D's for the model
+            max_stiffness_n_per_m=dv(HD_NOMINAL_MAX_STIFFNESS)[0] * 1e3 or (spec.max_stiffness_n_per_m if spec else None),
+            max_damping_n_s_per_m=dv(HD_NOMINAL_MAX_DAMPING)[0] * 1e3 or (spec.max_damping_n_s_per_m if spec else None),
             workspace_radius_m=spec.workspace_radius_m if spec else None,
             workspace_min_m=tuple(v * 1e-3 for v in ws[:3]), workspace_max_m=tuple(v * 1e-3 for v in ws[3:]),
             native_rate_hz=float(rate.value) or None, buttons=spec.buttons if spec else 2,
             calibration="done" if cal == HD_CALIBRATION_OK else "needed", clock="device", sdk_units="mm, N",
-            source="the device's own HD_NOMINAL_* figures (pyopenhaptics / libHD)")
+            source="the device's own HD_NOMINAL_* figures (pyopenhaptics / libHD); CHAI3D's for the model where "
+                   "it states none")
 
     # -- the servo side (runs in OpenHaptics' thread) ----------------------------------------
     def schedule(self, callback_address: int, user_data: int | None) -> int:
@@ -363,6 +367,9 @@ class TouchDevice(VendorDevice):
             if st[S_SEQ] == s1:
                 break
         row[13:19] = np.nan
+        # the stylus' buttons (HD_CURRENT_BUTTONS, sampled in the servo tick); a Touch has no gripper
+        row[DS_BUTTONS] = self.buttons
+        row[DS_GRIPPER] = row[DS_GRIPPER_RATE] = np.nan
         now = self._clock()
         row[19] = now * 1e-9
         if tick != self._last_tick:

@@ -26,7 +26,7 @@ import os
 import numpy as np
 
 MAGIC = 0x48505845  # "HPXE"
-LAYOUT_VERSION = 1
+LAYOUT_VERSION = 2
 
 #: (name, count, meaning); ``[x]`` = who writes it: P physics, F front end, T the test
 SLOTS: tuple[tuple[str, int, str], ...] = (
@@ -39,6 +39,7 @@ SLOTS: tuple[tuple[str, int, str], ...] = (
     ("vel_m_s", 3, "linear velocity [m/s] [P]"),
     ("angvel_rad_s", 3, "angular velocity [rad/s] [P]"),
     ("gripper_rad", 1, "gripper opening angle [rad] [P]"),
+    ("gripper_rad_s", 1, "gripper opening rate [rad/s] [P]"),
     ("buttons", 1, "button bit mask [P]"),
     ("cmd_seq", 1, "incremented after each command write [F]"),
     ("cmd", 6, "commanded force [N] and torque [N m], device frame [F]"),
@@ -82,7 +83,7 @@ BLOCK_BYTES = 8 * NSLOTS
 def c_header() -> str:
     """``#define B_<NAME> <offset>`` for every slot (the C front ends' view of :data:`SLOTS`)."""
     lines = ["/* generated from hapticproxy.testing.emulators.block.SLOTS: do not edit */",
-             f"#define B_MAGIC_VALUE {MAGIC}", f"#define B_LAYOUT_VERSION {LAYOUT_VERSION}",
+             f"#define B_MAGIC_VALUE {MAGIC}", f"#define B_LAYOUT_VERSION_VALUE {LAYOUT_VERSION}",
              f"#define B_NSLOTS {NSLOTS}", f"#define B_STATE_FIRST {STATE_FIRST}", f"#define B_STATE_LAST {STATE_LAST}"]
     lines += [f"#define B_{name.upper()} {OFFSETS[name]}  /* {doc} */" for name, _c, doc in SLOTS]
     return "\n".join(lines) + "\n"

@@ -90,7 +90,7 @@ static void attach(void) {
         close(fd);
         if (m == MAP_FAILED) continue;
         volatile double *b = (volatile double *)m;
-        if ((long)b[B_MAGIC] != B_MAGIC_VALUE || (long)b[B_LAYOUT_VERSION] != B_LAYOUT_VERSION) {
+        if ((long)b[B_MAGIC] != B_MAGIC_VALUE || (long)b[B_LAYOUT_VERSION] != B_LAYOUT_VERSION_VALUE) {
             munmap(m, 8 * B_NSLOTS);
             continue;
         }
@@ -373,6 +373,16 @@ int dhdGetGripperAngleRad(double *a, char id) {
     double s[B_STATE_LAST - B_STATE_FIRST + 1];
     sample(b, s);
     *a = S(B_GRIPPER_RAD);
+    return 0;
+}
+int dhdGetGripperAngularVelocityRad(double *w, char id) {
+    volatile double *b = dev(id);
+    if (!b) return -1;
+    const struct emu_fd_model *m = model_of(b);
+    if (!m || !m->sensed_gripper) return fail(DHD_ERROR_NOT_AVAILABLE);
+    double s[B_STATE_LAST - B_STATE_FIRST + 1];
+    sample(b, s);
+    *w = S(B_GRIPPER_RAD_S);
     return 0;
 }
 

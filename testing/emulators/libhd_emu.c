@@ -112,7 +112,7 @@ static void attach(void) {
         close(fd);
         if (m == MAP_FAILED) continue;
         volatile double *b = (volatile double *)m;
-        if ((long)b[B_MAGIC] != B_MAGIC_VALUE || (long)b[B_LAYOUT_VERSION] != B_LAYOUT_VERSION) { munmap(m, 8 * B_NSLOTS); continue; }
+        if ((long)b[B_MAGIC] != B_MAGIC_VALUE || (long)b[B_LAYOUT_VERSION] != B_LAYOUT_VERSION_VALUE) { munmap(m, 8 * B_NSLOTS); continue; }
         struct dev *d = &g_dev[g_ndev++];
         memset(d, 0, sizeof *d);
         snprintf(d->name, sizeof d->name, "%s", p);

@@ -31,7 +31,7 @@ import time
 
 import numpy as np
 
-from ...server.devices.base import DEV_NSTATE
+from ...server.devices.base import DEV_NSTATE, DS_BUTTONS, DS_GRIPPER
 from ...server.devices.models import ModelSpec
 from ...server.devices.sim import make_sim_device
 from .block import OFFSETS, Block
@@ -141,6 +141,13 @@ class Physics:
         b[_O["quat"]:_O["quat"] + 4] = r[3:7]
         b[_O["vel_m_s"]:_O["vel_m_s"] + 3] = r[7:10]
         b[_O["angvel_rad_s"]:_O["angvel_rad_s"] + 3] = r[10:13]
+        # the hand's button and gripper scripts (a test may also write these slots itself: a
+        # device without the script leaves them alone)
+        if not math.isnan(r[DS_BUTTONS]):
+            b[_O["buttons"]] = r[DS_BUTTONS]
+        if not math.isnan(r[DS_GRIPPER]):
+            b[_O["gripper_rad"]] = r[DS_GRIPPER]
+            b[_O["gripper_rad_s"]] = r[DS_GRIPPER + 1]
         b[seq] += 1  # even: done
 
     def command_now(self) -> np.ndarray:

@@ -340,7 +340,7 @@ def test_a_careless_client_fails_the_rules_it_breaks():
     rep = run_check_client("udp", flawed_client, flaws={"no-retry", "lenient"})
     bad = failed(rep)
     broken = {"hello-retry", "proxy-stale", "proxy-duplicate", "proxy-reordered", "proxy-address", "proxy-invalid",
-              "error-reply", "server-state"}
+              "error-reply", "server-state", "device-inputs"}
     assert bad == broken, "\n".join(rep.lines())
 
 

@@ -1,7 +1,9 @@
 """The remote-device link's declaration (protocol/devlink.py) reproduces the bytes of the
 hand-written packers it replaced (golden/devlink_golden.json, written by
 golden/make_devlink_golden.py from the old code), field by field and as a recorded exchange
-between a device program and a server driver replayed byte for byte."""
+between a device program and a server driver replayed byte for byte: the golden STATEs are the
+layout's version 1 (216 bytes), which a device without inputs still sends and every server
+takes; version 2 appends the device's inputs to the row."""
 from __future__ import annotations
 
 import importlib.util
@@ -13,14 +15,14 @@ import numpy as np
 import pytest
 
 from hapticproxy.protocol import devlink as dl
-from hapticproxy.protocol.devlink import COMMAND, STATE
+from hapticproxy.protocol.devlink import COMMAND, STATE, STATE_V1
 
 GOLDEN_DIR = Path(__file__).with_name("golden")
 GOLDEN = json.loads((GOLDEN_DIR / "devlink_golden.json").read_text(encoding="utf-8"))
 
 
 #: Each golden set: its datagram, the JSON key of its one flag and that flag's bit, its float64 array.
-_SETS = {"state": (STATE, "armed", dl.F_ARMED, "state"), "command": (COMMAND, "enable", dl.F_ENABLE, "wrench")}
+_SETS = {"state": (STATE_V1, "armed", dl.F_ARMED, "state"), "command": (COMMAND, "enable", dl.F_ENABLE, "wrench")}
 
 
 def _values(kind: str, f: dict) -> dict:
@@ -33,10 +35,12 @@ def _values(kind: str, f: dict) -> dict:
 
 def test_the_declared_layouts_are_the_hand_written_ones():
     # the struct strings server/devices/remote.py used before the declaration
-    assert STATE.header.format == "<4sBBHQQIIQQBB6x" and STATE.header.size == 56
+    assert STATE.header.format == STATE_V1.header.format == "<4sBBHQQIIQQBB6x" and STATE.header.size == 56
     assert COMMAND.header.format == "<4sBBHQQIIQQ" and COMMAND.header.size == 48
-    assert (STATE.size, COMMAND.size) == (GOLDEN["state_size"], GOLDEN["command_size"]) == (216, 96)
-    assert STATE.offsets["state"] == 56 and COMMAND.offsets["wrench"] == 48
+    assert (STATE_V1.size, COMMAND.size) == (GOLDEN["state_size"], GOLDEN["command_size"]) == (216, 96)
+    assert STATE.offsets["state"] == STATE_V1.offsets["state"] == 56 and COMMAND.offsets["wrench"] == 48
+    # version 2: the row's inputs appended (3 floats), the rest where it was
+    assert (STATE.size, STATE.version, STATE_V1.version, COMMAND.version) == (216 + 24, 2, 1, 1)
     assert COMMAND.offsets["engagements"] == 28 and STATE.offsets["kind"] == 48
 
 
@@ -77,6 +81,13 @@ def test_unpack_and_pack_refuse_what_is_not_a_datagram():
         COMMAND.unpack(b"XXXX" + good[4:])
     with pytest.raises(ValueError, match="bad prefix"):
         STATE.unpack(good + bytes(STATE.size - COMMAND.size))   # right size, COMMAND's type byte
+    v1 = STATE_V1.pack(flags=0, device_session=1, server_session=0, epoch=0, period_us=1000, seq=1, cmd_seq=0, kind=1,
+                       fault=0, state=[0.0] * dl.ROW_FLOATS_V1)
+    with pytest.raises(ValueError, match="bad prefix"):
+        STATE.unpack(v1 + bytes(STATE.size - STATE_V1.size))   # version 2's size, version 1's version byte
+    with pytest.raises(ValueError, match="bad prefix"):
+        STATE_V1.unpack(v1[:4] + bytes([2]) + v1[5:])           # version 1's size, version 2's byte
+
     with pytest.raises(ValueError, match="missing fields \\['engagements'\\]"):
         COMMAND.pack(flags=1, device_session=1, server_session=2, epoch=1, seq=1, state_seq=0, wrench=[0.0] * 6)
     with pytest.raises(ValueError, match="COMMAND"):
@@ -89,7 +100,8 @@ def test_unpack_and_pack_refuse_what_is_not_a_datagram():
 
 def test_the_hot_path_buffers_carry_the_prefix_and_a_view_of_the_block():
     buf = STATE.new_buffer()
-    assert struct.unpack_from("<4sBB", buf) == (dl.MAGIC, dl.VERSION, dl.DatagramType.STATE)
+    assert struct.unpack_from("<4sBB", buf) == (dl.MAGIC, dl.VERSION, dl.DatagramType.STATE) == \
+        (dl.MAGIC, STATE.version, dl.DatagramType.STATE)
     view = STATE.floats(buf)
     view[:] = np.arange(dl.ROW_FLOATS)
     STATE.body.pack_into(buf, dl.PREFIX_BYTES, 1, 7, 8, 9, 1000, 3, 2, 1, 0)
@@ -104,8 +116,10 @@ def test_the_drivers_numbers_are_the_links():
 
     assert {n: int(k) for k, n in dl.KIND_NAMES.items()} == KIND_IDS
     assert {int(f) for f in dl.DeviceFault} == set(base.DEV_FAULT_NAMES)
-    assert (base.DS_POSE, base.DS_TWIST, base.DS_HAND, base.DS_TIME, base.DEV_NSTATE) == \
-        tuple(c.start for c in dl.ROW_COLUMNS) + (dl.ROW_FLOATS,)
+    assert (base.DS_POSE, base.DS_TWIST, base.DS_HAND, base.DS_TIME, base.DS_BUTTONS, base.DS_GRIPPER,
+            base.DEV_NSTATE) == tuple(c.start for c in dl.ROW_COLUMNS) + (dl.ROW_FLOATS,)
+    # the appended columns keep the earlier ones' numbers (version 1's row is the first 20)
+    assert (base.DS_TIME, base.DS_BUTTONS, dl.ROW_FLOATS_V1) == (19, 20, 20)
 
 
 def test_spec_appendix_is_generated_from_the_declaration():

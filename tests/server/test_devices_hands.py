@@ -162,8 +162,8 @@ def test_replay_pose_from_csv_and_npz_equals_the_same_waypoints(tmp_path):
                  {"type": "impedance", **grip, "rot_stiffness_n_m_per_rad": 5.0, "rot_damping_n_m_s_per_rad": 0.05,
                   "target": {"type": "waypoints", "points": [[t[i], [x[i], y[i], th[i]]] for i in range(len(t))]}}):
         runs.append(steps(make("planar", hand), 2500))
-    assert runs[0] == pytest.approx(runs[1], abs=1e-12)
-    assert runs[0] == pytest.approx(runs[2], abs=1e-9)
+    assert runs[0] == pytest.approx(runs[1], abs=1e-12, nan_ok=True)  # (no inputs: NaN columns)
+    assert runs[0] == pytest.approx(runs[2], abs=1e-9, nan_ok=True)
     follow = runs[0]
     i = 1000                                             # t = 1 s: the far side of the circle
     assert follow[i, 0] == pytest.approx(-0.04, abs=2e-3) and abs(follow[i, 1]) < 3e-3

@@ -13,13 +13,14 @@ import numpy as np
 import pytest
 from server_harness import stop_process
 
+from hapticproxy.protocol import devlink as dl
 from hapticproxy.protocol.devlink import COMMAND, STATE
 from hapticproxy.server.devices import base
 from hapticproxy.server.devices.base import (
     DEV_FAULT_DISABLED, DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_WATCHDOG, DEV_OK, load_device,
 )
 from hapticproxy.server.devices import remote
-from hapticproxy.server.devices.remote import COMMAND_SIZE, STATE_SIZE, DeviceProgram, RemoteDevice
+from hapticproxy.server.devices.remote import COMMAND_SIZE, STATE_V1_SIZE, DeviceProgram, RemoteDevice
 from hapticproxy.server.devices.sim import make_sim_device
 from hapticproxy.testing.cleanup import made_then_ended
 
@@ -93,7 +94,7 @@ def test_state_flows_and_the_link_fault_clears_only_through_enable(link):
     lk.step(3, server=False)
     assert eventually(lambda: lk.srv.read(lk.row) is not None and lk.srv.counters()["states"] >= 3)
     assert lk.srv.link_up and lk.srv.fault == DEV_FAULT_LINK                # latched until enable
-    assert lk.row == pytest.approx(lk.sim.state)
+    assert lk.row == pytest.approx(lk.sim.state, nan_ok=True)  # (no inputs: NaN both sides)
     assert lk.srv.device_session == lk.prog.session
     lk.srv.enable()
     assert lk.srv.fault == DEV_OK and lk.srv.enabled
@@ -311,8 +312,8 @@ def test_device_epoch_rules_with_crafted_commands():
                 data = server.recv(4096)
             except BlockingIOError:
                 break
-        st = STATE.unpack(data)
-        assert len(data) == STATE_SIZE and st.device_session == prog.session and (st.server_session, st.epoch) == (2000, 1)
+        st = dl.STATE_V1.unpack(data)  # (a device without inputs sends layout version 1)
+        assert len(data) == STATE_V1_SIZE and st.device_session == prog.session and (st.server_session, st.epoch) == (2000, 1)
         assert st.flags & 1 == 0 and st.fault == base.DEV_FAULT_NONFINITE_COMMAND
     finally:
         prog.close()
@@ -437,8 +438,8 @@ def test_device_cli_runs_from_a_server_config_file(tmp_path, capsys):
                 got.append(server.recv(4096))
             except BlockingIOError:
                 break
-        assert got and all(len(d) == STATE_SIZE for d in got)
-        st = STATE.unpack(got[-1])
+        assert got and all(len(d) == STATE_V1_SIZE for d in got)  # (no inputs: layout version 1)
+        st = dl.STATE_V1.unpack(got[-1])
         assert st.kind == 2                                  # spatial
         row = st.state
         assert row[13] == 0.1 and row[0] > 0.0               # the hand pushed it

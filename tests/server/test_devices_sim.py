@@ -330,6 +330,7 @@ def loop(hp, tab, par, st, cnt, ctl, hout, w, out, n):
     for _ in range(n):
         hands.hand_eval(hp, tab, st, hout)
         dyn.sim_write(par, st, cnt, ctl, hout, w, 0)
+        hands.inputs_eval(hp, tab, st)
         dyn.sim_read(st, ctl, cnt, out, 0)
 
 
@@ -341,7 +342,7 @@ for kind, hand in (("1dof", {"type": "steps", "steps": [[0, [1]], [0.3, [-1]]]})
     d = make_sim_device({"kind": kind, "hand": hand}, period_s=1e-3)
     d.enable()
     par, st, cnt, ctl, hp, tab = d.arrays()
-    args = (hp, tab, par, st, cnt, ctl, d._hout, np.full(6, 0.1), np.zeros(20))
+    args = (hp, tab, par, st, cnt, ctl, d._hout, np.full(6, 0.1), np.zeros(dyn.DEV_NSTATE))
     loop(*args, 1)
     for n in (1, 3000):
         a = rtsys.get_allocation_stats().alloc

@@ -16,6 +16,7 @@ if importlib.util.find_spec("pyOpenHaptics") is None:
     pytest.skip("pyopenhaptics is not installed (the devices extra)", allow_module_level=True)
 
 from hapticproxy.server.devices.base import (  # noqa: E402
+    DEV_NSTATE,
     DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_WATCHDOG, DEV_OK,
 )
 from hapticproxy.server.devices.touch import C_ARMED, S_TICK, make_touch_device  # noqa: E402
@@ -136,7 +137,7 @@ def test_the_real_servo_thread_drives_the_python_callback(tmp_path):
     attach_hd_devices({"Default Device": blk.path}, lockstep=False)
     d = make_touch_device({}, period_s=1e-3)
     try:
-        row = np.zeros(20)
+        row = np.zeros(DEV_NSTATE)
         t0 = d.state[S_TICK]
         time.sleep(0.3)
         assert d.state[S_TICK] - t0 > 10     # the servo thread ran the callback many times
@@ -168,7 +169,7 @@ def test_late_servo_ticks_from_the_fake_thread_are_a_lost_device(tmp_path):
     attach_hd_devices({"Default Device": blk.path}, lockstep=False)
     d = make_touch_device({"stale_s": 0.02}, period_s=1e-3)
     try:
-        row = np.zeros(20)
+        row = np.zeros(DEV_NSTATE)
         d.enable()
         blk["fault_late_ms"] = 40.0
         codes = set()
