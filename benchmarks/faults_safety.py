@@ -251,10 +251,10 @@ def _simulated(case: SafetyCase, row: dict, broken: dict, folder: str) -> None:
             r.env_on = False
             r.run(0.2)
             st = dev._st
-            from ..server.devices.layout import ST_TWIST
+            from ..server.devices.layout import DST_TWIST
 
             for k in range(50):  # thrown: 3 m/s for 50 ms
-                st[ST_TWIST] = 3.0
+                st[DST_TWIST] = 3.0
                 r.run(0.001)
             r.run(0.5)
             row["speed_trips"] = loop.ctrl.counters()["speed_trips"]
@@ -292,9 +292,9 @@ def _simulated(case: SafetyCase, row: dict, broken: dict, folder: str) -> None:
                 broken["the stall did not recover"] = 1
             r.run(5.0)
             from ..server.devices.base import DEV_FAULT_WATCHDOG
-            from ..server.devices.layout import C_FAULT
+            from ..server.devices.layout import DC_FAULT
 
-            dev._ctl[C_FAULT] = DEV_FAULT_WATCHDOG
+            dev._ctl[DC_FAULT] = DEV_FAULT_WATCHDOG
             n0 = len(r.rows)
             r.run(2.0)
             after = r.table()[n0 + 2:]

@@ -43,14 +43,14 @@ from .base import (
 )
 from .hands import hand_eval, inputs_eval
 from .layout import (
-    C_ENABLED, C_FAULT, C_LAST_NS, C_WD_NS,
+    DC_ENABLED, DC_FAULT, DC_LAST_NS, DC_WD_NS,
     HO_B, HO_BR, HO_I, HO_K, HO_KR, HO_M, HO_VT, HO_W, HO_XT,
-    K_ENDSTOP, K_NONFINITE, K_OVERSPEED, K_SAT_COMPONENTS, K_SAT_WRITES, K_STEPS, K_WATCHDOG,
-    K_ZEROED,
+    DK_ENDSTOP, DK_NONFINITE, DK_OVERSPEED, DK_SAT_COMPONENTS, DK_SAT_WRITES, DK_STEPS, DK_WATCHDOG,
+    DK_ZEROED,
     KIND_1DOF, KIND_PLANAR,
-    P_AXIS, P_B, P_BR, P_BS, P_BSR, P_DT, P_FMAX, P_HI, P_IB, P_IZZ, P_KIND, P_KS, P_KSR, P_LO,
-    P_MASS, P_ORIGIN, P_ROTLIM, P_SHI, P_SLO, P_TMAX, P_VMAX, P_WMAX,
-    ST_CMD, ST_HAND, ST_POSE, ST_S, ST_SD, ST_STOP, ST_TH, ST_TIME, ST_TWIST,
+    DP_AXIS, DP_B, DP_BR, DP_BS, DP_BSR, DP_DT, DP_FMAX, DP_HI, DP_IB, DP_IZZ, DP_KIND, DP_KS, DP_KSR, DP_LO,
+    DP_MASS, DP_ORIGIN, DP_ROTLIM, DP_SHI, DP_SLO, DP_TMAX, DP_VMAX, DP_WMAX,
+    DST_CMD, DST_HAND, DST_POSE, DST_S, DST_SD, DST_STOP, DST_TH, DST_TIME, DST_TWIST,
 )
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
@@ -129,97 +129,97 @@ def _solve3(a00, a01, a02, a10, a11, a12, a20, a21, a22, b0, b1, b2):
 # ------------------------------------------------------------------------------- the step
 @njit(**_JIT)
 def _step(par, st, cnt, hout):
-    """Advance the device by one period under the rendered command ``st[ST_CMD]`` and the hand."""
-    kind = int(par[P_KIND])
-    dt = par[P_DT]
+    """Advance the device by one period under the rendered command ``st[DST_CMD]`` and the hand."""
+    kind = int(par[DP_KIND])
+    dt = par[DP_DT]
     kh = hout[HO_K]; bh = hout[HO_B]; mh = hout[HO_M]
-    m = par[P_MASS] + mh
-    b = par[P_B]
-    ks = par[P_KS]; bs = par[P_BS]
+    m = par[DP_MASS] + mh
+    b = par[DP_B]
+    ks = par[DP_KS]; bs = par[DP_BS]
     stop_engaged = False
-    vmax = par[P_VMAX]
-    wmax = par[P_WMAX]
+    vmax = par[DP_VMAX]
+    wmax = par[DP_WMAX]
     speed2 = 0.0
     wspeed2 = 0.0
     for i in range(6):
-        st[ST_STOP + i] = 0.0
+        st[DST_STOP + i] = 0.0
     if kind == KIND_1DOF:
-        ax = par[P_AXIS]; ay = par[P_AXIS + 1]; az = par[P_AXIS + 2]
+        ax = par[DP_AXIS]; ay = par[DP_AXIS + 1]; az = par[DP_AXIS + 2]
         fw = ax * hout[HO_W] + ay * hout[HO_W + 1] + az * hout[HO_W + 2]
-        fc = ax * st[ST_CMD] + ay * st[ST_CMD + 1] + az * st[ST_CMD + 2]
-        ox = par[P_ORIGIN]; oy = par[P_ORIGIN + 1]; oz = par[P_ORIGIN + 2]
+        fc = ax * st[DST_CMD] + ay * st[DST_CMD + 1] + az * st[DST_CMD + 2]
+        ox = par[DP_ORIGIN]; oy = par[DP_ORIGIN + 1]; oz = par[DP_ORIGIN + 2]
         xt = ax * (hout[HO_XT] - ox) + ay * (hout[HO_XT + 1] - oy) + az * (hout[HO_XT + 2] - oz)
         vt = ax * hout[HO_VT] + ay * hout[HO_VT + 1] + az * hout[HO_VT + 2]
-        s0 = st[ST_S]; v0 = st[ST_SD]
-        v1, fs = _axis_step(m, s0, v0, dt, fw + fc, b, kh, bh, xt, vt, par[P_SLO], par[P_SHI], True, ks, bs)
+        s0 = st[DST_S]; v0 = st[DST_SD]
+        v1, fs = _axis_step(m, s0, v0, dt, fw + fc, b, kh, bh, xt, vt, par[DP_SLO], par[DP_SHI], True, ks, bs)
         s1 = s0 + dt * v1
         fh = fw + kh * (xt - s0 - dt * v1) + bh * (vt - v1) - mh * (v1 - v0) / dt
-        st[ST_S] = s1; st[ST_SD] = v1
-        st[ST_POSE] = ox + s1 * ax; st[ST_POSE + 1] = oy + s1 * ay; st[ST_POSE + 2] = oz + s1 * az
-        st[ST_POSE + 3] = 1.0; st[ST_POSE + 4] = 0.0; st[ST_POSE + 5] = 0.0; st[ST_POSE + 6] = 0.0
-        st[ST_TWIST] = v1 * ax; st[ST_TWIST + 1] = v1 * ay; st[ST_TWIST + 2] = v1 * az
-        st[ST_TWIST + 3] = 0.0; st[ST_TWIST + 4] = 0.0; st[ST_TWIST + 5] = 0.0
-        st[ST_HAND] = fh * ax; st[ST_HAND + 1] = fh * ay; st[ST_HAND + 2] = fh * az
-        st[ST_HAND + 3] = 0.0; st[ST_HAND + 4] = 0.0; st[ST_HAND + 5] = 0.0
+        st[DST_S] = s1; st[DST_SD] = v1
+        st[DST_POSE] = ox + s1 * ax; st[DST_POSE + 1] = oy + s1 * ay; st[DST_POSE + 2] = oz + s1 * az
+        st[DST_POSE + 3] = 1.0; st[DST_POSE + 4] = 0.0; st[DST_POSE + 5] = 0.0; st[DST_POSE + 6] = 0.0
+        st[DST_TWIST] = v1 * ax; st[DST_TWIST + 1] = v1 * ay; st[DST_TWIST + 2] = v1 * az
+        st[DST_TWIST + 3] = 0.0; st[DST_TWIST + 4] = 0.0; st[DST_TWIST + 5] = 0.0
+        st[DST_HAND] = fh * ax; st[DST_HAND + 1] = fh * ay; st[DST_HAND + 2] = fh * az
+        st[DST_HAND + 3] = 0.0; st[DST_HAND + 4] = 0.0; st[DST_HAND + 5] = 0.0
         if fs != 0.0:
             stop_engaged = True
-            st[ST_STOP] = fs * ax; st[ST_STOP + 1] = fs * ay; st[ST_STOP + 2] = fs * az
+            st[DST_STOP] = fs * ax; st[DST_STOP + 1] = fs * ay; st[DST_STOP + 2] = fs * az
         speed2 = v1 * v1
     else:
         ntr = 2 if kind == KIND_PLANAR else 3
         for i in range(ntr):
-            x0 = st[ST_POSE + i]; v0 = st[ST_TWIST + i]
-            f = hout[HO_W + i] + st[ST_CMD + i]
+            x0 = st[DST_POSE + i]; v0 = st[DST_TWIST + i]
+            f = hout[HO_W + i] + st[DST_CMD + i]
             xt = hout[HO_XT + i]; vt = hout[HO_VT + i]
-            v1, fs = _axis_step(m, x0, v0, dt, f, b, kh, bh, xt, vt, par[P_LO + i], par[P_HI + i], True, ks, bs)
-            st[ST_HAND + i] = hout[HO_W + i] + kh * (xt - x0 - dt * v1) + bh * (vt - v1) - mh * (v1 - v0) / dt
-            st[ST_POSE + i] = x0 + dt * v1
-            st[ST_TWIST + i] = v1
+            v1, fs = _axis_step(m, x0, v0, dt, f, b, kh, bh, xt, vt, par[DP_LO + i], par[DP_HI + i], True, ks, bs)
+            st[DST_HAND + i] = hout[HO_W + i] + kh * (xt - x0 - dt * v1) + bh * (vt - v1) - mh * (v1 - v0) / dt
+            st[DST_POSE + i] = x0 + dt * v1
+            st[DST_TWIST + i] = v1
             if fs != 0.0:
                 stop_engaged = True
-                st[ST_STOP + i] = fs
+                st[DST_STOP + i] = fs
             speed2 += v1 * v1
         krh = hout[HO_KR]; brh = hout[HO_BR]; ih = hout[HO_I]
-        lim = par[P_ROTLIM]
+        lim = par[DP_ROTLIM]
         if kind == KIND_PLANAR:
-            th0 = st[ST_TH]; w0 = st[ST_TWIST + 5]
-            tau = hout[HO_W + 5] + st[ST_CMD + 5]
+            th0 = st[DST_TH]; w0 = st[DST_TWIST + 5]
+            tau = hout[HO_W + 5] + st[DST_CMD + 5]
             tt = hout[HO_XT + 5]; wt = hout[HO_VT + 5]
-            w1, ts = _axis_step(par[P_IZZ] + ih, th0, w0, dt, tau, par[P_BR], krh, brh, tt, wt,
-                                -lim, lim, lim > 0.0, par[P_KSR], par[P_BSR])
+            w1, ts = _axis_step(par[DP_IZZ] + ih, th0, w0, dt, tau, par[DP_BR], krh, brh, tt, wt,
+                                -lim, lim, lim > 0.0, par[DP_KSR], par[DP_BSR])
             th1 = th0 + dt * w1
-            st[ST_TH] = th1
-            st[ST_POSE + 2] = 0.0
-            st[ST_POSE + 3] = math.cos(0.5 * th1); st[ST_POSE + 4] = 0.0
-            st[ST_POSE + 5] = 0.0; st[ST_POSE + 6] = math.sin(0.5 * th1)
-            st[ST_TWIST + 2] = 0.0; st[ST_TWIST + 3] = 0.0; st[ST_TWIST + 4] = 0.0
-            st[ST_TWIST + 5] = w1
-            st[ST_HAND + 2] = 0.0; st[ST_HAND + 3] = 0.0; st[ST_HAND + 4] = 0.0
-            st[ST_HAND + 5] = hout[HO_W + 5] + krh * (tt - th0 - dt * w1) + brh * (wt - w1) - ih * (w1 - w0) / dt
+            st[DST_TH] = th1
+            st[DST_POSE + 2] = 0.0
+            st[DST_POSE + 3] = math.cos(0.5 * th1); st[DST_POSE + 4] = 0.0
+            st[DST_POSE + 5] = 0.0; st[DST_POSE + 6] = math.sin(0.5 * th1)
+            st[DST_TWIST + 2] = 0.0; st[DST_TWIST + 3] = 0.0; st[DST_TWIST + 4] = 0.0
+            st[DST_TWIST + 5] = w1
+            st[DST_HAND + 2] = 0.0; st[DST_HAND + 3] = 0.0; st[DST_HAND + 4] = 0.0
+            st[DST_HAND + 5] = hout[HO_W + 5] + krh * (tt - th0 - dt * w1) + brh * (wt - w1) - ih * (w1 - w0) / dt
             if ts != 0.0:
                 stop_engaged = True
-                st[ST_STOP + 5] = ts
+                st[DST_STOP + 5] = ts
             wspeed2 = w1 * w1
         else:
-            qw = st[ST_POSE + 3]; qx = st[ST_POSE + 4]; qy = st[ST_POSE + 5]; qz = st[ST_POSE + 6]
+            qw = st[DST_POSE + 3]; qx = st[DST_POSE + 4]; qy = st[DST_POSE + 5]; qz = st[DST_POSE + 6]
             # body -> world rotation R (columns are the body axes in world)
             r00 = 1.0 - 2.0 * (qy * qy + qz * qz); r01 = 2.0 * (qx * qy - qw * qz); r02 = 2.0 * (qx * qz + qw * qy)
             r10 = 2.0 * (qx * qy + qw * qz); r11 = 1.0 - 2.0 * (qx * qx + qz * qz); r12 = 2.0 * (qy * qz - qw * qx)
             r20 = 2.0 * (qx * qz - qw * qy); r21 = 2.0 * (qy * qz + qw * qx); r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
-            w0x = st[ST_TWIST + 3]; w0y = st[ST_TWIST + 4]; w0z = st[ST_TWIST + 5]
+            w0x = st[DST_TWIST + 3]; w0y = st[DST_TWIST + 4]; w0z = st[DST_TWIST + 5]
             # grip orientation error, world: log(q_t q^-1)
             tw, tx, ty, tz = qexp(hout[HO_XT + 3], hout[HO_XT + 4], hout[HO_XT + 5])
             ew, ex, ey, ez = qmul(tw, tx, ty, tz, qw, -qx, -qy, -qz)
             e0x, e0y, e0z = qlog(ew, ex, ey, ez)
             wtx = hout[HO_VT + 3]; wty = hout[HO_VT + 4]; wtz = hout[HO_VT + 5]
-            taux = hout[HO_W + 3] + st[ST_CMD + 3] + krh * e0x + brh * wtx
-            tauy = hout[HO_W + 4] + st[ST_CMD + 4] + krh * e0y + brh * wty
-            tauz = hout[HO_W + 5] + st[ST_CMD + 5] + krh * e0z + brh * wtz
+            taux = hout[HO_W + 3] + st[DST_CMD + 3] + krh * e0x + brh * wtx
+            tauy = hout[HO_W + 4] + st[DST_CMD + 4] + krh * e0y + brh * wty
+            tauz = hout[HO_W + 5] + st[DST_CMD + 5] + krh * e0z + brh * wtz
             # rotation limit: a cone about the identity orientation
             stop_on = False
             pen = 0.0
             nx = 0.0; ny = 0.0; nz = 0.0
-            ksr = par[P_KSR]; bsr = par[P_BSR]
+            ksr = par[DP_KSR]; bsr = par[DP_BSR]
             if lim > 0.0:
                 rx, ry, rz = qlog(qw, qx, qy, qz)
                 ang = math.sqrt(rx * rx + ry * ry + rz * rz)
@@ -234,14 +234,14 @@ def _step(par, st, cnt, hout):
             wbx = r00 * w0x + r10 * w0y + r20 * w0z
             wby = r01 * w0x + r11 * w0y + r21 * w0z
             wbz = r02 * w0x + r12 * w0y + r22 * w0z
-            i00 = par[P_IB] + ih; i01 = par[P_IB + 1]; i02 = par[P_IB + 2]
-            i10 = par[P_IB + 3]; i11 = par[P_IB + 4] + ih; i12 = par[P_IB + 5]
-            i20 = par[P_IB + 6]; i21 = par[P_IB + 7]; i22 = par[P_IB + 8] + ih
+            i00 = par[DP_IB] + ih; i01 = par[DP_IB + 1]; i02 = par[DP_IB + 2]
+            i10 = par[DP_IB + 3]; i11 = par[DP_IB + 4] + ih; i12 = par[DP_IB + 5]
+            i20 = par[DP_IB + 6]; i21 = par[DP_IB + 7]; i22 = par[DP_IB + 8] + ih
             hx = i00 * wbx + i01 * wby + i02 * wbz
             hy = i10 * wbx + i11 * wby + i12 * wbz
             hz = i20 * wbx + i21 * wby + i22 * wbz
             gx = wby * hz - wbz * hy; gy = wbz * hx - wbx * hz; gz = wbx * hy - wby * hx
-            c = par[P_BR] + brh + dt * krh
+            c = par[DP_BR] + brh + dt * krh
             idt = 1.0 / dt
             b0 = hx * idt - gx + tbx
             b1 = hy * idt - gy + tby
@@ -270,37 +270,37 @@ def _step(par, st, cnt, hout):
             dw, dx, dy, dz = qexp(w1x * dt, w1y * dt, w1z * dt)
             nw, nqx, nqy, nqz = qmul(dw, dx, dy, dz, qw, qx, qy, qz)
             inv = 1.0 / math.sqrt(nw * nw + nqx * nqx + nqy * nqy + nqz * nqz)
-            st[ST_POSE + 3] = nw * inv; st[ST_POSE + 4] = nqx * inv
-            st[ST_POSE + 5] = nqy * inv; st[ST_POSE + 6] = nqz * inv
-            st[ST_TWIST + 3] = w1x; st[ST_TWIST + 4] = w1y; st[ST_TWIST + 5] = w1z
-            st[ST_HAND + 3] = hout[HO_W + 3] + krh * (e0x - dt * w1x) + brh * (wtx - w1x) - ih * (w1x - w0x) * idt
-            st[ST_HAND + 4] = hout[HO_W + 4] + krh * (e0y - dt * w1y) + brh * (wty - w1y) - ih * (w1y - w0y) * idt
-            st[ST_HAND + 5] = hout[HO_W + 5] + krh * (e0z - dt * w1z) + brh * (wtz - w1z) - ih * (w1z - w0z) * idt
+            st[DST_POSE + 3] = nw * inv; st[DST_POSE + 4] = nqx * inv
+            st[DST_POSE + 5] = nqy * inv; st[DST_POSE + 6] = nqz * inv
+            st[DST_TWIST + 3] = w1x; st[DST_TWIST + 4] = w1y; st[DST_TWIST + 5] = w1z
+            st[DST_HAND + 3] = hout[HO_W + 3] + krh * (e0x - dt * w1x) + brh * (wtx - w1x) - ih * (w1x - w0x) * idt
+            st[DST_HAND + 4] = hout[HO_W + 4] + krh * (e0y - dt * w1y) + brh * (wty - w1y) - ih * (w1y - w0y) * idt
+            st[DST_HAND + 5] = hout[HO_W + 5] + krh * (e0z - dt * w1z) + brh * (wtz - w1z) - ih * (w1z - w0z) * idt
             if stop_on:
                 stop_engaged = True
-                st[ST_STOP + 3] = -push * nx; st[ST_STOP + 4] = -push * ny; st[ST_STOP + 5] = -push * nz
+                st[DST_STOP + 3] = -push * nx; st[DST_STOP + 4] = -push * ny; st[DST_STOP + 5] = -push * nz
             wspeed2 = w1x * w1x + w1y * w1y + w1z * w1z
-    cnt[K_STEPS] += 1
-    st[ST_TIME] = cnt[K_STEPS] * dt
+    cnt[DK_STEPS] += 1
+    st[DST_TIME] = cnt[DK_STEPS] * dt
     if stop_engaged:
-        cnt[K_ENDSTOP] += 1
+        cnt[DK_ENDSTOP] += 1
     if speed2 > vmax * vmax or wspeed2 > wmax * wmax:
-        cnt[K_OVERSPEED] += 1
+        cnt[DK_OVERSPEED] += 1
 
 
 @njit(**_JIT)
 def _watchdog(ctl, cnt, now_ns):
-    if ctl[C_ENABLED] == 1 and ctl[C_FAULT] == DEV_OK and ctl[C_WD_NS] > 0 \
-            and now_ns - ctl[C_LAST_NS] > ctl[C_WD_NS]:
-        ctl[C_FAULT] = DEV_FAULT_WATCHDOG
-        cnt[K_WATCHDOG] += 1
+    if ctl[DC_ENABLED] == 1 and ctl[DC_FAULT] == DEV_OK and ctl[DC_WD_NS] > 0 \
+            and now_ns - ctl[DC_LAST_NS] > ctl[DC_WD_NS]:
+        ctl[DC_FAULT] = DEV_FAULT_WATCHDOG
+        cnt[DK_WATCHDOG] += 1
 
 
 @njit(**_JIT)
 def _status(ctl):
-    if ctl[C_FAULT] != DEV_OK:
-        return ctl[C_FAULT]
-    if ctl[C_ENABLED] == 0:
+    if ctl[DC_FAULT] != DEV_OK:
+        return ctl[DC_FAULT]
+    if ctl[DC_ENABLED] == 0:
         return DEV_FAULT_DISABLED
     return DEV_OK
 
@@ -312,32 +312,32 @@ def sim_write(par, st, cnt, ctl, hout, wrench, now_ns):
     Returns the status (``DEV_OK`` or the latched fault, ``DEV_FAULT_DISABLED`` when disabled).
     """
     _watchdog(ctl, cnt, now_ns)
-    ctl[C_LAST_NS] = now_ns
+    ctl[DC_LAST_NS] = now_ns
     finite = True
     for i in range(6):
         if not math.isfinite(wrench[i]):
             finite = False
     if not finite:
-        cnt[K_NONFINITE] += 1
-        if ctl[C_FAULT] == DEV_OK:
-            ctl[C_FAULT] = DEV_FAULT_NONFINITE_COMMAND
+        cnt[DK_NONFINITE] += 1
+        if ctl[DC_FAULT] == DEV_OK:
+            ctl[DC_FAULT] = DEV_FAULT_NONFINITE_COMMAND
     for i in range(6):
-        st[ST_CMD + i] = 0.0
-    if ctl[C_FAULT] != DEV_OK or ctl[C_ENABLED] == 0:
-        cnt[K_ZEROED] += 1
+        st[DST_CMD + i] = 0.0
+    if ctl[DC_FAULT] != DEV_OK or ctl[DC_ENABLED] == 0:
+        cnt[DK_ZEROED] += 1
     else:
-        kind = int(par[P_KIND])
-        fmax = par[P_FMAX]
-        tmax = par[P_TMAX]
+        kind = int(par[DP_KIND])
+        fmax = par[DP_FMAX]
+        tmax = par[DP_TMAX]
         nsat = 0
         if kind == KIND_1DOF:
-            ax = par[P_AXIS]; ay = par[P_AXIS + 1]; az = par[P_AXIS + 2]
+            ax = par[DP_AXIS]; ay = par[DP_AXIS + 1]; az = par[DP_AXIS + 2]
             f = ax * wrench[0] + ay * wrench[1] + az * wrench[2]
             if f > fmax:
                 f = fmax; nsat += 1
             elif f < -fmax:
                 f = -fmax; nsat += 1
-            st[ST_CMD] = f * ax; st[ST_CMD + 1] = f * ay; st[ST_CMD + 2] = f * az
+            st[DST_CMD] = f * ax; st[DST_CMD + 1] = f * ay; st[DST_CMD + 2] = f * az
         else:
             for i in range(6):
                 if kind == KIND_PLANAR and (i == 2 or i == 3 or i == 4):
@@ -348,10 +348,10 @@ def sim_write(par, st, cnt, ctl, hout, wrench, now_ns):
                     v = cap; nsat += 1
                 elif v < -cap:
                     v = -cap; nsat += 1
-                st[ST_CMD + i] = v
+                st[DST_CMD + i] = v
         if nsat > 0:
-            cnt[K_SAT_WRITES] += 1
-            cnt[K_SAT_COMPONENTS] += nsat
+            cnt[DK_SAT_WRITES] += 1
+            cnt[DK_SAT_COMPONENTS] += nsat
     _step(par, st, cnt, hout)
     return _status(ctl)
 
@@ -384,33 +384,33 @@ def sim_read(st, ctl, cnt, out, now_ns):
 @njit(**_JIT)
 def sim_hand_now(par, st, hout):
     """Fill the hand columns for the current state before any step (zero acceleration)."""
-    kind = int(par[P_KIND])
+    kind = int(par[DP_KIND])
     kh = hout[HO_K]; bh = hout[HO_B]; krh = hout[HO_KR]; brh = hout[HO_BR]
     for i in range(6):
-        st[ST_HAND + i] = 0.0
+        st[DST_HAND + i] = 0.0
     if kind == KIND_1DOF:
-        ax = par[P_AXIS]; ay = par[P_AXIS + 1]; az = par[P_AXIS + 2]
+        ax = par[DP_AXIS]; ay = par[DP_AXIS + 1]; az = par[DP_AXIS + 2]
         f = 0.0
         for i in range(3):
-            a = par[P_AXIS + i]
-            f += a * (hout[HO_W + i] + kh * (hout[HO_XT + i] - st[ST_POSE + i])
-                      + bh * (hout[HO_VT + i] - st[ST_TWIST + i]))
-        st[ST_HAND] = f * ax; st[ST_HAND + 1] = f * ay; st[ST_HAND + 2] = f * az
+            a = par[DP_AXIS + i]
+            f += a * (hout[HO_W + i] + kh * (hout[HO_XT + i] - st[DST_POSE + i])
+                      + bh * (hout[HO_VT + i] - st[DST_TWIST + i]))
+        st[DST_HAND] = f * ax; st[DST_HAND + 1] = f * ay; st[DST_HAND + 2] = f * az
         return
     ntr = 2 if kind == KIND_PLANAR else 3
     for i in range(ntr):
-        st[ST_HAND + i] = hout[HO_W + i] + kh * (hout[HO_XT + i] - st[ST_POSE + i]) \
-            + bh * (hout[HO_VT + i] - st[ST_TWIST + i])
+        st[DST_HAND + i] = hout[HO_W + i] + kh * (hout[HO_XT + i] - st[DST_POSE + i]) \
+            + bh * (hout[HO_VT + i] - st[DST_TWIST + i])
     if kind == KIND_PLANAR:
-        st[ST_HAND + 5] = hout[HO_W + 5] + krh * (hout[HO_XT + 5] - st[ST_TH]) \
-            + brh * (hout[HO_VT + 5] - st[ST_TWIST + 5])
+        st[DST_HAND + 5] = hout[HO_W + 5] + krh * (hout[HO_XT + 5] - st[DST_TH]) \
+            + brh * (hout[HO_VT + 5] - st[DST_TWIST + 5])
         return
     tw, tx, ty, tz = qexp(hout[HO_XT + 3], hout[HO_XT + 4], hout[HO_XT + 5])
-    ew, ex, ey, ez = qmul(tw, tx, ty, tz, st[ST_POSE + 3], -st[ST_POSE + 4], -st[ST_POSE + 5], -st[ST_POSE + 6])
+    ew, ex, ey, ez = qmul(tw, tx, ty, tz, st[DST_POSE + 3], -st[DST_POSE + 4], -st[DST_POSE + 5], -st[DST_POSE + 6])
     e0x, e0y, e0z = qlog(ew, ex, ey, ez)
-    st[ST_HAND + 3] = hout[HO_W + 3] + krh * e0x + brh * (hout[HO_VT + 3] - st[ST_TWIST + 3])
-    st[ST_HAND + 4] = hout[HO_W + 4] + krh * e0y + brh * (hout[HO_VT + 4] - st[ST_TWIST + 4])
-    st[ST_HAND + 5] = hout[HO_W + 5] + krh * e0z + brh * (hout[HO_VT + 5] - st[ST_TWIST + 5])
+    st[DST_HAND + 3] = hout[HO_W + 3] + krh * e0x + brh * (hout[HO_VT + 3] - st[DST_TWIST + 3])
+    st[DST_HAND + 4] = hout[HO_W + 4] + krh * e0y + brh * (hout[HO_VT + 4] - st[DST_TWIST + 4])
+    st[DST_HAND + 5] = hout[HO_W + 5] + krh * e0z + brh * (hout[HO_VT + 5] - st[DST_TWIST + 5])
 
 
 def warm_arrays():

@@ -79,7 +79,7 @@ from numba import njit
 
 from ..readonly import ArrayFloat
 from . import _check as ck
-from .layout import HO_B, HO_BR, HO_I, HO_K, HO_KR, HO_M, HO_VT, HO_W, HO_XT, NHO, ST_BUTTONS, ST_GRIP, ST_TIME
+from .layout import HO_B, HO_BR, HO_I, HO_K, HO_KR, HO_M, HO_VT, HO_W, HO_XT, NHO, DST_BUTTONS, DST_GRIP, DST_TIME
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -156,43 +156,43 @@ def _row_from(tab, r0, n, t):
 
 @njit(**_JIT)
 def inputs_eval(hp, tab, st):
-    """The button and gripper scripts at the device time ``st[ST_TIME]``, into the state row's
+    """The button and gripper scripts at the device time ``st[DST_TIME]``, into the state row's
     input columns: NaN where the hand has no script (the device has none). On the hand's clock:
     while it waits for the engagement nothing is held and the gripper rests at its first angle."""
-    t = st[ST_TIME] - hp[HP_T0]
+    t = st[DST_TIME] - hp[HP_T0]
     wait = hp[HP_WAIT] != 0.0
     nb = int(hp[HP_BN])
     if nb == 0:
-        st[ST_BUTTONS] = np.nan
+        st[DST_BUTTONS] = np.nan
     else:
         j = -1 if wait else _row_from(tab, int(hp[HP_BROW]), nb, t)
-        st[ST_BUTTONS] = 0.0 if j < 0 else tab[j, 1]
+        st[DST_BUTTONS] = 0.0 if j < 0 else tab[j, 1]
     ng = int(hp[HP_GN])
     if ng == 0:
-        st[ST_GRIP] = np.nan
-        st[ST_GRIP + 1] = np.nan
+        st[DST_GRIP] = np.nan
+        st[DST_GRIP + 1] = np.nan
         return
     g0 = int(hp[HP_GROW])
     last = g0 + ng - 1
     j = -1 if wait else _row_from(tab, g0, ng, t)
     if j < 0:
-        st[ST_GRIP] = tab[g0, 1]
-        st[ST_GRIP + 1] = 0.0
+        st[DST_GRIP] = tab[g0, 1]
+        st[DST_GRIP + 1] = 0.0
     elif j >= last:
-        st[ST_GRIP] = tab[last, 1]
-        st[ST_GRIP + 1] = 0.0
+        st[DST_GRIP] = tab[last, 1]
+        st[DST_GRIP + 1] = 0.0
     else:
         span = tab[j + 1, 0] - tab[j, 0]
         rate = (tab[j + 1, 1] - tab[j, 1]) / span
-        st[ST_GRIP] = tab[j, 1] + (t - tab[j, 0]) * rate
-        st[ST_GRIP + 1] = rate
+        st[DST_GRIP] = tab[j, 1] + (t - tab[j, 0]) * rate
+        st[DST_GRIP + 1] = rate
 
 
 @njit(**_JIT)
 def hand_eval(hp, tab, st, hout):
-    """What the hand wants at the device time ``st[ST_TIME]``: fills ``hout`` (layout ``HO_*``).
+    """What the hand wants at the device time ``st[DST_TIME]``: fills ``hout`` (layout ``HO_*``).
     The script's time is counted from ``hp[HP_T0]``; while ``hp[HP_WAIT]`` the handle is free."""
-    t = st[ST_TIME] - hp[HP_T0]
+    t = st[DST_TIME] - hp[HP_T0]
     mode = int(hp[HP_MODE])
     prof = int(hp[HP_PROF])
     period = hp[HP_PERIOD]

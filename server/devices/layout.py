@@ -18,61 +18,61 @@ KIND_SPATIAL = 2
 KIND_IDS = {"1dof": KIND_1DOF, "planar": KIND_PLANAR, "spatial": KIND_SPATIAL}
 
 # -- device parameters (float64[NPAR]) ---------------------------------------------------------
-P_KIND = 0        # KIND_*
-P_DT = 1          # haptic period [s]
-P_MASS = 2        # device mass at the handle [kg] (without the hand)
-P_B = 3           # translational viscous damping [N s/m]
-P_BR = 4          # rotational viscous damping [N m s/rad]
-P_IZZ = 5         # planar: I_zz [kg m^2]
-P_IB = 6          # 6..14 spatial: inertia about the handle, body frame, row-major [kg m^2]
-P_AXIS = 15       # 15..17 1dof: unit axis, world
-P_ORIGIN = 18     # 18..20 1dof: handle position at s = 0, world [m]
-P_LO = 21         # 21..23 workspace minimum, world [m]
-P_HI = 24         # 24..26 workspace maximum, world [m]
-P_SLO = 27        # 1dof: travel along the axis, minimum [m]
-P_SHI = 28        # 1dof: travel along the axis, maximum [m]
-P_ROTLIM = 29     # rotation limit [rad] (0: none); planar |theta|, spatial |rotation vector|
-P_KS = 30         # end-stop stiffness [N/m]
-P_BS = 31         # end-stop damping [N s/m]
-P_KSR = 32        # rotational end-stop stiffness [N m/rad]
-P_BSR = 33        # rotational end-stop damping [N m s/rad]
-P_FMAX = 34       # force cap per axis [N]
-P_TMAX = 35       # torque cap per axis [N m]
-P_VMAX = 36       # speed the hardware is rated for [m/s] (over-speed steps are counted)
-P_WMAX = 37       # angular speed the hardware is rated for [rad/s]
+DP_KIND = 0        # KIND_*
+DP_DT = 1          # haptic period [s]
+DP_MASS = 2        # device mass at the handle [kg] (without the hand)
+DP_B = 3           # translational viscous damping [N s/m]
+DP_BR = 4          # rotational viscous damping [N m s/rad]
+DP_IZZ = 5         # planar: I_zz [kg m^2]
+DP_IB = 6          # 6..14 spatial: inertia about the handle, body frame, row-major [kg m^2]
+DP_AXIS = 15       # 15..17 1dof: unit axis, world
+DP_ORIGIN = 18     # 18..20 1dof: handle position at s = 0, world [m]
+DP_LO = 21         # 21..23 workspace minimum, world [m]
+DP_HI = 24         # 24..26 workspace maximum, world [m]
+DP_SLO = 27        # 1dof: travel along the axis, minimum [m]
+DP_SHI = 28        # 1dof: travel along the axis, maximum [m]
+DP_ROTLIM = 29     # rotation limit [rad] (0: none); planar |theta|, spatial |rotation vector|
+DP_KS = 30         # end-stop stiffness [N/m]
+DP_BS = 31         # end-stop damping [N s/m]
+DP_KSR = 32        # rotational end-stop stiffness [N m/rad]
+DP_BSR = 33        # rotational end-stop damping [N m s/rad]
+DP_FMAX = 34       # force cap per axis [N]
+DP_TMAX = 35       # torque cap per axis [N m]
+DP_VMAX = 36       # speed the hardware is rated for [m/s] (over-speed steps are counted)
+DP_WMAX = 37       # angular speed the hardware is rated for [rad/s]
 NPAR = 40
 
 # -- device state (float64[NST]); the first DEV_NSTATE columns are the state row of base.py ----
-ST_POSE = DS_POSE     # 0..6
-ST_TWIST = DS_TWIST   # 7..12
-ST_HAND = DS_HAND     # 13..18 hand wrench over the last step (ideal force sensor)
-ST_TIME = DS_TIME     # 19 device clock [s]
-ST_BUTTONS = DS_BUTTONS  # 20 the hand's button script (NaN: no buttons)
-ST_GRIP = DS_GRIPPER  # 21..22 the hand's gripper script: angle [rad], rate [rad/s] (NaN: no gripper)
-ST_S = 23             # 1dof: position along the axis [m]
-ST_SD = 24            # 1dof: velocity along the axis [m/s]
-ST_TH = 25            # planar: theta [rad], not wrapped
-ST_CMD = 26           # 26..31 wrench rendered in the last step (masked, capped), world
-ST_STOP = 32          # 32..37 end-stop wrench of the last step, world
+DST_POSE = DS_POSE     # 0..6
+DST_TWIST = DS_TWIST   # 7..12
+DST_HAND = DS_HAND     # 13..18 hand wrench over the last step (ideal force sensor)
+DST_TIME = DS_TIME     # 19 device clock [s]
+DST_BUTTONS = DS_BUTTONS  # 20 the hand's button script (NaN: no buttons)
+DST_GRIP = DS_GRIPPER  # 21..22 the hand's gripper script: angle [rad], rate [rad/s] (NaN: no gripper)
+DST_S = 23             # 1dof: position along the axis [m]
+DST_SD = 24            # 1dof: velocity along the axis [m/s]
+DST_TH = 25            # planar: theta [rad], not wrapped
+DST_CMD = 26           # 26..31 wrench rendered in the last step (masked, capped), world
+DST_STOP = 32          # 32..37 end-stop wrench of the last step, world
 NST = 39
-assert ST_S >= DEV_NSTATE
+assert DST_S >= DEV_NSTATE
 
 # -- control words (int64[NCTL]) ----------------------------------------------------------------
-C_ENABLED = 0     # 1: output armed
-C_FAULT = 1       # latched DEV_FAULT_* code
-C_LAST_NS = 2     # clock of the last write (or of enable) [ns]
-C_WD_NS = 3       # watchdog [ns] (0: none)
+DC_ENABLED = 0     # 1: output armed
+DC_FAULT = 1       # latched DEV_FAULT_* code
+DC_LAST_NS = 2     # clock of the last write (or of enable) [ns]
+DC_WD_NS = 3       # watchdog [ns] (0: none)
 NCTL = 4
 
 # -- counters (int64[NCNT]) ---------------------------------------------------------------------
-K_STEPS = 0           # dynamics steps (one per write)
-K_SAT_WRITES = 1      # writes with at least one capped component
-K_SAT_COMPONENTS = 2  # capped components, summed over writes
-K_NONFINITE = 3       # refused non-finite commands
-K_WATCHDOG = 4        # watchdog trips
-K_ZEROED = 5          # writes rendered as zero (disabled or faulted)
-K_ENDSTOP = 6         # steps with an end-stop engaged
-K_OVERSPEED = 7       # steps faster than max_speed / max_angular_speed
+DK_STEPS = 0           # dynamics steps (one per write)
+DK_SAT_WRITES = 1      # writes with at least one capped component
+DK_SAT_COMPONENTS = 2  # capped components, summed over writes
+DK_NONFINITE = 3       # refused non-finite commands
+DK_WATCHDOG = 4        # watchdog trips
+DK_ZEROED = 5          # writes rendered as zero (disabled or faulted)
+DK_ENDSTOP = 6         # steps with an end-stop engaged
+DK_OVERSPEED = 7       # steps faster than max_speed / max_angular_speed
 NCNT = 8
 COUNTER_NAMES = ("steps", "saturated_writes", "saturated_components", "nonfinite_refused",
                  "watchdog_trips", "zeroed_writes", "endstop_steps", "overspeed_steps")

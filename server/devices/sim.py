@@ -92,10 +92,10 @@ from .base import (
     DEV_FAULT_NAMES, DEV_NSTATE, DEV_OK, DEVICE_KINDS, DeviceDriver, DeviceInfo, DeviceLimits, info_from_limits,
 )
 from .layout import (
-    C_ENABLED, C_FAULT, C_LAST_NS, C_WD_NS, COUNTER_NAMES, KIND_IDS, NCNT, NCTL, NHO, NPAR, NST,
-    P_AXIS, P_B, P_BR, P_BS, P_BSR, P_DT, P_FMAX, P_HI, P_IB, P_IZZ, P_KIND, P_KS, P_KSR, P_LO,
-    P_MASS, P_ORIGIN, P_ROTLIM, P_SHI, P_SLO, P_TMAX, P_VMAX, P_WMAX,
-    ST_CMD, ST_POSE, ST_S, ST_SD, ST_STOP, ST_TH, ST_TIME, ST_TWIST,
+    DC_ENABLED, DC_FAULT, DC_LAST_NS, DC_WD_NS, COUNTER_NAMES, KIND_IDS, NCNT, NCTL, NHO, NPAR, NST,
+    DP_AXIS, DP_B, DP_BR, DP_BS, DP_BSR, DP_DT, DP_FMAX, DP_HI, DP_IB, DP_IZZ, DP_KIND, DP_KS, DP_KSR, DP_LO,
+    DP_MASS, DP_ORIGIN, DP_ROTLIM, DP_SHI, DP_SLO, DP_TMAX, DP_VMAX, DP_WMAX,
+    DST_CMD, DST_POSE, DST_S, DST_SD, DST_STOP, DST_TH, DST_TIME, DST_TWIST,
 )
 
 ENDSTOP_STIFFNESS_N_PER_M = 20000.0
@@ -277,13 +277,13 @@ def parse_sim_config(config: dict, *, period_s: float) -> SimSpec:
     c = convert_kind(SIM_CONFIGS, config, default_driver="sim")
     kind = c.kind
     par = np.zeros(NPAR)
-    par[P_KIND] = KIND_IDS[kind]
-    par[P_DT] = dt
-    par[P_MASS] = mass = c.mass_kg
-    par[P_B] = c.damping_n_s_per_m
+    par[DP_KIND] = KIND_IDS[kind]
+    par[DP_DT] = dt
+    par[DP_MASS] = mass = c.mass_kg
+    par[DP_B] = c.damping_n_s_per_m
     i_min = None
     if kind == "planar":
-        par[P_IZZ] = i_min = c.inertia_kg_m2
+        par[DP_IZZ] = i_min = c.inertia_kg_m2
     elif kind == "spatial":
         raw = c.inertia_kg_m2
         if all(isinstance(r, list) for r in raw) and len(raw) == 3 and all(len(r) == 3 for r in raw):
@@ -295,11 +295,11 @@ def parse_sim_config(config: dict, *, period_s: float) -> SimSpec:
         eig = np.linalg.eigvalsh(inertia)
         if not eig[0] > 0:
             raise ck.fail("device.inertia_kg_m2", f"must be positive definite (eigenvalues {eig.tolist()})")
-        par[P_IB:P_IB + 9] = inertia.ravel()
+        par[DP_IB:DP_IB + 9] = inertia.ravel()
         i_min = float(eig[0])
         c.inertia_kg_m2 = inertia.tolist() if np.any(inertia != np.diag(np.diag(inertia))) else np.diag(inertia).tolist()
     if kind != "1dof":
-        par[P_BR] = c.rot_damping_n_m_s_per_rad
+        par[DP_BR] = c.rot_damping_n_m_s_per_rad
 
     # geometry
     axis = np.array([1.0, 0.0, 0.0])
@@ -311,19 +311,19 @@ def parse_sim_config(config: dict, *, period_s: float) -> SimSpec:
             raise ck.fail("device.axis", f"must be a unit vector, |axis| = {n:.9g}")
         axis = axis / n
         origin = np.array(c.origin_m)
-        par[P_AXIS:P_AXIS + 3] = axis
-        par[P_ORIGIN:P_ORIGIN + 3] = origin
+        par[DP_AXIS:DP_AXIS + 3] = axis
+        par[DP_ORIGIN:DP_ORIGIN + 3] = origin
         c.axis, c.origin_m = tuple(axis.tolist()), tuple(origin.tolist())
     lo, hi, dims = workspace(c)
-    par[P_LO:P_LO + 3] = lo
-    par[P_HI:P_HI + 3] = hi
+    par[DP_LO:DP_LO + 3] = lo
+    par[DP_HI:DP_HI + 3] = hi
     c.workspace_min_m, c.workspace_max_m = lo[:dims].tolist(), hi[:dims].tolist()
     if kind == "1dof":
         if np.any(origin < lo) or np.any(origin > hi):
             raise ck.fail("device.origin_m", f"must be inside the workspace box ({lo.tolist()} .. {hi.tolist()})")
-        par[P_SLO], par[P_SHI] = _travel(origin, axis, lo, hi)
+        par[DP_SLO], par[DP_SHI] = _travel(origin, axis, lo, hi)
     else:
-        par[P_ROTLIM] = c.rotation_limit_rad
+        par[DP_ROTLIM] = c.rotation_limit_rad
 
     # end-stops: the explicit spring must be stable at this period
     k_max = ENDSTOP_STABILITY * mass / dt ** 2
@@ -332,8 +332,8 @@ def parse_sim_config(config: dict, *, period_s: float) -> SimSpec:
     if c.endstop_stiffness_n_per_m > k_max:
         raise ck.fail("device.endstop_stiffness_n_per_m", f"{c.endstop_stiffness_n_per_m:g} N/m is unstable at "
                       f"period {dt:g} s with mass {mass:g} kg (at most {k_max:.4g})")
-    par[P_KS] = c.endstop_stiffness_n_per_m
-    par[P_BS] = c.endstop_damping_n_s_per_m
+    par[DP_KS] = c.endstop_stiffness_n_per_m
+    par[DP_BS] = c.endstop_damping_n_s_per_m
     if kind != "1dof":
         kr_max = ENDSTOP_STABILITY * i_min / dt ** 2
         if c.endstop_rot_stiffness_n_m_per_rad is None:
@@ -342,15 +342,15 @@ def parse_sim_config(config: dict, *, period_s: float) -> SimSpec:
             raise ck.fail("device.endstop_rot_stiffness_n_m_per_rad",
                           f"{c.endstop_rot_stiffness_n_m_per_rad:g} N m/rad is unstable at period {dt:g} s with "
                           f"inertia {i_min:g} kg m^2 (at most {kr_max:.4g})")
-        par[P_KSR] = c.endstop_rot_stiffness_n_m_per_rad
-        par[P_BSR] = c.endstop_rot_damping_n_m_s_per_rad
+        par[DP_KSR] = c.endstop_rot_stiffness_n_m_per_rad
+        par[DP_BSR] = c.endstop_rot_damping_n_m_s_per_rad
 
     # limits
     if 0.0 < c.watchdog_s < dt:
         raise ck.fail("device.watchdog_s", f"{c.watchdog_s:g} s is shorter than one period ({dt:g} s); 0 disables it")
     limits = limits_of(c, lo, hi)
-    par[P_FMAX], par[P_TMAX] = limits.max_force_n, limits.max_torque_n_m
-    par[P_VMAX], par[P_WMAX] = limits.max_speed_m_per_s, limits.max_angular_speed_rad_per_s
+    par[DP_FMAX], par[DP_TMAX] = limits.max_force_n, limits.max_torque_n_m
+    par[DP_VMAX], par[DP_WMAX] = limits.max_speed_m_per_s, limits.max_angular_speed_rad_per_s
 
     # initial state
     r = ck.REDUCED_DIMS[kind]
@@ -362,14 +362,14 @@ def parse_sim_config(config: dict, *, period_s: float) -> SimSpec:
     pose6 = ck.pose6("device.initial_pose", pose_arr, kind, axis, origin)
     if kind == "1dof":
         s0 = float(pose_arr[0])
-        if not par[P_SLO] <= s0 <= par[P_SHI]:
-            raise ck.fail("device.initial_pose", f"s = {s0:g} is outside the travel [{par[P_SLO]:g}, {par[P_SHI]:g}] m")
+        if not par[DP_SLO] <= s0 <= par[DP_SHI]:
+            raise ck.fail("device.initial_pose", f"s = {s0:g} is outside the travel [{par[DP_SLO]:g}, {par[DP_SHI]:g}] m")
     else:
         p = pose6[:dims]
         if np.any(p < lo[:dims]) or np.any(p > hi[:dims]):
             raise ck.fail("device.initial_pose", f"position {p.tolist()} is outside the workspace")
         ang = abs(pose6[5]) if kind == "planar" else float(np.linalg.norm(pose6[3:]))
-        if par[P_ROTLIM] > 0 and ang > par[P_ROTLIM]:
+        if par[DP_ROTLIM] > 0 and ang > par[DP_ROTLIM]:
             raise ck.fail("device.initial_pose", f"rotation {ang:g} rad is beyond rotation_limit_rad")
     c.initial_pose = pose_arr.tolist()
     if c.initial_velocity is None:
@@ -410,7 +410,7 @@ class SimDevice(DeviceDriver):
         self._st = np.zeros(NST)
         self._cnt = np.zeros(NCNT, dtype=np.int64)
         self._ctl = np.zeros(NCTL, dtype=np.int64)
-        self._ctl[C_WD_NS] = int(round(spec.limits.watchdog_s * 1e9))
+        self._ctl[DC_WD_NS] = int(round(spec.limits.watchdog_s * 1e9))
         self._hout = np.zeros(NHO)
         self._cmd = np.zeros(6)
         warm_up()
@@ -430,20 +430,20 @@ class SimDevice(DeviceDriver):
         hand = self.spec.hand
         return replace(info, buttons=hand.buttons, gripper=hand.gripper,
                        sensed=info.sensed + (("gripper",) if hand.gripper else ()),
-                       moving_mass_kg=float(self.spec.par[P_MASS]))
+                       moving_mass_kg=float(self.spec.par[DP_MASS]))
 
     def enable(self) -> None:
         """Arm the output; clears a latched fault (a simulated device's causes are all gone)."""
-        self._ctl[C_FAULT] = DEV_OK
-        self._ctl[C_LAST_NS] = self._clock()
-        self._ctl[C_ENABLED] = 1
+        self._ctl[DC_FAULT] = DEV_OK
+        self._ctl[DC_LAST_NS] = self._clock()
+        self._ctl[DC_ENABLED] = 1
 
     def disable(self) -> None:
-        self._ctl[C_ENABLED] = 0
-        self._st[ST_CMD:ST_CMD + 6] = 0.0
+        self._ctl[DC_ENABLED] = 0
+        self._st[DST_CMD:DST_CMD + 6] = 0.0
 
-    enabled = ArrayBool("_ctl", C_ENABLED, doc="The output is armed (``enable``).")
-    fault = ArrayInt("_ctl", C_FAULT, doc="The latched ``DEV_FAULT_*`` code (0: none).")
+    enabled = ArrayBool("_ctl", DC_ENABLED, doc="The output is armed (``enable``).")
+    fault = ArrayInt("_ctl", DC_FAULT, doc="The latched ``DEV_FAULT_*`` code (0: none).")
 
     def read(self, state_out: np.ndarray) -> int:
         return _dyn.sim_read(self._st, self._ctl, self._cnt, state_out, self._clock())
@@ -464,7 +464,7 @@ class SimDevice(DeviceDriver):
     def on_engage(self) -> None:
         """A new session engaged: a hand whose script starts at engagement starts it now."""
         if self.spec.hand.config.get("start") == "engagement":
-            self._hp[_hands.HP_T0] = self._st[ST_TIME]
+            self._hp[_hands.HP_T0] = self._st[DST_TIME]
             self._hp[_hands.HP_WAIT] = 0.0
             _hands.hand_eval(self._hp, self._tab, self._st, self._hout)
             _hands.inputs_eval(self._hp, self._tab, self._st)
@@ -481,8 +481,8 @@ class SimDevice(DeviceDriver):
         the config; default: the configured initial state). Time and counters restart at 0;
         enable state and latched faults are kept."""
         spec = self.spec
-        axis = self._par[P_AXIS:P_AXIS + 3].copy()
-        origin = self._par[P_ORIGIN:P_ORIGIN + 3].copy()
+        axis = self._par[DP_AXIS:DP_AXIS + 3].copy()
+        origin = self._par[DP_ORIGIN:DP_ORIGIN + 3].copy()
         r = ck.REDUCED_DIMS[self.kind]
         if pose is None:
             pose6 = spec.initial_pose6
@@ -500,23 +500,23 @@ class SimDevice(DeviceDriver):
         self._hp[_hands.HP_T0] = 0.0
         self._hp[_hands.HP_WAIT] = spec.hand.hp[_hands.HP_WAIT]  # a waiting script waits again
         if self.kind == "1dof":
-            st[ST_S] = s0
-            st[ST_SD] = float(np.dot(twist6[:3], axis))
-            st[ST_POSE:ST_POSE + 3] = origin + s0 * axis
-            st[ST_POSE + 3] = 1.0
-            st[ST_TWIST:ST_TWIST + 3] = st[ST_SD] * axis
+            st[DST_S] = s0
+            st[DST_SD] = float(np.dot(twist6[:3], axis))
+            st[DST_POSE:DST_POSE + 3] = origin + s0 * axis
+            st[DST_POSE + 3] = 1.0
+            st[DST_TWIST:DST_TWIST + 3] = st[DST_SD] * axis
         elif self.kind == "planar":
             th = pose6[5]
-            st[ST_TH] = th
-            st[ST_POSE:ST_POSE + 2] = pose6[:2]
-            st[ST_POSE + 3] = math.cos(0.5 * th)
-            st[ST_POSE + 6] = math.sin(0.5 * th)
-            st[ST_TWIST:ST_TWIST + 2] = twist6[:2]
-            st[ST_TWIST + 5] = twist6[5]
+            st[DST_TH] = th
+            st[DST_POSE:DST_POSE + 2] = pose6[:2]
+            st[DST_POSE + 3] = math.cos(0.5 * th)
+            st[DST_POSE + 6] = math.sin(0.5 * th)
+            st[DST_TWIST:DST_TWIST + 2] = twist6[:2]
+            st[DST_TWIST + 5] = twist6[5]
         else:
-            st[ST_POSE:ST_POSE + 3] = pose6[:3]
-            st[ST_POSE + 3:ST_POSE + 7] = _dyn.qexp(*pose6[3:])
-            st[ST_TWIST:ST_TWIST + 6] = twist6
+            st[DST_POSE:DST_POSE + 3] = pose6[:3]
+            st[DST_POSE + 3:DST_POSE + 7] = _dyn.qexp(*pose6[3:])
+            st[DST_TWIST:DST_TWIST + 6] = twist6
         _hands.hand_eval(self._hp, self._tab, st, self._hout)
         _hands.inputs_eval(self._hp, self._tab, st)
         _dyn.sim_hand_now(self._par, st, self._hout)
@@ -525,7 +525,7 @@ class SimDevice(DeviceDriver):
     def period_s(self) -> float:
         return self.spec.period_s
 
-    time_s = ArrayFloat("_st", ST_TIME, doc="Device clock, s (0 at ``reset``).")
+    time_s = ArrayFloat("_st", DST_TIME, doc="Device clock, s (0 at ``reset``).")
 
     @property
     def state(self) -> np.ndarray:
@@ -535,12 +535,12 @@ class SimDevice(DeviceDriver):
     @property
     def last_command(self) -> np.ndarray:
         """The wrench rendered in the last step (masked and capped), world, at the handle."""
-        return self._st[ST_CMD:ST_CMD + 6].copy()
+        return self._st[DST_CMD:DST_CMD + 6].copy()
 
     @property
     def endstop_wrench(self) -> np.ndarray:
         """The end-stop wrench of the last step, world (zero when inside the workspace)."""
-        return self._st[ST_STOP:ST_STOP + 6].copy()
+        return self._st[DST_STOP:DST_STOP + 6].copy()
 
     @property
     def hand(self) -> _hands.Hand:
@@ -589,18 +589,18 @@ def warm_up() -> None:
     w = np.zeros(6)
     for kind in KIND_IDS.values():
         par[:] = 0.0
-        par[P_KIND] = kind
-        par[P_DT] = 1e-3
-        par[P_MASS] = 1.0
-        par[P_IZZ] = 1.0
-        par[P_IB:P_IB + 9] = np.eye(3).ravel()
-        par[P_AXIS] = 1.0
-        par[P_SLO], par[P_SHI] = -1.0, 1.0
-        par[P_LO:P_LO + 3], par[P_HI:P_HI + 3] = -1.0, 1.0
-        par[P_FMAX] = par[P_TMAX] = par[P_VMAX] = par[P_WMAX] = 1.0
+        par[DP_KIND] = kind
+        par[DP_DT] = 1e-3
+        par[DP_MASS] = 1.0
+        par[DP_IZZ] = 1.0
+        par[DP_IB:DP_IB + 9] = np.eye(3).ravel()
+        par[DP_AXIS] = 1.0
+        par[DP_SLO], par[DP_SHI] = -1.0, 1.0
+        par[DP_LO:DP_LO + 3], par[DP_HI:DP_HI + 3] = -1.0, 1.0
+        par[DP_FMAX] = par[DP_TMAX] = par[DP_VMAX] = par[DP_WMAX] = 1.0
         st[:] = 0.0
-        st[ST_POSE + 3] = 1.0
-        ctl[C_ENABLED] = 1
+        st[DST_POSE + 3] = 1.0
+        ctl[DC_ENABLED] = 1
         for mode, prof in ((0, 0), (1, 1), (1, 2), (2, 3)):
             hp[_hands.HP_MODE] = mode
             hp[_hands.HP_PROF] = prof

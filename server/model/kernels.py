@@ -42,7 +42,7 @@ from ...protocol.quaternion import quat_to_matrix_into
 from .layout import (
     C_CP, C_D, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
     CI_AGE, CI_FLIPS, CI_KEY, CI_SLIP, CI_STATE,
-    CS_COLLIDING, CS_IMPENDING, CS_PENETRATING, CS_SEPARATING,
+    CST_COLLIDING, CST_IMPENDING, CST_PENETRATING, CST_SEPARATING,
     E_CONTACT_NONFINITE, E_DUPLICATE_KEY, E_HAND_NONFINITE, E_LINK_OUT_OF_RANGE,
     E_NORMAL_NOT_UNIT, E_NORMAL_OUT_OF_PLANE, E_OK, E_TOO_MANY,
     K_COLLISIONS, K_DEFORMED, K_DROPPED, K_LEFT, K_M, K_N_COLLIDING, K_N_IMPENDING,
@@ -443,16 +443,16 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
         C[i, C_VN] = vn
         C[i, C_IMP] = 0.0
         if s > TOUCH_TOL_M:
-            CI[i, CI_STATE] = CS_IMPENDING
+            CI[i, CI_STATE] = CST_IMPENDING
             n_imp += 1
         elif vn > 0.0:
-            CI[i, CI_STATE] = CS_SEPARATING
+            CI[i, CI_STATE] = CST_SEPARATING
             n_sep += 1
         elif sprev > 0.0:
-            CI[i, CI_STATE] = CS_COLLIDING
+            CI[i, CI_STATE] = CST_COLLIDING
             n_col += 1
         else:
-            CI[i, CI_STATE] = CS_PENETRATING
+            CI[i, CI_STATE] = CST_PENETRATING
             n_pen += 1
     cnt[K_N_IMPENDING] = n_imp
     cnt[K_N_COLLIDING] = n_col
@@ -487,7 +487,7 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
         tmp = V[_V_T1]
         for i in range(m):
             stt = CI[i, CI_STATE]
-            if stt != CS_COLLIDING and stt != CS_PENETRATING:
+            if stt != CST_COLLIDING and stt != CST_PENETRATING:
                 continue
             _fwd(L, Jn[i], Bm[i], d)          # b_i = L^-1 Jc_i^T
             nb = 0.0
@@ -546,7 +546,7 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
                     G[q_, c2] = 0.0
             for i in range(m):
                 stt = CI[i, CI_STATE]
-                if stt != CS_COLLIDING and stt != CS_PENETRATING:
+                if stt != CST_COLLIDING and stt != CST_PENETRATING:
                     continue
                 for q_ in range(r):
                     s = 0.0
@@ -564,7 +564,7 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
                 _bwd(Y, beta, beta, r)
                 for i in range(m):
                     stt = CI[i, CI_STATE]
-                    if stt != CS_COLLIDING and stt != CS_PENETRATING:
+                    if stt != CST_COLLIDING and stt != CST_PENETRATING:
                         continue
                     s = 0.0
                     for q_ in range(r):
@@ -1618,7 +1618,7 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
             for q_ in range(3):
                 newF[a, C_Z + q_] = 0.0
             newI[a, CI_SLIP] = 0
-            newI[a, CI_STATE] = CS_IMPENDING
+            newI[a, CI_STATE] = CST_IMPENDING
             newI[a, CI_AGE] = 0
         newI[a, CI_FLIPS] = 0
         for q_ in range(3):

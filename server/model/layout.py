@@ -38,10 +38,10 @@ POLICY_NAMES = {"rigid": POLICY_RIGID, "lm0": POLICY_DEFORM, "lm": POLICY_DEFORM
 POLICY_PAPER_LITERAL = 2
 
 # --- local contact states (section IV-A) ------------------------------------------------------
-CS_IMPENDING = 0
-CS_COLLIDING = 1
-CS_PENETRATING = 2
-CS_SEPARATING = 3
+CST_IMPENDING = 0
+CST_COLLIDING = 1
+CST_PENETRATING = 2
+CST_SEPARATING = 3
 CONTACT_STATE_NAMES = ("impending", "colliding", "penetrating", "separating")
 
 # --- proxy states -----------------------------------------------------------------------------

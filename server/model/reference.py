@@ -12,7 +12,7 @@ import numpy as np
 
 from .layout import (
     C_CP, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
-    CI_AGE, CI_SLIP, CI_STATE, CS_COLLIDING, CS_IMPENDING, CS_PENETRATING, CS_SEPARATING,
+    CI_AGE, CI_SLIP, CI_STATE, CST_COLLIDING, CST_IMPENDING, CST_PENETRATING, CST_SEPARATING,
     K_COLLISIONS, K_M, K_N_COLLIDING, K_N_IMPENDING, K_N_PENETRATING, K_N_SEPARATING,
     K_NONFINITE, K_PROXY, K_RANK, K_RECOVERING, K_SLIPPING, K_STEPS,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
@@ -408,17 +408,17 @@ def reference_step(kind, par, st, C, CI, cnt, hand, linkage: LinkageReference | 
     Jn = np.einsum("ij,ijk->ik", n, J)
     vn = Jn @ qd0 - vc
     sprev = Cm[:, C_S].copy()
-    state = np.select([s > TOUCH_TOL_M, vn > 0, sprev > 0], [CS_IMPENDING, CS_SEPARATING, CS_COLLIDING], CS_PENETRATING)
+    state = np.select([s > TOUCH_TOL_M, vn > 0, sprev > 0], [CST_IMPENDING, CST_SEPARATING, CST_COLLIDING], CST_PENETRATING)
     Cm[:, C_SPREV] = sprev
     Cm[:, C_S] = s
     Cm[:, C_VN] = vn
     Cm[:, C_IMP] = 0.0
     CI[:m, CI_STATE] = state
-    n_col = int(np.sum(state == CS_COLLIDING))
-    cnt[K_N_IMPENDING] = int(np.sum(state == CS_IMPENDING))
+    n_col = int(np.sum(state == CST_COLLIDING))
+    cnt[K_N_IMPENDING] = int(np.sum(state == CST_IMPENDING))
     cnt[K_N_COLLIDING] = n_col
-    cnt[K_N_PENETRATING] = int(np.sum(state == CS_PENETRATING))
-    cnt[K_N_SEPARATING] = int(np.sum(state == CS_SEPARATING))
+    cnt[K_N_PENETRATING] = int(np.sum(state == CST_PENETRATING))
+    cnt[K_N_SEPARATING] = int(np.sum(state == CST_SEPARATING))
     cnt[K_PROXY] = PS_COLLIDING if n_col else (PS_FREE if cnt[K_N_IMPENDING] == m else PS_RESTING)
 
     ke0 = 0.5 * qd0 @ D @ qd0
@@ -427,7 +427,7 @@ def reference_step(kind, par, st, C, CI, cnt, hand, linkage: LinkageReference | 
     qd = qd0.copy()
     gimp = np.zeros(d)
     if n_col:
-        sel = (state == CS_COLLIDING) | (state == CS_PENETRATING)
+        sel = (state == CST_COLLIDING) | (state == CST_PENETRATING)
         Jc = Jn[sel]
         A = Jc @ Dinv @ Jc.T
         p = -(1.0 + e) * np.linalg.pinv(A, rcond=PINV_RCOND) @ (Jc @ qd0)      # eq. 11

@@ -12,7 +12,7 @@ import pytest
 from hapticproxy.server.model import kernels as _k
 from hapticproxy.server.model.layout import (
     C_CP, C_D, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
-    CI_AGE, CI_FLIPS, CI_KEY, CI_SLIP, CI_STATE, CS_IMPENDING, FLIP_DOT, FLIP_REFUSE_MAX, K_DEFORMED,
+    CI_AGE, CI_FLIPS, CI_KEY, CI_SLIP, CI_STATE, CST_IMPENDING, FLIP_DOT, FLIP_REFUSE_MAX, K_DEFORMED,
     K_DROPPED, K_FLIPS, K_FLIPS_TAKEN, K_LEFT, K_M, K_NEW, K_REKEYED, K_UPDATES, KEY_SLIDE_FACTOR, MAX_DOF,
     NCOLS_F, NCOLS_I, NCOUNT, NLW, NPAR, NSTATE, P_EPS, P_POLICY, P_REC_VN, POLICY_DEFORM, POLICY_PAPER_LITERAL,
     POLICY_RIGID, REKEY_COS, REKEY_DISTANCE_M, S_T,
@@ -222,7 +222,7 @@ def reference_apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dse
             touch = not rigid
             newF[a, [C_S, C_SPREV]] = np.inf  # has just arisen: the next step may be a collision
             newF[a, C_Z:C_Z + 3] = 0.0
-            newI[a, [CI_SLIP, CI_STATE, CI_AGE]] = (0, CS_IMPENDING, 0)
+            newI[a, [CI_SLIP, CI_STATE, CI_AGE]] = (0, CST_IMPENDING, 0)
         n_def += not rigid
         newI[a, CI_FLIPS] = 0
         newI[a, CI_KEY:CI_KEY + 3] = keys[j]

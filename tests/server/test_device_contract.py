@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hapticproxy.server.devices.base import DEVICE_KINDS
-from hapticproxy.server.devices.layout import C_WD_NS
+from hapticproxy.server.devices.layout import DC_WD_NS
 from hapticproxy.server.devices.sim import SimDevice
 from hapticproxy.server.devices.base import DEVICE_REGISTRY
 from hapticproxy.testing import device_contract as dcon
@@ -59,7 +59,7 @@ class NonFiniteZeroedNotLatched(SimDevice):
 
 class WatchdogClaimedNotKept(SimDevice):
     def read(self, state_out):
-        self._ctl[C_WD_NS] = 0  # limits say 0.05 s; the device has none
+        self._ctl[DC_WD_NS] = 0  # limits say 0.05 s; the device has none
         return super().read(state_out)
 
 

@@ -11,7 +11,7 @@ from server_harness import make_settings
 from hapticproxy.server import tick
 from hapticproxy.server.clock import MonotonicClock
 from hapticproxy.server.devices.base import DEV_FAULT_WATCHDOG
-from hapticproxy.server.devices.layout import C_FAULT
+from hapticproxy.server.devices.layout import DC_FAULT
 from hapticproxy.server.loop import HapticLoop
 
 
@@ -74,7 +74,7 @@ def test_a_stall_is_handed_back_before_any_tick(loop):
 
 def test_a_device_fault_is_handed_back_after_its_tick(loop):
     _plain(loop, 1000)
-    loop.device._ctl[C_FAULT] = DEV_FAULT_WATCHDOG
+    loop.device._ctl[DC_FAULT] = DEV_FAULT_WATCHDOG
     n0 = int(loop.tk[tick.TK_TICKS])
     assert tick.run_ticks_at(loop._desc_addr) == tick.EV_TICKED
     assert int(loop.tk[tick.TK_TICKS]) == n0 + 1
