@@ -163,6 +163,10 @@ class DeviceInfo:
     #: handedness ("right", "left", "" when both or not stated)
     hand: str = ""
     source: str = ""
+    #: how many coordinates "position" and "rotation" each are on this device: 3 and 3 for a
+    #: spatial one, 2 and 1 for a planar one (x, y and the turn about z), 1 and 0 for one axis
+    position_dof: int = 3
+    rotation_dof: int = 3
 
     def __post_init__(self) -> None:
         if self.clock not in CLOCK_OWNERS:
@@ -172,9 +176,9 @@ class DeviceInfo:
             if bad:
                 raise ValueError(f"{name}: unknown parts {bad} (known: {DOF_PARTS})")
 
-    @staticmethod
-    def _dof(parts) -> int:
-        return 3 * ("position" in parts) + 3 * ("rotation" in parts) + ("gripper" in parts)
+    def _dof(self, parts) -> int:
+        return (self.position_dof * ("position" in parts) + self.rotation_dof * ("rotation" in parts)
+                + ("gripper" in parts))
 
     @property
     def dof_sensed(self) -> int:
@@ -233,7 +237,9 @@ def info_from_limits(kind: str, limits: DeviceLimits, *, model: str, vendor: str
                      source: str = "config", clock: str = "loop") -> DeviceInfo:
     """The info of a device known only by its kind and limits (a simulated or remote one)."""
     sensed = {"1dof": ("position",), "planar": ("position", "rotation"), "spatial": ("position", "rotation")}[kind]
+    pos, rot = {"1dof": (1, 0), "planar": (2, 1), "spatial": (3, 3)}[kind]
     return DeviceInfo(model=model, vendor=vendor, driver=driver, sensed=sensed, actuated=sensed,
+                      position_dof=pos, rotation_dof=rot,
                       max_force_n=limits.max_force_n, max_torque_n_m=limits.max_torque_n_m,
                       workspace_min_m=tuple(limits.workspace_min_m), workspace_max_m=tuple(limits.workspace_max_m),
                       clock=clock, source=source)

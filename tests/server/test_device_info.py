@@ -46,6 +46,13 @@ def test_every_driver_declares_info():
     assert math.isinf(d.limits.max_force_norm_n)  # the simulated device caps per axis only
 
 
+@pytest.mark.parametrize("kind, dof", [("1dof", 1), ("planar", 3), ("spatial", 6)])
+def test_a_simulated_device_counts_the_coordinates_of_its_kind(kind, dof):
+    info = make_sim_device({"kind": kind}, period_s=1e-3).info
+    assert (info.dof_sensed, info.dof_actuated) == (dof, dof)
+    assert f"{dof} DOF sensed / {dof} rendered" in info.summary()
+
+
 def test_status_shows_what_the_device_is():
     from hapticproxy.server.status import format_status
 
