@@ -54,6 +54,8 @@ class StatusPublisher:
             st[ST["model_nonfinite"]] = mc["nonfinite"]
             st[ST["flips_refused"]] = mc["flips_refused"]
             st[ST["rekeyed"]] = mc["rekeyed"]
+            st[ST["flips_taken"]] = mc["flips_taken"]
+            st[ST["diverged"]] = mc["diverged"]
             st[ST["recovering"]] = mc["recovering"]
             st[ST["recovery_energy_j"]] = m.recovery_energy_j
         else:

@@ -71,8 +71,11 @@ STATUS_LAYOUT = (
     # the scene's bounds (Welcome), contacts the tool cannot use, a sequence number jumping ahead
     ("refused_out_of_bounds", "i"), ("refused_unusable", "i"), ("refused_seq_jump", "i"),
     # the model: reversed normals refused, renumbered keys continued, contacts being recovered,
-    # the work the deformation recovery did on the hand [J]; the engine's advice [m, s]
+    # the work the deformation recovery did on the hand [J]; the engine's advice [m, s];
+    # reversed normals taken (the held contact had the tool behind it, or the reversal outlasted
+    # the refusals); times the proxy's integration diverged (lifecycle.FAULT_POLICY "diverged")
     ("flips_refused", "i"), ("rekeyed", "i"), ("recovering", "i"), ("recovery_energy_j", "f"),
+    ("flips_taken", "i"), ("diverged", "i"),
     ("advised_epsilon_m", "f"), ("advised_lead_s", "f"),
     # the port the loop's transport bound (a configured port 0 is the system's pick), 0: none
     ("transport_port", "i"),

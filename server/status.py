@@ -142,7 +142,8 @@ def format_status(s: dict) -> str:
         f"stale/duplicate {s.get('stale_or_duplicate', 0)}",
         f"refused      out of the scene's bounds {s.get('refused_out_of_bounds', 0)}  unusable contacts "
         f"{s.get('refused_unusable', 0)}  sequence jumps {s.get('refused_seq_jump', 0)}  reversed normals "
-        f"{s.get('flips_refused', 0)}  (renumbered keys continued {s.get('rekeyed', 0)})",
+        f"{s.get('flips_refused', 0)} (taken {s.get('flips_taken', 0)})  (renumbered keys continued "
+        f"{s.get('rekeyed', 0)})  proxy diverged {s.get('diverged', 0)}",
         f"fidelity     recovering {s.get('recovering', 0)} contacts (work on the hand "
         f"{1e3 * (s.get('recovery_energy_j') or 0.0):.1f} mJ)  engine told epsilon "
         f"{1e3 * (s.get('advised_epsilon_m') or 0.0):.1f} mm, lead {1e3 * (s.get('advised_lead_s') or 0.0):.1f} ms",

@@ -284,6 +284,7 @@ def diverged(r):
     r.run(0.05)
     _faded(r, n0 + 1)
     _latched(r, Fault.DIVERGED, Reason.DIVERGED)
+    assert r.loop.shared.get("diverged") == 1  # status says so
     _rearm_ramps_in(r)
 
 
