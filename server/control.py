@@ -461,16 +461,14 @@ def _coupling_to_model(cp, cs, par, ctype):
 def _diverged(cs, cnt, rc):
     """The model flagged its integration as diverged (a velocity flipping every step without
     decaying for DIVERGE_STEPS steps): the force it renders is the instability's, not the
-    contact's. The gain's target is held at zero while it lasts (a re-arm cannot ramp a diverging
-    proxy back in); the step it is first flagged returns RC_DIVERGED (lifecycle.FAULT_POLICY:
-    fade, re-arm), unless the step already had a fault of its own."""
-    run = cnt[K_OSC_RUN]
-    if run < DIVERGE_STEPS:
+    contact's. The step it is flagged the gain's target drops to zero and RC_DIVERGED is
+    returned (lifecycle.FAULT_POLICY: fade, re-arm: the proxy restarts at rest, and is flagged
+    again if it still diverges), unless the step already had a fault of its own (the target
+    drops all the same)."""
+    if cnt[K_OSC_RUN] != DIVERGE_STEPS:
         return rc
     cs[CS_TARGET] = 0.0
-    if run == DIVERGE_STEPS and rc == RC_OK:
-        return RC_DIVERGED
-    return rc
+    return RC_DIVERGED if rc == RC_OK else rc
 
 
 @njit(**_JIT)

@@ -247,6 +247,8 @@ class Lifecycle:
         lp.device.enable()
         if lp.device.fault:
             return False
+        if self.fault == Fault.DIVERGED and lp.proto.model is not None:
+            lp.proto.model.settle()  # from rest: a proxy still unstable is flagged again at once
         self.fault = Fault.NONE
         self.device_fault = 0
         self._trip_times = []

@@ -33,7 +33,7 @@ from .layout import (
     P_AXIS, P_B, P_BT, P_DT, P_E, P_EPS, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK,
     P_MUS, P_ORIGIN, P_POLICY, POLICY_PAPER_LITERAL, P_CPL_BR, P_CPL_BT, P_CPL_KR, P_CPL_KT, P_INTEG,
     INTEGRATOR_NAMES, K_DIVERGED, K_OSC_RUN, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN, POLICY_NAMES, PROXY_STATE_NAMES,
-    S_EREC, S_RECF, S_FENV, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
+    S_EREC, S_RECF, S_FENV, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_QDP, S_T,
     TOOL_1DOF, TOOL_DIMS, TOOL_KIND_NAMES, TOOL_LINKAGE, TOOL_PLANAR, TOOL_SPATIAL, UNIT_TOL,
     JT_PRISMATIC, JT_REVOLUTE, JT_ROOT, LI_CHAIN, LI_NCHAIN, LI_PARENT, LI_TYPE,
     LK_AXIS, LK_COM, LK_I, LK_MASS, LK_OP, LK_OR, LM_D, LM_H, LM_HELD, LM_NLINKS, LM_NQR, LM_PLANAR,
@@ -647,6 +647,15 @@ class LocalModel:
         unstable; what it renders is not the tool's. Latched for the model's life. The loop
         reads the counter ``K_DIVERGED`` of ``kernel_args()[5]`` (non-zero)."""
         return int(self._cnt[K_DIVERGED]) > 0
+
+    def settle(self) -> None:
+        """Stop the proxy where it is (zero velocity, the divergence watch's run cleared; the
+        contacts and ``diverged`` kept): what a re-arm after a divergence starts from. A proxy
+        whose integration is unstable diverges again, and is flagged again, within
+        ``DIVERGE_STEPS`` steps."""
+        self._st[S_QD:S_QD + self.dof] = 0.0
+        self._st[S_QDP:S_QDP + self.dof] = 0.0
+        self._cnt[K_OSC_RUN] = 0
 
     @property
     def recovery(self) -> dict:

@@ -314,6 +314,30 @@ SCENARIOS = {f.__name__: f for f in (
     nonfinite, update_error, speed_engaged, speed_idle, diverged, env_silent, session_ended)}
 
 
+def test_a_rearm_cannot_ramp_a_diverging_proxy_back_in(rig):
+    """A re-arm restarts the proxy at rest: one still diverging is flagged again within
+    DIVERGE_STEPS steps (its force barely starts to ramp in); once it no longer diverges, the
+    re-arm ramps the force back in."""
+    r = rig()
+    _engaged(r)
+    _, st, _, _, cnt = r.loop.model.arrays()
+
+    def diverging(i):
+        st[S_QD + 1] = 0.01 * (-1) ** i      # the signature, every step: a velocity flipping at full size
+        st[S_QDP + 1] = -st[S_QD + 1]
+        cnt[K_OSC_RUN] = max(cnt[K_OSC_RUN], DIVERGE_STEPS - 1)
+
+    r.run(0.3, on_step=diverging)
+    assert r.loop.state_name == "fault" and r.loop.fault == Fault.DIVERGED
+    n1 = len(r.device.commands)
+    assert r.loop.rearm()
+    r.run(0.5, on_step=diverging)
+    assert r.loop.state_name == "fault" and r.loop.fault == Fault.DIVERGED
+    fy = np.abs(np.array(r.device.commands[n1:])[:, 1])
+    assert fy.max() <= (DIVERGE_STEPS + 2) * r.loop.ctrl.force_rate_n_per_step and fy[-1] == 0.0
+    _rearm_ramps_in(r)                       # no longer diverging
+
+
 def test_every_row_has_a_scenario():
     assert sorted(p.key for p in FAULT_POLICY) == sorted(SCENARIOS)
 
