@@ -145,3 +145,23 @@ def test_the_daemon_accepts_a_linkage_on_the_configured_device():
 
     _check_device(make_settings(model={"tool": "linkage"}))  # the sim driver builds the planar device
     _check_device(make_settings(model={"tool": "linkage"}, device={"kind": "spatial"}))
+
+
+def test_a_diverging_chain_fades_as_the_fault_policy_says(linkage_rig):
+    """lifecycle.FAULT_POLICY "diverged" for a linkage (its own kernel): the divergence watch's
+    signature injected on a resting chain, the force fades from that step, latched."""
+    from hapticproxy.server.lifecycle import Fault
+    from hapticproxy.server.model.layout import DIVERGE_STEPS, K_OSC_RUN, S_QD, S_QDP
+
+    r = linkage_rig(env_kwargs={"start": (-0.09, 0.0105, 0.0), "joints": (0.0, 0.0)})
+    r.run(3.0)
+    assert r.loop.state_name == "engaged"
+    _, st, _, _, cnt = r.loop.model.arrays()
+    st[S_QD + 1] = 0.01
+    st[S_QDP + 1] = -0.01
+    cnt[K_OSC_RUN] = DIVERGE_STEPS - 1
+    rows = r.run(0.5)
+    assert r.loop.state_name == "fault" and r.loop.fault == Fault.DIVERGED
+    fy = rows[:, TEL["cmd_fy"]]
+    assert fy[0] > 0.4 and np.all(np.abs(np.diff(fy)) <= r.loop.ctrl.force_rate_n_per_step + 1e-9)
+    assert fy[-1] == 0.0 and not r.device.fault
