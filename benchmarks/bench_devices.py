@@ -199,7 +199,7 @@ def servo_rows(seconds: float, tmp: str, rates=(1000.0, 4000.0)) -> list[dict]:
                     d = make_touch_device(cfg, period_s=1.0 / hz)
                     try:
                         d.enable()
-                        row, zero = np.zeros(20), np.zeros(6)
+                        row, zero = np.zeros(DEV_NSTATE), np.zeros(6)
                         period = int(round(1e9 / hz))
                         t0 = int(d.state[S_TICK])
                         nxt = time.monotonic_ns()

@@ -534,12 +534,26 @@ class HapticLoop:
         self.device.schedule(SERVO_CALLBACK, binding.address)
         fd = int(tk[tick.TK_FD])
         end_ns = None if duration_s is None else self.clock.now_ns() + int(duration_s * 1e9)
+        hk_ns = int(tk[tick.TK_HK_EVERY]) * int(self.period_ns)
+        next_hk = self.clock.now_ns() + hk_ns
         try:
             while not self.stopped:
                 if fd >= 0:
-                    select.select((fd,), (), (), 0.001)
+                    readable = bool(select.select((fd,), (), (), 0.001)[0])
                 else:
                     time.sleep(0.001)
+                    readable = True  # a transport without a socket is polled every millisecond
+                now = self.clock.now_ns()
+                # Python takes the lock only when it has work: each time it holds it, a servo
+                # tick may find it held and write the previous command again (servo_held); a
+                # loaded machine can preempt this thread while it holds the lock
+                hk_due = now >= next_hk
+                if not (readable or hk_due or tk[tick.TK_RC_STICKY] != 0 or tk[tick.TK_NEEDS_PYTHON] != 0
+                        or tk[tick.TK_STATE] == tick._LS_FADING or tk[tick.TK_STATE] == tick._LS_STOPPING):
+                    continue
+                if hk_due:
+                    next_hk = now + hk_ns
+                    tk[tick.TK_HK_COUNT] = max(int(tk[tick.TK_HK_COUNT]), int(tk[tick.TK_HK_EVERY]) - 1)
                 lock(tk)
                 try:
                     rcs = int(tk[tick.TK_RC_STICKY])
