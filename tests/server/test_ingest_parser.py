@@ -104,7 +104,7 @@ def _cases(rng, kind, sid, token, state):
                      "env_f32", "env_int", "env_nan", "trailing", "truncated", "unknown_field", "joints_wrong",
                      "joints_nan", "keys_short", "data_short", "major2", "wrong_type", "token_wide",
                      "wrong_token_bit32", "wrong_token_bit63", "wrong_token_low_half", "wrong_session_bit16",
-                     "wrong_session_bit31"):
+                     "wrong_session_bit31", "wrong_session_bit32"):
             n = 0 if case == "valid_zero" else 17 if case == "too_many" else int(rng.integers(1, 12))
             keys, pos, normal, sep, vc = _contacts(rng, n, planar, 3 if kind == "linkage" else 1)
             seq = state["newest"]
@@ -141,7 +141,8 @@ def _cases(rng, kind, sid, token, state):
                 kw["token_"] = token ^ (1 << int(case.removeprefix("wrong_token_bit")))
             elif case == "wrong_token_low_half":  # the low half alone (a u32 on the wire)
                 kw["token_"] = token & 0xFFFF_FFFF
-            elif case.startswith("wrong_session_bit"):  # the id's high half only
+            elif case.startswith("wrong_session_bit"):  # the id's high half only (bit 32: beyond the u32
+                # the SPEC gives it, which the wire's uint64 form can carry)
                 kw["sid_"] = sid ^ (1 << int(case.removeprefix("wrong_session_bit")))
             elif case == "stale":
                 seq_here = max(seq - 1, 0)
@@ -246,14 +247,14 @@ def test_the_endpoint_accepts_and_refuses_the_same_datagrams_with_the_parser(kin
     assert not accepted & {"nan", "inf", "big", "not_unit", "unit_edge_out", "pose_not_unit", "pose_nan",
                            "oob_position", "oob_speed", "oob_separation", "bad_link", "too_many", "wrong_token",
                            "wrong_session", "wrong_token_bit32", "wrong_token_bit63", "wrong_token_low_half",
-                           "wrong_session_bit16", "wrong_session_bit31", "stale", "duplicate_seq", "jump", "env_nan", "trailing", "truncated",
+                           "wrong_session_bit16", "wrong_session_bit31", "wrong_session_bit32", "stale", "duplicate_seq", "jump", "env_nan", "trailing", "truncated",
                            "joints_wrong", "joints_nan", "keys_short", "data_short", "major2", "wrong_type"}
     assert ("planar_z" in accepted) == (kind != "planar")
     assert taken.get("valid", 0) >= 11 and taken.get("valid_wide", 0) >= 11 and taken.get("valid_array16", 0) >= 11
     assert not set(taken) & {"unit_edge_in", "env_int", "env_f32", "unknown_field"}  # left to the codec
     # the kernel vouches for no token or session id that differs from the session's in any bit
     assert not set(taken) & {"wrong_token", "wrong_token_bit32", "wrong_token_bit63", "wrong_token_low_half",
-                             "wrong_session", "wrong_session_bit16", "wrong_session_bit31"}
+                             "wrong_session", "wrong_session_bit16", "wrong_session_bit31", "wrong_session_bit32"}
 
 
 def test_a_slot_is_never_written_over_while_its_update_is_kept():
