@@ -332,7 +332,7 @@ def scene_frame(row, contacts=None) -> scn.Frame:
     pose = ("x", "y", "z", "qw", "qx", "qy", "qz")
     wrench = ("fx", "fy", "fz", "tx", "ty", "tz")
     return scn.frame_of(row[_T], cols("dev", pose), cols("proxy", pose), cols("cmd", wrench), cols("env", wrench),
-                        contacts, state_name(row[_STATE]), row[_GAIN])
+                        contacts, state_name(row[_STATE]), row[_GAIN], row[_EHAND])
 
 
 def contacts_message(hdr, key, pos, nrm, sep) -> Contacts:
