@@ -203,3 +203,24 @@ def test_the_config_table_is_checked_by_name_and_reaches_the_controller():
     assert c.tp[pv.TP_PERIOD] == pytest.approx(1e-3)
     assert not cfg.load().data["passivity"]["enabled"]  # off by default: see EXPERIMENTS.md
     assert c.grant(0.01) == pytest.approx(0.01) and c.tank_j == pytest.approx(0.03)
+
+
+def test_the_declared_device_damping_feeds_the_tank_through_the_controllers_ledger():
+    """``control._port_in``: the ledger's period (here no force held: nothing given) and the
+    handle's displacement and rotation during it reach the tank as b |dx|^2 / T + b_r |dr|^2 / T."""
+    from hapticproxy.server import config as cfg
+    from hapticproxy.server import control as ctl
+
+    s = cfg.load({"device": {"driver": "sim", "kind": "spatial"},
+                  "passivity": {"initial_budget_j": 0.0, "device_damping_n_s_per_m": 3.0,
+                                "device_rot_damping_n_m_s_per_rad": 0.02}})
+    c = ctl.Controller(s, "spatial")
+    dev = np.zeros(20)
+    dev[3] = 1.0
+    ctl._port_in(c.cp, c.cs, dev)  # the first sample: nothing to pair
+    dev[0:3] = [0.001, -0.002, 0.0005]
+    dev[3:7] = [math.cos(0.005), 0.0, 0.0, math.sin(0.005)]  # 0.01 rad about z
+    ctl._port_in(c.cp, c.cs, dev)
+    want = (3.0 * (0.001 ** 2 + 0.002 ** 2 + 0.0005 ** 2) + 0.02 * 0.01 ** 2) / 1e-3
+    assert c.tank_j == pytest.approx(want, rel=1e-9)
+    assert c.ts[pv.TS_DAMPED] == pytest.approx(want, rel=1e-9) and c.cs[ctl.CS_EHAND] == 0.0
