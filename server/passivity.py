@@ -137,11 +137,10 @@ def grant(tp, ts, e_j):
     if tp[TP_GRANTS] == 0.0 or not math.isfinite(e_j) or e_j <= 0.0:
         return 0.0
     h0 = ts[TS_TANK]
-    h = min(tp[TP_HMAX], h0 + e_j)
-    added = max(0.0, h - h0)
-    ts[TS_TANK] = max(h, h0)
-    ts[TS_GRANTED] += added
-    return added
+    h = min(tp[TP_HMAX], h0 + e_j)  # h0 <= TP_HMAX always (``account`` and ``reset`` keep it)
+    ts[TS_TANK] = h
+    ts[TS_GRANTED] += h - h0
+    return h - h0
 
 
 @njit(**_JIT)

@@ -56,25 +56,30 @@ def test_l2_the_factor_is_a_smooth_function_of_the_level(h1, h2):
     assert abs(b1 - b2) <= 1.5 * abs(h1 - h2) / 0.005 + 1e-12  # smoothstep's largest slope
 
 
-@settings(**SET)
-@given(v3, small3, level)
-def test_l3_moving_the_power_giving_part_shrinks_at_rest_the_whole_force_never_a_pull(f, v, h):
-    tp = _tp()
-    cmd, ts, _ = _limited(tp, h, f, v)
-    fo = cmd[:3]
+def _check_l3(f, v, fo, beta, v0):
     p, po = float(f @ v), float(fo @ v)
-    beta = pv.beta_of(tp, h)
-    assert ts[pv.TS_BETA] == beta
     assert np.linalg.norm(fo - f) <= beta * np.linalg.norm(f) + 1e-12
+    vn = np.linalg.norm(v)
+    r = vn ** 2 / (vn ** 2 + v0 ** 2)  # moving: 1, at rest: 0
     if p > 0.0:
         assert po == pytest.approx((1.0 - beta) * p, rel=1e-9, abs=1e-15) and po >= -1e-15
-    else:
+    else:  # a force that takes energy: only the at-rest share shrinks
+        assert po == pytest.approx((1.0 - beta * (1.0 - r)) * p, rel=1e-9, abs=1e-15)
         assert p - 1e-15 <= po <= 1e-15
-    vn = np.linalg.norm(v)
-    r = vn ** 2 / (vn ** 2 + 0.02 ** 2)  # moving: 1, at rest: 0
     if vn > 0.0:  # across the velocity: only the at-rest share shrinks
         u = v / vn
         assert np.allclose(fo - (fo @ u) * u, (1.0 - beta * (1.0 - r)) * (f - (f @ u) * u), atol=1e-12)
+
+
+@settings(**SET)
+@given(v3, small3, v3, st.lists(st.floats(-0.5, 0.5), min_size=3, max_size=3).map(np.array), level)
+def test_l3_moving_the_power_giving_part_shrinks_at_rest_the_whole_force_never_a_pull(f, v, t, w, h):
+    tp = _tp()
+    cmd, ts, _ = _limited(tp, h, f, v, t, w)
+    beta = pv.beta_of(tp, h)
+    assert ts[pv.TS_BETA] == beta
+    _check_l3(f, v, cmd[:3], beta, 0.02)   # force against the velocity, v0
+    _check_l3(t, w, cmd[3:], beta, 0.2)    # torque against the angular velocity, w0
 
 
 @settings(**SET)
@@ -124,7 +129,8 @@ def test_grants_feed_the_tank_up_to_its_cap_and_bad_ones_nothing():
     assert ts[pv.TS_GRANTED] == pytest.approx(0.04)
     off = _tp()
     off[pv.TP_GRANTS] = 0.0
-    assert pv.grant(off, ts, 0.01) == 0.0
+    pv.reset(off, ts)
+    assert pv.grant(off, ts, 0.01) == 0.0 and ts[pv.TS_TANK] == 0.01
 
 
 @pytest.mark.parametrize("bad", [dict(initial_budget_j=0.1), dict(low_level_j=0.0), dict(period_s=-1.0),
