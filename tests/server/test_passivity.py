@@ -230,3 +230,23 @@ def test_the_declared_device_damping_feeds_the_tank_through_the_controllers_ledg
     want = (3.0 * (0.001 ** 2 + 0.002 ** 2 + 0.0005 ** 2) + 0.02 * 0.01 ** 2) / 1e-3
     assert c.tank_j == pytest.approx(want, rel=1e-9)
     assert c.ts[pv.TS_DAMPED] == pytest.approx(want, rel=1e-9) and c.cs[ctl.CS_EHAND] == 0.0
+
+
+@pytest.mark.parametrize("vy, want", [(-0.5, 0.5 * (1 - 0.02 ** 2 / (0.25 + 0.02 ** 2))), (0.5, 0.0), (0.0, 0.0)])
+def test_the_controller_limits_its_command_by_the_handles_twist(vy, want):
+    """``control._command_out`` with the tank empty: a 0.5 N command against the handle's
+    motion (it takes energy) stays; along it (it gives energy) and at rest it goes."""
+    from hapticproxy.server import config as cfg
+    from hapticproxy.server import control as ctl
+
+    c = ctl.Controller(cfg.load({"passivity": {"enabled": True}}), "planar")
+    c.ts[pv.TS_TANK] = 0.0
+    c.cs[ctl.CS_GAIN] = c.cs[ctl.CS_TARGET] = 1.0
+    c.cs[ctl.CS_ENV + 1] = 0.5  # the command (no controller: the environment's wrench)
+    dev = np.zeros(20)
+    dev[3] = 1.0
+    dev[0:3] = [0.03, 0.04, 0.0]  # a pose that is no velocity
+    dev[8] = vy
+    assert ctl._command_out(c.cp, c.cs, c.cc, c.cmd, -1, ctl.RC_OK, dev) == ctl.RC_OK
+    assert c.cmd[1] == pytest.approx(want, rel=1e-9, abs=1e-12)
+    assert c.counters()["passivity_limited"] == 1
