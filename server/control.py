@@ -43,7 +43,8 @@ from . import safety as sf
 from .readonly import ArrayBool, ArrayFloat, ArrayInt
 from .model.kernels import _rigid_pose, hand_to_world, step_rigid
 from .model.layout import (
-    DIVERGE_STEPS, INTEG_EXPLICIT, K_OSC_RUN, LM_PLANAR, P_AXIS, P_CPL_BR, P_CPL_BT, P_CPL_KR, P_CPL_KT, P_HAND, P_INTEG, P_ORIGIN, S_FCPL,
+    DIVERGE_STEPS, INTEG_EXPLICIT, K_OSC_RUN, LM_PLANAR, P_AXIS, P_CPL_BR, P_CPL_BT, P_CPL_KR, P_CPL_KT, P_HAND, P_INTEG, P_ORIGIN,
+    P_REC_CUT, S_FCPL,
     S_FENV, S_Q, S_QD, TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL,
 )
 from .model.linkage import hand_state_linkage, step_linkage
@@ -479,6 +480,9 @@ def _coupling_to_model(cp, cs, par, ctype):
     if ctype == CTRL_DIRECT:
         par[P_INTEG] = INTEG_EXPLICIT
     spring = 0.0 if cs[CS_SLIDE] != 0.0 else on
+    # the deformation recovery is an active element: it slows with the passivity layer's last
+    # limiting factor and stops when the tank is empty (``passivity``; 0 with the layer off)
+    par[P_REC_CUT] = cs[CS_TANK + pv.TS_BETA]
     par[P_CPL_KT] = spring * cp[CP_KT]
     par[P_CPL_BT] = on * cp[CP_BT]
     par[P_CPL_KR] = spring * cp[CP_KR]

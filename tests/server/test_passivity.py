@@ -250,3 +250,25 @@ def test_the_controller_limits_its_command_by_the_handles_twist(vy, want):
     assert ctl._command_out(c.cp, c.cs, c.cc, c.cmd, -1, ctl.RC_OK, dev) == ctl.RC_OK
     assert c.cmd[1] == pytest.approx(want, rel=1e-9, abs=1e-12)
     assert c.counters()["passivity_limited"] == 1
+
+
+@pytest.mark.parametrize("enabled, tank, want", [(True, 0.0, 1.0), (True, 0.0025, 0.5), (True, 0.01, 0.0),
+                                                 (False, 0.0, 0.0)])
+def test_the_recovery_slows_with_the_tank(enabled, tank, want):
+    """Each step the controller drives the proxy, the model's ``P_REC_CUT`` is the layer's last
+    limiting factor: the deformation recovery (an active element) stops at an empty tank."""
+    from hapticproxy.server import config as cfg
+    from hapticproxy.server import control as ctl
+    from hapticproxy.server.model import ContactParams, LocalModel, ToolSpec
+    from hapticproxy.server.model.layout import P_REC_CUT
+
+    c = ctl.Controller(cfg.load({"passivity": {"enabled": enabled}}), "planar")
+    m = LocalModel(ToolSpec.planar(0.2, 1e-4), ContactParams(4000.0, 30.0), period_s=1e-3)
+    m.reset([0.0, 0.05, 0.0])
+    dev = np.zeros(20)
+    dev[3] = 1.0
+    dev[13:19] = np.nan
+    for _ in range(2):  # the first step's limiting factor reaches the model at the second
+        c.ts[pv.TS_TANK] = tank
+        ctl.haptic_step(c.cp, c.cs, c.cc, dev, c.cmd, 1, *m.kernel_args(), c.hand, c.R, c.c)
+    assert m.arrays()[0][P_REC_CUT] == pytest.approx(want)
