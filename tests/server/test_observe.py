@@ -146,7 +146,7 @@ def test_watch_shows_state_pose_force_contacts_and_reason():
               "last_update": {"count": 2, "penetration_m": 0.0004}, "updates": 120, "env_rate_hz": 59.9,
               "lateness_us": {"p50": 1.0, "p99": 4.0, "p999": 40.0}, "compute_us": {"p50": 8.0, "p99": 60.0},
               "rate_hz": 1000.0, "achieved_rate_hz": 999.9, "steps": 5000, "session_id": 7, "device_kind": "planar",
-              "energy_hand_j": 0.0123}
+              "energy_hand_j": 0.0123, "tank_j": 0.0042, "passivity_limited": 7}
     sent = []
     calls = {"n": 0}
 
@@ -169,6 +169,7 @@ def test_watch_shows_state_pose_force_contacts_and_reason():
     text, misses = asyncio.run(go())
     assert "fault" in text["state"] and "speed" in text["state"] and "device faster than its limit" in text["state"]
     assert "+12.30 mJ given to the hand" in text["state"]  # the ledger at the hand's port
+    assert "4.20 mJ, limited 7 steps" in text["state"]  # the passivity layer's tank
     assert "+10.50" in text["pose"] and "+10.00" in text["pose"]  # device / proxy y in mm
     assert "-0.500" in text["force"] and "8.00 N" in text["force"]
     assert "0.400 mm" in text["contacts"]
