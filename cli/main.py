@@ -48,6 +48,7 @@ BENCH_TARGETS = {
     "faults": "hapticproxy.benchmarks.bench_faults",
     "recorder": "hapticproxy.benchmarks.bench_recorder",
     "devices": "hapticproxy.benchmarks.bench_devices",
+    "passivity": "hapticproxy.benchmarks.bench_passivity",
 }
 
 COMMANDS: dict[str, Command] = {

@@ -124,7 +124,8 @@ def frame_from_status(s: dict) -> scn.Frame | None:
                     np.asarray(lu["normal"], dtype=float).reshape(-1, 3),
                     np.asarray(lu["separation_m"], dtype=float).reshape(-1))
     return scn.frame_of(lt["t_s"], lt["device_pose"], lt["proxy_pose"], lt["command"], lt["environment_wrench"],
-                        contacts, str(s.get("loop_state", "")), s.get("gain") or 0.0)
+                        contacts, str(s.get("loop_state", "")), s.get("gain") or 0.0,
+                        s.get("energy_hand_j"))
 
 
 def shape_from_status(s: dict) -> scn.ToolShape:

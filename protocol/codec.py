@@ -923,7 +923,7 @@ class Codec:
             return self.encode_contact_update(
                 msg.session_id, msg.token, msg.seq, msg.env_time_s, msg.tool_pose, msg.keys,
                 msg.position_m, msg.normal, msg.separation_m, msg.v_constr_m_per_s, check=True,
-                tool_joint_position=msg.tool_joint_position)
+                tool_joint_position=msg.tool_joint_position, work_on_tool_j=msg.work_on_tool_j)
         if tid == MessageType.PROXY_STATE:
             fl = int(msg.device_inputs)
             inputs = (msg.buttons if fl & INPUT_BUTTONS else math.nan,
@@ -963,8 +963,11 @@ class Codec:
                   _u(msg.token, "token", _U64_MAX), msg.seq, float(msg.env_time_s),
                   np.asarray(msg.tool_pose, _F8).tobytes(), msg.contact_count, bytes(msg.contact_keys),
                   bytes(msg.contact_data)]
-        if len(msg.tool_joint_position) and self._cu_minor_fields > 6:
+        grant = float(msg.work_on_tool_j)
+        if (len(msg.tool_joint_position) or (grant != 0.0 and self._cu_minor_fields > 7)) and self._cu_minor_fields > 6:
             fields.append(np.asarray(msg.tool_joint_position, _F8).tobytes())
+        if grant != 0.0 and self._cu_minor_fields > 7:
+            fields.append(grant)
         return self._enc(fields)
 
     def encode_proxy_state(self, session_id: int, token: int, seq: int, ack_seq: int, server_time_s: float,
@@ -1057,13 +1060,15 @@ class Codec:
     def encode_contact_update(self, session_id: int, token: int, seq: int, env_time_s: float, tool_pose,
                               keys: np.ndarray, position_m: np.ndarray, normal: np.ndarray,
                               separation_m: np.ndarray, v_constr_m_per_s: np.ndarray, *, check: bool = False,
-                              tool_joint_position=None) -> bytes:
+                              tool_joint_position=None, work_on_tool_j: float = 0.0) -> bytes:
         """Encode a ContactUpdate straight from arrays (the environment client's hot path).
 
         ``keys`` int64 (n, 3); ``position_m``, ``normal`` float64 (n, 3); ``separation_m``,
         ``v_constr_m_per_s`` float64 (n,); ``tool_pose`` 7 floats (x y z qw qx qy qz);
         ``tool_joint_position`` (1.1, linkages): the engine's joint positions, J floats, appended
-        only when J > 0 (so a rigid tool's packet is the 1.0 layout). Shapes and dtypes are always
+        only when J > 0 (so a rigid tool's packet is the 1.0 layout); ``work_on_tool_j`` (1.4): the
+        work the engine did on its tool since its previous update, appended (after an empty
+        ``tool_joint_position`` for a rigid tool) only when it is not 0. Shapes and dtypes are always
         checked (``ValueError`` naming the array). ``check=True`` also applies every value rule of
         the decoder (finite, unit normals, unique keys), at about the decoder's cost; without it a
         bad value is caught by the receiver instead.
@@ -1087,12 +1092,18 @@ class Codec:
             pose_b = _POSE.pack(*tool_pose)
         data = b"".join((position_m.tobytes(), normal.tobytes(), separation_m.tobytes(), v_constr_m_per_s.tobytes()))
         fields = [PROTOCOL_MAJOR, self.minor, 4, session_id, token, seq, float(env_time_s), pose_b, n, keys.tobytes(), data]
-        if tool_joint_position is not None and len(tool_joint_position) and self._cu_minor_fields > 6:
-            jq = np.asarray(tool_joint_position, dtype=_F8)
+        grant = float(work_on_tool_j)
+        has_joints = tool_joint_position is not None and len(tool_joint_position)
+        if (has_joints or (grant != 0.0 and self._cu_minor_fields > 7)) and self._cu_minor_fields > 6:
+            jq = np.asarray(tool_joint_position if has_joints else (), dtype=_F8)
             if jq.ndim != 1 or jq.shape[0] > self._max_links:
                 raise ValueError(f"tool_joint_position must be at most {self._max_links} float64 values, "
                                  f"got shape {jq.shape}")
             fields.append(jq.tobytes())
+        if grant != 0.0 and self._cu_minor_fields > 7:
+            if not (math.isfinite(grant) and 0.0 <= grant <= MAX_ABS_FLOAT):
+                raise ValueError(f"work_on_tool_j must be a finite number of J >= 0, got {grant!r}")
+            fields.append(grant)
         try:
             packet = self._enc(fields)
         except (TypeError, OverflowError) as exc:

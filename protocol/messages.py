@@ -69,8 +69,10 @@ PROTOCOL_MAJOR = 1
 #: ``ContactUpdate.tool_joint_position`` (a linkage engine's joint positions); 1.2 appended
 #: ``ProxyState.server_state`` (whether the proxy is being rendered) and the scene bounds and
 #: ``note`` of ``Welcome``; 1.3 appended the device's inputs to ``ProxyState`` (``buttons``,
-#: ``gripper_angle_rad``, ``gripper_velocity_rad_per_s``, ``device_inputs``), so a scene can grasp.
-PROTOCOL_MINOR = 3
+#: ``gripper_angle_rad``, ``gripper_velocity_rad_per_s``, ``device_inputs``), so a scene can grasp;
+#: 1.4 appended ``ContactUpdate.work_on_tool_j`` (the work an engine declares it did on the tool:
+#: the energy it grants the server's passivity layer, SPEC 8.11).
+PROTOCOL_MINOR = 4
 #: Tolerance on unit vectors and quaternions: | |x| - 1 | <= UNIT_TOLERANCE.
 UNIT_TOLERANCE = 1e-6
 #: Bound on the magnitude of every float (after the finite check). Generous for metres, newtons
@@ -317,6 +319,9 @@ class ContactUpdate(Message, kw_only=True):
     tool_joint_position: f64_bin("J", "linkage: the engine's joint positions at env_time_s (links 1..L-1 in link "
                                       "order; with tool_pose, the root's: the configuration the contacts were "
                                       "computed at); others: empty or absent", "rad or m", since=1) = b""
+    work_on_tool_j: f64("the work the engine's world did on its tool since the previous update (an object it "
+                        "drives pushing the tool): the energy it grants the server to give the hand beyond what "
+                        "the hand put in (SPEC 8.11); 0: none", "J", rule="nonneg", since=4) = 0.0
 
     @property
     def n_contacts(self) -> int:
@@ -325,7 +330,8 @@ class ContactUpdate(Message, kw_only=True):
 
     @classmethod
     def from_arrays(cls, *, seq: int, env_time_s: float, tool_pose, keys, position_m, normal, separation_m,
-                    v_constr_m_per_s, tool_joint_position=b"", session_id: int = 0, token: int = 0) -> "ContactUpdate":
+                    v_constr_m_per_s, tool_joint_position=b"", session_id: int = 0, token: int = 0,
+                    work_on_tool_j: float = 0.0) -> "ContactUpdate":
         """A ContactUpdate from its columns (``keys`` int64 (n, 3), ``position_m`` / ``normal``
         float64 (n, 3), ``separation_m`` / ``v_constr_m_per_s`` float64 (n,)), packed as on the wire."""
         keys = np.ascontiguousarray(keys, dtype="<i8").reshape(-1, 3)
@@ -333,7 +339,7 @@ class ContactUpdate(Message, kw_only=True):
         msg = cls(seq=seq, env_time_s=env_time_s, tool_pose=np.asarray(tool_pose, "<f8"), contact_count=keys.shape[0],
                   contact_keys=keys.tobytes(), contact_data=b"".join(a.tobytes() for a in cols),
                   tool_joint_position=np.asarray(tool_joint_position if len(tool_joint_position) else (), "<f8"),
-                  session_id=session_id, token=token)
+                  session_id=session_id, token=token, work_on_tool_j=work_on_tool_j)
         msg.keys, msg.position_m, msg.normal, msg.separation_m, msg.v_constr_m_per_s = (keys, *cols)
         return msg
 

@@ -865,9 +865,11 @@ class ClientEndpoint:
 
     def send_contacts(self, now_ns: int | None, env_time_s: float, tool_pose, keys: np.ndarray,
                       position_m: np.ndarray, normal: np.ndarray, separation_m: np.ndarray,
-                      v_constr_m_per_s: np.ndarray, *, check: bool = False, tool_joint_position=None) -> int:
+                      v_constr_m_per_s: np.ndarray, *, check: bool = False, tool_joint_position=None,
+                      work_on_tool_j: float = 0.0) -> int:
         """Send one ContactUpdate (arrays as in :meth:`Codec.encode_contact_update`; a linkage
-        engine adds its joint positions). Returns its seq, or 0 if the session is not established
+        engine adds its joint positions; ``work_on_tool_j``: the work the engine's world did on its
+        tool since its previous update, granted to the server's passivity layer, SPEC 8.11). Returns its seq, or 0 if the session is not established
         (nothing sent). ``ValueError`` on shapes, dtypes or more contacts than the granted
         capacity."""
         if self.state != ClientState.ESTABLISHED:
@@ -877,7 +879,8 @@ class ClientEndpoint:
         self._contact_tx_seq += 1
         packet = self.codec.encode_contact_update(
             self.session_id, self.token, self._contact_tx_seq, env_time_s, tool_pose, keys, position_m, normal,
-            separation_m, v_constr_m_per_s, check=check, tool_joint_position=tool_joint_position)
+            separation_m, v_constr_m_per_s, check=check, tool_joint_position=tool_joint_position,
+            work_on_tool_j=work_on_tool_j)
         self._emit(packet, _now(now_ns))
         return self._contact_tx_seq
 

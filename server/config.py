@@ -26,6 +26,9 @@ Layout (all keys optional)::
     [safety]     max_force_n, max_torque_n_m, force_rate_n_per_s, torque_rate_n_m_per_s,
                  max_speed_m_per_s, max_angular_speed_rad_per_s, watchdog_s, fade_s, ramp_in_s,
                  stall_recover_s, stall_trips_max, stall_window_s, allow_outside_stable_region
+    [passivity]  enabled, initial_budget_j, max_tank_j, low_level_j, velocity_threshold_m_per_s,
+                 angular_velocity_threshold_rad_per_s, device_damping_n_s_per_m,
+                 device_rot_damping_n_m_s_per_rad, engine_grants (server/passivity.py)
     [device]     driver (entry point name) and the driver's own keys (its Structs: devices/sim.py,
                  devices/remote.py, devices/hands.py for [device.hand]); the workspace mapping:
                  workspace_scale, workspace_offset_m, workspace_rotation, clutch_button,
@@ -194,6 +197,28 @@ class SafetyConfig(_Table):
                                       "listed by status)") = False
 
 
+class PassivityConfig(_Table):
+    """The passivity layer under the controller (``server/passivity.py``: an energy tank at the
+    hand's port that limits the command when it runs short)."""
+    enabled: _doc(bool, "limit the command when the tank runs short (off: the tank is only accounted, in "
+                  "status and telemetry). Off by default: on, Figs. 6 and 9 change verdicts (EXPERIMENTS.md)") = False
+    initial_budget_j: _num(0, 10, doc="the tank at start: energy the server may give the hand beyond what the "
+                           "hand put in [J]") = 0.01
+    max_tank_j: _num(0, 100, doc="the tank's cap: what a hand's input can store for later [J]") = 0.05
+    low_level_j: _num(0, 10, lo_open=True, doc="below this level the command is limited, smoothly, fully at an "
+                      "empty tank [J]") = 0.005
+    velocity_threshold_m_per_s: _num(0, 1, lo_open=True, doc="the handle speed at which the limiting turns from "
+                                     "scaling the whole command (at rest) to removing the part along the motion; "
+                                     "nothing switches with the velocity's sign (1 mm/s chattered at the Nyquist "
+                                     "rate in tests/server/test_passivity.py) [m/s]") = 0.02
+    angular_velocity_threshold_rad_per_s: _num(0, 10, lo_open=True, doc="the same for rotation [rad/s]") = 0.2
+    device_damping_n_s_per_m: _num(0, 1e4, doc="the device's physical viscous damping, as its maker states it: "
+                                   "what it dissipates feeds the tank (0: nothing assumed) [N s/m]") = 0.0
+    device_rot_damping_n_m_s_per_rad: _num(0, 1e3, doc="and its rotational damping [N m s/rad]") = 0.0
+    engine_grants: _doc(bool, "add the work an engine declares it does on the tool (ContactUpdate."
+                        "work_on_tool_j) to the tank") = True
+
+
 class TelemetryConfig(_Table):
     ring_s: _num(0.1, 600, doc="telemetry ring length [s]") = 10.0
     record: _doc(str, "record telemetry to this file (empty: only on request)") = ""
@@ -218,12 +243,13 @@ class ServerConfig(_Table):
     model: ModelConfig = msgspec.field(default_factory=ModelConfig)
     controller: ControllerConfig = msgspec.field(default_factory=ControllerConfig)
     safety: SafetyConfig = msgspec.field(default_factory=SafetyConfig)
+    passivity: PassivityConfig = msgspec.field(default_factory=PassivityConfig)
     device: dict = msgspec.field(default_factory=dict)
     telemetry: TelemetryConfig = msgspec.field(default_factory=TelemetryConfig)
     status: StatusConfig = msgspec.field(default_factory=StatusConfig)
 
 
-SECTIONS = ("loop", "transport", "model", "controller", "safety", "device", "telemetry", "status")
+SECTIONS = ("loop", "transport", "model", "controller", "safety", "passivity", "device", "telemetry", "status")
 DEVICE_DEFAULTS = {"driver": "sim", "kind": "planar"}
 #: dotted key -> doc, for ``--print-config``
 DOCS = schema.descriptions(ServerConfig)
@@ -373,6 +399,13 @@ def load(source: str | Path | dict | None = None, overrides: dict | None = None)
                           f"(at most {FIRST_COMMAND_MAX_N} N)")
     if cfg.transport.silence_timeout_s <= cfg.transport.heartbeat_interval_s:
         raise ConfigError("transport.silence_timeout_s", "must exceed transport.heartbeat_interval_s")
+    pas = cfg.passivity
+    if pas.initial_budget_j > pas.max_tank_j:
+        raise ConfigError("passivity.initial_budget_j", f"{pas.initial_budget_j} J is more than passivity.max_tank_j "
+                          f"({pas.max_tank_j} J): raise max_tank_j or lower the budget")
+    if pas.low_level_j > pas.max_tank_j:
+        raise ConfigError("passivity.low_level_j", f"{pas.low_level_j} J is more than passivity.max_tank_j "
+                          f"({pas.max_tank_j} J): the tank could never leave the limited range")
     tool = cfg.model.tool or hdr.kind
     if tool == "linkage":
         if hdr.kind not in ("planar", "spatial"):

@@ -38,11 +38,13 @@ from numba import njit
 
 from ..protocol.vocab import CONTROLLERS
 
+from . import passivity as pv
 from . import safety as sf
 from .readonly import ArrayBool, ArrayFloat, ArrayInt
 from .model.kernels import _rigid_pose, hand_to_world, step_rigid
 from .model.layout import (
-    DIVERGE_STEPS, INTEG_EXPLICIT, K_OSC_RUN, LM_PLANAR, P_AXIS, P_CPL_BR, P_CPL_BT, P_CPL_KR, P_CPL_KT, P_HAND, P_INTEG, P_ORIGIN, S_FCPL,
+    DIVERGE_STEPS, INTEG_EXPLICIT, K_OSC_RUN, LM_PLANAR, P_AXIS, P_CPL_BR, P_CPL_BT, P_CPL_KR, P_CPL_KT, P_HAND, P_INTEG, P_ORIGIN,
+    P_REC_CUT, S_FCPL,
     S_FENV, S_Q, S_QD, TOOL_1DOF, TOOL_PLANAR, TOOL_SPATIAL,
 )
 from .model.linkage import hand_state_linkage, step_linkage
@@ -72,7 +74,8 @@ CP_QOFF = 19       # 19..22 the same rotation as a quaternion (w x y z)
 CP_VMAX = 23       # device speed limit, m/s
 CP_WMAX = 24       # device angular speed limit, rad/s
 CP_SAFETY = 25     # 25..38 the safety filter's parameters (``safety.SP_*``)
-NCP = CP_SAFETY + sf.NSP
+CP_TANK = CP_SAFETY + sf.NSP  # 39.. the passivity layer's parameters (``passivity.TP_*``)
+NCP = CP_TANK + pv.NTP
 
 # ---- state (float64[NCS]); rows for telemetry and the ProxyState
 CS_SAFETY = 0      # 0..8 the safety filter's state (``safety.SS_*``): gain, target, previous output
@@ -93,7 +96,10 @@ CS_SLIDE = 60      # 1: the device->world offset follows the proxy while the for
 CS_EHAND = 61      # the energy the device gave the hand since start, J (``port_energy``)
 CS_EPOSE = 62      # 62..68 the device's pose (device frame) when the last command was written
 CS_EVALID = 69     # 1: CS_EPOSE holds a pose (the ledger pairs the next displacement with it)
-NCS = 70
+CS_EDX2 = 70       # the last paired period's squared displacement of the handle, m^2
+CS_EDR2 = 71       # and squared rotation, rad^2 (the declared device damping's share, ``passivity``)
+CS_TANK = 72       # 72.. the passivity layer's state (``passivity.TS_*``): the tank and its books
+NCS = CS_TANK + pv.NTS
 
 # ---- counters (int64[NCC])
 CC_SAFETY = 0          # 0..2 the safety filter's counters (``safety.SC_*``)
@@ -104,7 +110,8 @@ CC_STEPS = 3
 CC_SPEED_TRIPS = 4     # steps over the speed limit
 CC_NONFINITE = 5       # steps with a non-finite device state or model result
 CC_HAND_MISSING = 6    # steps with no (finite) measured hand wrench in four-channel
-NCC = 7
+CC_TANK = 7            # 7.. the passivity layer's counters (``passivity.TC_*``)
+NCC = CC_TANK + pv.NTC
 
 RC_OK = sf.RC_OK
 RC_NONFINITE = sf.RC_NONFINITE
@@ -210,15 +217,23 @@ def port_energy(cs, dev):
     displacement and rotation of the handle during it), added to CS_EHAND; then this sample's
     pose is kept for the next. Call after reading the device, before the new command: the
     command in ``CS_PREV`` is the one that was held. A rotation counts by its rotation vector
-    (q_new conj(q_old)); a device whose sample is not finite is skipped (its period is lost)."""
+    (q_new conj(q_old)); a device whose sample is not finite is skipped (its period is lost).
+    Returns the period's energy (0 when nothing was paired) and keeps its squared displacement and
+    rotation in CS_EDX2 / CS_EDR2 (what a viscous damper dissipated at least: ``passivity``)."""
+    cs[CS_EDX2] = 0.0
+    cs[CS_EDR2] = 0.0
+    w = 0.0
     for j in range(7):
         if not math.isfinite(dev[j]):
             cs[CS_EVALID] = 0.0
-            return
+            return w
     if cs[CS_EVALID] != 0.0:
-        w = 0.0
+        dx2 = 0.0
         for j in range(3):
-            w += cs[CS_PREV + j] * (dev[j] - cs[CS_EPOSE + j])
+            d = dev[j] - cs[CS_EPOSE + j]
+            w += cs[CS_PREV + j] * d
+            dx2 += d * d
+        cs[CS_EDX2] = dx2
         # rotation vector of dq = q_new conj(q_old)
         aw = dev[3]; ax = dev[4]; ay = dev[5]; az = dev[6]
         bw = cs[CS_EPOSE + 3]; bx = -cs[CS_EPOSE + 4]; by = -cs[CS_EPOSE + 5]; bz = -cs[CS_EPOSE + 6]
@@ -232,10 +247,19 @@ def port_energy(cs, dev):
         if vn > 1e-15:
             ang = 2.0 * math.atan2(vn, qw) / vn
             w += ang * (cs[CS_PREV + 3] * qx + cs[CS_PREV + 4] * qy + cs[CS_PREV + 5] * qz)
+            cs[CS_EDR2] = (ang * vn) ** 2
         cs[CS_EHAND] += w
     for j in range(7):
         cs[CS_EPOSE + j] = dev[j]
     cs[CS_EVALID] = 1.0
+    return w
+
+
+@njit(**_JIT)
+def _port_in(cp, cs, dev):
+    """The ledger (``port_energy``), then its period into the passivity layer's tank."""
+    w = port_energy(cs, dev)
+    pv.account(cp[CP_TANK:CP_TANK + pv.NTP], cs[CS_TANK:CS_TANK + pv.NTS], w, cs[CS_EDX2], cs[CS_EDR2])
 
 
 @njit(**_JIT)
@@ -384,8 +408,9 @@ def _hand_channel(cp, cs, cc, dev, ctype):
 
 
 @njit(**_JIT)
-def _command_out(cp, cs, cc, cmd, ctype, rc):
-    """Controller output (CS_CMDW, world) -> device frame -> safety filter. Returns RC_*."""
+def _command_out(cp, cs, cc, cmd, ctype, rc, dev):
+    """Controller output (CS_CMDW, world) -> device frame -> the passivity layer (``passivity.limit``,
+    with the handle's twist from ``dev``) -> safety filter. Returns RC_*."""
     if ctype == CTRL_FOUR_CHANNEL:
         for j in range(6):
             cs[CS_CMDW + j] = cp[CP_EG] * cs[CS_ENV + j] - cs[CS_FC + j]
@@ -397,6 +422,10 @@ def _command_out(cp, cs, cc, cmd, ctype, rc):
             cs[CS_CMDW + j] = cs[CS_ENV + j]
     _rot_t(cp, CP_ROFF, cs[CS_CMDW], cs[CS_CMDW + 1], cs[CS_CMDW + 2], cmd, 0)
     _rot_t(cp, CP_ROFF, cs[CS_CMDW + 3], cs[CS_CMDW + 4], cs[CS_CMDW + 5], cmd, 3)
+    # the passivity layer under the controller, before the safety filter (which then bounds every
+    # step of what the layer asked by its rate limit)
+    pv.limit(cp[CP_TANK:CP_TANK + pv.NTP], cs[CS_TANK:CS_TANK + pv.NTS], cc[CC_TANK:CC_TANK + pv.NTC], cmd,
+             dev[7:13])
     src = _safety(cp, cs, cc, cmd)
     if src != RC_OK:
         return src
@@ -451,6 +480,9 @@ def _coupling_to_model(cp, cs, par, ctype):
     if ctype == CTRL_DIRECT:
         par[P_INTEG] = INTEG_EXPLICIT
     spring = 0.0 if cs[CS_SLIDE] != 0.0 else on
+    # the deformation recovery is an active element: it slows with the passivity layer's last
+    # limiting factor and stops when the tank is empty (``passivity``; 0 with the layer off)
+    par[P_REC_CUT] = cs[CS_TANK + pv.TS_BETA]
     par[P_CPL_KT] = spring * cp[CP_KT]
     par[P_CPL_BT] = on * cp[CP_BT]
     par[P_CPL_KR] = spring * cp[CP_KR]
@@ -493,7 +525,7 @@ def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, han
     ``cmd`` (6): output, device frame. ``active``: a session has engaged the model.
     ``hand`` (6), ``R`` (3x3), ``c`` (3): scratch. Returns RC_*."""
     cc[CC_STEPS] += 1
-    port_energy(cs, dev)
+    _port_in(cp, cs, dev)
     rc = _device_in(cp, cs, cc, dev, cmd)
     if rc == RC_NONFINITE:
         return rc
@@ -508,7 +540,7 @@ def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, han
             # into what it touches (a penetration stored there would be released at the next
             # engagement); the environment wrench stays the last one computed
             _env_from_state(kind, par, st, cs)
-            return _command_out(cp, cs, cc, cmd, ctype, rc)
+            return _command_out(cp, cs, cc, cmd, ctype, rc, dev)
         if ctype == CTRL_DIRECT:
             # the device is the tool: proxy COM state from the handle (hand point = tool origin)
             _rigid_pose(kind, par, st, R, c)
@@ -560,8 +592,8 @@ def haptic_step(cp, cs, cc, dev, cmd, active, kind, par, st, C, CI, cnt, wk, han
         _coupling_from_model(kind, par, st, cs)
         _env_from_state(kind, par, st, cs)
         proxy_hand_state(kind, par, st, R, c, cs, CS_PPOSE)
-        return _command_out(cp, cs, cc, cmd, ctype, rc)
-    return _command_out(cp, cs, cc, cmd, -1, rc)  # no model: only the (fading) safety filter on zero
+        return _command_out(cp, cs, cc, cmd, ctype, rc, dev)
+    return _command_out(cp, cs, cc, cmd, -1, rc, dev)  # no model: only the (fading) safety filter on zero
 
 
 @njit(**_JIT)
@@ -572,7 +604,7 @@ def haptic_step_linkage(cp, cs, cc, dev, cmd, par, lmeta, lk, lki, st, C, CI, cn
     linkages by the config: the device cannot be a whole chain), the model step is
     ``linkage.step_linkage``. Returns RC_*."""
     cc[CC_STEPS] += 1
-    port_energy(cs, dev)
+    _port_in(cp, cs, dev)
     rc = _device_in(cp, cs, cc, dev, cmd)
     if rc == RC_NONFINITE:
         return rc
@@ -584,7 +616,7 @@ def haptic_step_linkage(cp, cs, cc, dev, cmd, par, lmeta, lk, lki, st, C, CI, cn
     _coupling(cp, cs, 1 if planar else 2, 1.0, 0.0, 0.0, hand)
     if cs[CS_DRIVE] == 0.0:
         _env_from_state(kind, par, st, cs)
-        return _command_out(cp, cs, cc, cmd, ctype, rc)
+        return _command_out(cp, cs, cc, cmd, ctype, rc, dev)
     _hand_channel(cp, cs, cc, dev, ctype)
     # the hand wrench in the tool's hand space, at the held link's frame origin
     _hand_in(kind, par, cs, hand)
@@ -595,7 +627,7 @@ def haptic_step_linkage(cp, cs, cc, dev, cmd, par, lmeta, lk, lki, st, C, CI, cn
     _coupling_from_model(kind, par, st, cs)
     _env_from_state(kind, par, st, cs)
     hand_state_linkage(lmeta, lk, lki, st, lw, cs, CS_PPOSE)
-    return _command_out(cp, cs, cc, cmd, ctype, rc)
+    return _command_out(cp, cs, cc, cmd, ctype, rc, dev)
 
 
 @njit(**_JIT)
@@ -699,6 +731,18 @@ class Controller:
                           max_torque_axis_n_m=taxis, force_rate_n_per_step=saf["force_rate_n_per_s"] * dt,
                           torque_rate_n_m_per_step=saf["torque_rate_n_m_per_s"] * dt, fade_per_step=dt / saf["fade_s"],
                           ramp_per_step=dt / saf["ramp_in_s"], mask=KIND_WRENCH_MASK[device_kind])
+        #: the passivity layer's parameters and state (views: the kernels read them in ``cp``/``cs``)
+        self.tp = cp[CP_TANK:CP_TANK + pv.NTP]
+        self.ts = self.cs[CS_TANK:CS_TANK + pv.NTS]
+        pas = settings["passivity"]
+        pv.set_parameters(self.tp, enabled=pas["enabled"], initial_budget_j=pas["initial_budget_j"],
+                          max_tank_j=pas["max_tank_j"], low_level_j=pas["low_level_j"],
+                          velocity_threshold_m_per_s=pas["velocity_threshold_m_per_s"],
+                          angular_velocity_threshold_rad_per_s=pas["angular_velocity_threshold_rad_per_s"],
+                          device_damping_n_s_per_m=pas["device_damping_n_s_per_m"],
+                          device_rot_damping_n_m_s_per_rad=pas["device_rot_damping_n_m_s_per_rad"],
+                          period_s=dt, engine_grants=pas["engine_grants"])
+        pv.reset(self.tp, self.ts)
         self.set_offset(np.eye(3), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
         self.cs[CS_DRIVE] = 1.0  # a bare kernel user drives its model; the loop holds until engaged
         self.cs[CS_DPOSE + 3] = 1.0
@@ -754,7 +798,15 @@ class Controller:
 
     _COUNTERS = (("steps", CC_STEPS), ("saturated", CC_SATURATED), ("rate_limited", CC_RATE_LIMITED),
                  ("speed_trips", CC_SPEED_TRIPS), ("nonfinite", CC_NONFINITE), ("hand_missing", CC_HAND_MISSING),
-                 ("command_nonfinite", CC_CMD_NONFINITE))
+                 ("command_nonfinite", CC_CMD_NONFINITE), ("passivity_limited", CC_TANK + pv.TC_LIMITED),
+                 ("tank_empty", CC_TANK + pv.TC_EMPTY))
+
+    tank_j = ArrayFloat("cs", CS_TANK + pv.TS_TANK, doc="The passivity layer's tank level, J.")
+
+    def grant(self, energy_j: float) -> float:
+        """An engine's declared work on the tool into the tank (``passivity.grant``); the energy added."""
+        # the kernel's own code in Python: at an update, where a first call would compile in the loop
+        return float(pv.grant.py_func(self.tp, self.ts, float(energy_j)))
 
     def counters(self) -> dict[str, int]:
         out = {n: int(self.cc[i]) for n, i in self._COUNTERS}

@@ -212,6 +212,7 @@ class ProtocolSide:
         self.updates = 0
         self.acks = 0
         self.update_errors = 0
+        self.granted_j = 0.0  # energy engines granted the passivity layer (ContactUpdate.work_on_tool_j), J
         self.engagements = 0
         self._use_engine_frame = mcfg["contact_frame"] == "engine"
         self._pending = None  # the newest ContactUpdate received, applied in the next step
@@ -288,6 +289,8 @@ class ProtocolSide:
             if code != 0:
                 self.update_errors += 1
                 return
+            if upd.work_on_tool_j > 0.0:  # the engine's declared work (1.4): the passivity layer's tank
+                self.granted_j += lp.ctrl.grant(upd.work_on_tool_j)
         self.track_env(upd, now)
         self.updates += 1
         lp.tk[tick.TK_UPDATES] = self.updates

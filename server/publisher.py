@@ -9,6 +9,7 @@ runs in housekeeping (every 10 ms) and at the end of a run, never per step.
 from __future__ import annotations
 
 from . import control as ctl
+from . import passivity as pv
 from . import tick
 from .shm import ST
 
@@ -80,6 +81,9 @@ class StatusPublisher:
         st[ST["torque_cap_n_m"]] = lp.ctrl.torque_cap_n_m
         st[ST["ticks_compiled"]] = lp.tk[tick.TK_TICKS]
         st[ST["energy_hand_j"]] = lp.ctrl.cs[ctl.CS_EHAND]
+        st[ST["tank_j"]] = lp.ctrl.tank_j
+        st[ST["tank_low_j"]] = lp.ctrl.cs[ctl.CS_TANK + pv.TS_LOW]
+        st[ST["passivity_limited"]] = cc[ctl.CC_TANK + pv.TC_LIMITED]
         servo = lp.servo
         if servo is not None:
             from .servo import SB_HELD, SB_TICKS

@@ -143,6 +143,8 @@ class LoopTiming(msgspec.Struct):
     #: the energy the device gave the hand since the server started, J (the ledger at the hand's
     #: port: each command held over its period times the handle's displacement; absent before it)
     energy_hand_j: Num = None
+    #: the passivity layer's tank level, J (server/passivity.py; absent before it)
+    tank_j: Num = None
 
 
 class Contact(msgspec.Struct):
@@ -220,9 +222,9 @@ def _num(v: float):
 # column indices of the flat telemetry row, once
 _D, _P = TEL["dev_x"], TEL["proxy_x"]
 _CMD, _ENV, _HAND, _CPL = TEL["cmd_fx"], TEL["env_fx"], TEL["hand_fx"], TEL["couple_fx"]
-_T, _LATE, _COMP, _STATE, _GAIN, _NC, _UPD, _SEQ, _EHAND = (
+_T, _LATE, _COMP, _STATE, _GAIN, _NC, _UPD, _SEQ, _EHAND, _TANK = (
     TEL[n] for n in ("t_s", "lateness_us", "compute_us", "loop_state", "gain", "contacts", "updates", "seq",
-                     "energy_hand_j"))
+                     "energy_hand_j", "tank_j"))
 
 
 def _pose(r, o) -> Pose:  # pose columns: x y z qw qx qy qz
@@ -254,7 +256,7 @@ def step_messages(r: list, name: str | None = None) -> tuple:
             Command(t, _wrench(r, _CMD), r[_GAIN]),
             Wrench(t, _wrench(r, _ENV)),
             LoopTiming(t, r[_LATE], r[_COMP], _int(r[_STATE]), state_name(r[_STATE]) if name is None else name,
-                       r[_GAIN], _int(r[_NC]), _int(r[_UPD]), r[_EHAND]))
+                       r[_GAIN], _int(r[_NC]), _int(r[_UPD]), r[_EHAND], r[_TANK]))
 
 
 _INT_COLS = (_STATE, _NC, _UPD)
@@ -332,7 +334,7 @@ def scene_frame(row, contacts=None) -> scn.Frame:
     pose = ("x", "y", "z", "qw", "qx", "qy", "qz")
     wrench = ("fx", "fy", "fz", "tx", "ty", "tz")
     return scn.frame_of(row[_T], cols("dev", pose), cols("proxy", pose), cols("cmd", wrench), cols("env", wrench),
-                        contacts, state_name(row[_STATE]), row[_GAIN])
+                        contacts, state_name(row[_STATE]), row[_GAIN], row[_EHAND])
 
 
 def contacts_message(hdr, key, pos, nrm, sep) -> Contacts:
@@ -705,6 +707,7 @@ def _rows_from(msgs: dict) -> np.ndarray:
         flat[i, _UPD] = lp.updates
         flat[i, _SEQ] = i  # the ring's seqlock number is not recorded: a row's number in the file
         flat[i, _EHAND] = _nan(lp.energy_hand_j)
+        flat[i, _TANK] = _nan(lp.tank_j)
     return out
 
 

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 from numba import njit
 
-from .control import CS_DPOSE, CS_EHAND, CS_ENV, CS_FC, CS_GAIN, CS_PPOSE
+from .control import CS_DPOSE, CS_EHAND, CS_ENV, CS_FC, CS_GAIN, CS_PPOSE, CS_TANK
+from .passivity import TS_TANK
 from .devices.base import DS_HAND
 from .model.layout import K_M
 from .native import fence
@@ -48,6 +49,7 @@ def account(tel, head, hist_late, hist_step, stat, period_ns, late_ns, comp_ns, 
     r.contacts = float(cnt[K_M])
     r.updates = float(updates)
     r.energy_hand_j = cs[CS_EHAND]
+    r.tank_j = cs[CS_TANK + TS_TANK]
     for j in range(13):  # pose (7) and twist (6)
         r.dev[j] = cs[CS_DPOSE + j]
         r.proxy[j] = cs[CS_PPOSE + j]

@@ -88,23 +88,27 @@ class Frame:
     separation: np.ndarray
     state: str = ""
     gain: float = 0.0
+    #: the ledger at the hand's port: energy the device gave the hand since start [J] (nan: unknown)
+    energy_hand_j: float = math.nan
 
     @property
     def label(self) -> str:
         n = len(self.separation)
         pen = max(0.0, -float(np.min(self.separation))) if n else 0.0
-        return f"{self.state} gain {self.gain:.2f}  {n} contacts" + (f", deepest {pen * 1e3:.2f} mm" if n else "")
+        e = f"  hand {self.energy_hand_j * 1e3:+.1f} mJ" if math.isfinite(self.energy_hand_j) else ""
+        return f"{self.state} gain {self.gain:.2f}  {n} contacts" + (f", deepest {pen * 1e3:.2f} mm" if n else "") + e
 
 
 def frame_of(t_s: float, device_pose, proxy_pose, command, environment_wrench, contacts=None, state: str = "",
-             gain: float = 0.0) -> Frame:
+             gain: float = 0.0, energy_hand_j=None) -> Frame:
     """A :class:`Frame` from telemetry values (non-finite values drawn as zero) and ``contacts``
     ``(position, normal, separation)`` (None: none)."""
     pos, nrm, sep = contacts if contacts is not None else (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
     pos, nrm, sep = (np.nan_to_num(np.asarray(a, dtype=float)) for a in (pos, nrm, sep))
     g = float(gain) if gain is not None and math.isfinite(float(gain)) else 0.0
+    e = float(energy_hand_j) if energy_hand_j is not None else math.nan
     return Frame(float(t_s), _fin(device_pose, 7), _fin(proxy_pose, 7), _fin(command, 6), _fin(environment_wrench, 6),
-                 pos.reshape(-1, 3), nrm.reshape(-1, 3), sep.reshape(-1), state, g)
+                 pos.reshape(-1, 3), nrm.reshape(-1, 3), sep.reshape(-1), state, g, e)
 
 
 def _fin(a, n: int) -> list:

@@ -86,6 +86,9 @@ STATUS_LAYOUT = (
     # the energy the device gave the hand since start (the ledger at the hand's port: each
     # command held over its period times the handle's displacement during it), J
     ("energy_hand_j", "f"),
+    # the passivity layer (server/passivity.py): its tank level [J], the steps it limited the
+    # command, the lowest level the tank reached [J]
+    ("tank_j", "f"), ("passivity_limited", "i"), ("tank_low_j", "f"),
     # the engaged tool as its Hello declared it (``publish_tool``, read by ``engaged_tool``):
     # its number (the engagement that wrote it; -1 while written, 0 none yet), kind (vocab
     # ToolKind), mass [kg], centre of mass [m, tool frame], inertia [Ixx Iyy Izz Ixy Ixz Iyz, kg m^2]
@@ -113,7 +116,8 @@ _POSE13 = ("x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "wx", "wy", 
 #: names (``dev_x``, ``cmd_fy``, ...) index the float64 view: ``ring[:, TEL["cmd_fy"]]``.
 #: ``seq`` is the row's number (as ``head`` counts), -1 while the loop writes it: a seqlock, so a
 #: reader that copied a row while it was rewritten (the ring lapped it) can tell (``rows``).
-TEL_SCALARS = ("t_s", "lateness_us", "compute_us", "loop_state", "gain", "contacts", "updates", "seq", "energy_hand_j")
+TEL_SCALARS = ("t_s", "lateness_us", "compute_us", "loop_state", "gain", "contacts", "updates", "seq", "energy_hand_j",
+               "tank_j")
 TEL_VECTORS = (
     ("dev", _POSE13),     # device handle pose (x y z qw qx qy qz) and twist, world
     ("proxy", _POSE13),   # proxy hand-point pose and twist, world, after the step

@@ -150,7 +150,8 @@ def format_status(s: dict) -> str:
         f"watchdog     {('ok', 'environment silent: fading', 'session ended: fading')[wd] if 0 <= wd < 3 else wd}"
         f"  gain {_f(s.get('gain'), '.3f')}  saturated {s.get('saturated', 0)}  rate-limited {s.get('rate_limited', 0)}",
         f"hand port    energy given to the hand {1e3 * (s.get('energy_hand_j') or 0.0):+.2f} mJ since start"
-        f" (negative: taken from it)",
+        f" (negative: taken from it); tank {1e3 * (s.get('tank_j') or 0.0):.2f} mJ (lowest "
+        f"{1e3 * (s.get('tank_low_j') or 0.0):.2f}), limited {s.get('passivity_limited', 0)} steps",
     ]
     for why in s.get("outside_stable_region") or ():
         lines.append(f"WARNING      outside the stable region (safety.allow_outside_stable_region): {why}")

@@ -73,6 +73,11 @@ def state_panel(s: dict) -> Table:
     t.add_row("last change", f"{tr.get('from', '-')} -> {tr.get('to', '-')}" if tr else "-")
     t.add_row("reason", Text(str(tr.get("text", "-")), overflow="fold"))
     t.add_row("gain", _n(s.get("gain")))
+    e = s.get("energy_hand_j")
+    t.add_row("hand port", "-" if e is None else f"{e * 1e3:+.2f} mJ given to the hand")
+    tank = s.get("tank_j")
+    if tank is not None:
+        t.add_row("tank", f"{tank * 1e3:.2f} mJ, limited {s.get('passivity_limited', 0)} steps")
     t.add_row("session", f"{s.get('session_id', 0)} ({s.get('device_kind', '?')} device, {s.get('tool_kind', '?')} tool)")
     return t
 

@@ -50,7 +50,7 @@ from .layout import (
     K_FLIPS, K_FLIPS_TAKEN, K_RECOVERING, K_REKEYED, K_UPDATES,
     FLIP_DOT, FLIP_REFUSE_MAX, KEY_SLIDE_FACTOR, MAX_DOF, NCOLS_F, NCOLS_I, REKEY_COS, REKEY_DISTANCE_M,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
-    P_EPS, P_ORIGIN, P_POLICY, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN,
+    P_EPS, P_ORIGIN, P_POLICY, P_REC_AGE, P_REC_CUT, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN,
     P_CPL_BR, P_CPL_BT, P_CPL_KR, P_CPL_KT, P_INTEG, INTEG_IMPLICIT, K_DIVERGED, K_OSC_RUN,
     DIVERGE_DECAY, DIVERGE_SPEED, DIVERGE_STEPS,
     POLICY_PAPER_LITERAL, POLICY_RIGID, PS_COLLIDING, PS_FREE, PS_RESTING,
@@ -359,7 +359,7 @@ def _recover(par, st, C, CI, cnt, m):
     landing (speed <= remaining / ``P_REC_TAU``). It only deepens contacts already touching (no
     new collision, no impulse) and never pulls: the penalty force stays one-sided. Its work on the
     proxy (normal force x recovered distance) accumulates in ``S_EREC``."""
-    vmax = par[P_REC_V]
+    vmax = par[P_REC_V] * (1.0 - par[P_REC_CUT])
     st[S_RECF] = 0.0
     if not vmax > 0.0 or m == 0:
         cnt[K_RECOVERING] = 0

@@ -113,7 +113,11 @@ P_CPL_BT = 38       # ... its translational damper, N s/m
 P_CPL_KR = 39       # ... its rotational spring, N m/rad
 P_CPL_BR = 40       # ... its rotational damper, N m s/rad
 P_INTEG = 41        # INTEG_*: how the step treats the stiff and damped terms (stored as float)
-NPAR = 42
+P_REC_CUT = 42      # deformation recovery: the share of P_REC_V the passivity layer takes away, 0..1
+                    # (the controller writes its last limiting factor every step it drives the proxy:
+                    # the recovery, an active element, slows as the layer's tank runs short and stops
+                    # when it is empty; 0: a bare model, or the layer off)
+NPAR = 43
 
 # --- integrators (P_INTEG) --------------------------------------------------------------------
 #: Semi-implicit Euler with every force explicit (the paper's step): M dv = dt F(q, qd). Stable

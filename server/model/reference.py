@@ -16,7 +16,7 @@ from .layout import (
     K_COLLISIONS, K_M, K_N_COLLIDING, K_N_IMPENDING, K_N_PENETRATING, K_N_SEPARATING,
     K_NONFINITE, K_PROXY, K_RANK, K_RECOVERING, K_SLIPPING, K_STEPS,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
-    P_ORIGIN, P_REC_AGE, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN, PS_COLLIDING, PS_FREE, PS_RESTING,
+    P_ORIGIN, P_REC_AGE, P_REC_CUT, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN, PS_COLLIDING, PS_FREE, PS_RESTING,
     S_EREC, S_RECF, S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
     TOOL_1DOF, TOOL_DIMS, TOOL_PLANAR, TOUCH_TOL_M, CI_KEY,
     DIVERGE_DECAY, DIVERGE_SPEED, DIVERGE_STEPS, INTEG_IMPLICIT, S_FCPL, S_QDP, K_DIVERGED, K_OSC_RUN, P_CPL_BR, P_CPL_BT, P_CPL_KR, P_CPL_KT,
@@ -280,7 +280,8 @@ def recover(par, st, C, CI, cnt, m: int) -> None:
     min(v, F_rate / (k n), remaining / tau) dt of its deformation."""
     cnt[K_RECOVERING] = 0
     st[S_RECF] = 0.0
-    if not par[P_REC_V] > 0 or m == 0:
+    v = par[P_REC_V] * (1.0 - par[P_REC_CUT])
+    if not v > 0 or m == 0:
         return
     Cm = C[:m]
     elig = (Cm[:, C_DEF] > 0) & (CI[:m, CI_AGE] >= par[P_REC_AGE]) & (Cm[:, C_S] <= TOUCH_TOL_M)
@@ -291,7 +292,6 @@ def recover(par, st, C, CI, cnt, m: int) -> None:
     if not n_r:
         return
     dt, k = par[P_DT], par[P_K]
-    v = par[P_REC_V]
     if par[P_REC_FRATE] > 0 and k > 0:
         v = min(v, par[P_REC_FRATE] / (k * n_r))
     left = Cm[elig, C_DEF]

@@ -167,6 +167,26 @@ def test_numpy_reference_recovers_the_same_way():
     assert m.recovery_energy_j > 0
 
 
+@pytest.mark.parametrize("cut", [0.0, 0.5, 1.0])
+def test_the_passivity_layers_cut_slows_the_recovery_and_the_reference_agrees(cut):
+    """``P_REC_CUT`` (the controller writes the passivity layer's limiting factor there): the
+    recovery's speed is ``(1 - cut)`` of its own, none at an empty tank; the numpy reference the same."""
+    from hapticproxy.server.model.layout import P_REC_CUT
+
+    m = _deformed(recovery_force_rate_n_per_s=1e6, recovery_tau_s=0.0, recovery_min_age_updates=0)
+    _engine_update(m)
+    m.arrays()[0][P_REC_CUT] = cut
+    m.step([0.0, -0.5, 0.0])
+    r0 = m.contacts().recovered_m.copy()
+    for _ in range(50):
+        par, st, C, CI, cnt = m.arrays()
+        _, rC, _, _ = reference_step(m.kind, par, st, C, CI, cnt, np.array([0.0, -0.5, 0.0]))
+        m.step([0.0, -0.5, 0.0])
+        np.testing.assert_allclose(C[:2], rC[:2], rtol=1e-9, atol=1e-12)
+    r1 = m.contacts().recovered_m
+    np.testing.assert_allclose(r1 - r0, (1.0 - cut) * 50 * m.period_s * RECOVERY_SPEED_M_PER_S, rtol=1e-9, atol=1e-15)
+
+
 @pytest.mark.parametrize("field,value", [("recovery_speed_m_per_s", -0.01), ("recovery_speed_m_per_s", float("nan")),
                                          ("recovery_force_rate_n_per_s", 0.0), ("recovery_tau_s", -1.0),
                                          ("recovery_min_age_updates", -1), ("recovery_min_age_updates", 2.5),

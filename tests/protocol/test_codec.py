@@ -467,9 +467,9 @@ def test_newer_minor_trailing_fields_are_ignored_and_counted():
     out = codec.decode(pack(hb + [42, "future", [1.0, 2.0]]))
     assert isinstance(out, Heartbeat) and out.seq == 2 and out.minor == 3 and out.unknown_fields == 3
     obj = raw(cu_packet(codec, n=4))
-    obj[1] = 2  # after 1.1's tool_joint_position (here empty), one field this codec does not know
-    cu = codec.decode(pack(obj + [b"", 7]))
-    assert cu.unknown_fields == 1 and cu.n_contacts == 4
+    obj[1] = 5  # after 1.4's work_on_tool_j (1.1's tool_joint_position empty), one field this codec does not know
+    cu = codec.decode(pack(obj + [b"", 7.0, 7]))
+    assert cu.unknown_fields == 1 and cu.n_contacts == 4 and cu.work_on_tool_j == 7.0
     assert codec.counters.unknown_trailing_fields == 4
     assert codec.counters.packets_with_unknown_fields == 2
 
@@ -649,3 +649,31 @@ def test_normal_one_ulp_outside_the_window_is_rejected_and_inside_accepted(n):
                 data[3 * n + 3 * row: 3 * n + 3 * row + 3] = (value, 0.0, 0.0)
                 out = codec.try_decode(mutate(pkt, 10, data.tobytes()))
                 assert isinstance(out, ProtocolError) != ok, (edge, value, row, out)
+
+
+
+def test_a_1_4_update_carries_the_engines_grant_and_older_ones_default_to_none():
+    """ContactUpdate.work_on_tool_j (1.4): encoded only when not 0 (after an empty
+    tool_joint_position for a rigid tool), decoded, 0 from a 1.3 packet, refused by name when
+    negative (decoder and encoder alike); a 1.3 codec leaves it out."""
+    codec = Codec()
+    args = dict(session_id=3, token=4, seq=9, env_time_s=0.5, tool_pose=np.array([0, 0, 0, 1.0, 0, 0, 0]),
+                keys=np.zeros((1, 3), np.int64), position_m=np.zeros((1, 3)), normal=np.array([[0.0, 0.0, 1.0]]),
+                separation_m=np.zeros(1), v_constr_m_per_s=np.zeros(1))
+    plain = raw(codec.encode_contact_update(**args))
+    assert len(plain) == 11  # no grant: the 1.0 layout
+    pk = codec.encode_contact_update(**args, work_on_tool_j=0.004)
+    obj = raw(pk)
+    assert len(obj) == 13 and obj[11] == b"" and obj[12] == 0.004
+    out = codec.decode(pk)
+    assert out.work_on_tool_j == 0.004 and out.unknown_fields == 0 and len(out.tool_joint_position) == 0
+    assert codec.decode(codec.encode(out)).work_on_tool_j == 0.004  # through the message too
+    assert codec.decode(pack(plain)).work_on_tool_j == 0.0
+    bad = obj.copy()
+    bad[12] = -0.001
+    with pytest.raises(ProtocolError) as e:
+        codec.decode(pack(bad))
+    assert e.value.field == "work_on_tool_j"
+    with pytest.raises(ValueError, match="work_on_tool_j"):
+        codec.encode_contact_update(**args, work_on_tool_j=math.nan)
+    assert len(raw(Codec(minor=3).encode_contact_update(**args, work_on_tool_j=0.004))) == 11

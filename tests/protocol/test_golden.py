@@ -52,6 +52,9 @@ CHANGED = {
 APPENDED = {
     # ProxyState 1.2 appended epsilon_m: the old trailing 5 is now the advised epsilon
     "ps_trailing_ok": {"epsilon_m": 5.0, "unknown_fields": 0},
+    # ContactUpdate 1.4 appended work_on_tool_j after tool_joint_position: the old trailing 7 is
+    # now the engine's grant
+    "cu_trailing_after_joints_ok": {"work_on_tool_j": 7.0, "unknown_fields": 0},
 }
 
 

@@ -145,7 +145,8 @@ def test_watch_shows_state_pose_force_contacts_and_reason():
               "force_cap_n": 8.0, "torque_cap_n_m": 0.5, "contacts": 2,
               "last_update": {"count": 2, "penetration_m": 0.0004}, "updates": 120, "env_rate_hz": 59.9,
               "lateness_us": {"p50": 1.0, "p99": 4.0, "p999": 40.0}, "compute_us": {"p50": 8.0, "p99": 60.0},
-              "rate_hz": 1000.0, "achieved_rate_hz": 999.9, "steps": 5000, "session_id": 7, "device_kind": "planar"}
+              "rate_hz": 1000.0, "achieved_rate_hz": 999.9, "steps": 5000, "session_id": 7, "device_kind": "planar",
+              "energy_hand_j": 0.0123, "tank_j": 0.0042, "passivity_limited": 7}
     sent = []
     calls = {"n": 0}
 
@@ -167,6 +168,8 @@ def test_watch_shows_state_pose_force_contacts_and_reason():
 
     text, misses = asyncio.run(go())
     assert "fault" in text["state"] and "speed" in text["state"] and "device faster than its limit" in text["state"]
+    assert "+12.30 mJ given to the hand" in text["state"]  # the ledger at the hand's port
+    assert "4.20 mJ, limited 7 steps" in text["state"]  # the passivity layer's tank
     assert "+10.50" in text["pose"] and "+10.00" in text["pose"]  # device / proxy y in mm
     assert "-0.500" in text["force"] and "8.00 N" in text["force"]
     assert "0.400 mm" in text["contacts"]
@@ -738,3 +741,34 @@ def test_a_replay_draws_the_proxy_as_the_recorded_tool_not_the_kinds(tmp_path):
     record(tmp_path / "none.mcap", [])  # no client engaged: the kind's shape
     shape, _ = recording_frames(tmp_path / "none.mcap")
     assert shape.source == "kind" and shape.boxes == ToolShape.for_kind("spatial").boxes
+
+
+def test_the_hand_ports_ledger_reaches_the_loop_topic_and_the_3d_views_label(tmp_path):
+    """The energy given to the hand (``energy_hand_j``, the ledger at the device's port) is in
+    every /loop message of a recording, reads back as its column, and labels the 3-D scene of a
+    recording and of a live status reply alike."""
+    from mcap.reader import make_reader
+
+    from hapticproxy.cli.view import frame_from_status
+
+    n = 300
+    flat = np.zeros((n, NTEL))
+    flat[:, TEL["t_s"]] = np.arange(n) * 1e-3
+    flat[:, TEL["dev_qw"]] = flat[:, TEL["proxy_qw"]] = 1.0
+    flat[:, TEL["energy_hand_j"]] = np.linspace(0.0, 0.0125, n)
+    p = tmp_path / "ledger.mcap"
+    w = recording.McapRecorder(p, rate_hz=1000.0, config={"device": {"kind": "planar"}}, t0_epoch_ns=10**18,
+                               meta={"tool_kind": "planar"})
+    w.add_rows(flat)
+    w.close()
+    with open(p, "rb") as f:
+        got = [json.loads(m.data)["energy_hand_j"] for _, _, m in make_reader(f).iter_messages(topics=["/loop"])]
+    assert got == pytest.approx(flat[:, TEL["energy_hand_j"]].tolist())
+    assert recording.read(p).rows[:, TEL["energy_hand_j"]] == pytest.approx(flat[:, TEL["energy_hand_j"]])
+    assert "hand +12.5 mJ" in recording.scene_frame(flat[-1]).label
+    live = {"loop_state": "engaged", "gain": 1.0, "energy_hand_j": -0.002,
+            "latest": {"t_s": 1.0, "device_pose": [0, 0, 0, 1, 0, 0, 0], "proxy_pose": [0, 0, 0, 1, 0, 0, 0],
+                       "command": [0.0] * 6, "environment_wrench": [0.0] * 6}}
+    assert "hand -2.0 mJ" in frame_from_status(live).label
+    live.pop("energy_hand_j")  # an older server: no ledger, no number
+    assert "mJ" not in frame_from_status(live).label

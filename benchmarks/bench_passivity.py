@@ -1,0 +1,205 @@
+"""``hapticproxy bench passivity``: the energy the server gives the hand against an adversarial
+engine, with the passivity layer (``server/passivity.py``) on and off.
+
+The scene (simulated time, the model level: ``LocalModel``, the controller kernel as the loop
+calls it, the ``sim`` planar device with its simulated hand): a 40 x 40 mm box tool rests on a
+floor y = h(t) under the hand's push. The engine (analytic, 60 Hz, optionally delayed) reports
+the floor's contacts from the proxy's pose, its own tool lifted out of the floor as a rigid
+engine holds it; now and then (every 0.4-0.8 s, seeded) the floor jumps 5-20 mm up into the
+resting tool and stays there: every jump stores energy in the penalty springs and the
+deformation recovery lifts the tool onto the jumped surface, so the hand is lifted by what the
+floor rose (the issue's adversarial engine). Two hands: ``push``, a pure
+force (``[device.hand] type = "constant"``, 1 N down), and ``grip``, an impedance hand holding
+the handle 3 mm below where it started (300 N/m, 5 N s/m, 0.1 kg: about 0.9 N down).
+
+Per run: ``given_max_j``, the largest net energy the device's port gave the hand at any instant
+(the ledger, ``control.port_energy``: what the hand was given less what it put in, since the
+start); ``budget_j``, the layer's initial budget; ``excess_j = max(0, given_max_j - budget_j)``
+(the layer's promise: no more than its budget, plus what leaks through the hold and the rate
+limit); the tank's lowest level; the steps the layer limited; ``rise_mm``, how far the hand was
+lifted above where it rested before the first jump (what a user feels of the jumps).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import platform
+import sys
+import time
+
+import numpy as np
+
+from ..protocol.jsonout import print_json
+from ..protocol.logs import doc_summary
+
+HANDS = ("push", "grip")
+HALF_M = 0.02
+ENGINE_HZ = 60.0
+EPSILON_M = 0.005
+
+
+def _floor_schedule(seed: int, seconds: float):
+    """[(t_s, jump_m)] of a run: the first jump after 0.5 s of rest, the last 0.3 s before the end."""
+    rng = np.random.default_rng(seed)
+    out, t = [], 0.5
+    while t < seconds - 0.3:
+        out.append((t, float(rng.uniform(0.005, 0.020))))
+        t += float(rng.uniform(0.4, 0.8))
+    return out
+
+
+def run(hand: str, layer: bool, seed: int = 0, seconds: float = 4.0, rate_hz: float = 1000.0,
+        delay_ms: float = 0.0, budget_j: float = 0.01) -> dict:
+    """One run (see the module docstring); the row it reports."""
+    from ..server import config as cfg
+    from ..server import control as ctl
+    from ..server import passivity as pv
+    from ..server.devices.base import empty_state
+    from ..server.devices.sim import make_sim_device
+    from ..server.model import ContactParams, LocalModel, ToolSpec
+
+    if hand not in HANDS:
+        raise ValueError(f"hand: {hand!r} is not one of {', '.join(HANDS)}")
+    settings = cfg.load({"loop": {"rate_hz": rate_hz}, "device": {"driver": "sim", "kind": "planar"},
+                         "passivity": {"enabled": layer, "initial_budget_j": budget_j,
+                                       "max_tank_j": max(0.05, budget_j)}})
+    mc = settings["model"]
+    dt = 1.0 / rate_hz
+    tool = ToolSpec.planar(0.4, 0.4 * (2 * HALF_M) ** 2 / 6)
+    m = LocalModel(tool, ContactParams(mc["stiffness_n_per_m"], mc["damping_n_s_per_m"], mc["restitution"],
+                                       mc["mu_static"], mc["mu_kinetic"]),
+                   period_s=dt, policy=mc["policy"], epsilon_m=EPSILON_M, capacity=8,
+                   recovery_speed_m_per_s=mc["recovery_speed_m_per_s"])
+    m.reset([0.0, HALF_M + 0.0005, 0.0])
+    if hand == "push":
+        hcfg = {"type": "constant", "wrench": [0.0, -1.0, 0.0], "start": "server"}
+    else:
+        hcfg = {"type": "impedance", "stiffness_n_per_m": 300.0, "damping_n_s_per_m": 5.0, "mass_kg": 0.1,
+                "target": {"type": "constant", "pose": [0.0, -0.003, 0.0]}, "start": "server"}
+    device = make_sim_device({"kind": "planar", "hand": hcfg}, period_s=dt, clock_ns=lambda: 0)
+    c = ctl.Controller(settings, "planar", device.limits)
+    device.enable()
+    row = empty_state()
+    device.read(row)
+    c.set_offset(*ctl.index_offset("planar", row[:7], m.hand_state()[:7]))
+    c.cs[ctl.CS_GAIN] = c.cs[ctl.CS_TARGET] = 1.0
+    kargs = m.kernel_args()
+    body = np.array([[-HALF_M, -HALF_M, 0.0], [HALF_M, -HALF_M, 0.0]])
+    jumps = _floor_schedule(seed, seconds)
+    every = max(1, int(round(rate_hz / ENGINE_HZ)))
+    delay_steps = int(round(delay_ms * 1e-3 * rate_hz))
+    pending: list = []  # (apply at step, update arguments)
+    given_max = -math.inf
+    rest_y = None
+    rise = 0.0
+    n = int(round(seconds * rate_hz))
+    rc_bad = 0
+    for i in range(n):
+        t = i * dt
+        h = sum(d for up, d in jumps if up <= t)
+        if i % every == 0:  # the engine computes from the proxy it has been told about
+            q = m.q.copy()
+            R = np.array([[math.cos(q[2]), -math.sin(q[2]), 0.0], [math.sin(q[2]), math.cos(q[2]), 0.0], [0, 0, 1.0]])
+            pts = np.array([q[0], q[1], 0.0]) + body @ R.T
+            low = float(np.min(pts[:, 1]))
+            if low < h:
+                q[1] += h - low
+                pts[:, 1] += h - low
+            keys, cp, nrm, sep = [], [], [], []
+            for j, p in enumerate(pts):
+                if p[1] - h <= EPSILON_M:
+                    keys.append((0, 1, j))
+                    cp.append((p[0], h, 0.0))
+                    nrm.append((0.0, 1.0, 0.0))
+                    sep.append(p[1] - h)
+            k = len(keys)
+            pending.append((i + delay_steps, (np.array(keys, dtype=np.int64).reshape(k, 3), np.array(cp).reshape(k, 3),
+                                              np.array(nrm).reshape(k, 3), np.array(sep).reshape(k), np.zeros(k), q)))
+        while pending and pending[0][0] <= i:
+            _, (keys, cp, nrm, sep, vc, q) = pending.pop(0)
+            m.update(keys, cp, nrm, sep, vc, tool_q=q)
+        device.read(row)
+        rc = ctl.haptic_step(c.cp, c.cs, c.cc, row, c.cmd, 1, *kargs, c.hand, c.R, c.c)
+        device.write(c.cmd)
+        if rc != ctl.RC_OK:
+            rc_bad += 1
+        e = float(c.cs[ctl.CS_EHAND])
+        given_max = max(given_max, e)
+        y = float(c.cs[ctl.CS_DPOSE + 1])
+        if jumps and t < jumps[0][0]:
+            rest_y = y
+        elif rest_y is not None:
+            rise = max(rise, y - rest_y)
+    ts = c.cs[ctl.CS_TANK:ctl.CS_TANK + pv.NTS]
+    return {"hand": hand, "layer": "on" if layer else "off", "seed": seed, "seconds": seconds, "rate_hz": rate_hz,
+            "delay_ms": delay_ms, "jumps": len(jumps), "budget_j": budget_j, "given_max_j": given_max,
+            "given_end_j": float(c.cs[ctl.CS_EHAND]), "excess_j": max(0.0, given_max - budget_j),
+            "tank_low_j": float(ts[pv.TS_LOW]), "tank_end_j": float(ts[pv.TS_TANK]),
+            "limited_steps": int(c.cc[ctl.CC_TANK + pv.TC_LIMITED]), "steps": n, "faults": rc_bad,
+            "rise_mm": 1e3 * rise}
+
+
+def _line(r: dict) -> str:
+    return (f"{r['hand']:>4} layer {r['layer']:>3} seed {r['seed']} delay {r['delay_ms']:.0f} ms: {r['jumps']} jumps, "
+            f"given at most {1e3 * r['given_max_j']:+.2f} mJ (budget {1e3 * r['budget_j']:.1f}, excess "
+            f"{1e3 * r['excess_j']:.2f}), tank low {1e3 * r['tank_low_j']:+.2f} mJ, limited {r['limited_steps']} "
+            f"of {r['steps']} steps, hand lifted {r['rise_mm']:.2f} mm, faults {r['faults']}")
+
+
+def summary(rows: list[dict]) -> dict:
+    """Per hand and layer setting: runs, the largest excess and the largest energy given."""
+    out = {}
+    for r in rows:
+        k = f"{r['hand']}/{r['layer']}"
+        s = out.setdefault(k, {"runs": 0, "max_excess_j": 0.0, "max_given_j": -math.inf, "runs_over_1mj": 0})
+        s["runs"] += 1
+        s["max_excess_j"] = max(s["max_excess_j"], r["excess_j"])
+        s["max_given_j"] = max(s["max_given_j"], r["given_max_j"])
+        s["runs_over_1mj"] += int(r["excess_j"] > 1e-3)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="hapticproxy bench passivity", description=doc_summary(__doc__))
+    ap.add_argument("--json", action="store_true", help="one JSON object per line")
+    ap.add_argument("--seeds", type=int, default=3, help="floor schedules per hand and layer setting (default 3)")
+    ap.add_argument("--seconds", type=float, default=4.0, help="simulated seconds per run (default 4)")
+    ap.add_argument("--delays-ms", default="0,100", help="engine delays to run, comma-separated (default 0,100)")
+    ap.add_argument("--hands", default=",".join(HANDS), help=f"comma-separated subset of {', '.join(HANDS)}")
+    args = ap.parse_args(argv)
+    hands = [h.strip() for h in args.hands.split(",") if h.strip()]
+    bad = [h for h in hands if h not in HANDS]
+    if bad or args.seeds < 1 or not args.seconds > 1.0:
+        why = f"--hands: unknown {bad}; choose from {', '.join(HANDS)}" if bad else (
+            "--seeds: at least 1" if args.seeds < 1 else "--seconds: more than 1 (the first jump is at 0.5 s)")
+        print(f"hapticproxy bench passivity: {why}", file=sys.stderr)
+        return 2
+    try:
+        delays = [float(d) for d in args.delays_ms.split(",") if d.strip()]
+    except ValueError:
+        print(f"hapticproxy bench passivity: --delays-ms: numbers in ms, got {args.delays_ms!r}", file=sys.stderr)
+        return 2
+    emit = (lambda r: print_json(r)) if args.json else (lambda r: print(_line(r)))
+    if args.json:
+        print_json({"run": {"machine": f"{platform.node()} {platform.machine()}",
+                            "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}})
+    rows = []
+    for hand in hands:
+        for delay in delays:
+            for layer in (False, True):
+                for seed in range(args.seeds):
+                    r = run(hand, layer, seed, args.seconds, delay_ms=delay)
+                    rows.append(r)
+                    emit(r)
+    s = summary(rows)
+    if args.json:
+        print_json({"summary": s})
+    else:
+        for k, v in s.items():
+            print(f"{k}: {v['runs']} runs, largest excess {1e3 * v['max_excess_j']:.2f} mJ, largest energy given "
+                  f"{1e3 * v['max_given_j']:.2f} mJ, runs over budget + 1 mJ {v['runs_over_1mj']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
