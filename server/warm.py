@@ -15,6 +15,7 @@ directory the service user owns).
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import os
 from pathlib import Path
 
@@ -33,7 +34,13 @@ SERVER_KERNEL_MODULES = (
     "hapticproxy.server.devices.dynamics",
     "hapticproxy.server.devices.hands",
     "hapticproxy.server.devices.mapping",
+    "hapticproxy.server.passivity",
 )
+
+#: Modules that define numba C callbacks (``@cfunc``, compiled when the module is imported, so
+#: never imported from here): their caches are dropped by file name with the kernels' (the servo
+#: callback runs the whole tick, and kept an older telemetry row's layout when it was not).
+CFUNC_MODULES = ("hapticproxy.server.servo", "hapticproxy.server.devices.hd_native")
 
 
 #: Modules of :data:`SERVER_KERNEL_MODULES` that import kernels but define none (glue: an edit
@@ -47,8 +54,8 @@ GLUE_MODULES = ("hapticproxy.server.loop",)
 #: after an edit there; :func:`refresh_stale_caches` drops every cache when any of these changes.
 #: The clients' narrow phase reads constants of ``clients/contacts.py`` too (its server-side
 #: counterpart, the constants the server's kernels read, is :func:`kernel_constants`).
-KERNEL_SOURCES = tuple(name.removeprefix("hapticproxy.").replace(".", "/") + ".py" for name in SERVER_KERNEL_MODULES
-                       if name not in GLUE_MODULES) + (
+KERNEL_SOURCES = tuple(name.removeprefix("hapticproxy.").replace(".", "/") + ".py"
+                       for name in SERVER_KERNEL_MODULES + CFUNC_MODULES if name not in GLUE_MODULES) + (
     "clients/narrowphase.py", "clients/geometry.py", "clients/contacts.py", "protocol/quaternion.py",
     "server/native.py")
 _STAMP = "hapticproxy-kernel-sources.sha256"
@@ -132,11 +139,19 @@ def refresh_stale_caches(modules=SERVER_KERNEL_MODULES) -> int:
     :data:`KERNEL_SOURCES`); returns how many were dropped (they compile at the next warm-up)."""
     digest = sources_digest()
     by_dir: dict[str, list] = {}
+    src_cache: dict[Path, str] = {}
     for d in dispatchers(modules):
         cache = getattr(d, "_cache", None)
         path = getattr(cache, "_cache_path", None)
         if path:
             by_dir.setdefault(path, []).append(d)
+            src_cache[Path(d.py_func.__code__.co_filename).resolve().parent] = path
+    cfunc_stems: dict[str, list] = {}
+    for name in CFUNC_MODULES if modules is SERVER_KERNEL_MODULES or set(SERVER_KERNEL_MODULES) <= set(modules) else ():
+        spec = importlib.util.find_spec(name)
+        origin = Path(spec.origin).resolve() if spec is not None and spec.origin else None
+        if origin is not None and origin.parent in src_cache:
+            cfunc_stems.setdefault(src_cache[origin.parent], []).append(origin.stem)
     dropped = 0
     for path, ds in by_dir.items():
         stamp = Path(path) / _STAMP
@@ -153,6 +168,10 @@ def refresh_stale_caches(modules=SERVER_KERNEL_MODULES) -> int:
                     dropped += f.suffix == ".nbi"
                 except FileNotFoundError:
                     pass
+        for stem in cfunc_stems.get(path, ()):
+            for f in [*Path(path).glob(stem + ".*.nbi"), *Path(path).glob(stem + ".*.nbc")]:
+                f.unlink(missing_ok=True)
+                dropped += f.suffix == ".nbi"
         try:
             Path(path).mkdir(parents=True, exist_ok=True)
             stamp.write_text(digest)

@@ -74,3 +74,28 @@ def test_the_session_drops_a_kernel_cache_that_inlines_an_edited_kernel(tmp_path
     fresh = _run(pytest_args, env, tmp_path)
     assert fresh.returncode == 0, fresh.stdout[-3000:] + fresh.stderr[-3000:]
     assert "kernel caches compiled from older sources dropped at the start" in fresh.stdout
+
+
+def test_every_module_with_kernels_or_c_callbacks_is_refreshed():
+    """A module that defines a cached kernel or C callback and is missing from
+    ``SERVER_KERNEL_MODULES`` keeps stale machine code after an edit elsewhere (the Touch's servo
+    callback once ran an older telemetry row's layout: its module was not listed)."""
+    import re
+
+    from hapticproxy.server import servo, warm
+
+    root = Path(__file__).resolve().parent.parent
+    defining = {
+        "hapticproxy." + str(p.relative_to(root).with_suffix("")).replace("/", ".")
+        for p in (root / "server").rglob("*.py")
+        if re.search(r"^@(njit|cfunc)\b", p.read_text(), re.M)
+    }
+    listed = set(warm.SERVER_KERNEL_MODULES) | set(warm.CFUNC_MODULES)
+    assert defining <= listed, sorted(defining - listed)
+    # a stale stamp drops the servo callback's cache too (by its file's name: never imported here)
+    index = Path(servo._servo_callback._cache._cache_file._index_path)
+    assert index.exists()
+    stamp = index.parent / warm._STAMP
+    stamp.write_text("stale")
+    warm.refresh_stale_caches()
+    assert not index.exists()
