@@ -17,8 +17,8 @@
 on 127.0.0.1) or ``simulated`` (the same stack in simulated time, deterministic). Figs. 6 and 9
 run the 1-DOF peg (1-DOF device, peg engine, 20 ms delay), Figs. 14-17 the planar testbed. Each writes PNG plots and
 ``metrics.json`` (keyed by method) into ``--out`` and prints a one-line summary per method.
-``zwidth`` also takes ``--layer on|off`` (the passivity layer, where the server has one) and
-``--json`` (its summary on stdout). Exit status 0, 2 on bad arguments, 1 when a run fails.
+``zwidth`` also takes ``--layer on|off`` (the passivity layer, where the server has one),
+``--velocity device|difference`` (what the controller reads) and ``--json`` (its summary on stdout). Exit status 0, 2 on bad arguments, 1 when a run fails.
 """
 from __future__ import annotations
 
@@ -47,7 +47,8 @@ def _summary(name: str, res: dict) -> list[str]:
     return lines
 
 
-def run_one(name: str, out: str, *, mode: str, quick: bool, log, layer: str | None = None) -> dict:
+def run_one(name: str, out: str, *, mode: str, quick: bool, log, layer: str | None = None,
+            velocity: str = "device") -> dict:
     if name == "tradeoff":
         from .tradeoff import run_tradeoff
 
@@ -63,7 +64,7 @@ def run_one(name: str, out: str, *, mode: str, quick: bool, log, layer: str | No
     if name == "zwidth":
         from .zwidth import run_zwidth
 
-        return run_zwidth(out, quick=quick, layer=layer, log=log)
+        return run_zwidth(out, quick=quick, layer=layer, velocity=velocity, log=log)
     if name == "literal":
         from .figures import paper_literal
 
@@ -85,9 +86,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="zwidth: with or without the passivity layer (ignored, with a note, where the server has "
                         "no [passivity] settings)")
     p.add_argument("--json", action="store_true", help="zwidth: print the summary as JSON on stdout")
+    p.add_argument("--velocity", choices=("device", "difference"), default=None,
+                   help="zwidth: the velocity the controller reads: the device's (default) or the backward difference "
+                        "of its positions (Colgate and Schenkel's wall)")
     args = p.parse_args(argv)
-    if (args.layer is not None or args.json) and args.name not in ("zwidth", "all"):
-        p.error("--layer and --json apply to the zwidth experiment only")
+    if (args.layer is not None or args.json or args.velocity) and args.name not in ("zwidth", "all"):
+        p.error("--layer, --json and --velocity apply to the zwidth experiment only")
     names = tuple(n for n in NAMES if n != "rates") if args.name == "all" else (args.name,)
     log = None if args.quiet else (lambda msg: print(f"experiment: {msg}", file=sys.stderr, flush=True))
     status = 0
@@ -96,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         started = time.time() - 1.0  # files older than this run are not its plots
         try:
-            res = run_one(name, out, mode=args.mode, quick=args.quick, log=log, layer=args.layer)
+            res = run_one(name, out, mode=args.mode, quick=args.quick, log=log, layer=args.layer,
+                          velocity=args.velocity or "device")
         except (RuntimeError, ValueError, OSError) as exc:
             print(f"hapticproxy experiment {name}: {exc}", file=sys.stderr)
             status = 1

@@ -56,7 +56,7 @@ from ..server import config as cfg
 from ..server import control as ctl
 from ..server import stability
 from ..server.devices import safe
-from ..server.devices.base import empty_state
+from ..server.devices.base import DS_TWIST, empty_state
 from ..server.devices.sim import effective_config, make_sim_device
 from ..server.model import ContactParams, LocalModel, ToolSpec
 
@@ -94,6 +94,10 @@ FORCE_PTP_MAX_FRACTION = 0.1
 #: window's second half / its first half) is ringing out, not unstable: a lightly damped wall
 GROWTH_MIN = 0.8
 LAYER_CHOICES = ("on", "off")
+#: the velocity the controller reads: the simulated device's own (exact), or the backward difference
+#: of its positions over one period, as Colgate and Schenkel's wall takes it (and an encoder-only
+#: device's driver gives it): a damper then acts half a period late
+VELOCITIES = ("device", "difference")
 
 
 @dataclass
@@ -189,7 +193,8 @@ def refusal(kind: str, rate_hz: float, controller: str, k: float, b: float, laye
 
 
 def run_point(kind: str, rate_hz: float, k: float, b: float, *, controller: str = "direct",
-              layer_table: dict | None = None, push_n: float = PUSH_N, keep_trace: bool = False):
+              layer_table: dict | None = None, push_n: float = PUSH_N, keep_trace: bool = False,
+              velocity: str = "device"):
     """Render the wall (K = ``k``, B = ``b``) on the ``kind`` device at ``rate_hz`` under the
     constant push; returns ``(verdict, reason, contact_s, ptp_m, force_ptp_n, growth, ptp_1s_m)`` (and the trace of
     the handle's height and the command along the normal when ``keep_trace``)."""
@@ -230,6 +235,10 @@ def run_point(kind: str, rate_hz: float, k: float, b: float, *, controller: str 
     c.set_offset(*ctl.index_offset(kind, row[:7], hs[:7], (0.0, 1.0, 0.0), (0.0, 1.0, 0.0)))
     c.cs[ctl.CS_GAIN] = c.cs[ctl.CS_TARGET] = 1.0   # rendered in full from the first step
     y_dev0 = float(row[1])
+    if velocity not in VELOCITIES:
+        raise ValueError(f"velocity: expected one of {', '.join(VELOCITIES)}, got {velocity!r}")
+    differ = velocity == "difference"
+    prev_pos = row[:3].copy()
     kargs = m.kernel_args()
     upd_every = max(1, int(round(rate_hz / ENGINE_RATE_HZ)))
     n_max = int(round((WINDOW_END_S + 1.0) * rate_hz))  # no contact within 1 s: never reached
@@ -244,6 +253,9 @@ def run_point(kind: str, rate_hz: float, k: float, b: float, *, controller: str 
         if i % upd_every == 0:
             _report_wall(m, half)
         device.read(row)
+        if differ:  # the linear velocity from the positions (the rotation's is not the wall's)
+            row[DS_TWIST:DS_TWIST + 3] = (row[:3] - prev_pos) / dt
+            prev_pos[:] = row[:3]
         rc = ctl.haptic_step(c.cp, c.cs, c.cc, row, c.cmd, 1, *kargs, c.hand, c.R, c.c)
         drc = 0
         for _ in range(DEVICE_SUBSTEPS):
@@ -319,14 +331,14 @@ def _report_wall(m: LocalModel, half: float) -> None:
 
 
 def sweep(kind: str, rate_hz: float, *, controller: str = "direct", k_grid=K_GRID_N_PER_M, b_grid=B_GRID_N_S_PER_M,
-          layer_table: dict | None = None, log=None) -> list[Point]:
+          layer_table: dict | None = None, velocity: str = "device", log=None) -> list[Point]:
     """Every (K, B) of the grid on one rig."""
     _, dev_b = device_physics(kind, rate_hz)
     pts = []
     for k in k_grid:
         for b in b_grid:
             verdict_, reason, t_c, ptp, fptp, growth, ptp_1s = run_point(kind, rate_hz, k, b, controller=controller,
-                                                                         layer_table=layer_table)
+                                                                         layer_table=layer_table, velocity=velocity)
             pts.append(Point(float(k), float(b), verdict_ != "unstable", verdict_, reason, t_c, ptp * 1e3, fptp, growth,
                              ptp_1s * 1e3,
                              refusal(kind, rate_hz, controller, k, b, layer_table or {}),
@@ -385,7 +397,7 @@ def presets_at(rate_hz: float) -> list[str]:
     return [name for name, (table, _) in cfg.PRESETS.items() if float(table["loop"]["rate_hz"]) == rate_hz]
 
 
-def plot_rate(path: str, rate_hz: float, results: dict, *, note: str = "") -> None:
+def plot_rate(path: str, rate_hz: float, results: dict, *, note: str = "", velocity: str = "device") -> None:
     """One PNG per rate: a panel per controller and kind, the grid's stable / unstable points,
     the Colgate-Schenkel line and the marks."""
     import matplotlib
@@ -447,7 +459,8 @@ def plot_rate(path: str, rate_hz: float, results: dict, *, note: str = "") -> No
     pre = presets_at(rate_hz)
     title = (f"Z-width at {rate_hz:g} Hz (T = {1e3 / rate_hz:.3g} ms)" + (f", preset {', '.join(pre)}" if pre else "")
              + f": constant {PUSH_N:g} N push, no hand mass or damping; unstable = > {PTP_MAX_M * 1e3:g} mm or "
-             f"> {FORCE_PTP_MAX_FRACTION * PUSH_N:g} N p-p {WINDOW_START_S:g}-{WINDOW_END_S:g} s after contact")
+             f"> {FORCE_PTP_MAX_FRACTION * PUSH_N:g} N p-p {WINDOW_START_S:g}-{WINDOW_END_S:g} s after contact and "
+             f"not shrinking; velocity: {'the device' + chr(39) + 's' if velocity == 'device' else 'backward difference'}")
     if note:
         title += "\n" + note
     fig.suptitle(title, fontsize=10)
@@ -473,7 +486,8 @@ def verdict(rate_hz: float, results: dict) -> str:
 
 
 def run_zwidth(out: str, *, quick: bool = False, kinds=None, rates=None, controllers=None,
-               layer: str | None = None, k_grid=None, b_grid=None, plots: bool = True, log=None) -> dict:
+               layer: str | None = None, k_grid=None, b_grid=None, plots: bool = True, velocity: str = "device",
+               log=None) -> dict:
     """The sweep: every rate x controller x kind x (K, B); PNGs and ``zwidth.json`` in ``out``
     (None: the module's ``KINDS``, ``RATES_HZ``, ``CONTROLLERS`` and grids)."""
     kinds, rates, controllers = kinds or KINDS, rates or RATES_HZ, controllers or CONTROLLERS
@@ -485,17 +499,19 @@ def run_zwidth(out: str, *, quick: bool = False, kinds=None, rates=None, control
     bg = tuple(b_grid or (QUICK_B_GRID if quick else B_GRID_N_S_PER_M))
     res: dict = {"push_n": PUSH_N, "gap_m": GAP_M, "window_s": [WINDOW_START_S, WINDOW_END_S],
                  "ptp_max_mm": PTP_MAX_M * 1e3, "force_ptp_max_n": FORCE_PTP_MAX_FRACTION * PUSH_N,
-                 "layer": layer or "off", "layer_note": note, "rates": {}}
+                 "layer": layer or "off", "layer_note": note, "velocity": velocity, "rates": {}}
     for rate in rates:
         per_rate: dict = {}
         for ctrl in controllers:
             per_rate[ctrl] = {}
             for kind in kinds:
-                pts = sweep(kind, rate, controller=ctrl, k_grid=kg, b_grid=bg, layer_table=layer_table, log=log)
+                pts = sweep(kind, rate, controller=ctrl, k_grid=kg, b_grid=bg, layer_table=layer_table,
+                            velocity=velocity, log=log)
                 mass, dev_b = device_physics(kind, rate)
                 mk = [(label, k, b) for label, k, b, _ in marks(rate, ctrl)]
                 # the marked settings measured themselves (they need not lie on the grid)
-                mk_stable = {label: run_point(kind, rate, k, b, controller=ctrl, layer_table=layer_table)[0] != "unstable"
+                mk_stable = {label: run_point(kind, rate, k, b, controller=ctrl, layer_table=layer_table,
+                                              velocity=velocity)[0] != "unstable"
                              for label, k, b in mk}
                 per_rate[ctrl][kind] = {
                     "device_mass_kg": mass, "device_damping_n_s_per_m": dev_b,
@@ -507,12 +523,43 @@ def run_zwidth(out: str, *, quick: bool = False, kinds=None, rates=None, control
         res.setdefault("verdicts", []).append(verdict(rate, per_rate))
         if plots:
             path = os.path.join(out, f"zwidth_{rate:g}hz.png")
-            plot_rate(path, rate, per_rate, note=note)
+            plot_rate(path, rate, per_rate, note=note, velocity=velocity)
             res.setdefault("plots", []).append(path)
     res = _clean(res)
     with open(os.path.join(out, "zwidth.json"), "w") as fh:
         json.dump(res, fh, indent=1, allow_nan=False)
+    with open(os.path.join(out, "zwidth.md"), "w") as fh:
+        fh.write(tables_md(res))
     return res
+
+
+def _k(v) -> str:
+    return "-" if v is None else f"{v:g}"
+
+
+def tables_md(res: dict) -> str:
+    """Markdown: per rate, the region's edge (the largest grid stiffness stable with every softer
+    one stable too) per controller, kind and wall damping; Colgate and Schenkel's K at B = 0;
+    whether the marked settings are stable."""
+    lines = []
+    for rate, per_rate in res["rates"].items():
+        first = next(iter(next(iter(per_rate.values())).values()))
+        bs = list(first["summary"]["largest_stable_stiffness_by_damping"])
+        lines.append(f"**{rate} Hz**: the largest stable wall stiffness K [N/m] per wall damping B [N s/m] "
+                     f"(every softer grid K stable too; `-`: none)\n")
+        lines.append("| controller, device | CS bound K (B = 0) | " + " | ".join(f"B = {b}" for b in bs)
+                     + " | config default | table's bound | table, b = 30 |")
+        lines.append("| --- | ---: | " + " | ".join("---:" for _ in bs) + " | --- | --- | --- |")
+        for ctrl, by_kind in per_rate.items():
+            for kind, r in by_kind.items():
+                edge = r["summary"]["largest_stable_stiffness_by_damping"]
+                ms = list(r["marks_stable"].values())
+                cells = [("stable" if v else "**unstable**") for v in ms] + ["n/a"] * (3 - len(ms))
+                lines.append(f"| {ctrl}, {kind} ({r['device_mass_kg']:g} kg, b {r['device_damping_n_s_per_m']:g}) | "
+                             f"{r['colgate_schenkel_k_max_n_per_m']:g} | " + " | ".join(_k(edge[b]) for b in bs)
+                             + " | " + " | ".join(cells) + " |")
+        lines.append("")
+    return "\n".join(lines) + "\n"
 
 
 def _clean(o):
