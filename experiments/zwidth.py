@@ -27,8 +27,8 @@ after the first contact (the handle reaching the wall), long enough for the impa
 give way to the wall's own behaviour (:func:`classify`):
 
 - ``unstable``: a fault, a non-finite value, the device never resting on the wall, or a swing
-  above a limit that does not shrink (over the window's second half at least ``GROWTH_MIN`` of
-  its first): the handle more than ``PTP_MAX_M`` peak to peak (the issue's 0.1 mm), or the force
+  above a limit that does not shrink steadily (from one of ``SEGMENTS`` parts of the window to the
+  next, by a factor below ``GROWTH_MIN`` each time): the handle more than ``PTP_MAX_M`` peak to peak (the issue's 0.1 mm), or the force
   written to the device more than ``FORCE_PTP_MAX_FRACTION`` of the push (a chatter too small to
   see in position at a stiff wall, felt as a buzz);
 - ``ringing``: above a limit but shrinking (stable, lightly damped; near the bound);
@@ -90,9 +90,11 @@ DEVICE_SUBSTEPS = 16
 PTP_MAX_M = 1e-4
 #: force chatter: peak to peak of the command along the normal, as a fraction of the push
 FORCE_PTP_MAX_FRACTION = 0.1
-#: an oscillation above the limits that still shrinks below this ratio (peak to peak over the
-#: window's second half / its first half) is ringing out, not unstable: a lightly damped wall
-GROWTH_MIN = 0.8
+#: an oscillation above the limits whose peak to peak shrinks below this ratio from each of
+#: ``SEGMENTS`` equal parts of the window to the next is ringing out, not unstable: a lightly
+#: damped wall (a bouncing that dies down and flares up again is not)
+GROWTH_MIN = 0.9
+SEGMENTS = 4
 LAYER_CHOICES = ("on", "off")
 #: the velocity the controller reads: the simulated device's own (exact), or the backward difference
 #: of its positions over one period, as Colgate and Schenkel's wall takes it (and an encoder-only
@@ -112,7 +114,7 @@ class Point:
     contact_s: float            # first contact, from the run's start (nan: never)
     ptp_mm: float               # handle along the normal over the window, peak to peak
     force_ptp_n: float          # command along the normal over the window, peak to peak
-    growth: float               # ptp over the window's second half / first half (0: no motion)
+    growth: float               # the largest ptp ratio of a window segment to the one before (0: no motion)
     ptp_1s_mm: float            # the issue's reading: handle p-p 1-1.5 s after contact
     refused: str                # "" when the server accepts the setting; else the config's reason (the key)
     colgate_schenkel: bool      # inside b > K T / 2 + |B|
@@ -120,7 +122,8 @@ class Point:
 
 def classify(ptp_m: float, force_ptp_n: float, growth: float, push_n: float, *, fault: str = "") -> tuple[str, str]:
     """``(verdict, reason)``: ``settled`` (within both limits over the window), ``ringing`` (above
-    a limit but shrinking: ``growth`` below ``GROWTH_MIN``; stable, lightly damped) or
+    a limit but shrinking steadily: ``growth``, the largest ratio of a segment's swing to the one
+    before, below ``GROWTH_MIN``; stable, lightly damped) or
     ``unstable`` (a fault, a non-finite value, or above a limit and not shrinking)."""
     if fault:
         return "unstable", fault
@@ -297,16 +300,24 @@ def run_point(kind: str, rate_hz: float, k: float, b: float, *, controller: str 
             a = end_i - rest_n
         w_y, w_f = ys[a:end_i], fs[a:end_i]
         ptp, fptp = float(np.ptp(w_y)), float(np.ptp(w_f))
-        h = len(w_y) // 2
         # of the position, or of the force where that is what swings (a stiff wall's chatter)
-        sig = w_y if ptp > PTP_MAX_M else w_f
-        first, second = float(np.ptp(sig[:h])), float(np.ptp(sig[h:]))
-        growth = second / first if first > 0 else 0.0
+        growth = _growth(w_y if ptp > PTP_MAX_M else w_f)
     verdict_, reason = classify(ptp, fptp, growth, push_n, fault=fault)
     out = (verdict_, reason, contact_s, ptp, fptp, growth, ptp_1s)
     if keep_trace:
         return out + (ys[:end_i].copy(), fs[:end_i].copy())
     return out
+
+
+def _growth(sig: np.ndarray) -> float:
+    """The largest ratio of one segment's peak to peak to the one before, over ``SEGMENTS`` equal
+    segments: below 1 only while every segment swings less than the last (ringing out); a bouncing
+    that dies down and flares up again is not."""
+    n = len(sig) // SEGMENTS
+    if n < 2:
+        return 0.0
+    p = [float(np.ptp(sig[i * n:(i + 1) * n])) for i in range(SEGMENTS)]
+    return max((b / a if a > 0 else (0.0 if b == 0 else math.inf)) for a, b in zip(p, p[1:]))
 
 
 def _report_wall(m: LocalModel, half: float) -> None:

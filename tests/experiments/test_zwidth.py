@@ -28,6 +28,20 @@ def test_classify_settled_ringing_and_unstable_at_its_limits():
     assert Z.classify(math.nan, 0.0, 0.0, push)[0] == "unstable"
 
 
+def test_growth_is_ringing_only_while_every_segment_swings_less():
+    import numpy as np
+
+    t = np.linspace(0.0, 2.0, 2000, endpoint=False)
+    osc = np.sin(2 * np.pi * 20 * t)
+    assert Z._growth(np.exp(-t) * osc) < Z.GROWTH_MIN          # rings out: x0.61 per 0.5 s
+    assert 0.99 < Z._growth(osc) < 1.01                          # a limit cycle
+    # a bouncing that dies down and flares up again: shrinking from the first to the last
+    # segment (x0.5), but not steadily
+    flare = np.where(t < 0.5, 1.0, np.where(t < 1.0, 0.1, np.where(t < 1.5, 0.8, 0.5))) * osc
+    assert Z._growth(flare) > 1.0
+    assert Z._growth(np.zeros(2000)) == 0.0
+
+
 def test_colgate_schenkel_condition():
     # b > K T / 2 + |B|: the planar device's 2 N s/m at 1 kHz passes K < 4000 N/m with B = 0
     assert Z.colgate_schenkel(3900.0, 0.0, 2.0, RATE)
