@@ -163,3 +163,18 @@ def test_velocity_by_difference_keeps_the_edge_and_a_bad_choice_is_refused():
     assert Z.run_point(KIND, RATE, 20 * k_cs, 0.0, velocity="difference")[0] == "unstable"
     with pytest.raises(ValueError, match="velocity"):
         Z.run_point(KIND, RATE, 1000.0, 0.0, velocity="estimated")
+
+
+def test_the_difference_velocity_reaches_the_walls_damper_only():
+    """The same wall read both ways: without a damper the traces agree exactly (the spring reads
+    positions); with one the force differs (the damper reads the differenced velocity)."""
+    import numpy as np
+
+    def force(b, velocity):
+        return Z.run_point(KIND, RATE, 1000.0, b, velocity=velocity, keep_trace=True)[-1]
+
+    f0, f0d = force(0.0, "device"), force(0.0, "difference")
+    assert len(f0) == len(f0d) and np.array_equal(f0, f0d)
+    f1, f1d = force(30.0, "device"), force(30.0, "difference")
+    n = min(len(f1), len(f1d))
+    assert np.max(np.abs(f1[:n] - f1d[:n])) > 1e-3
