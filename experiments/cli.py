@@ -9,6 +9,7 @@
     hapticproxy experiment rates --out out/rates     # only the sweep's real-time achieved-rate runs
     hapticproxy experiment fidelity --out out/fid    # the felt surface before / after (issue 15), simulated
     hapticproxy experiment literal --out out/lit     # the paper's eq. 6 read literally (its Fig. 14 numbers)
+    hapticproxy experiment zwidth --out out/zw       # Z-width: the renderable wall (K, B) per rate and device kind
     hapticproxy experiment all --out out/exp         # every one of them, a folder each
 
 ``--quick``: the short version (shorter runs, fewer seeds and configurations). ``--mode``:
@@ -16,7 +17,8 @@
 on 127.0.0.1) or ``simulated`` (the same stack in simulated time, deterministic). Figs. 6 and 9
 run the 1-DOF peg (1-DOF device, peg engine, 20 ms delay), Figs. 14-17 the planar testbed. Each writes PNG plots and
 ``metrics.json`` (keyed by method) into ``--out`` and prints a one-line summary per method.
-Exit status 0, 2 on bad arguments, 1 when a run fails.
+``zwidth`` also takes ``--layer on|off`` (the passivity layer, where the server has one),
+``--velocity device|difference`` (what the controller reads) and ``--json`` (its summary on stdout). Exit status 0, 2 on bad arguments, 1 when a run fails.
 """
 from __future__ import annotations
 
@@ -27,7 +29,7 @@ import sys
 import time
 from ..protocol.logs import doc_summary
 
-NAMES = ("fig6", "fig9", "fig14", "fig16", "fig17", "tradeoff", "rates", "fidelity", "literal")
+NAMES = ("fig6", "fig9", "fig14", "fig16", "fig17", "tradeoff", "rates", "fidelity", "literal", "zwidth")
 
 
 def _summary(name: str, res: dict) -> list[str]:
@@ -45,7 +47,8 @@ def _summary(name: str, res: dict) -> list[str]:
     return lines
 
 
-def run_one(name: str, out: str, *, mode: str, quick: bool, log) -> dict:
+def run_one(name: str, out: str, *, mode: str, quick: bool, log, layer: str | None = None,
+            velocity: str = "device") -> dict:
     if name == "tradeoff":
         from .tradeoff import run_tradeoff
 
@@ -58,6 +61,10 @@ def run_one(name: str, out: str, *, mode: str, quick: bool, log) -> dict:
         from .fidelity import run_fidelity
 
         return run_fidelity(out, quick=quick, log=log)
+    if name == "zwidth":
+        from .zwidth import run_zwidth
+
+        return run_zwidth(out, quick=quick, layer=layer, velocity=velocity, log=log)
     if name == "literal":
         from .figures import paper_literal
 
@@ -75,7 +82,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mode", choices=("realtime", "simulated"), default="realtime",
                    help="figures: the real server in real time (default) or simulated time")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument("--layer", choices=("on", "off"), default=None,
+                   help="zwidth: with or without the passivity layer (ignored, with a note, where the server has "
+                        "no [passivity] settings)")
+    p.add_argument("--json", action="store_true", help="zwidth: print the summary as JSON on stdout")
+    p.add_argument("--velocity", choices=("device", "difference"), default=None,
+                   help="zwidth: the velocity the controller reads: the device's (default) or the backward difference "
+                        "of its positions (Colgate and Schenkel's wall)")
     args = p.parse_args(argv)
+    if (args.layer is not None or args.json or args.velocity) and args.name not in ("zwidth", "all"):
+        p.error("--layer, --json and --velocity apply to the zwidth experiment only")
     names = tuple(n for n in NAMES if n != "rates") if args.name == "all" else (args.name,)
     log = None if args.quiet else (lambda msg: print(f"experiment: {msg}", file=sys.stderr, flush=True))
     status = 0
@@ -84,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         started = time.time() - 1.0  # files older than this run are not its plots
         try:
-            res = run_one(name, out, mode=args.mode, quick=args.quick, log=log)
+            res = run_one(name, out, mode=args.mode, quick=args.quick, log=log, layer=args.layer,
+                          velocity=args.velocity or "device")
         except (RuntimeError, ValueError, OSError) as exc:
             print(f"hapticproxy experiment {name}: {exc}", file=sys.stderr)
             status = 1
@@ -102,6 +119,16 @@ def main(argv: list[str] | None = None) -> int:
             from .figures import literal_md
 
             print(literal_md(res["rows"]))
+        elif name == "zwidth":
+            from .zwidth import summary_json
+
+            if args.json:
+                print(summary_json(res))
+            else:
+                if res["layer_note"]:
+                    print(f"zwidth: {res['layer_note']}")
+                for line in res["verdicts"]:
+                    print(line)
         elif name == "tradeoff":
             print(f"tradeoff: {len(res['rows'])} configurations; table {os.path.join(out, 'tradeoff.md')}, "
                   f"stable region {os.path.join(out, 'stable_region.md')}, Pareto plot {os.path.join(out, 'pareto.png')}")
@@ -109,12 +136,14 @@ def main(argv: list[str] | None = None) -> int:
             for line in _summary(name, res):
                 print(line)
         what = {"tradeoff": "tradeoff.json, tables", "rates": "rates.json, rates.md",
-                "fidelity": "fidelity.json, fidelity.md", "literal": "literal.json, literal.md"}.get(name, "metrics.json")
+                "fidelity": "fidelity.json, fidelity.md", "literal": "literal.json, literal.md",
+                "zwidth": "zwidth.json"}.get(name, "metrics.json")
         # name the plots this run wrote (a quick fidelity run writes none)
         plots = sorted(f for f in os.listdir(out) if f.endswith(".png")
                        and os.path.getmtime(os.path.join(out, f)) >= started)
         drawn = f" and {len(plots)} plot{'s' if len(plots) != 1 else ''} ({', '.join(plots)})" if plots else ""
-        print(f"{name}: wrote {out}/{what}{drawn} ({time.perf_counter() - t0:.1f} s)")
+        print(f"{name}: wrote {out}/{what}{drawn} ({time.perf_counter() - t0:.1f} s)",
+              file=sys.stderr if args.json else sys.stdout)
     return status
 
 
