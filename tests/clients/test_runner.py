@@ -315,7 +315,9 @@ def test_version_refused_raises_client_error():
 
 def test_hmac_mode_talks_with_the_right_key_only(server_thread):
     srv = server_thread("mem://hmac", hmac_key=KEY)
-    st = ClientRunner(StubEngine(), srv.url, scene="wall", hmac_key=KEY, realtime=False).run(max_steps=20)
+    # paced (30 steps at the engine's rate): unpaced, 20 steps could end before the server thread answered
+    # on a loaded machine (seen once: no ProxyState)
+    st = ClientRunner(StubEngine(), srv.url, scene="wall", hmac_key=KEY, realtime=True).run(max_steps=30)
     assert st["sessions"] == 1 and st["proxy_states"] > 0
     wrong = ClientRunner(StubEngine(), srv.url, scene="wall", hmac_key=bytes(32), connect_timeout_s=0.3)
     with pytest.raises(ClientError):
