@@ -805,8 +805,8 @@ class Controller:
 
     def grant(self, energy_j: float) -> float:
         """An engine's declared work on the tool into the tank (``passivity.grant``); the energy added."""
-        # the kernel's own code in Python: at an update, where a first call would compile in the loop
-        return float(pv.grant.py_func(self.tp, self.ts, float(energy_j)))
+        # compiled by the loop's warm-up (HapticLoop.warm_up), so an update never compiles it
+        return float(pv.grant(self.tp, self.ts, float(energy_j)))
 
     def counters(self) -> dict[str, int]:
         out = {n: int(self.cc[i]) for n, i in self._COUNTERS}

@@ -249,6 +249,7 @@ class HapticLoop:
                 ctl.haptic_step_linkage(c.cp, c.cs, c.cc, dev, c.cmd, par_, *lm.linkage_args()[:3], st_, C_, CI_,
                                         cnt_, wk_, lm.linkage_args()[3], c.hand)
         ctl.fade_only(c.cp, c.cs, c.cc, c.cmd)
+        c.grant(0.0)  # an engine's grant (ContactUpdate.work_on_tool_j), applied with an update
         c.cut()
         scratch = SharedState.local(4)  # the same views (so the same kernel types) as the shared block's
         account(scratch.tel, scratch.head, scratch.hist_late, scratch.hist_step, scratch.stat, self.period_ns, 1, 1,
