@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import importlib.util
 import logging
-import socket
 import subprocess
 import sys
 
@@ -196,19 +195,13 @@ def test_no_gripper_force_is_ever_commanded():
 
 
 # ------------------------------------------------------------------- the server: start, status
-def _port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 #: a light 1-DOF simulated device: 10 g moving mass takes at most 10 N s/m at 1 kHz (the default is 15)
 LIGHT = {"driver": "sim", "kind": "1dof", "mass_kg": 0.01, "watchdog_s": 0.0}
 
 
 def test_serve_refuses_a_set_gain_the_device_cannot_take_exit_2(tmp_path):
     cfg = tmp_path / "c.toml"
-    cfg.write_text(f'[transport]\nurl = "udp://127.0.0.1:{_port()}"\n[status]\naddress = "127.0.0.1:{_port()}"\n'
+    cfg.write_text('[transport]\nurl = "udp://127.0.0.1:0"\n[status]\naddress = "127.0.0.1:0"\n'
                    '[controller]\ndamping_n_s_per_m = 20.0\n'
                    '[device]\ndriver = "sim"\nkind = "1dof"\nmass_kg = 0.01\n')
     r = subprocess.run([sys.executable, "-m", "hapticproxy.cli.main", "serve", "--config", str(cfg), "--duration", "1"],
@@ -221,7 +214,7 @@ def test_serve_refuses_a_set_gain_the_device_cannot_take_exit_2(tmp_path):
 def test_the_loop_process_refuses_it_too_and_the_supervisor_exits_2():
     from hapticproxy.server.daemon import StartupError, Supervisor
 
-    s = cfgmod.load({"transport": {"url": f"udp://127.0.0.1:{_port()}"}, "status": {"address": f"127.0.0.1:{_port()}"},
+    s = cfgmod.load({"transport": {"url": "udp://127.0.0.1:0"}, "status": {"address": "127.0.0.1:0"},
                      "controller": {"damping_n_s_per_m": 20.0}, "device": LIGHT, "telemetry": {"ring_s": 0.5}})
     sup = Supervisor(s)
     try:
@@ -236,7 +229,7 @@ def test_status_lists_the_lowered_defaults_and_the_override():
     from hapticproxy.server.daemon import Supervisor
     from hapticproxy.server.status import format_status
 
-    s = cfgmod.load({"transport": {"url": f"udp://127.0.0.1:{_port()}"}, "status": {"address": f"127.0.0.1:{_port()}"},
+    s = cfgmod.load({"transport": {"url": "udp://127.0.0.1:0"}, "status": {"address": "127.0.0.1:0"},
                      "controller": {"rot_damping_n_m_s_per_rad": 0.015}, "device": LIGHT,
                      "telemetry": {"ring_s": 0.5}})
     sup = Supervisor(s)
@@ -248,7 +241,7 @@ def test_status_lists_the_lowered_defaults_and_the_override():
         assert "lowered      controller.damping_n_s_per_m 15 -> 10" in format_status(snap)
     finally:
         sup.close()
-    s2 = cfgmod.load({"transport": {"url": f"udp://127.0.0.1:{_port()}"}, "status": {"address": f"127.0.0.1:{_port()}"},
+    s2 = cfgmod.load({"transport": {"url": "udp://127.0.0.1:0"}, "status": {"address": "127.0.0.1:0"},
                       "controller": {"damping_n_s_per_m": 20.0}, "safety": {"allow_outside_stable_region": True},
                       "device": LIGHT, "telemetry": {"ring_s": 0.5}})
     sup = Supervisor(s2)
