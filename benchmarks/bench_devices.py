@@ -255,16 +255,19 @@ def servo_rows(seconds: float, tmp: str, rates=(1000.0, 4000.0)) -> list[dict]:
     return out
 
 
-#: fault -> (block slot, value, whether a driver can see it)
-FAULTS = {"unplugged": ("fault_unplugged", 1.0, True), "device error": ("fault_error", 12.0, True),
-          "frozen position": ("fault_frozen", 1.0, False)}
+#: fault -> (block slot, value, the steps before a driver can see it: a frozen position shows only
+#: after the frozen-position watch's window, ``devices.frozen.FROZEN_S``)
+FAULTS = {"unplugged": ("fault_unplugged", 1.0, 0), "device error": ("fault_error", 12.0, 0),
+          "frozen position": ("fault_frozen", 1.0, None)}
 
 
 def fault_row(which: str, fault: str) -> dict:
     from ..server.devices.base import DEV_FAULT_NAMES, DEV_OK
 
     h = _harness(which)
-    slot, value, visible = FAULTS[fault]
+    from ..server.devices.frozen import FROZEN_S
+
+    slot, value, after = FAULTS[fault]
     v = {"over_cap": 0, "nonfinite": 0, "cut": 0, "kick": 0, "named": 0}
     lim = h.driver.limits
     detected_at = None
@@ -298,10 +301,11 @@ def fault_row(which: str, fault: str) -> dict:
             h.step(PUSH)
             check(i, "before")
         h.block[slot] = value
-        for i in range(100):
+        after = math.ceil(FROZEN_S / h.period_s) if after is None else after
+        for i in range(100 + after):
             h.step(PUSH)
             check(i, "fault")
-        if visible and detected_at is None:
+        if detected_at is None or detected_at > after + 2:
             v["named"] += 100
         h.block[slot] = 0.0
         for i in range(50):

@@ -79,6 +79,7 @@ class DeviceFault(IntEnum):
     DISABLED = 3   # never sent as a fault: an unarmed device reports 0 with the armed flag clear
     LINK = 4       # the server driver's own: no state within its link timeout
     HARDWARE = 5
+    FROZEN = 6     # the server's own: the position stopped changing while force was commanded
 
 
 FAULT_DOCS: dict[DeviceFault, str] = {
@@ -88,6 +89,8 @@ FAULT_DOCS: dict[DeviceFault, str] = {
     DeviceFault.DISABLED: "(a driver's status, not a fault: never sent in STATE)",
     DeviceFault.LINK: "server side only: no STATE within link_timeout_s, or the device restarted",
     DeviceFault.HARDWARE: "the device's own hardware fault (or, server side, a STATE of another kind)",
+    DeviceFault.FROZEN: "server side only: the position stayed bit-identical for safety.frozen_s while at least "
+                        "safety.frozen_force_n was commanded (a stuck sensor, a hung firmware)",
 }
 
 #: STATE.flags bit 0: the device's output is armed (it renders the commanded wrench).

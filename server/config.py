@@ -24,8 +24,8 @@ Layout (all keys optional)::
     [controller] type, stiffness_n_per_m, damping_n_s_per_m, rot_stiffness_n_m_per_rad,
                  rot_damping_n_m_s_per_rad, hand_gain, env_gain, mapping
     [safety]     max_force_n, max_torque_n_m, force_rate_n_per_s, torque_rate_n_m_per_s,
-                 max_speed_m_per_s, max_angular_speed_rad_per_s, watchdog_s, fade_s, ramp_in_s,
-                 stall_recover_s, stall_trips_max, stall_window_s, allow_outside_stable_region
+                 max_speed_m_per_s, max_angular_speed_rad_per_s, frozen_s, frozen_force_n, watchdog_s,
+                 fade_s, ramp_in_s, stall_recover_s, stall_trips_max, stall_window_s, allow_outside_stable_region
     [passivity]  enabled, initial_budget_j, max_tank_j, low_level_j, velocity_threshold_m_per_s,
                  angular_velocity_threshold_rad_per_s, device_damping_n_s_per_m,
                  device_rot_damping_n_m_s_per_rad, engine_grants (server/passivity.py)
@@ -184,6 +184,11 @@ class SafetyConfig(_Table):
     torque_rate_n_m_per_s: _num(0, 1e5, lo_open=True, doc="largest torque change per second [N m/s]") = 50.0
     max_speed_m_per_s: _num(0, 100, lo_open=True, doc="device speed that trips a fade-out [m/s]") = 2.0
     max_angular_speed_rad_per_s: _num(0, 1000, lo_open=True, doc="device angular speed that trips [rad/s]") = 30.0
+    frozen_s: _num(0, 10, doc="the device's position bit-identical this long while at least frozen_force_n is "
+                   "commanded: a stuck sensor, cut as a device fault (0: off; a handle held against its "
+                   "mechanical stop trips too) [s]") = 0.5
+    frozen_force_n: _num(0, 100, doc="the force a command needs for frozen_s to count (0: 0.25 N or a quarter of "
+                         "the force cap, whichever is lower) [N]") = 0.0
     watchdog_s: _num(0.001, 10, doc="environment silent this long -> forces fade [s]") = 0.1
     fade_s: _num(0.001, 10, doc="fade-out time [s]") = 0.2
     ramp_in_s: _num(0.001, 10, doc="ramp-in time after engaging or re-arming [s]") = 0.5

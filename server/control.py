@@ -40,6 +40,7 @@ from ..protocol.vocab import CONTROLLERS
 
 from . import passivity as pv
 from . import safety as sf
+from .devices import frozen as fz
 from .readonly import ArrayBool, ArrayFloat, ArrayInt
 from .model.kernels import _rigid_pose, hand_to_world, step_rigid
 from .model.layout import (
@@ -75,7 +76,8 @@ CP_VMAX = 23       # device speed limit, m/s
 CP_WMAX = 24       # device angular speed limit, rad/s
 CP_SAFETY = 25     # 25..38 the safety filter's parameters (``safety.SP_*``)
 CP_TANK = CP_SAFETY + sf.NSP  # 39.. the passivity layer's parameters (``passivity.TP_*``)
-NCP = CP_TANK + pv.NTP
+CP_FROZEN = CP_TANK + pv.NTP  # the frozen-position watch's parameters (``devices.frozen.FP_*``)
+NCP = CP_FROZEN + fz.NFP
 
 # ---- state (float64[NCS]); rows for telemetry and the ProxyState
 CS_SAFETY = 0      # 0..8 the safety filter's state (``safety.SS_*``): gain, target, previous output
@@ -99,7 +101,8 @@ CS_EVALID = 69     # 1: CS_EPOSE holds a pose (the ledger pairs the next displac
 CS_EDX2 = 70       # the last paired period's squared displacement of the handle, m^2
 CS_EDR2 = 71       # and squared rotation, rad^2 (the declared device damping's share, ``passivity``)
 CS_TANK = 72       # 72.. the passivity layer's state (``passivity.TS_*``): the tank and its books
-NCS = CS_TANK + pv.NTS
+CS_FROZEN = CS_TANK + pv.NTS  # the frozen-position watch's state (``devices.frozen.FS_*``)
+NCS = CS_FROZEN + fz.NFS
 
 # ---- counters (int64[NCC])
 CC_SAFETY = 0          # 0..2 the safety filter's counters (``safety.SC_*``)
@@ -743,6 +746,10 @@ class Controller:
                           device_rot_damping_n_m_s_per_rad=pas["device_rot_damping_n_m_s_per_rad"],
                           period_s=dt, engine_grants=pas["engine_grants"])
         pv.reset(self.tp, self.ts)
+        #: the device's position frozen under force (``devices.frozen``; the tick runs the watch)
+        self.frozen_s = saf["frozen_s"]
+        self.frozen_force_n = fz.min_force_n(saf["frozen_force_n"], fmax)
+        self.watch_frozen(True)
         self.set_offset(np.eye(3), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
         self.cs[CS_DRIVE] = 1.0  # a bare kernel user drives its model; the loop holds until engaged
         self.cs[CS_DPOSE + 3] = 1.0
@@ -791,10 +798,17 @@ class Controller:
 
     gain = ArrayFloat("cs", CS_GAIN, doc="Gain of the rendered force, 0..1 (fades and ramps in).")
 
+    def watch_frozen(self, on: bool) -> None:
+        """The tick's frozen-position watch on (``safety.frozen_s``) or off (a driver that watches
+        its own raw readings, a mapped device whose clutch holds the row still on purpose)."""
+        fz.set_parameters(self.cp, CP_FROZEN, frozen_s=self.frozen_s if on else 0.0, min_force_n=self.frozen_force_n)
+        fz.reset(self.cs, CS_FROZEN)
+
     def cut(self) -> None:
         """The device was disabled (it renders nothing now): the safety filter starts again from
         zero output and zero gain, so whatever comes next ramps in from what the hand feels."""
         sf.reset(self.cs[CS_SAFETY:CS_SAFETY + sf.NSS])
+        fz.reset(self.cs, CS_FROZEN)  # a re-armed device's readings start a new run
 
     _COUNTERS = (("steps", CC_STEPS), ("saturated", CC_SATURATED), ("rate_limited", CC_RATE_LIMITED),
                  ("speed_trips", CC_SPEED_TRIPS), ("nonfinite", CC_NONFINITE), ("hand_missing", CC_HAND_MISSING),

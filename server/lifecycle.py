@@ -146,6 +146,9 @@ REASON_TEXT = {
 #: The device fault's own words where the generic advice is wrong for it: a remote device's
 #: link that is down before anything was rendered comes back by itself (``LINK_UP``).
 DEVICE_FAULT_TEXT = {
+    int(DeviceFault.FROZEN): "device fault 6 (position frozen: the device's position stayed bit-identical for "
+       "safety.frozen_s while force was commanded: a stuck sensor or a hung firmware, or the handle held against its "
+       "mechanical stop): device disabled; move the handle, then re-arm with `hapticproxy status --rearm`",
     int(DeviceFault.LINK): "device fault 4 (link: no state from the remote device within its link timeout): output off; "
        "clears by itself when the device program connects before a session engaged (`hapticproxy device "
        "...`), else re-arm with `hapticproxy status --rearm`",
@@ -193,6 +196,9 @@ FAULT_POLICY: tuple[Policy, ...] = (
     Policy("watchdog_unexplained", "device watchdog not explained by a stall (e.g. 5 s after a recovered one)", "cut", "re-arm",
            Fault.DEVICE, Reason.DEVICE_FAULT),
     Policy("hardware", "device hardware fault, or a device that disabled itself", "cut", "re-arm", Fault.DEVICE,
+           Reason.DEVICE_FAULT),
+    Policy("frozen", "the device's position bit-identical for safety.frozen_s while at least safety.frozen_force_n was "
+           "commanded (a stuck sensor, a hung firmware: devices.frozen)", "cut", "re-arm", Fault.DEVICE,
            Reason.DEVICE_FAULT),
     Policy("link_lost", "device link lost (remote device) after force was ever rendered, not explained by a stall", "cut",
            "re-arm", Fault.DEVICE, Reason.DEVICE_FAULT),

@@ -38,6 +38,7 @@ from . import control as ctl
 from . import egress, ingest, tick
 from .devices import safe
 from .devices.base import DEV_FAULT_NAMES, DEV_NSTATE, DS_TIME, empty_state, load_device
+from .devices.mapped import MappedDevice
 from .lifecycle import LOOP_STATES, LS, Fault, Reason
 from .loop_lifecycle import WD_OK, WD_SESSION_ENDED, WD_SILENT, Lifecycle  # noqa: F401 - re-exported
 from .model.model import LinkSpec, LocalModel, ToolSpec, warm_up as model_warm_up
@@ -126,6 +127,14 @@ class HapticLoop:
         self.ctrl = controller or ctl.Controller(settings, self.device.kind, self.device.limits)
         if self.ctrl.device_kind != self.device.kind:
             raise ValueError(f"controller: made for a {self.ctrl.device_kind} device, the device is {self.device.kind}")
+        # a position frozen under force (devices.frozen): a driver that has the watch runs it on
+        # its own raw readings (through a mapping too); the tick runs it on the row it reads, for
+        # the rest, never behind a mapping (a held clutch keeps the row still on purpose), and for
+        # a device whose servo thread runs the tick (its driver's read is not called then)
+        watch = getattr(self.device, "watch_frozen", None)
+        if watch is not None:
+            watch(settings["safety"]["frozen_s"], self.ctrl.frozen_force_n)
+        self.ctrl.watch_frozen(watch is None and not isinstance(self.device, MappedDevice))
         self.index_mapping = settings["controller"]["mapping"] == "index"
         self.dev = empty_state()
         self._stop_flag = False
@@ -528,6 +537,7 @@ class HapticLoop:
             tk[tick.TK_NATIVE_WRITE] = io["write"]
             tk[tick.TK_NATIVE_CTX] = io["ctx"]
             tk[tick.TK_SIMULATED] = 0
+            self.ctrl.watch_frozen(True)
             binding.bind(self._T)
         finally:
             unlock(tk)

@@ -5,7 +5,8 @@ sampled and commanded first after the deadline:
 
 1. read the device (``IO_SIM``: the simulated device's kernel; ``IO_NATIVE``: a C function of
    the device's library, through ``native.call_i32_ptr_ptr``; ``IO_EXTERNAL``: the caller read it
-   into ``T.dev`` and passes its status in ``T.tk[TK_EXT_RC]``);
+   into ``T.dev`` and passes its status in ``T.tk[TK_EXT_RC]``); a position frozen under force
+   (``devices.frozen``) is the read's fault ``DEV_FAULT_FROZEN``;
 2. the controller, the model step and the safety filter (``control.haptic_step`` or
    ``haptic_step_linkage``);
 3. write the device (``IO_EXTERNAL``: the caller writes ``T.cmd`` after the call);
@@ -37,7 +38,9 @@ import numpy as np
 from numba import from_dtype, njit, types
 
 from . import control as ctl
+from .devices.base import DEV_FAULT_FROZEN
 from .devices.dynamics import sim_read, sim_write_hand
+from .devices.frozen import watch as frozen_watch
 from .native import address_as, call_i32_ptr_ptr, fd_readable, monotonic_ns, sleep_until_ns
 from .lifecycle import LS
 from .rings import account
@@ -126,6 +129,9 @@ def tick(T, wake_ns, late_ns):
         rc_dev = call_i32_ptr_ptr(tk[TK_NATIVE_READ], tk[TK_NATIVE_CTX], T.dev.ctypes.data)
     else:
         rc_dev = tk[TK_EXT_RC]
+    # judged before the controller uses it, against the force written in the period it covers
+    if rc_dev == 0 and frozen_watch(T.cp, ctl.CP_FROZEN, T.cs, ctl.CS_FROZEN, T.dev, T.cmd, wake_ns):
+        rc_dev = DEV_FAULT_FROZEN
     if tk[TK_LINKAGE] != 0:
         rc = ctl.haptic_step_linkage(T.cp, T.cs, T.cc, T.dev, T.cmd, T.par, T.lmeta, T.lk, T.lki, T.st, T.C, T.CI,
                                      T.cnt, T.wk, T.lw, T.hand)

@@ -35,6 +35,7 @@ SERVER_KERNEL_MODULES = (
     "hapticproxy.server.devices.hands",
     "hapticproxy.server.devices.mapping",
     "hapticproxy.server.passivity",
+    "hapticproxy.server.devices.frozen",
 )
 
 #: Modules that define numba C callbacks (``@cfunc``, compiled when the module is imported, so

@@ -33,7 +33,8 @@ def test_every_fault_row_has_no_violation():
     seen = {(r["driver"], r["fault"]): r for r in faults}
     assert seen[("touch", "unplugged")]["named"] == ["device link lost"]
     assert seen[("forcedimension", "device error")]["named"] == ["hardware fault"]
-    assert not seen[("touch", "frozen position")]["detected"]  # said, not hidden
+    for d in ("forcedimension", "touch", "haply-service"):  # seen by the frozen-position watch, named
+        assert seen[(d, "frozen position")]["named"] == ["position frozen"], seen[(d, "frozen position")]
     rates = {(r["driver"], r["target_hz"]): r for r in rows if r["kind"] == "rate"}
     assert {("forcedimension", 1000.0), ("forcedimension", 4000.0), ("touch", 1000.0)} <= set(rates)
     assert rates[("touch", 1000.0)]["clock"] == "device" and rates[("touch", 1000.0)]["periods"] > 10

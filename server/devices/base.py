@@ -78,6 +78,7 @@ DEV_FAULT_WATCHDOG = int(DeviceFault.WATCHDOG)
 DEV_FAULT_DISABLED = int(DeviceFault.DISABLED)
 DEV_FAULT_LINK = int(DeviceFault.LINK)  # remote device: no state within its timeout
 DEV_FAULT_HARDWARE = int(DeviceFault.HARDWARE)
+DEV_FAULT_FROZEN = int(DeviceFault.FROZEN)  # no motion under force (``devices.frozen``)
 DEV_FAULT_NAMES = {
     DEV_OK: "ok",
     DEV_FAULT_NONFINITE_COMMAND: "non-finite command",
@@ -85,6 +86,7 @@ DEV_FAULT_NAMES = {
     DEV_FAULT_DISABLED: "disabled",
     DEV_FAULT_LINK: "device link lost",
     DEV_FAULT_HARDWARE: "hardware fault",
+    DEV_FAULT_FROZEN: "position frozen",
 }
 
 

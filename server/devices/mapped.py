@@ -122,7 +122,8 @@ class MappedDevice(DeviceDriver):
 
     #: the inner driver's extras that mean the same through the mapping (never ``tick_arrays``
     #: or ``native``: the loop would drive the device around the mapping)
-    _PASSED = frozenset({"counters", "status_text", "last_command", "config", "identity", "spec", "hand"})
+    _PASSED = frozenset({"counters", "status_text", "last_command", "config", "identity", "spec", "hand",
+                         "watch_frozen"})
 
     def __getattr__(self, name: str):
         if name in MappedDevice._PASSED:

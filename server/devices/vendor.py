@@ -3,7 +3,9 @@ of :mod:`.base` kept once, above each vendor's own I/O.
 
 :class:`VendorDevice` keeps the latched fault, the enable state, the refusal of non-finite
 commands, the caps (per axis and on the norm; parts the model does not actuate are dropped) and
-the driver's watchdog on the loop's clock; a vendor driver implements four methods over its SDK:
+the driver's watchdog on the loop's clock, and the frozen-position watch (:mod:`.frozen`: the
+position bit-identical under force, a sensor that stopped, latched as ``DEV_FAULT_FROZEN``); a
+vendor driver implements four methods over its SDK:
 
 ``_io_read(row) -> int``
     Fill the state row (pose, twist, time; hand NaN: no force sensor); ``DEV_OK`` or a fault code.
@@ -28,8 +30,9 @@ import time
 
 import numpy as np
 
+from . import frozen as fz
 from .base import (
-    DEV_FAULT_DISABLED, DEV_FAULT_NAMES, DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_NSTATE, DEV_OK,
+    DEV_FAULT_DISABLED, DEV_FAULT_FROZEN, DEV_FAULT_NAMES, DEV_FAULT_NONFINITE_COMMAND, DEV_FAULT_WATCHDOG, DEV_NSTATE, DEV_OK,
     DeviceDriver, DeviceInfo, DeviceLimits,
 )
 
@@ -79,8 +82,21 @@ class VendorDevice(DeviceDriver):
         self._zero = np.zeros(6)
         self._sent = np.zeros(6)
         self.counters = {"reads": 0, "writes": 0, "saturated": 0, "nonfinite_refused": 0, "watchdog_trips": 0,
-                         "device_faults": 0}
+                         "device_faults": 0, "frozen_trips": 0}
         self._closed = False
+        # the frozen-position watch on the driver's own readings (``frozen``): also standalone, a
+        # driver never pushes on a sensor that stopped; the loop sets it from [safety]
+        self._fp = np.zeros(fz.NFP)
+        self._fs = np.zeros(fz.NFS)
+        self.watch_frozen(fz.FROZEN_S, fz.min_force_n(0.0, limits.max_force_norm_n))
+
+    def watch_frozen(self, frozen_s: float, min_force_n: float) -> None:
+        """Trip ``DEV_FAULT_FROZEN`` when the position stays bit-identical for ``frozen_s`` while
+        at least ``min_force_n`` was written (0 s: off). Compiles the watch now, never in a step."""
+        fz.set_parameters(self._fp, 0, frozen_s=frozen_s, min_force_n=min_force_n)
+        fz.reset(self._fs, 0)
+        fz.watch(self._fp, 0, self._fs, 0, self._fs, self._sent, self._clock())
+        fz.reset(self._fs, 0)
 
     # -- DeviceDriver -----------------------------------------------------------------------
     @property
@@ -106,6 +122,7 @@ class VendorDevice(DeviceDriver):
         self._fault = DEV_OK
         self._enabled = True
         self._last_write_ns = self._clock()
+        fz.reset(self._fs, 0)
 
     def disable(self) -> None:
         self._enabled = False
@@ -115,11 +132,15 @@ class VendorDevice(DeviceDriver):
             self._io_enable(False)
 
     def read(self, state_out: np.ndarray) -> int:
-        self._watchdog(self._clock())
+        now = self._clock()
+        self._watchdog(now)
         self.counters["reads"] += 1
         rc = self._io_read(state_out)
         if rc != DEV_OK:
             self._trip(rc)
+        elif self._enabled and self._fault == DEV_OK and fz.watch(self._fp, 0, self._fs, 0, state_out, self._sent, now):
+            self.counters["frozen_trips"] += 1
+            self._trip(DEV_FAULT_FROZEN)
         return self._status()
 
     def write(self, wrench: np.ndarray) -> int:

@@ -16,8 +16,9 @@ from server_harness import Rig, WatchdogDevice, make_settings
 
 from hapticproxy.server.clock import SimClock
 from hapticproxy.server.devices.base import (
-    DEV_FAULT_DISABLED, DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_WATCHDOG, DEV_OK,
+    DEV_FAULT_DISABLED, DEV_FAULT_FROZEN, DEV_FAULT_HARDWARE, DEV_FAULT_LINK, DEV_FAULT_WATCHDOG, DEV_OK,
 )
+from hapticproxy.server.status import format_status
 from hapticproxy.server.lifecycle import FAULT_POLICY, STALL_EXPLAINS_S, Fault, Reason
 from hapticproxy.server.model.layout import DIVERGE_STEPS, K_OSC_RUN, S_QD, S_QDP
 from hapticproxy.testing.cleanup import made_then_ended
@@ -39,6 +40,7 @@ class FaultyDevice(WatchdogDevice):
         self.link_up_ns = None
         self.speed = 0.0
         self.nan_at_ns = None
+        self.frozen = None  # a position row: read reports it from now on (a sensor that stopped)
 
     def _injected(self):
         now = self.clock.now_ns()
@@ -62,6 +64,9 @@ class FaultyDevice(WatchdogDevice):
         if self.nan_at_ns is not None and now >= self.nan_at_ns:
             s[1] = math.nan
             self.nan_at_ns = None
+        if self.frozen is not None:
+            s[0:3] = self.frozen
+            s[7:10] = 0.0
         return rc or self._fault
 
     def write(self, w):
@@ -199,6 +204,24 @@ def hardware(r):
     _rearm_ramps_in(r)
 
 
+def frozen(r):
+    """The position stops changing while the hand pushes: cut after safety.frozen_s (not before),
+    named; a sensor that moves again brings nothing back by itself; a re-arm ramps in."""
+    _engaged(r)
+    window = int(round(r.settings["safety"]["frozen_s"] * r.settings.rate_hz))
+    r.device.frozen = r.loop.dev[0:3].copy()
+    n0 = len(r.device.commands)
+    r.run(window * 1e-3 - 0.01)
+    assert r.loop.state_name == "engaged"  # a still handle under force is a sensor only after the window
+    r.run(0.05)
+    _cut(r, n0 + window, within=3)
+    assert r.loop.device_fault == DEV_FAULT_FROZEN and r.loop.shared.get("device_fault") == DEV_FAULT_FROZEN
+    assert "device fault: position frozen" in format_status(r.loop.shared.snapshot())  # what `status` prints
+    r.device.frozen = None
+    _latched(r, Fault.DEVICE, Reason.DEVICE_FAULT)
+    _rearm_ramps_in(r)
+
+
 def link_lost(r):
     n0 = _engaged(r)
     r.device.fault_at_ns = r.clock.now_ns()
@@ -310,7 +333,7 @@ def session_ended(r):
 
 
 SCENARIOS = {f.__name__: f for f in (
-    stall_explained, own_stall_engaged, own_stall_idle, watchdog_unexplained, hardware, link_lost, link_not_up,
+    stall_explained, own_stall_engaged, own_stall_idle, watchdog_unexplained, hardware, frozen, link_lost, link_not_up,
     nonfinite, update_error, speed_engaged, speed_idle, diverged, env_silent, session_ended)}
 
 
