@@ -184,11 +184,16 @@ def main(argv: list[str] | None = None) -> int:
                     help="seconds of the naive comparison loop (default: same as --seconds, at most 20)")
     ap.add_argument("--update-steps", type=int, default=update_steps.STEPS, metavar="N",
                     help="steps per tool kind of the update-step measurement (default %(default)s: about 1,870 "
-                         "of each update step, so that a p99 is not one of the few largest of a few hundred)")
+                         "of each update step, so that a p99 is not one of the few largest of a few hundred; "
+                         "0: skip it)")
     ap.add_argument("--update-steps-only", action="store_true", help="only the update-step measurement")
     args = ap.parse_args(argv)
     if not (100 <= args.rate <= 20000) or not args.seconds > 0:
         print("hapticproxy bench loop: --rate must be in [100, 20000] Hz and --seconds > 0", file=sys.stderr)
+        return 2
+    if args.update_steps < 0 or (args.update_steps_only and args.update_steps == 0):
+        print("hapticproxy bench loop: --update-steps must be >= 0 (0: skip the update-step measurement), and > 0 "
+              "with --update-steps-only", file=sys.stderr)
         return 2
     naive_s = min(args.seconds, 20.0) if args.naive_seconds is None else args.naive_seconds
     try:
@@ -197,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"hapticproxy bench loop: {exc}", file=sys.stderr)
         return 1
     # the steps that receive and apply a model update, per tool kind (in-process, CPU time)
-    res.update(update_steps.run(steps=args.update_steps, rate_hz=args.rate))
+    if args.update_steps:
+        res.update(update_steps.run(steps=args.update_steps, rate_hz=args.rate))
     if args.json:
         print_json(res, indent=1)
     else:

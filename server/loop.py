@@ -555,12 +555,8 @@ class HapticLoop:
                     time.sleep(0.001)
                     readable = True  # a transport without a socket is polled every millisecond
                 now = self.clock.now_ns()
-                # Python takes the lock only when it has work: each time it holds it, a servo
-                # tick may find it held and write the previous command again (servo_held); a
-                # loaded machine can preempt this thread while it holds the lock
                 hk_due = now >= next_hk
-                if not (readable or hk_due or tk[tick.TK_RC_STICKY] != 0 or tk[tick.TK_NEEDS_PYTHON] != 0
-                        or tk[tick.TK_STATE] == tick._LS_FADING or tk[tick.TK_STATE] == tick._LS_STOPPING):
+                if not python_has_work(tk, readable, hk_due):
                     continue
                 if hk_due:
                     next_hk = now + hk_ns
@@ -626,6 +622,17 @@ class HapticLoop:
 
     def device_time_s(self) -> float:
         return float(self.dev[DS_TIME])
+
+def python_has_work(tk, readable: bool, hk_due: bool) -> bool:
+    """Device-clocked: whether this thread takes the tick's lock now. Only when it has work (a
+    datagram waiting, housekeeping due, a tick's results to take, an update to apply or
+    acknowledge, a fade or a stop under way): each time it holds the lock, a servo tick may find it
+    held and write the previous command again (``servo_held``), and a loaded machine can preempt
+    this thread while it holds it."""
+    st = tk[tick.TK_STATE]
+    return bool(readable or hk_due or tk[tick.TK_RC_STICKY] != 0 or tk[tick.TK_NEEDS_PYTHON] != 0
+                or st == tick._LS_FADING or st == tick._LS_STOPPING)
+
 
 def package_kernels() -> list:
     """The numba dispatchers of every imported module of this package."""

@@ -604,18 +604,8 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
         if (mus > 0.0 or muk > 0.0) and fn > 0.0:
             # tangential velocity of the proxy point (the engine reports no tangential
             # constraint velocity, so friction acts against the proxy's own sliding)
-            v0 = 0.0; v1 = 0.0; v2 = 0.0
-            for a in range(d):
-                v0 += Jpt[i, 0, a] * qd[a]
-                v1 += Jpt[i, 1, a] * qd[a]
-                v2 += Jpt[i, 2, a] * qd[a]
-            vdn = v0 * n0 + v1 * n1 + v2 * n2
-            v0 -= vdn * n0; v1 -= vdn * n1; v2 -= vdn * n2
-            z0 = C[i, C_Z]; z1 = C[i, C_Z + 1]; z2 = C[i, C_Z + 2]
-            zdn = z0 * n0 + z1 * n1 + z2 * n2     # normals may turn at updates
-            z0 += dt * v0 - zdn * n0
-            z1 += dt * v1 - zdn * n1
-            z2 += dt * v2 - zdn * n2
+            v0, v1, v2 = _tangential(i, d, C, Jpt, qd)
+            z0, z1, z2 = _bristle(i, C, v0, v1, v2, dt)
             t0 = -kt * z0 - bt * v0
             t1 = -kt * z1 - bt * v1
             t2 = -kt * z2 - bt * v2
@@ -760,19 +750,8 @@ def _implicit_step(d, h, par, st, C, CI, cnt, Jh, Jpt, Jn, D, A, LA, W, Zn, V, m
             W[i, j] = 0.0
         if friction and C[i, C_S] <= TOUCH_TOL_M:
             # the stick force now and its bristle, as the friction pass computes them
-            n0 = C[i, C_N]; n1 = C[i, C_N + 1]; n2 = C[i, C_N + 2]
-            v0 = 0.0; v1 = 0.0; v2 = 0.0
-            for a in range(d):
-                v0 += Jpt[i, 0, a] * qd[a]
-                v1 += Jpt[i, 1, a] * qd[a]
-                v2 += Jpt[i, 2, a] * qd[a]
-            vdn = v0 * n0 + v1 * n1 + v2 * n2
-            v0 -= vdn * n0; v1 -= vdn * n1; v2 -= vdn * n2
-            z0 = C[i, C_Z]; z1 = C[i, C_Z + 1]; z2 = C[i, C_Z + 2]
-            zdn = z0 * n0 + z1 * n1 + z2 * n2
-            z0 += dt * v0 - zdn * n0
-            z1 += dt * v1 - zdn * n1
-            z2 += dt * v2 - zdn * n2
+            v0, v1, v2 = _tangential(i, d, C, Jpt, qd)
+            z0, z1, z2 = _bristle(i, C, v0, v1, v2, dt)
             W[i, 3] = -kt * z0 - bt * v0
             W[i, 4] = -kt * z1 - bt * v1
             W[i, 5] = -kt * z2 - bt * v2
@@ -915,6 +894,16 @@ def _implicit_step(d, h, par, st, C, CI, cnt, Jh, Jpt, Jn, D, A, LA, W, Zn, V, m
         if not math.isfinite(qd[a]):
             return False
     return True
+
+
+@njit(inline="always", **_JIT)
+def _bristle(i, C, v0, v1, v2, dt):
+    """Contact i's friction bristle after a period of tangential sliding (v0, v1, v2), kept in
+    the contact's tangent plane (normals may turn at updates)."""
+    n0 = C[i, C_N]; n1 = C[i, C_N + 1]; n2 = C[i, C_N + 2]
+    z0 = C[i, C_Z]; z1 = C[i, C_Z + 1]; z2 = C[i, C_Z + 2]
+    zdn = z0 * n0 + z1 * n1 + z2 * n2
+    return z0 + (dt * v0 - zdn * n0), z1 + (dt * v1 - zdn * n1), z2 + (dt * v2 - zdn * n2)
 
 
 @njit(inline="always", **_JIT)

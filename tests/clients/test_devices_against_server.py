@@ -3,7 +3,8 @@
 physics runs in its own process at 1 kHz of real time; a scripted hand pushes the device down
 with 0.5 N once the session is engaged; the pybullet client's 40 mm cube, 3 mm above the floor
 of the ``loose`` scene, comes to rest on the floor and the force balances the push, as with the
-simulated device (test_against_server.py). Positions, forces and counts; no wall-clock bound in
+simulated device (test_against_server.py); then (Touch, Force Dimension) the device's sensor
+freezes and the force is cut, the fault named. Positions, forces and counts; no wall-clock bound in
 an assertion (waits for a count give up after a generous bound only)."""
 from __future__ import annotations
 
@@ -18,7 +19,9 @@ import pytest
 
 from hapticproxy.server import config as cfgmod
 from hapticproxy.server.daemon import Supervisor
+from hapticproxy.server.devices.base import DEV_FAULT_FROZEN
 from hapticproxy.server.shm import TEL
+from hapticproxy.server.status import format_status
 
 for _m in ("forcedimension_core", "pyOpenHaptics", "HaplyHardwareAPI", "websockets", "pybullet"):
     if importlib.util.find_spec(_m) is None:
@@ -132,6 +135,26 @@ def test_the_wall_is_felt_through_each_vendor_driver(which, tmp_path, monkeypatc
         head = int(sup.shared.head[0])
         n = min(head, sup.ring_rows)
         rows = sup.shared.ring[np.arange(head - n, head) % sup.ring_rows].copy()
+        # then the device's sensor stops (the emulator's physics stops publishing) while the
+        # hand pushes: the frozen-position watch (the Touch's in its servo thread's tick, the
+        # Force Dimension's in its driver: the Haply drivers share that code, and `bench devices`
+        # runs all four) cuts the force and names the fault; when the sensor moves again nothing
+        # comes back by itself
+        frozen = after = None
+        if which in ("touch", "forcedimension"):
+            rig.block["fault_frozen"] = 1.0
+            t1 = time.monotonic()
+            while (st_ := sup.status())["device_fault"] != DEV_FAULT_FROZEN:
+                assert st_["fault"] in (0, 2) and st_["device_fault"] == 0, ("another fault came first", st_["fault"],
+                                                                             st_["device_fault"])
+                assert time.monotonic() - t1 < WAIT_S, "the frozen sensor was never named"
+                sup._serve_status(0.05)
+            named_at = int(sup.shared.head[0])  # the row of the tick that cut is before this one
+            rig.block["fault_frozen"] = 0.0
+            time.sleep(0.5)
+            frozen = sup.status()
+            head = int(sup.shared.head[0])
+            after = sup.shared.ring[np.arange(named_at, head) % sup.ring_rows].copy()
     finally:
         if client is not None:
             client.close()
@@ -158,3 +181,8 @@ def test_the_wall_is_felt_through_each_vendor_driver(which, tmp_path, monkeypatc
         assert ticks > 1000 and held < ticks, (ticks, held, engaged["servo_held"])
     else:  # the loop owns it: most ticks ran in the compiled loop, without Python
         assert snap["servo_ticks"] == 0
+    if frozen is not None:
+        assert frozen["loop_state"] == "fault" and frozen["device_fault"] == DEV_FAULT_FROZEN
+        assert "device fault: position frozen" in format_status(frozen)
+        cmd = after[:, [TEL["cmd_fx"], TEL["cmd_fy"], TEL["cmd_fz"]]]
+        assert len(after) > 10 and not np.any(cmd)  # cut, and nothing came back

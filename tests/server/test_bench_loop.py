@@ -9,7 +9,8 @@ import pytest
 
 def _bench_loop_json() -> dict:
     out = subprocess.run([sys.executable, "-m", "hapticproxy.cli.main", "bench", "loop", "--json", "--rate", "1000",
-                          "--seconds", "1", "--naive-seconds", "0.5"], capture_output=True, text=True, timeout=300)
+                          "--seconds", "1", "--naive-seconds", "0.5", "--update-steps", "0"], capture_output=True, text=True,
+                         timeout=300)
     assert out.returncode == 0, out.stderr
     return json.loads(out.stdout)
 
@@ -26,6 +27,7 @@ def test_bench_loop_prints_the_documented_keys():
     assert d["steps"] > 100 and d["updates"] > 0
     # faults: a count of the loop's own (an integer, not a flag or a rate); judged by the real-time test
     assert type(d["faults"]) is int and type(d["missed_deadlines"]) is int
+    assert "update_steps" not in d  # --update-steps 0 skips that measurement (it once raised instead)
 
 
 @pytest.mark.realtime
@@ -36,10 +38,11 @@ def test_bench_loop_runs_without_a_fault():
     assert d["faults"] == 0, d
 
 
-def test_bench_loop_rejects_bad_arguments():
-    out = subprocess.run([sys.executable, "-m", "hapticproxy.cli.main", "bench", "loop", "--rate", "5"],
+@pytest.mark.parametrize("bad", [["--rate", "5"], ["--update-steps", "-1"], ["--update-steps-only", "--update-steps", "0"]])
+def test_bench_loop_rejects_bad_arguments(bad):
+    out = subprocess.run([sys.executable, "-m", "hapticproxy.cli.main", "bench", "loop", *bad],
                          capture_output=True, text=True, timeout=60)
-    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert out.returncode == 2 and "Traceback" not in out.stderr and out.stderr.startswith("hapticproxy bench loop:")
 
 
 def test_bench_loop_prints_a_table_for_a_person():

@@ -135,3 +135,24 @@ def test_a_transport_without_a_socket_is_polled_every_millisecond_of_ticks(loop)
     assert tick.run_ticks_at(loop._desc_addr) == tick.EV_TICKED
     assert int(loop.tk[tick.TK_TICKS]) - n0 == 7
     assert tick.new_words(250_000)[tick.TK_POLL_EVERY] == 4  # 4 kHz: every 4 ticks
+
+
+def test_device_clocked_python_takes_the_lock_only_when_it_has_work():
+    """The servo thread's ticks find the lock held only while Python has work: none of the
+    reasons alone leaves it free, each reason alone takes it."""
+    from hapticproxy.server.lifecycle import LS
+    from hapticproxy.server.loop import python_has_work
+
+    tk = tick.new_words(1_000_000)
+    tk[tick.TK_STATE] = LS["engaged"]
+    assert not python_has_work(tk, False, False)
+    assert python_has_work(tk, True, False) and python_has_work(tk, False, True)
+    for word, value in ((tick.TK_RC_STICKY, 1 << 8), (tick.TK_NEEDS_PYTHON, 1), (tick.TK_STATE, LS["fading"]),
+                        (tick.TK_STATE, LS["stopping"])):
+        w = tk.copy()
+        w[word] = value
+        assert python_has_work(w, False, False), word
+    for quiet in ("idle", "fault", "engaged"):  # states that need nothing each millisecond
+        w = tk.copy()
+        w[tick.TK_STATE] = LS[quiet]
+        assert not python_has_work(w, False, False), quiet
