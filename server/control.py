@@ -808,7 +808,6 @@ class Controller:
         """The device was disabled (it renders nothing now): the safety filter starts again from
         zero output and zero gain, so whatever comes next ramps in from what the hand feels."""
         sf.reset(self.cs[CS_SAFETY:CS_SAFETY + sf.NSS])
-        fz.reset(self.cs, CS_FROZEN)  # a re-armed device's readings start a new run
 
     _COUNTERS = (("steps", CC_STEPS), ("saturated", CC_SATURATED), ("rate_limited", CC_RATE_LIMITED),
                  ("speed_trips", CC_SPEED_TRIPS), ("nonfinite", CC_NONFINITE), ("hand_missing", CC_HAND_MISSING),

@@ -122,7 +122,6 @@ class VendorDevice(DeviceDriver):
         self._fault = DEV_OK
         self._enabled = True
         self._last_write_ns = self._clock()
-        fz.reset(self._fs, 0)
 
     def disable(self) -> None:
         self._enabled = False
