@@ -139,6 +139,48 @@ def run(hand: str, layer: bool, seed: int = 0, seconds: float = 4.0, rate_hz: fl
             "rise_mm": 1e3 * rise}
 
 
+WALL_FACTOR = 5.0
+WALL_RATES_HZ = (512.0, 1000.0, 4000.0)
+WALL_CONTROLLERS = ("direct", "four_channel")
+
+
+def wall(kind: str, rate_hz: float, layer: bool, controller: str = "direct", factor: float = WALL_FACTOR) -> dict:
+    """An undamped wall (B = 0) ``factor`` times Colgate and Schenkel's bound, ``K = factor 2 b / T``
+    with ``b`` the ``kind`` device's default physical damping (``experiments.zwidth.device_physics``),
+    rendered on that device with its physical damping set to 0 (translation and rotation): the
+    z-width rig (``experiments.zwidth.run_point``: a constant 1 N push from 2 mm off the wall, a
+    continuous device behind the hold), the layer on or off. ``ptp_1s_mm``: the handle's peak to
+    peak 1-1.5 s after contact along the normal (the issue's goal with the layer: below 0.1 mm)."""
+    from ..experiments import zwidth as zw
+
+    _, b = zw.device_physics(kind, rate_hz)
+    k = factor * 2.0 * b * rate_hz
+    device = {"damping_n_s_per_m": 0.0}
+    if kind != "1dof":
+        device["rot_damping_n_m_s_per_rad"] = 0.0
+    verdict, reason, contact_s, ptp, fptp, _, ptp_1s = zw.run_point(
+        kind, rate_hz, k, 0.0, controller=controller, layer_table={"passivity": {"enabled": bool(layer)}},
+        device=device)
+    return {"kind": kind, "rate_hz": rate_hz, "controller": controller, "layer": "on" if layer else "off",
+            "bound_device_b_n_s_per_m": b, "stiffness_n_per_m": k, "wall_damping_n_s_per_m": 0.0,
+            "device_damping_n_s_per_m": 0.0, "contact_s": contact_s, "ptp_1s_mm": 1e3 * ptp_1s,
+            "ptp_window_mm": 1e3 * ptp, "force_ptp_window_n": fptp, "verdict": verdict, "reason": reason,
+            "below_0_1mm": bool(1e3 * ptp_1s < 0.1)}
+
+
+def _wall_line(r: dict) -> str:
+    return (f"wall {r['kind']:>7} {r['rate_hz']:.0f} Hz {r['controller']:>12} layer {r['layer']:>3}: K "
+            f"{r['stiffness_n_per_m']:g} N/m (5 x 2 b / T, b = {r['bound_device_b_n_s_per_m']:g}; device b = 0, B = 0), "
+            f"p-p 1 s after contact {r['ptp_1s_mm']:.4g} mm, over {zw_window()} {r['ptp_window_mm']:.4g} mm, "
+            f"{r['verdict']}")
+
+
+def zw_window() -> str:
+    from ..experiments import zwidth as zw
+
+    return f"{zw.WINDOW_START_S:g}-{zw.WINDOW_END_S:g} s"
+
+
 def _line(r: dict) -> str:
     return (f"{r['hand']:>4} layer {r['layer']:>3} seed {r['seed']} delay {r['delay_ms']:.0f} ms: {r['jumps']} jumps, "
             f"given at most {1e3 * r['given_max_j']:+.2f} mJ (budget {1e3 * r['budget_j']:.1f}, excess "
@@ -166,7 +208,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=4.0, help="simulated seconds per run (default 4)")
     ap.add_argument("--delays-ms", default="0,100", help="engine delays to run, comma-separated (default 0,100)")
     ap.add_argument("--hands", default=",".join(HANDS), help=f"comma-separated subset of {', '.join(HANDS)}")
+    ap.add_argument("--walls", action="store_true",
+                    help="instead: undamped walls at 5x Colgate and Schenkel's bound, each device kind, layer off and on")
+    ap.add_argument("--wall-rates", default=",".join(f"{r:g}" for r in WALL_RATES_HZ),
+                    help="haptic rates of the walls, Hz, comma-separated (default 512,1000,4000)")
+    ap.add_argument("--matrix", type=int, default=0, metavar="N",
+                    help="instead: N random runs of the matrix (benchmarks/passivity_matrix.py), layer off and on")
+    ap.add_argument("--matrix-seed", type=int, default=0, help="the matrix's seed (default 0)")
+    ap.add_argument("--matrix-seconds", type=float, default=3.0, help="simulated seconds per matrix run (default 3)")
+    ap.add_argument("--worst", type=int, default=5, help="matrix: the worst runs printed per layer setting (default 5)")
     args = ap.parse_args(argv)
+    if args.matrix:
+        return _matrix(args)
+    if args.walls:
+        return _walls(args)
     hands = [h.strip() for h in args.hands.split(",") if h.strip()]
     bad = [h for h in hands if h not in HANDS]
     if bad or args.seeds < 1 or not args.seconds > 1.0:
@@ -198,6 +253,59 @@ def main(argv: list[str] | None = None) -> int:
         for k, v in s.items():
             print(f"{k}: {v['runs']} runs, largest excess {1e3 * v['max_excess_j']:.2f} mJ, largest energy given "
                   f"{1e3 * v['max_given_j']:.2f} mJ, runs over budget + 1 mJ {v['runs_over_1mj']}")
+    return 0
+
+
+def _walls(args) -> int:
+    try:
+        rates = [float(r) for r in args.wall_rates.split(",") if r.strip()]
+    except ValueError:
+        rates = []
+    if not rates or not all(math.isfinite(r) and 100.0 <= r <= 20000.0 for r in rates):
+        print(f"hapticproxy bench passivity: --wall-rates: rates in Hz (100-20000), got {args.wall_rates!r}",
+              file=sys.stderr)
+        return 2
+    if args.json:
+        print_json({"run": {"machine": f"{platform.node()} {platform.machine()}",
+                            "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "walls": True}})
+    for kind in ("1dof", "planar", "spatial"):
+        for rate in rates:
+            for controller in WALL_CONTROLLERS:
+                for layer in (False, True):
+                    r = wall(kind, rate, layer, controller)
+                    print_json({"wall": r}) if args.json else print(_wall_line(r))
+    return 0
+
+
+def _matrix(args) -> int:
+    from . import passivity_matrix as pm
+
+    if args.matrix < 1 or not args.matrix_seconds >= 1.0 or args.worst < 0:
+        why = ("--matrix: at least 1 run" if args.matrix < 1 else
+               "--matrix-seconds: at least 1 (the handshake through 300 ms of delay comes first)"
+               if not args.matrix_seconds >= 1.0 else "--worst: 0 or more")
+        print(f"hapticproxy bench passivity: {why}", file=sys.stderr)
+        return 2
+    if args.json:
+        print_json({"run": {"machine": f"{platform.node()} {platform.machine()}",
+                            "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                            "matrix": args.matrix, "seed": args.matrix_seed, "seconds": args.matrix_seconds}})
+    rows = pm.run_matrix(args.matrix, args.matrix_seed, args.matrix_seconds,
+                         on_row=(lambda r: print_json({"matrix_run": r})) if args.json else None)
+    s = pm.summary(rows)
+    worst = {layer: pm.worst(rows, layer, args.worst) for layer in ("on", "off")}
+    if args.json:
+        print_json({"summary": s, "worst": {k: [r["index"] for r in v] for k, v in worst.items()}})
+        return 0
+    for layer in ("on", "off"):
+        v = s[layer]
+        print(f"layer {layer}: {v['runs']} runs, over budget + 1 mJ {v['runs_over_1mj']}, largest excess "
+              f"{1e3 * v['max_excess_books_j']:+.2f} mJ (books) {1e3 * v['max_excess_indep_j']:+.2f} mJ (independent), "
+              f"largest energy given {1e3 * v['max_given_j']:.2f} mJ, ledgers differ by at most "
+              f"{1e3 * v['max_ledger_gap_j']:.3g} mJ, runs with faults {v['runs_with_faults']}, never engaged "
+              f"{v['never_engaged']}, crashed {v['crashed']}")
+        for r in worst[layer]:
+            print("  " + pm.line(r))
     return 0
 
 
