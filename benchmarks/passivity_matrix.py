@@ -177,10 +177,13 @@ def independent_ledger(dev: np.ndarray, cmd: np.ndarray) -> np.ndarray:
     return out
 
 
-def run_case(case: Case, layer: bool, seconds: float = 3.0, *, budget_j: float = 0.01, trace: bool = False) -> dict:
+def run_case(case: Case, layer: bool, seconds: float = 3.0, *, budget_j: float = 0.01, trace: bool = False,
+             settings_over: dict | None = None) -> dict:
     """One run of ``case`` with the layer on or off; the row it reports (module docstring). With
     ``trace``: the row's ``trace`` holds per step the raw device pose and twist, the command, both
-    ledgers, the tank level and the layer's factor (numpy arrays; for a closer look at one run)."""
+    ledgers, the tank level and the layer's factor (numpy arrays; for a closer look at one run).
+    ``settings_over``: config sections merged over the run's (a counterfactual, e.g. another
+    ``safety.force_rate_n_per_s``)."""
     from ..experiments.harness import SimEnvClient
     from ..protocol.session import ClientEndpoint
     from ..server import config as cfgmod
@@ -197,9 +200,11 @@ def run_case(case: Case, layer: bool, seconds: float = 3.0, *, budget_j: float =
            "hand": hand}
     if case.scene == "hole":
         dev.update({"initial_pose": [0.0, 0.0, HOLE_THETA], "rotation_limit_rad": HOLE_THETA + 1.0})
-    settings = cfgmod.load({"transport": {"url": url}, "status": {"address": "127.0.0.1:1"}, "device": dev,
-                            "passivity": {"enabled": bool(layer), "initial_budget_j": budget_j},
-                            "telemetry": {"ring_s": 1.0}})
+    table = {"transport": {"url": url}, "status": {"address": "127.0.0.1:1"}, "device": dev,
+             "passivity": {"enabled": bool(layer), "initial_budget_j": budget_j}, "telemetry": {"ring_s": 1.0}}
+    for section, keys in (settings_over or {}).items():
+        table[section] = {**table.get(section, {}), **keys}
+    settings = cfgmod.load(table)
     clock = SimClock(start_ns=_NS)
     loop = HapticLoop.build(settings, clock=clock)
     engine = _make_engine(case, seconds + 1.0)
@@ -217,6 +222,7 @@ def run_case(case: Case, layer: bool, seconds: float = 3.0, *, budget_j: float =
         n = int(round(seconds * settings.rate_hz))
         devs = np.zeros((n, 13))
         tank = np.zeros((n, 2))
+        ctrl_out = np.zeros((n, 6))  # the controller's wrench before the layer (world)
         cmds = np.zeros((n, 6))
         ehand = np.zeros(n)
         allow = np.zeros(n)   # H0 + damped + granted, as the layer books them
@@ -234,6 +240,7 @@ def run_case(case: Case, layer: bool, seconds: float = 3.0, *, budget_j: float =
             cs = c.cs
             devs[i] = loop.dev[:13]
             tank[i] = cs[ctl.CS_TANK + pv.TS_TANK], cs[ctl.CS_TANK + pv.TS_BETA]
+            ctrl_out[i] = cs[ctl.CS_CMDW:ctl.CS_CMDW + 6]
             cmds[i] = c.cmd[:6]
             ehand[i] = cs[ctl.CS_EHAND]
             allow[i] = (c.tp[pv.TP_H0] + cs[ctl.CS_TANK + pv.TS_DAMPED] + cs[ctl.CS_TANK + pv.TS_GRANTED])
@@ -263,7 +270,7 @@ def run_case(case: Case, layer: bool, seconds: float = 3.0, *, budget_j: float =
         row["over"] = over(row["excess_books_j"], row["excess_indep_j"])
         if trace:
             row["trace"] = {"dev": devs, "cmd": cmds, "ehand_j": ehand, "indep_j": indep, "allowed_j": allow,
-                            "tank_j": tank[:, 0], "beta": tank[:, 1]}
+                            "tank_j": tank[:, 0], "beta": tank[:, 1], "controller_world": ctrl_out[:i]}
         return row
     finally:
         if env is not None:
@@ -314,13 +321,15 @@ def line(r: dict) -> str:
             f"{r['steps']} steps, faults {r['faults']}" + (f", CRASH {r['crash']}" if r["crash"] else ""))
 
 
-def run_matrix(n: int, seed: int = 0, seconds: float = 3.0, *, on_row=None) -> list[dict]:
-    """``n`` cases, each with the layer off and on; ``on_row(row)`` after each."""
+def run_matrix(n: int, seed: int = 0, seconds: float = 3.0, *, on_row=None, only=None,
+               settings_over: dict | None = None) -> list[dict]:
+    """``n`` cases (or the run numbers ``only``), each with the layer off and on; ``on_row(row)``
+    after each; ``settings_over`` as :func:`run_case` takes it."""
     rows = []
-    for i in range(n):
+    for i in (only if only is not None else range(n)):
         case = draw(seed, i)
         for layer in (False, True):
-            r = run_case(case, layer, seconds)
+            r = run_case(case, layer, seconds, settings_over=settings_over)
             rows.append(r)
             if on_row is not None:
                 on_row(r)

@@ -157,7 +157,8 @@ def test_matrix_rows_summary_and_the_layer_against_the_adversary(capsys):
 
 
 @pytest.mark.parametrize("argv", [["--matrix", "-1"], ["--matrix", "2", "--matrix-seconds", "0.5"],
-                                  ["--walls", "--wall-rates", "x"], ["--walls", "--wall-rates", "50"]])
+                                  ["--walls", "--wall-rates", "x"], ["--walls", "--wall-rates", "50"],
+                                  ["--walls", "--wall-budgets", "0.1"], ["--walls", "--wall-budgets", "a"]])
 def test_bad_matrix_and_wall_arguments_are_usage_errors(argv, capsys):
     assert bp.main(argv) == 2
     assert capsys.readouterr().err.startswith("hapticproxy bench passivity: --")
@@ -186,3 +187,33 @@ def test_the_wall_rig_takes_the_device_without_its_physical_damping():
     bare = zw.run_point("planar", 1000.0, k, 0.0, layer_table={"passivity": {"enabled": False}},
                         device={"damping_n_s_per_m": 0.0, "rot_damping_n_m_s_per_rad": 0.0})
     assert bare[6] > 3 * damped[6]  # the device's own 2 N s/m took out most of the hold's leak
+
+
+def test_a_smaller_budget_leaves_less_for_the_undamped_wall_to_swing_with():
+    # nothing dissipates (no device damping, B = 0, a pure-force hand): what the layer lets out,
+    # the wall keeps; with 1 mJ instead of 10 the four-channel wall comes to rest
+    ten = bp.wall("planar", 1000.0, True, "four_channel")
+    one = bp.wall("planar", 1000.0, True, "four_channel", budget_j=0.001)
+    assert ten["budget_j"] == 0.01 and one["budget_j"] == 0.001
+    assert ten["ptp_1s_mm"] > 0.1 and one["ptp_1s_mm"] < 0.01 and one["verdict"] == "settled"
+
+
+def test_only_and_set_rerun_chosen_runs_under_another_setting(capsys):
+    def on_row(*extra):
+        assert bp.main(["--json", "--matrix", "1", "--only", "6", "--matrix-seconds", "2", *extra]) == 0
+        lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+        rows = [x["matrix_run"] for x in lines[1:-1]]
+        assert [(r["index"], r["layer"]) for r in rows] == [(6, "off"), (6, "on")]
+        return lines[0]["run"], rows[1]
+
+    head, plain = on_row()
+    head2, wide = on_row("--set", "passivity.velocity_threshold_m_per_s=0.2")
+    assert head2["set"] == {"passivity": {"velocity_threshold_m_per_s": 0.2}} and head["set"] == {}
+    assert wide["excess_books_j"] < plain["excess_books_j"] / 2
+
+
+@pytest.mark.parametrize("argv", [["--set", "passivity"], ["--set", "passivity.enabled"], ["--only", "x"],
+                                  ["--set", "safety.force_rate_n_per_s=1e5"]])
+def test_bad_only_and_set_are_usage_errors(argv, capsys):
+    assert bp.main(["--matrix", "1", *argv]) == 2
+    assert capsys.readouterr().err.startswith("hapticproxy bench passivity: --")
