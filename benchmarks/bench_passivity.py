@@ -18,10 +18,16 @@ start); ``budget_j``, the layer's initial budget; ``excess_j = max(0, given_max_
 (the layer's promise: no more than its budget, plus what leaks through the hold and the rate
 limit); the tank's lowest level; the steps the layer limited; ``rise_mm``, how far the hand was
 lifted above where it rested before the first jump (what a user feels of the jumps).
+
+``--matrix N``: the issue's matrix instead (``benchmarks/passivity_matrix.py``: N seeded random
+runs on the shipped engines and an adversarial one, 20-120 Hz, 0-300 ms of delay with jitter and
+loss, two hands, layer off and on; ``--only`` reruns chosen runs, ``--set`` a setting over them).
+``--walls``: undamped walls at 5x Colgate and Schenkel's bound on each device kind (:func:`wall`).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import platform
 import sys
@@ -139,6 +145,56 @@ def run(hand: str, layer: bool, seed: int = 0, seconds: float = 4.0, rate_hz: fl
             "rise_mm": 1e3 * rise}
 
 
+WALL_FACTOR = 5.0
+WALL_RATES_HZ = (512.0, 1000.0, 4000.0)
+WALL_CONTROLLERS = ("direct", "four_channel")
+
+
+def wall(kind: str, rate_hz: float, layer: bool, controller: str = "direct", factor: float = WALL_FACTOR,
+         budget_j: float | None = None) -> dict:
+    """An undamped wall (B = 0) ``factor`` times Colgate and Schenkel's bound, ``K = factor 2 b / T``
+    with ``b`` the ``kind`` device's default physical damping (``experiments.zwidth.device_physics``),
+    rendered on that device with its physical damping set to 0 (translation and rotation): the
+    z-width rig (``experiments.zwidth.run_point``: a constant 1 N push from 2 mm off the wall, a
+    continuous device behind the hold), the layer on or off. ``ptp_1s_mm``: the handle's peak to
+    peak 1-1.5 s after contact along the normal (the issue's goal with the layer: below 0.1 mm).
+    ``budget_j``: the layer's initial budget (None: the config's default)."""
+    from ..experiments import zwidth as zw
+
+    _, b = zw.device_physics(kind, rate_hz)
+    k = factor * 2.0 * b * rate_hz
+    device = {"damping_n_s_per_m": 0.0}
+    if kind != "1dof":
+        device["rot_damping_n_m_s_per_rad"] = 0.0
+    table = {"enabled": bool(layer)}
+    if budget_j is not None:
+        table["initial_budget_j"] = float(budget_j)
+    verdict, reason, contact_s, ptp, fptp, _, ptp_1s = zw.run_point(
+        kind, rate_hz, k, 0.0, controller=controller, layer_table={"passivity": table}, device=device)
+    from ..server import config as cfg
+
+    budget = cfg.load({"passivity": table})["passivity"]["initial_budget_j"]
+    return {"kind": kind, "rate_hz": rate_hz, "controller": controller, "layer": "on" if layer else "off",
+            "bound_device_b_n_s_per_m": b, "stiffness_n_per_m": k, "wall_damping_n_s_per_m": 0.0,
+            "device_damping_n_s_per_m": 0.0, "budget_j": budget, "contact_s": contact_s, "ptp_1s_mm": 1e3 * ptp_1s,
+            "ptp_window_mm": 1e3 * ptp, "force_ptp_window_n": fptp, "verdict": verdict, "reason": reason,
+            "below_0_1mm": bool(1e3 * ptp_1s < 0.1)}
+
+
+def _wall_line(r: dict) -> str:
+    return (f"wall {r['kind']:>7} {r['rate_hz']:.0f} Hz {r['controller']:>12} layer {r['layer']:>3}: K "
+            f"{r['stiffness_n_per_m']:g} N/m (5 x 2 b / T, b = {r['bound_device_b_n_s_per_m']:g}; device b = 0, B = 0), "
+            f"budget {1e3 * r['budget_j']:g} mJ, p-p 1 s after contact {r['ptp_1s_mm']:.4g} mm, over {zw_window()} "
+            f"{r['ptp_window_mm']:.4g} mm, force p-p {r['force_ptp_window_n']:.3g} N: {r['verdict']}"
+            + (f" ({r['reason']})" if r["reason"] else ""))
+
+
+def zw_window() -> str:
+    from ..experiments import zwidth as zw
+
+    return f"{zw.WINDOW_START_S:g}-{zw.WINDOW_END_S:g} s"
+
+
 def _line(r: dict) -> str:
     return (f"{r['hand']:>4} layer {r['layer']:>3} seed {r['seed']} delay {r['delay_ms']:.0f} ms: {r['jumps']} jumps, "
             f"given at most {1e3 * r['given_max_j']:+.2f} mJ (budget {1e3 * r['budget_j']:.1f}, excess "
@@ -166,7 +222,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=4.0, help="simulated seconds per run (default 4)")
     ap.add_argument("--delays-ms", default="0,100", help="engine delays to run, comma-separated (default 0,100)")
     ap.add_argument("--hands", default=",".join(HANDS), help=f"comma-separated subset of {', '.join(HANDS)}")
+    ap.add_argument("--walls", action="store_true",
+                    help="instead: undamped walls at 5x Colgate and Schenkel's bound, each device kind, layer off and on")
+    ap.add_argument("--wall-rates", default=",".join(f"{r:g}" for r in WALL_RATES_HZ),
+                    help="haptic rates of the walls, Hz, comma-separated (default 512,1000,4000)")
+    ap.add_argument("--wall-budgets", default="",
+                    help="walls with the layer on: initial budgets to run, J, comma-separated (default: the config's)")
+    ap.add_argument("--matrix", type=int, default=0, metavar="N",
+                    help="instead: N random runs of the matrix (benchmarks/passivity_matrix.py), layer off and on")
+    ap.add_argument("--matrix-seed", type=int, default=0, help="the matrix's seed (default 0)")
+    ap.add_argument("--matrix-seconds", type=float, default=3.0, help="simulated seconds per matrix run (default 3)")
+    ap.add_argument("--only", default="", metavar="I,J,...",
+                    help="matrix: run only these run numbers of the seed's matrix (e.g. the worst ones again)")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="matrix: a server setting over the run's (a counterfactual; repeatable), e.g. "
+                         "passivity.velocity_threshold_m_per_s=0.2")
+    ap.add_argument("--worst", type=int, default=5, help="matrix: the worst runs printed per layer setting (default 5)")
     args = ap.parse_args(argv)
+    if args.matrix:
+        return _matrix(args)
+    if args.walls:
+        return _walls(args)
     hands = [h.strip() for h in args.hands.split(",") if h.strip()]
     bad = [h for h in hands if h not in HANDS]
     if bad or args.seeds < 1 or not args.seconds > 1.0:
@@ -198,6 +274,96 @@ def main(argv: list[str] | None = None) -> int:
         for k, v in s.items():
             print(f"{k}: {v['runs']} runs, largest excess {1e3 * v['max_excess_j']:.2f} mJ, largest energy given "
                   f"{1e3 * v['max_given_j']:.2f} mJ, runs over budget + 1 mJ {v['runs_over_1mj']}")
+    return 0
+
+
+def _walls(args) -> int:
+    try:
+        rates = [float(r) for r in args.wall_rates.split(",") if r.strip()]
+    except ValueError:
+        rates = []
+    if not rates or not all(math.isfinite(r) and 100.0 <= r <= 20000.0 for r in rates):
+        print(f"hapticproxy bench passivity: --wall-rates: rates in Hz (100-20000), got {args.wall_rates!r}",
+              file=sys.stderr)
+        return 2
+    try:
+        budgets = [float(b) for b in args.wall_budgets.split(",") if b.strip()] or [None]
+    except ValueError:
+        budgets = []
+    if not budgets or not all(b is None or (math.isfinite(b) and 0.0 <= b <= 0.05) for b in budgets):
+        print(f"hapticproxy bench passivity: --wall-budgets: energies in J (0-0.05), got {args.wall_budgets!r}",
+              file=sys.stderr)
+        return 2
+    if args.json:
+        print_json({"run": {"machine": f"{platform.node()} {platform.machine()}",
+                            "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "walls": True}})
+    for kind in ("1dof", "planar", "spatial"):
+        for rate in rates:
+            for controller in WALL_CONTROLLERS:
+                for layer, budget in [(False, None)] + [(True, b) for b in budgets]:
+                    r = wall(kind, rate, layer, controller, budget_j=budget)
+                    print_json({"wall": r}) if args.json else print(_wall_line(r))
+    return 0
+
+
+def _matrix(args) -> int:
+    from . import passivity_matrix as pm
+
+    if args.matrix < 1 or not args.matrix_seconds >= 1.0 or args.worst < 0:
+        why = ("--matrix: at least 1 run" if args.matrix < 1 else
+               "--matrix-seconds: at least 1 (the handshake through 300 ms of delay comes first)"
+               if not args.matrix_seconds >= 1.0 else "--worst: 0 or more")
+        print(f"hapticproxy bench passivity: {why}", file=sys.stderr)
+        return 2
+    over: dict = {}
+    for item in args.set:
+        key, eq, value = item.partition("=")
+        section, dot, name = key.partition(".")
+        try:
+            v = json.loads(value)
+        except ValueError:
+            v = value
+        if not (eq and dot and section and name):
+            print(f"hapticproxy bench passivity: --set: SECTION.KEY=VALUE, got {item!r}", file=sys.stderr)
+            return 2
+        over.setdefault(section, {})[name] = v
+    try:
+        only = [int(i) for i in args.only.split(",") if i.strip()]
+    except ValueError:
+        only = [-1]
+    if any(i < 0 for i in only):
+        print(f"hapticproxy bench passivity: --only: run numbers >= 0, got {args.only!r}", file=sys.stderr)
+        return 2
+    if args.json:
+        print_json({"run": {"machine": f"{platform.node()} {platform.machine()}",
+                            "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                            "matrix": args.matrix, "seed": args.matrix_seed, "seconds": args.matrix_seconds,
+                            "only": only, "set": over}})
+    try:
+        rows = pm.run_matrix(args.matrix, args.matrix_seed, args.matrix_seconds, only=only or None,
+                             settings_over=over or None,
+                             on_row=(lambda r: print_json({"matrix_run": r})) if args.json else None)
+    except Exception as exc:  # a --set the config refuses: its one line
+        from ..server.config import ConfigError
+
+        if not isinstance(exc, ConfigError):
+            raise
+        print(f"hapticproxy bench passivity: --set: {exc}", file=sys.stderr)
+        return 2
+    s = pm.summary(rows)
+    worst = {layer: pm.worst(rows, layer, args.worst) for layer in ("on", "off")}
+    if args.json:
+        print_json({"summary": s, "worst": {k: [r["index"] for r in v] for k, v in worst.items()}})
+        return 0
+    for layer in ("on", "off"):
+        v = s[layer]
+        print(f"layer {layer}: {v['runs']} runs, over budget + 1 mJ {v['runs_over_1mj']}, largest excess "
+              f"{1e3 * v['max_excess_books_j']:+.2f} mJ (books) {1e3 * v['max_excess_indep_j']:+.2f} mJ (independent), "
+              f"largest energy given {1e3 * v['max_given_j']:.2f} mJ, ledgers differ by at most "
+              f"{1e3 * v['max_ledger_gap_j']:.3g} mJ, runs with faults {v['runs_with_faults']}, never engaged "
+              f"{v['never_engaged']}, crashed {v['crashed']}")
+        for r in worst[layer]:
+            print("  " + pm.line(r))
     return 0
 
 

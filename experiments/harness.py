@@ -284,7 +284,8 @@ def trace_from_rows(spec: RunSpec, mode: str, rows: np.ndarray, **kw) -> Trace:
     dev = np.column_stack([dev, np.unwrap(_theta(rows[:, TEL["dev_qw"]], rows[:, TEL["dev_qz"]]))])
     prx = cols("proxy_x", "proxy_y")
     prx = np.column_stack([prx, np.unwrap(_theta(rows[:, TEL["proxy_qw"]], rows[:, TEL["proxy_qz"]]))])
-    extra_cols = {k: v[i0:] for k, v in kw.pop("per_step", {}).items()}
+    # a column the run did not record (``record_penalty=False``) stays None
+    extra_cols = {k: (None if v is None else v[i0:]) for k, v in kw.pop("per_step", {}).items()}
     return Trace(spec=spec, mode=mode, t_s=t, hand_start_s=float(spec.hand.start_s - t_abs[0]),
                  dev=dev, proxy=prx, dev_vel=cols("dev_vx", "dev_vy", "dev_wz"),
                  dev_xyz=cols("dev_x", "dev_y", "dev_z"), cmd_xyz=cols("cmd_fx", "cmd_fy", "cmd_fz"),

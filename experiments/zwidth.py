@@ -197,10 +197,12 @@ def refusal(kind: str, rate_hz: float, controller: str, k: float, b: float, laye
 
 def run_point(kind: str, rate_hz: float, k: float, b: float, *, controller: str = "direct",
               layer_table: dict | None = None, push_n: float = PUSH_N, keep_trace: bool = False,
-              velocity: str = "device"):
+              velocity: str = "device", device: dict | None = None):
     """Render the wall (K = ``k``, B = ``b``) on the ``kind`` device at ``rate_hz`` under the
     constant push; returns ``(verdict, reason, contact_s, ptp_m, force_ptp_n, growth, ptp_1s_m)`` (and the trace of
-    the handle's height and the command along the normal when ``keep_trace``)."""
+    the handle's height and the command along the normal when ``keep_trace``). ``device``: keys of the
+    simulated device's table over its defaults (``damping_n_s_per_m = 0``: no physical damping); the
+    server's settings are derived from that device."""
     layer_table = layer_table or {}
     settings = cfg.load(_settings_dict(kind, rate_hz, controller, k, b, layer_table, True))
     dt = settings.period_ns * 1e-9
@@ -209,11 +211,13 @@ def run_point(kind: str, rate_hz: float, k: float, b: float, *, controller: str 
     dev_cfg = {"kind": kind, "hand": {"type": "constant", "wrench": push, "start": "server"}}
     if kind == "1dof":
         dev_cfg["axis"] = [0.0, 1.0, 0.0]
+    extra = dict(device or {})
+    dev_cfg.update(extra)
     # the device advances in DEVICE_SUBSTEPS steps per haptic period under the held command: a
     # continuous device behind a zero-order hold (stepped once per period, its symplectic step keeps
     # a sampled spring's energy and hides the hold's energy leak that Colgate and Schenkel bound)
     device = make_sim_device(dev_cfg, period_s=dt / DEVICE_SUBSTEPS, clock_ns=lambda: 0)
-    settings = safe.derive(settings, make_sim_device({"kind": kind}, period_s=dt, clock_ns=lambda: 0).info)
+    settings = safe.derive(settings, make_sim_device({"kind": kind, **extra}, period_s=dt, clock_ns=lambda: 0).info)
     mc = settings["model"]
     cparams = ContactParams(mc["stiffness_n_per_m"], mc["damping_n_s_per_m"], mc["restitution"], mc["mu_static"],
                             mc["mu_kinetic"])

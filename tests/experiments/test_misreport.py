@@ -78,3 +78,11 @@ def test_single_wall_1dof_peg_force_is_untouched_by_misreports(misreport):
     assert np.max(fx) <= 0.0
     assert np.abs(np.diff(fx)).max() < 0.01
     assert np.all(np.abs(fx + 0.5) < 0.01)
+
+
+def test_a_run_without_the_penalty_column_has_none():
+    # run_simulated(record_penalty=False) used to fail slicing the column it had not recorded
+    spec = RunSpec(seconds=0.3, hand=Hand("constant", (0.0, 0.5, 0.0), start_s=0.1))
+    tr = run_simulated(spec, record_penalty=False)
+    assert tr.penalty is None and len(tr.t_s) > 0 and tr.update_step is not None
+    assert len(tr.update_step) == len(tr.t_s)
