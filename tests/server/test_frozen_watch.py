@@ -48,27 +48,47 @@ _force = st.sampled_from([(0.0, 0.0, 0.0), (0.3, 0.0, 0.0), (0.0, 0.0, -0.25), (
 
 
 @settings(max_examples=400, derandomize=True, deadline=None)
-@given(st.lists(st.tuples(st.tuples(_pos, _vel), _force, st.integers(0, 2)), min_size=1, max_size=40))
-def test_the_watch_keeps_its_contract(seq):
-    """Runs of identical readings under force, broken by a moved position or velocity (a
-    denormal; -0.0 equals 0.0), a weak command, or skipped periods (the time step varies): trips
-    exactly when the reference says."""
+@given(st.lists(st.tuples(st.tuples(_pos, _vel), _force, st.integers(1, 8), st.integers(0, 2)), min_size=1,
+                max_size=12))
+def test_the_watch_keeps_its_contract(segments):
+    """Runs of identical readings under force (each segment holds one reading and one command for
+    1-8 steps), broken by a moved position or velocity component (a denormal on one axis; -0.0
+    equals 0.0), a weak command, or skipped periods (the time step varies): trips exactly when the
+    reference says."""
     fp, po, fs, so = _arrays()
     steps, now = [], 1_000_000_000
-    for pos, force, skip in seq:
-        now += 1_000_000 * (1 + skip)
-        steps.append((pos, force, now))
+    for reading, force, n, skip in segments:
+        for _ in range(n):
+            now += 1_000_000 * (1 + skip)
+            steps.append((reading, force, now))
     want = reference(steps)
     got = []
-    for pos, force, t in steps:
+    for (pos, vel), force, t in steps:
         row = np.zeros(20)
         row[3:] = 0.123  # orientation, angular velocity and the rest do not count
-        row[0:3], row[7:10] = pos
+        row[0:3], row[7:10] = pos, vel
         cmd = np.array([*force, 9.0, 9.0, 9.0])  # torque does not count
         got.append(bool(fz.watch(fp, po, fs, so, row, cmd, t)))
-    # -0.0 == 0.0 in floating point; the kernel compares values, the reference compares tuples
-    # the same way (Python's == on floats), so both agree on what "identical" means
     assert got == want
+
+
+def test_the_sequences_reach_the_window():
+    """The property test's strategy makes runs long enough to trip (not only their absence)."""
+    seen = []
+
+    @settings(max_examples=200, derandomize=True, deadline=None)
+    @given(st.lists(st.tuples(st.tuples(_pos, _vel), _force, st.integers(1, 8), st.integers(0, 2)), min_size=1,
+                    max_size=12))
+    def count(segments):
+        steps, now = [], 0
+        for reading, force, n, skip in segments:
+            for _ in range(n):
+                now += 1_000_000 * (1 + skip)
+                steps.append((reading, force, now))
+        seen.append(any(reference(steps)))
+
+    count()
+    assert sum(seen) > 20
 
 
 def test_off_never_trips_and_the_neighbours_are_untouched():
