@@ -89,6 +89,10 @@ class Lifecycle:
         self.last_reason = Reason(reason)
         sh = lp.shared
         sh.log_transition(lp.clock.now_ns(), LS[frm], self.state, int(reason), float(detail))
+        # the state's why with it (the publisher's next pass is up to 10 ms away): a reader never
+        # sees "fault" with no fault named
+        sh.status[ST["fault"]] = self.fault
+        sh.status[ST["device_fault"]] = self.device_fault
         sh.status[ST["loop_state"]] = self.state
 
     # ---------------------------------------------------------------------------- per step

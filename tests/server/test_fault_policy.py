@@ -417,3 +417,19 @@ def test_a_fault_only_the_read_reports_cuts_and_latches():
         _latched(r, Fault.DEVICE, Reason.DEVICE_FAULT, seconds=1.0)
     finally:
         r.close()
+
+
+def test_status_names_the_fault_with_the_state(rig):
+    """The step that enters ``fault`` publishes why with it (the status publisher's pass is up
+    to 10 ms later): a reader never sees ``fault`` with no fault named."""
+    r = rig()
+    _engaged(r)
+    r.device.fault_at_ns = r.clock.now_ns()
+    r.device.fault_code = DEV_FAULT_HARDWARE
+    for _ in range(3):
+        r.loop.step()
+        if r.loop.state_name == "fault":
+            break
+    snap = r.loop.shared.snapshot()
+    assert snap["loop_state"] == "fault" and snap["fault"] == int(Fault.DEVICE)
+    assert snap["device_fault"] == DEV_FAULT_HARDWARE
