@@ -118,10 +118,10 @@ def inertias(kind: str, mass_kg: float) -> list[float | None]:
         return [None]
     top = plausible_inertia_kg_m2(kind, mass_kg)
     out = []
-    d = INERTIA_MIN_KG_M2
-    while d < top * (1 - 1e-9):
-        out.append(d)
-        d *= 10.0
+    e = round(math.log10(INERTIA_MIN_KG_M2))
+    while 10.0 ** e < top * (1 - 1e-9):
+        out.append(float(f"1e{e}"))
+        e += 1
     return out + [float(f"{top:.3g}")]
 
 
