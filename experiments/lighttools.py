@@ -9,7 +9,8 @@ the real protocol over the ``mem://`` transport (:class:`FloorEnv`): its Hello d
 (mass, principal moments; a linkage's links), it follows each ProxyState (pose, joints), stops its
 tool at the floor y = 0 as a rigid engine does, and at ``ENGINE_RATE_HZ`` reports every corner of
 its tool within ``EPSILON_M`` of the floor (normal +y), in its own tool frame. The tool starts
-``GAP_M`` above the floor, so the proxy lands on it under the push.
+``GAP_M`` above the floor, so the proxy lands on it under the push. The floor has friction
+(``MU_STATIC``, ``MU_KINETIC``: the server's ``[model]`` keys; see there why).
 
 The tools (:func:`grid`): the rigid kinds are a 40 mm box (geometry: one bottom point for the 1dof
 tool, two bottom corners for the planar, four for the spatial); their declared moments are
@@ -29,6 +30,10 @@ and the largest |F - push| of the force the device renders along the push. A run
 (:func:`verdict`) if the Hello was accepted, nothing faulted, every ProxyState of the window said
 ``engaged``, both speeds stay below ``TWIST_MAX`` and |F - push| below ``BALANCE_MAX`` x push; a
 Hello the server refuses is reported with its reason (the issue's other outcome).
+
+Each rigid tool's row also carries :func:`predicted_growth_per_s`: the growth rate of the
+four-channel loop at rest, linearised along the contact normal (positive: the tool bounces on the
+floor whatever the haptic rate; it says which heavy rigid tools do).
 
 ``run_lighttools(out, quick=...)`` writes ``lighttools.json`` and returns the summary.
 """
@@ -401,6 +406,56 @@ def _rotational(kind: str, dof: int) -> np.ndarray:
     return rot
 
 
+# --------------------------------------------------------------------------- why a heavy tool bounces
+#: contacts the rigid tools rest on (their geometry above); a linkage's are not one spring
+RIGID_CONTACTS = {"1dof": 1, "planar": 2, "spatial": 4}
+
+
+def rest_growth_per_s(tool_mass_kg: float, device_mass_kg: float, device_damping_n_s_per_m: float,
+                      contact_n_per_m: float, contact_n_s_per_m: float, coupling_n_per_m: float,
+                      coupling_n_s_per_m: float, env_gain: float = 1.0) -> float:
+    """The four-channel loop at rest on a contact, along its normal, in continuous time: the
+    proxy (m_p) on the contact (k_e, b_e: every contact the tool rests on, summed) and the
+    coupling (k_c, b_c) to the device's handle (m_d, its physical damping b_d); the device is
+    rendered the environment's force (``env_gain`` x, the four-channel's force channel) less the
+    coupling's, the proxy is given the hand's measured force (a constant push: it drops out of
+    the linearisation)::
+
+        m_p x_p'' = -k_e x_p - b_e x_p' + k_c (x_d - x_p) + b_c (x_d' - x_p')
+        m_d x_d'' = -g (k_e x_p + b_e x_p') - k_c (x_d - x_p) - b_c (x_d' - x_p') - b_d x_d'
+
+    Returns the largest real part of its eigenvalues [1/s]: above zero the resting tool's bounce
+    grows at that rate whatever the haptic rate (the loop's own instability, not the step's).
+    With ``env_gain`` 0 (the coupler) every mass is stable."""
+    mp, md = float(tool_mass_kg), float(device_mass_kg)
+    ke, be, kc, bc, bd, g = (float(contact_n_per_m), float(contact_n_s_per_m), float(coupling_n_per_m),
+                             float(coupling_n_s_per_m), float(device_damping_n_s_per_m), float(env_gain))
+    a = np.array([[0.0, 0.0, 1.0, 0.0],
+                  [0.0, 0.0, 0.0, 1.0],
+                  [(-ke - kc) / mp, kc / mp, (-be - bc) / mp, bc / mp],
+                  [(kc - g * ke) / md, -kc / md, (bc - g * be) / md, (-bc - bd) / md]])
+    return float(np.linalg.eigvals(a).real.max())
+
+
+def predicted_growth_per_s(case: Case, **overrides) -> float | None:
+    """:func:`rest_growth_per_s` for ``case``'s rigid tool on its contacts with the server's settings
+    (``overrides`` as :func:`run_case` takes them) and its simulated device's mass and damping; None
+    for a linkage or a controller without the force channel."""
+    from ..server.devices.sim import effective_config
+
+    if case.kind not in RIGID_CONTACTS:
+        return None
+    s = settings_for(case, "mem://lighttools-predict", **overrides)
+    ctl, mdl = s["controller"], s["model"]
+    if ctl["type"] != "four_channel":
+        return None
+    dev = effective_config({"kind": case.kind}, period_s=1.0 / case.rate_hz)
+    n = RIGID_CONTACTS[case.kind]
+    return rest_growth_per_s(case.mass_kg, dev["mass_kg"], dev["damping_n_s_per_m"], n * mdl["stiffness_n_per_m"],
+                             n * mdl["damping_n_s_per_m"], ctl["stiffness_n_per_m"], ctl["damping_n_s_per_m"],
+                             ctl["env_gain"])
+
+
 # --------------------------------------------------------------------------- the sweep
 def run_lighttools(out: str | None, *, quick: bool = False, cases=None, log=None) -> dict:
     """Run the grid (``quick``: :func:`quick_grid`), write ``lighttools.json`` into ``out`` (if
@@ -411,6 +466,7 @@ def run_lighttools(out: str | None, *, quick: bool = False, cases=None, log=None
         r = run_case(c)
         row = asdict(r)
         row["verdict"] = r.verdict
+        row["predicted_growth_per_s"] = predicted_growth_per_s(c)
         rows.append(row)
         if log is not None:
             log(f"lighttools {i + 1}/{len(cases)} {c.name}: {_line(row)}")
@@ -430,8 +486,10 @@ def run_lighttools(out: str | None, *, quick: bool = False, cases=None, log=None
 def _line(row: dict) -> str:
     if row["refused"]:
         return f"refused ({row['refused']})"
+    g = row.get("predicted_growth_per_s")
+    why = "" if g is None or row["verdict"] == "rests" else f" (the four-channel loop's growth {g:+.2g}/s)"
     return (f"{row['verdict']}: v {row['linear_m_per_s']:.2g} m/s, w {row['angular_rad_per_s']:.2g} rad/s, "
-            f"|F - push| {row['force_error_n']:.2g} N")
+            f"|F - push| {row['force_error_n']:.2g} N{why}")
 
 
 def summary_lines(res: dict) -> list[str]:

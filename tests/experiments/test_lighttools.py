@@ -58,6 +58,38 @@ def test_the_heavy_planar_tool_still_bounces():
     assert r.angular_rad_per_s < L.TWIST_MAX
 
 
+@pytest.mark.parametrize("kind,mass", [("planar", 1.5), ("planar", 1.8), ("spatial", 2.0), ("spatial", 3.0),
+                                       ("1dof", 3.0)])
+def test_the_linearised_four_channel_loop_says_which_heavy_tools_bounce(kind, mass):
+    """Both sides of the bound (``rest_growth_per_s``: the continuous four-channel loop at rest on
+    the tool's contacts): the planar device (0.4 kg, 2 N s/m) from about 1.7 kg on two contacts,
+    the spatial one (0.3 kg, 1 N s/m) from about 2.8 kg on four, the 1dof one (0.2 kg) never."""
+    case = L.Case(kind, mass, None if kind == "1dof" else 1e-5, 1000.0)
+    growth = L.predicted_growth_per_s(case)
+    r = L.run_case(case)
+    assert r.fault == "none" and r.diverged == 0 and not r.refused
+    assert (growth > 0.0) == (r.verdict != "rests"), (growth, r)
+    if growth > 0.0:
+        assert r.linear_m_per_s > L.TWIST_MAX and r.force_error_n > 0.1
+    # the same tool on the coupler (no force channel to the device) rests
+    if growth > 0.0:
+        _assert_rests(L.run_case(case, controller={"type": "coupler"}))
+
+
+def test_the_loops_growth_rate():
+    # the coupler's loop (no force channel) is stable for any mass; the planar device's four-channel
+    # loop on two default contacts turns unstable between 1.65 and 1.8 kg and stays so to 7 kg
+    for m in (0.005, 0.1, 2.0, 100.0):
+        assert L.rest_growth_per_s(m, 0.4, 2.0, 8000.0, 60.0, 1500.0, 15.0, env_gain=0.0) < 0.0
+    assert L.rest_growth_per_s(1.65, 0.4, 2.0, 8000.0, 60.0, 1500.0, 15.0) < 0.0
+    assert L.rest_growth_per_s(1.8, 0.4, 2.0, 8000.0, 60.0, 1500.0, 15.0) > 0.0
+    assert L.rest_growth_per_s(7.0, 0.4, 2.0, 8000.0, 60.0, 1500.0, 15.0) > 0.0
+    # more contact damping or coupling damping, or a damped device, bring it back
+    assert L.rest_growth_per_s(2.0, 0.4, 2.0, 8000.0, 120.0, 1500.0, 15.0) < 0.0
+    assert L.rest_growth_per_s(2.0, 0.4, 2.0, 8000.0, 60.0, 1500.0, 30.0) < 0.0
+    assert L.predicted_growth_per_s(L.Case("linkage-planar", 2.0, 1e-5, 1000.0)) is None
+
+
 def test_the_grid_spans_the_issues_range():
     g = L.grid()
     assert {c.kind for c in g} == set(L.KINDS) and {c.rate_hz for c in g} == {500.0, 1000.0, 4000.0, 10000.0}
@@ -125,3 +157,7 @@ def test_the_whole_grid_rests_but_the_heavy_planar_tool():
     assert not bad, bad
     heavy = [r for r in res["rows"] if (r["kind"], r["mass_kg"]) in HEAVY_PLANAR]
     assert heavy and all(r["verdict"] == "moving" for r in heavy)
+    # the linearised four-channel loop says which rigid tools bounce, on every case
+    rigid = [r for r in res["rows"] if r["predicted_growth_per_s"] is not None]
+    assert len(rigid) == 4 * (6 + 27 + 27)
+    assert all((r["predicted_growth_per_s"] > 0.0) == (r["verdict"] != "rests") for r in rigid)
