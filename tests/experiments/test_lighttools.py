@@ -49,6 +49,22 @@ def test_a_light_spatial_chain_slipping_on_the_floor_rests(case):
     _assert_rests(L.run_case(case))
 
 
+@pytest.mark.parametrize("case,why", [
+    (L.Case("spatial", 5e-10, 1e-7, 1000.0), "tool.mass_kg: 5e-10 kg"),
+    (L.Case("linkage-planar", 0.002, 1e-7, 1000.0), "tool.links[0].mass_kg: 0.000666667 kg"),
+], ids=lambda v: v.name if isinstance(v, L.Case) else "")
+def test_a_tool_below_the_floors_is_refused_with_the_smallest_value_that_works(case, why):
+    """Through the protocol: the engine reads the field and the smallest value that works in the
+    Reject (links of 0.67 g: refused; of 1 g, at the floor: at rest, the corners' 5 g chain)."""
+    r = L.run_case(case)
+    assert r.verdict == "refused" and r.state == "idle"
+    reason = r.refused.split(": ", 1)[1]
+    assert reason.startswith(why), reason
+    assert reason.endswith("at least 1e-09 kg" if case.kind == "spatial" else "at least 0.001 kg"), reason
+    if case.kind.startswith("linkage"):
+        _assert_rests(L.run_case(L.Case(case.kind, 0.003, 1e-7, 1000.0)))
+
+
 def test_the_heavy_planar_tool_still_bounces():
     """Documents what the grid leaves failing (strict: a fix makes this fail; then drop it and
     the exception in the slow sweep)."""
