@@ -10,6 +10,7 @@
     hapticproxy experiment fidelity --out out/fid    # the felt surface before / after (issue 15), simulated
     hapticproxy experiment literal --out out/lit     # the paper's eq. 6 read literally (its Fig. 14 numbers)
     hapticproxy experiment zwidth --out out/zw       # Z-width: the renderable wall (K, B) per rate and device kind
+    hapticproxy experiment lighttools --out out/lt   # tools of 5 g - 2 kg, moments from 1e-7, every kind, at rest on a floor
     hapticproxy experiment all --out out/exp         # every one of them, a folder each
 
 ``--quick``: the short version (shorter runs, fewer seeds and configurations). ``--mode``:
@@ -18,7 +19,8 @@ on 127.0.0.1) or ``simulated`` (the same stack in simulated time, deterministic)
 run the 1-DOF peg (1-DOF device, peg engine, 20 ms delay), Figs. 14-17 the planar testbed. Each writes PNG plots and
 ``metrics.json`` (keyed by method) into ``--out`` and prints a one-line summary per method.
 ``zwidth`` also takes ``--layer on|off`` (the passivity layer, where the server has one),
-``--velocity device|difference`` (what the controller reads) and ``--json`` (its summary on stdout). Exit status 0, 2 on bad arguments, 1 when a run fails.
+``--velocity device|difference`` (what the controller reads) and ``--json`` (its summary on stdout);
+``lighttools`` takes ``--json`` too (every run's row on stdout). Exit status 0, 2 on bad arguments, 1 when a run fails.
 """
 from __future__ import annotations
 
@@ -29,7 +31,8 @@ import sys
 import time
 from ..protocol.logs import doc_summary
 
-NAMES = ("fig6", "fig9", "fig14", "fig16", "fig17", "tradeoff", "rates", "fidelity", "literal", "zwidth")
+NAMES = ("fig6", "fig9", "fig14", "fig16", "fig17", "tradeoff", "rates", "fidelity", "literal", "zwidth",
+         "lighttools")
 
 
 def _summary(name: str, res: dict) -> list[str]:
@@ -65,6 +68,10 @@ def run_one(name: str, out: str, *, mode: str, quick: bool, log, layer: str | No
         from .zwidth import run_zwidth
 
         return run_zwidth(out, quick=quick, layer=layer, velocity=velocity, log=log)
+    if name == "lighttools":
+        from .lighttools import run_lighttools
+
+        return run_lighttools(out, quick=quick, log=log)
     if name == "literal":
         from .figures import paper_literal
 
@@ -85,13 +92,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--layer", choices=("on", "off"), default=None,
                    help="zwidth: with or without the passivity layer (ignored, with a note, where the server has "
                         "no [passivity] settings)")
-    p.add_argument("--json", action="store_true", help="zwidth: print the summary as JSON on stdout")
+    p.add_argument("--json", action="store_true", help="zwidth, lighttools: print the summary as JSON on stdout")
     p.add_argument("--velocity", choices=("device", "difference"), default=None,
                    help="zwidth: the velocity the controller reads: the device's (default) or the backward difference "
                         "of its positions (Colgate and Schenkel's wall)")
     args = p.parse_args(argv)
-    if (args.layer is not None or args.json or args.velocity) and args.name not in ("zwidth", "all"):
-        p.error("--layer, --json and --velocity apply to the zwidth experiment only")
+    if (args.layer is not None or args.velocity) and args.name not in ("zwidth", "all"):
+        p.error("--layer and --velocity apply to the zwidth experiment only")
+    if args.json and args.name not in ("zwidth", "lighttools", "all"):
+        p.error("--json applies to the zwidth and lighttools experiments only")
     names = tuple(n for n in NAMES if n != "rates") if args.name == "all" else (args.name,)
     log = None if args.quiet else (lambda msg: print(f"experiment: {msg}", file=sys.stderr, flush=True))
     status = 0
@@ -129,6 +138,10 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"zwidth: {res['layer_note']}")
                 for line in res["verdicts"]:
                     print(line)
+        elif name == "lighttools":
+            from .lighttools import summary_json
+
+            print(summary_json(res) if args.json else "\n".join(res["summary"]))
         elif name == "tradeoff":
             print(f"tradeoff: {len(res['rows'])} configurations; table {os.path.join(out, 'tradeoff.md')}, "
                   f"stable region {os.path.join(out, 'stable_region.md')}, Pareto plot {os.path.join(out, 'pareto.png')}")
@@ -137,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(line)
         what = {"tradeoff": "tradeoff.json, tables", "rates": "rates.json, rates.md",
                 "fidelity": "fidelity.json, fidelity.md", "literal": "literal.json, literal.md",
-                "zwidth": "zwidth.json"}.get(name, "metrics.json")
+                "zwidth": "zwidth.json", "lighttools": "lighttools.json"}.get(name, "metrics.json")
         # name the plots this run wrote (a quick fidelity run writes none)
         plots = sorted(f for f in os.listdir(out) if f.endswith(".png")
                        and os.path.getmtime(os.path.join(out, f)) >= started)

@@ -874,10 +874,27 @@ def _implicit_step(d, h, par, st, C, CI, cnt, Jh, Jpt, Jn, D, A, LA, W, Zn, V, m
             Zn[i, 1] = W[i, 7] + dt * u1
             Zn[i, 2] = W[i, 8] + dt * u2
         elif W[i, 2] != 0.0:
-            # slipping: the bristle holds the kinetic force (as the friction pass leaves it)
+            # slipping: the bristle holds the kinetic force (as the friction pass leaves it), turned
+            # by the step's tangential velocity across the slip (mode 2: the matrix has k_s there)
             for j in range(3):
                 C[i, C_FT + j] = W[i, 9 + j]
-                Zn[i, j] = -W[i, 9 + j] / kt if kt > 0.0 else 0.0
+            if W[i, 2] == 2.0:
+                ks, s0, s1, s2 = _slip_turn(i, W)
+                if ks > 0.0:
+                    u0, u1, u2 = _tangential(i, d, C, Jpt, dv)
+                    us = u0 * s0 + u1 * s1 + u2 * s2
+                    c = ks * dt
+                    g0 = W[i, 9] - c * (u0 - us * s0)
+                    g1 = W[i, 10] - c * (u1 - us * s1)
+                    g2 = W[i, 11] - c * (u2 - us * s2)
+                    gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+                    fk = math.sqrt(W[i, 9] * W[i, 9] + W[i, 10] * W[i, 10] + W[i, 11] * W[i, 11])
+                    if gn > 0.0:
+                        C[i, C_FT] = g0 * fk / gn
+                        C[i, C_FT + 1] = g1 * fk / gn
+                        C[i, C_FT + 2] = g2 * fk / gn
+            for j in range(3):
+                Zn[i, j] = -C[i, C_FT + j] / kt if kt > 0.0 else 0.0
             CI[i, CI_SLIP] = 1
             n_slip += 1
         else:
@@ -953,10 +970,38 @@ def _implicit_matrix(d, h, par, Jh, Jpt, Jn, D, A, W, m):
                 for b2 in range(a + 1):
                     A[a, b2] += ctan * (Jpt[i, 0, a] * Jpt[i, 0, b2] + Jpt[i, 1, a] * Jpt[i, 1, b2]
                                         + Jpt[i, 2, a] * Jpt[i, 2, b2])
+        elif W[i, 2] == 2.0:
+            # slipping (the friction pass's): the kinetic force -mu_k f_0 z / |z| turns with the
+            # bristle z, which the tangential velocity moves by dt v across the slip: a stiffness
+            # k_s = mu_k f_0 / |z| (about k_t: the bristle is held at mu_k f_0 / k_t) in the tangent
+            # plane across the slip direction s, implicit like the others (explicit, a light link's
+            # roll under a slow slip flipped and grew: k_s dt^2 / m far above 4)
+            ks, s0, s1, s2 = _slip_turn(i, W)
+            if ks > 0.0:
+                c = dt2 * ks
+                for a in range(d):
+                    sa = s0 * Jpt[i, 0, a] + s1 * Jpt[i, 1, a] + s2 * Jpt[i, 2, a]
+                    for b2 in range(a + 1):
+                        sb = s0 * Jpt[i, 0, b2] + s1 * Jpt[i, 1, b2] + s2 * Jpt[i, 2, b2]
+                        A[a, b2] += c * (Jpt[i, 0, a] * Jpt[i, 0, b2] + Jpt[i, 1, a] * Jpt[i, 1, b2]
+                                         + Jpt[i, 2, a] * Jpt[i, 2, b2] - Jn[i, a] * Jn[i, b2] - sa * sb)
         for a in range(d):
             ja = cni * Jn[i, a]
             for b2 in range(a + 1):
                 A[a, b2] += ja * Jn[i, b2]
+
+
+@njit(inline="always", **_JIT)
+def _slip_turn(i, W):
+    """A slipping contact's (friction mode 2) turning stiffness k_s = |kinetic force| / |bristle|
+    and its slip direction s (unit, along the kinetic force), from ``_implicit_step``'s scratch
+    ``W``; (0, 0, 0, 0) if either is zero."""
+    f0 = W[i, 9]; f1 = W[i, 10]; f2 = W[i, 11]
+    fn = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
+    zn = math.sqrt(W[i, 6] * W[i, 6] + W[i, 7] * W[i, 7] + W[i, 8] * W[i, 8])
+    if fn <= 0.0 or zn <= 0.0:
+        return 0.0, 0.0, 0.0, 0.0
+    return fn / zn, f0 / fn, f1 / fn, f2 / fn
 
 
 @njit(inline="always", **_JIT)

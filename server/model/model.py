@@ -355,16 +355,17 @@ def check_proxy_inertia(tool: "ToolSpec") -> None:
     if tool.kind == "linkage":
         for i, ln in enumerate(tool.links):
             if float(ln.mass_kg) < LINK_MASS_MIN_KG:
+                # a Reject's reason is cut at 120 characters (protocol.session): the smallest value
+                # that works comes within them
                 raise ValueError(
-                    f"tool.links[{i}].mass_kg: {float(ln.mass_kg):g} kg is lighter than a linkage's links may be: "
-                    f"a link without damping of its own that light is thrown about by the contacts of a "
-                    f"haptic step; at least {LINK_MASS_MIN_KG:g} kg")
+                    f"tool.links[{i}].mass_kg: {float(ln.mass_kg):g} kg is too light: an undamped link is thrown "
+                    f"about by its contacts; at least {LINK_MASS_MIN_KG:g} kg")
             # a planar link turns about z only; a spatial one about every axis
             least = ln.inertia_matrix()[2, 2] if tool.planar else float(np.linalg.eigvalsh(ln.inertia_matrix())[0])
             if least < LINK_INERTIA_MIN_KG_M2:
                 raise ValueError(
-                    f"tool.links[{i}].inertia_kg_m2: a moment of {least:g} kg m^2 is below what a linkage's "
-                    f"links may have; at least {LINK_INERTIA_MIN_KG_M2:g} kg m^2")
+                    f"tool.links[{i}].inertia_kg_m2: a moment of {least:g} kg m^2 is below what a link may have; "
+                    f"at least {LINK_INERTIA_MIN_KG_M2:g} kg m^2")
         return
     if float(tool.mass_kg) < TOOL_MASS_MIN_KG:
         raise ValueError(f"tool.mass_kg: {float(tool.mass_kg):g} kg is below the lightest tool the haptic step "
@@ -374,8 +375,8 @@ def check_proxy_inertia(tool: "ToolSpec") -> None:
     inertia = np.asarray(tool.inertia_kg_m2, dtype=np.float64)
     least = inertia[2, 2] if tool.kind == "planar" else float(np.linalg.eigvalsh(inertia)[0])
     if least < TOOL_INERTIA_MIN_KG_M2:
-        raise ValueError(f"tool.inertia_kg_m2: a moment of {least:g} kg m^2 is below the smallest the haptic step "
-                         f"is stable for; at least {TOOL_INERTIA_MIN_KG_M2:g} kg m^2")
+        raise ValueError(f"tool.inertia_kg_m2: a moment of {least:g} kg m^2 is below what the haptic step holds "
+                         f"stably; at least {TOOL_INERTIA_MIN_KG_M2:g} kg m^2")
 
 
 @dataclass

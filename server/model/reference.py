@@ -312,7 +312,8 @@ def implicit_velocity(par, h, D, J, Jh, n, s, vn, touching, fn, ft, slip, z_prev
     alike. A touching contact is in S when f_e = f_0 - (b + dt k) n^T J dv > 0 (f_0 = -k s -
     b v_n); with friction, t is its stick force t_0 = -k_t z - b_t v_t now (z the bristle
     stretched by dt v_t) while t_0 - (b_t + dt k_t) (I - n n^T) J dv stays within mu_s f_e, else
-    mu_k f_0 along that force (-mu_k f_0 z / |z| where the friction pass found it slipping; a
+    mu_k f_0 along that force (-mu_k f_0 z / |z| where the friction pass found it slipping, turned
+    by dt (I - n n^T - s s^T) J dv with the stiffness mu_k f_0 / |z| across its slip s; a
     slipping one whose stick force would be inside sticks); the guess is the friction pass's (``fn`` > 0, ``slip``,
     its kinetic forces ``ft``). Returns (qd + dv, the generalized contact force, fn, ft, bristles,
     slip flags)."""
@@ -339,11 +340,19 @@ def implicit_velocity(par, h, D, J, Jh, n, s, vn, touching, fn, ft, slip, z_prev
                       -(muk * np.maximum(f0, 0.0) / np.where(zn > 0, zn, 1.0))[:, None] * zs, 0.0)
     slipping = friction & (fn > 0) & (slip != 0)
     mode = np.where(slipping, 2, np.where(friction, 1, 0))
+    # a slipping contact's kinetic force turns with its bristle: k_s = mu_k f_0 / |z| across the
+    # slip direction s in the tangent plane (Jx: that part of the point Jacobian)
+    tsn = np.linalg.norm(t_slip, axis=1)
+    ks = np.where((tsn > 0) & (zn > 0), tsn / np.where(zn > 0, zn, 1.0), 0.0)
+    sdir = t_slip / np.where(tsn > 0, tsn, 1.0)[:, None]
+    Jx = Jt - np.einsum("ia,ib,ibk->iak", sdir, sdir, Jt)
     inS = fn > 0.0
     for _ in range(IMPLICIT_MAX_SOLVES):
         stick = inS & ((mode == 1) | (mode == 4))
+        turn = inS & (mode == 2)
         A = (a_hand + cn * np.einsum("i,ia,ib->ab", inS * 1.0, Jn, Jn)
-             + ctan * np.einsum("i,iqa,iqb->ab", stick * 1.0, Jt, Jt))
+             + ctan * np.einsum("i,iqa,iqb->ab", stick * 1.0, Jt, Jt)
+             + dt * dt * np.einsum("i,iqa,iqb->ab", turn * ks, Jx, Jx))
         t = np.where(((mode == 1) | (mode == 4))[:, None], t0, t_slip)
         f_s = np.where(inS[:, None], f0[:, None] * n + t, 0.0)
         dv = dt * np.linalg.solve(A, base + np.einsum("ijk,ij->k", J, f_s))
@@ -368,6 +377,10 @@ def implicit_velocity(par, h, D, J, Jh, n, s, vn, touching, fn, ft, slip, z_prev
     t_end = t0 - (bt + dt * kt) * u
     tn = np.linalg.norm(t_end, axis=1)
     t_end *= np.where(tn > mus * fn1, mus * fn1 / np.where(tn > 0, tn, 1.0), 1.0)[:, None]   # within the cone
+    turned = t_slip - (dt * ks)[:, None] * np.einsum("iak,k->ia", Jx, dv)
+    gn = np.linalg.norm(turned, axis=1)
+    turned *= (tsn / np.where(gn > 0, gn, 1.0))[:, None]
+    t_slip = np.where(((mode == 2) & (ks > 0) & (gn > 0))[:, None], turned, t_slip)
     ft1 = np.where(stick, t_end, np.where(slid, t_slip, 0.0))
     z1 = np.where(stick, zs + dt * u, np.where(slid, -t_slip / kt if kt > 0 else 0.0, 0.0))
     slip1 = slid[:, 0].astype(np.int64)

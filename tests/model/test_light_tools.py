@@ -377,6 +377,27 @@ def test_a_linkage_with_a_link_below_the_floor_is_refused_naming_the_link():
         LocalModel(ToolSpec.linkage(links, 1, True), warm=False)
 
 
+def test_every_refusal_names_the_smallest_value_within_a_rejects_reason():
+    """A Reject's reason is cut at 120 characters (``protocol.session``): the smallest value that
+    works must come within them, with the largest index and the longest numbers a Hello can bring
+    (the linkage's reason was cut before its "at least" once)."""
+    from hapticproxy.protocol.session import ServerEndpoint  # noqa: F401 - where the cut lives
+
+    links = list(chain_tool(0.01, 1e-7, True, n_links=10).links)     # the most a linkage may have
+    light = list(links)
+    light[9] = LinkSpec(0.000666667, links[9].com_m, links[9].inertia_kg_m2, 8, "revolute", links[9].axis,
+                        links[9].origin_m)
+    thin = list(links)
+    thin[9] = LinkSpec(0.01, links[9].com_m, (1.23456e-10,) * 3, 8, "revolute", links[9].axis, links[9].origin_m)
+    tools = [ToolSpec.spatial(1.23456e-10, (1e-6,) * 3), ToolSpec.spatial(0.01, (1e-6, 1.23456e-16, 1e-6)),
+             ToolSpec.planar(0.01, 1.23456e-16), ToolSpec.linkage(light, 1, True), ToolSpec.linkage(thin, 1, True)]
+    for tool in tools:
+        with pytest.raises(ValueError) as e:
+            LocalModel(tool, warm=False)
+        why = str(e.value)
+        assert len(why) <= 120 and " at least " in why, why
+
+
 def test_the_server_refuses_such_a_hello_by_name():
     from hapticproxy.protocol.codec import Hello
     from hapticproxy.protocol.messages import ToolKind
