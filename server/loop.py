@@ -22,7 +22,8 @@ silence, and every 10 ms housekeeping (session timers, the supervisor's requests
 publishing the status). The compiled loop runs the steps that need no Python by itself.
 
 Extension points: a device (``devices/base.DeviceDriver``: its ``tick_arrays`` for a simulated one,
-``servo_io`` for one that owns the clock, plain ``read`` / ``write`` otherwise), a controller
+``servo_io`` for one that owns the clock, plain ``read`` / ``write`` otherwise; a workspace
+mapping around any of them, ``devices/mapped.MappedDevice``, runs inside the tick), a controller
 (``control.CONTROLLERS``, inside the tick), a passivity layer (between the controller's command
 and the safety filter in ``control._command_out``; the energy ledger at the port is
 ``control.port_energy``), a second device (a second ``TickArrays`` and tick: not built yet).
@@ -39,6 +40,7 @@ from . import egress, ingest, tick
 from .devices import safe
 from .devices.base import DEV_FAULT_NAMES, DEV_NSTATE, DS_TIME, empty_state, load_device
 from .devices.mapped import MappedDevice
+from .devices.mapping import M_CMD, NM
 from .lifecycle import LOOP_STATES, LS, Fault, Reason
 from .loop_lifecycle import WD_OK, WD_SESSION_ENDED, WD_SILENT, Lifecycle  # noqa: F401 - re-exported
 from .model.model import LinkSpec, LocalModel, ToolSpec, warm_up as model_warm_up
@@ -122,19 +124,26 @@ class HapticLoop:
             if not hasattr(transport, name):
                 raise ValueError(f"transport: {type(transport).__name__} has no {name}")
         self.device = device
+        # a workspace mapping (devices/mapping.py) runs inside the tick, on the array the
+        # MappedDevice holds (its clutch's state included): the loop drives the driver under it
+        # (its tick_arrays, servo_io or read / write) and the tick maps around that driver
+        mapped = isinstance(device, MappedDevice)
+        self._driver = device.inner if mapped else device
+        self._map = device.mapping if mapped else np.zeros(NM)
         self._owns_transport = False
         self._owns_device = False
         self.ctrl = controller or ctl.Controller(settings, self.device.kind, self.device.limits)
         if self.ctrl.device_kind != self.device.kind:
             raise ValueError(f"controller: made for a {self.ctrl.device_kind} device, the device is {self.device.kind}")
         # a position frozen under force (devices.frozen): a driver that has the watch runs it on
-        # its own raw readings (through a mapping too); the tick runs it on the row it reads, for
-        # the rest, never behind a mapping (a held clutch keeps the row still on purpose), and for
-        # a device whose servo thread runs the tick (its driver's read is not called then)
+        # its own raw readings (through a mapping too); the tick runs it for the rest, and for a
+        # device whose servo thread runs the tick (its driver's read is not called then), on the
+        # raw row before the mapping (a held clutch keeps the mapped row still on purpose) against
+        # the force the device was written
         watch = getattr(self.device, "watch_frozen", None)
         if watch is not None:
             watch(settings["safety"]["frozen_s"], self.ctrl.frozen_force_n)
-        self.ctrl.watch_frozen(watch is None and not isinstance(self.device, MappedDevice))
+        self.ctrl.watch_frozen(watch is None)
         self.index_mapping = settings["controller"]["mapping"] == "index"
         self.dev = empty_state()
         self._stop_flag = False
@@ -164,10 +173,13 @@ class HapticLoop:
         fileno = getattr(transport, "fileno", None)
         tk[tick.TK_FD] = fileno() if callable(fileno) else -1
         tk[tick.TK_STATE] = int(self.life.state)
-        sim_arrays = getattr(self.device, "tick_arrays", None)
+        sim_arrays = getattr(self._driver, "tick_arrays", None)
         self._dev_arrays = sim_arrays() if callable(sim_arrays) else _NO_SIM_DEVICE
         self._io = tick.IO_SIM if callable(sim_arrays) else tick.IO_EXTERNAL
         tk[tick.TK_IO] = self._io
+        tk[tick.TK_MAPPED] = 1 if mapped else 0
+        #: what a driver in Python is written (IO_EXTERNAL): the tick's device command
+        self._wcmd = self._map[M_CMD:M_CMD + 6] if mapped else self.ctrl.cmd
         self.bind()
         st = self.shared.status
         st[ST["period_ns"]] = self.period_ns
@@ -185,7 +197,7 @@ class HapticLoop:
         largs = proto.linkage_args()
         lmeta, lk, lki, lw = largs if largs is not None else _NO_LINKAGE
         self._T = tick.TickArrays(c.cp, c.cs, c.cc, c.cmd, c.hand, c.R, c.c, self.dev, *self._dev_arrays,
-                                  par, st_, C, CI, cnt, wk, lmeta, lk, lki, lw,
+                                  self._map, par, st_, C, CI, cnt, wk, lmeta, lk, lki, lw,
                                   sh.tel, sh.head, sh.hist_late, sh.hist_step, sh.stat, tk)
         # Python calls the tick through a descriptor of these arrays (one integer to pass, not
         # 32 arrays to unbox); the descriptor keeps the arrays it names referenced through _T
@@ -282,9 +294,10 @@ class HapticLoop:
         tk = tick.new_words(self.period_ns)
         tk[tick.TK_SIMULATED] = 1
         tk[tick.TK_IO] = self._io
+        tk[tick.TK_MAPPED] = self.tk[tick.TK_MAPPED]
         Tw = tick.TickArrays(c.cp, c.cs, c.cc, c.cmd, c.hand, c.R, c.c, dev, *(a.copy() for a in self._dev_arrays),
-                             *tmp.kernel_args()[1:], *(a.copy() for a in _NO_LINKAGE), scratch.tel, scratch.head,
-                             scratch.hist_late, scratch.hist_step, scratch.stat, tk)
+                             self._map.copy(), *tmp.kernel_args()[1:], *(a.copy() for a in _NO_LINKAGE), scratch.tel,
+                             scratch.head, scratch.hist_late, scratch.hist_step, scratch.stat, tk)
         dw = tick.descriptor(Tw, check=True)
         tick.descriptor(self._T, check=True)  # the loop's own arrays: the types the reader builds
         tick.tick_at(dw.ctypes.data, 0, 0)
@@ -296,7 +309,7 @@ class HapticLoop:
         if self.device_clocked:  # the servo callback and the device's C functions (cfuncs: compiled at import)
             from . import servo  # noqa: F401
 
-            self.device.servo_io()
+            self._driver.servo_io()
         self._kernels = package_kernels()
         self._kernels_compiled = sum(len(d.overloads) for d in self._kernels)
 
@@ -359,9 +372,9 @@ class HapticLoop:
             self.life.check_silence(wake)
         # 1: the tick
         if self._io == tick.IO_EXTERNAL:
-            tk[tick.TK_EXT_RC] = self.device.read(self.dev)
+            tk[tick.TK_EXT_RC] = self._driver.read(self.dev)
             rcs = tick.tick_at(self._desc_addr, wake, late)
-            rc_w = self.device.write(self.ctrl.cmd)
+            rc_w = self._driver.write(self._wcmd)
             if rc_w:
                 rcs |= (rc_w & 0xFF) << 16
             if clock.simulated:
@@ -512,9 +525,10 @@ class HapticLoop:
 
     @property
     def device_clocked(self) -> bool:
-        """The device owns the clock (its SDK's servo thread runs the tick: ``server/servo.py``)."""
+        """The device owns the clock (its SDK's servo thread runs the tick: ``server/servo.py``),
+        through a workspace mapping too (the tick maps)."""
         info = getattr(self.device, "info", None)
-        return getattr(info, "clock", "loop") == "device" and callable(getattr(self.device, "servo_io", None))
+        return getattr(info, "clock", "loop") == "device" and callable(getattr(self._driver, "servo_io", None))
 
     def _run_device_clocked(self, duration_s) -> None:
         """The tick runs in the device's servo thread (``servo.SERVO_CALLBACK``); this thread runs
@@ -526,7 +540,7 @@ class HapticLoop:
         from .servo import SERVO_CALLBACK, ServoBinding, lock, unlock
 
         tk = self.tk
-        io = self.device.servo_io()
+        io = self._driver.servo_io()
         rate = getattr(self.device.info, "native_rate_hz", None) or self.settings.rate_hz
         binding = ServoBinding(int(round(1e9 / rate)), io["begin"], io["end"], io["ctx"])
         lock(tk)
@@ -542,7 +556,7 @@ class HapticLoop:
         finally:
             unlock(tk)
         self.servo = binding
-        self.device.schedule(SERVO_CALLBACK, binding.address)
+        self._driver.schedule(SERVO_CALLBACK, binding.address)
         fd = int(tk[tick.TK_FD])
         end_ns = None if duration_s is None else self.clock.now_ns() + int(duration_s * 1e9)
         hk_ns = int(tk[tick.TK_HK_EVERY]) * int(self.period_ns)
@@ -576,7 +590,7 @@ class HapticLoop:
                     self.request_stop()
                     end_ns = None
         finally:
-            self.device.schedule_python()  # the servo thread must not reach arrays freed after this
+            self._driver.schedule_python()  # the servo thread must not reach arrays freed after this
 
     def _after_compiled_tick(self) -> None:
         """What a tick run by ``run_ticks`` left for Python: its results, a datagram, housekeeping."""

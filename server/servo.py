@@ -13,12 +13,12 @@ Python (the loop's lifecycle and protocol: ``HapticLoop`` in its service loop) a
 thread share the tick's arrays. They take turns through one lock word (``TK_LOCK``, a
 compare-and-swap): Python holds it while it changes anything the tick reads (an engagement, a
 model update, a fault's cut, a transition) and for no longer; a servo tick that finds it held does
-not tick, it writes the previous command again (what the safety filter last let through: the
-device never waits, never gets anything new) and counts the tick as held (``SB_HELD``). What a
-tick reports for Python (faults, a fade that ended) accumulates in ``TK_RC_STICKY`` until Python
-takes it. A device fault or a non-finite value cuts the output in the servo thread at once (the
-safety filter's reset: zero from the next tick), and the environment's silence starts the fade
-there too, whenever Python gets to act on them.
+not tick, it writes the previous command again (what the safety filter last let through, in the
+device's frame through a workspace mapping: the device never waits, never gets anything new) and
+counts the tick as held (``SB_HELD``). What a tick reports for Python (faults, a fade that ended)
+accumulates in ``TK_RC_STICKY`` until Python takes it. A device fault or a non-finite value cuts
+the output in the servo thread at once (the safety filter's reset: zero from the next tick), and
+the environment's silence starts the fade there too, whenever Python gets to act on them.
 
 The servo thread's own timing (its period jitter, ticks late, held) is measured here: each tick's
 start goes into a ring (``SB_RING``), which ``bench devices`` and ``bench loop`` read.
@@ -79,9 +79,10 @@ def servo_tick(blk):
         blk[SB_TICKS] += 1
         atomic_store(tk, tk_.TK_LOCK, 0)
     else:
-        # Python is changing the tick's state: the device gets the previous command again
+        # Python is changing the tick's state: the device gets the previous command again (in its
+        # own frame: through a mapping, what map_command made of it)
         if tk[tk_.TK_IO] == tk_.IO_NATIVE:
-            call_i32_ptr_ptr(tk[tk_.TK_NATIVE_WRITE], tk[tk_.TK_NATIVE_CTX], T.cmd.ctypes.data)
+            call_i32_ptr_ptr(tk[tk_.TK_NATIVE_WRITE], tk[tk_.TK_NATIVE_CTX], tk_.device_command(T).ctypes.data)
         blk[SB_HELD] += 1
     blk[SB_LAST_NS] = now
     if blk[SB_END] != 0:

@@ -6,10 +6,14 @@ sampled and commanded first after the deadline:
 1. read the device (``IO_SIM``: the simulated device's kernel; ``IO_NATIVE``: a C function of
    the device's library, through ``native.call_i32_ptr_ptr``; ``IO_EXTERNAL``: the caller read it
    into ``T.dev`` and passes its status in ``T.tk[TK_EXT_RC]``); a position frozen under force
-   (``devices.frozen``) is the read's fault ``DEV_FAULT_FROZEN``;
+   (``devices.frozen``, judged on the raw row) is the read's fault ``DEV_FAULT_FROZEN``; with a
+   workspace mapping (``TK_MAPPED``), ``devices.mapping.map_state`` then turns the row into the
+   scene's (scale, offset, rotation, the clutch; its array is ``T.map``);
 2. the controller, the model step and the safety filter (``control.haptic_step`` or
    ``haptic_step_linkage``);
-3. write the device (``IO_EXTERNAL``: the caller writes ``T.cmd`` after the call);
+3. with a mapping, ``map_command`` turns the filter's wrench into the device's (``T.map``'s block
+   ``M_CMD``); write the device (``IO_EXTERNAL``: the caller writes ``device_command(T)`` after
+   the call);
 4. account: histograms, maxima and one telemetry row (``rings.account``).
 
 It allocates nothing and touches no Python object; ``T`` (:class:`TickArrays`) holds every array it
@@ -41,6 +45,7 @@ from . import control as ctl
 from .devices.base import DEV_FAULT_FROZEN
 from .devices.dynamics import sim_read, sim_write_hand
 from .devices.frozen import watch as frozen_watch
+from .devices.mapping import M_CMD, map_command, map_state
 from .native import address_as, call_i32_ptr_ptr, fd_readable, monotonic_ns, sleep_until_ns
 from .lifecycle import LS
 from .rings import account
@@ -49,12 +54,13 @@ from .shm import STATUS_DTYPE, TEL_DTYPE
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 #: Every array the tick touches. The controller's (``control.Controller``), the device's (its
-#: state row ``dev``, and a simulated device's own arrays ``d*``: dummies for other devices), the
+#: state row ``dev``, a simulated device's own arrays ``d*``: dummies for other devices, and the
+#: workspace mapping's array ``map``, ``devices.mapping.M_*``: a dummy without a mapping), the
 #: model's (``LocalModel.kernel_args`` and, for a linkage, ``linkage_args``: dummies for a rigid
 #: tool), the shared rings' (``shm.SharedState``) and the tick's own words ``tk``.
 TickArrays = namedtuple("TickArrays", (
     "cp", "cs", "cc", "cmd", "hand", "R", "c",
-    "dev", "dpar", "dst", "dcnt", "dctl", "dhp", "dtab", "dhout", "dcmd",
+    "dev", "dpar", "dst", "dcnt", "dctl", "dhp", "dtab", "dhout", "dcmd", "map",
     "par", "st", "C", "CI", "cnt", "wk", "lmeta", "lk", "lki", "lw",
     "tel", "head", "hist_late", "hist_step", "stat",
     "tk",
@@ -99,6 +105,8 @@ TK_LOCK = 33            # device-clocked: 0 free, 1 a servo tick runs, 2 Python 
 TK_RC_STICKY = 34       # device-clocked: every tick's results since Python last took them (OR)
 TK_POLL_EVERY = 35      # a transport without a socket is polled by Python every this many ticks
 TK_POLL_COUNT = 36      # ticks since it was
+TK_MAPPED = 37          # 1: the device is seen through the workspace mapping ``T.map`` (map_state
+                        # after the read, map_command before the write); 0: as it is
 NTK = 38
 
 IO_EXTERNAL = 0
@@ -117,6 +125,16 @@ _LS_STOPPING = 4
 
 
 @njit(**_JIT)
+def device_command(T):
+    """The wrench the tick writes to the device (``IO_EXTERNAL``: the caller does): the safety
+    filter's ``T.cmd``, or through a mapping its image in the device's frame (``T.map``'s block
+    ``M_CMD``)."""
+    if T.tk[TK_MAPPED] != 0:
+        return T.map[M_CMD:M_CMD + 6]
+    return T.cmd
+
+
+@njit(**_JIT)
 def tick(T, wake_ns, late_ns):
     """One haptic period (see the module docstring). Returns the packed results (also in
     ``TK_RC``): the controller's rc, the device read's << 8, the write's << 16; 0: all fine."""
@@ -129,22 +147,30 @@ def tick(T, wake_ns, late_ns):
         rc_dev = call_i32_ptr_ptr(tk[TK_NATIVE_READ], tk[TK_NATIVE_CTX], T.dev.ctypes.data)
     else:
         rc_dev = tk[TK_EXT_RC]
-    # judged before the controller uses it, against the force written in the period it covers
-    if rc_dev == 0 and frozen_watch(T.cp, ctl.CP_FROZEN, T.cs, ctl.CS_FROZEN, T.dev, T.cmd, wake_ns):
+    mapped = tk[TK_MAPPED] != 0
+    # judged before the controller uses it, on the raw row (device frame: a held clutch keeps the
+    # mapped row still on purpose) against the force written to the device in the period it covers
+    if rc_dev == 0 and frozen_watch(T.cp, ctl.CP_FROZEN, T.cs, ctl.CS_FROZEN, T.dev, device_command(T), wake_ns):
         rc_dev = DEV_FAULT_FROZEN
+    if mapped:
+        map_state(T.dev, T.map)  # device frame -> the scene's, the clutch (devices/mapping.py)
     if tk[TK_LINKAGE] != 0:
         rc = ctl.haptic_step_linkage(T.cp, T.cs, T.cc, T.dev, T.cmd, T.par, T.lmeta, T.lk, T.lki, T.st, T.C, T.CI,
                                      T.cnt, T.wk, T.lw, T.hand)
     else:
         rc = ctl.haptic_step(T.cp, T.cs, T.cc, T.dev, T.cmd, tk[TK_ACTIVE], tk[TK_KIND], T.par, T.st, T.C, T.CI,
                              T.cnt, T.wk, T.hand, T.R, T.c)
+    wcmd = T.cmd
+    if mapped:
+        wcmd = device_command(T)
+        map_command(T.cmd, T.map, wcmd)  # the scene's wrench -> the device's, the clutch's gain
     rc_w = 0
     simulated = tk[TK_SIMULATED] != 0
     if io == IO_SIM:
-        rc_w = sim_write_hand(T.dpar, T.dst, T.dcnt, T.dctl, T.dhp, T.dtab, T.dhout, T.cmd, T.dcmd,
+        rc_w = sim_write_hand(T.dpar, T.dst, T.dcnt, T.dctl, T.dhp, T.dtab, T.dhout, wcmd, T.dcmd,
                               wake_ns if simulated else monotonic_ns())
     elif io == IO_NATIVE:
-        rc_w = call_i32_ptr_ptr(tk[TK_NATIVE_WRITE], tk[TK_NATIVE_CTX], T.cmd.ctypes.data)
+        rc_w = call_i32_ptr_ptr(tk[TK_NATIVE_WRITE], tk[TK_NATIVE_CTX], wcmd.ctypes.data)
     end = wake_ns + tk[TK_SIM_COST_NS] if simulated else monotonic_ns()
     tk[TK_LAST_WRITE_NS] = end
     account(T.tel, T.head, T.hist_late, T.hist_step, T.stat, tk[TK_PERIOD_NS], late_ns, end - wake_ns,
@@ -242,7 +268,7 @@ _TEL = types.Array(from_dtype(TEL_DTYPE), 1, "C", aligned=False)
 _STAT = types.Array(from_dtype(STATUS_DTYPE), 1, "C", aligned=False)
 #: the numba type of each field of ``tick.TickArrays``, in order
 FIELD_TYPES = (_F1, _F1, _I1, _F1, _F1, _F2, _F1,
-               _F1, _F1, _F1, _I1, _I1, _F1, _F2, _F1, _F1,
+               _F1, _F1, _F1, _I1, _I1, _F1, _F2, _F1, _F1, _F1,
                _F1, _F1, _F2, _I2, _I1, _F1, _I1, _F2, _I2, _F2,
                _TEL, _I1, _I1, _I1, _STAT,
                _I1)
@@ -280,15 +306,15 @@ def tick_arrays_at(addr):
     return TickArrays(
         _f1(d[0], (d[1],)), _f1(d[3], (d[4],)), _i1(d[6], (d[7],)), _f1(d[9], (d[10],)), _f1(d[12], (d[13],)),
         _f2(d[15], (d[16], d[17])), _f1(d[18], (d[19],)),
-        _f1(d[21], (d[22],)), _f1(d[24], (d[25],)), _f1(d[27], (d[28],)), _i1(d[30], (d[31],)),
-        _i1(d[33], (d[34],)), _f1(d[36], (d[37],)), _f2(d[39], (d[40], d[41])), _f1(d[42], (d[43],)),
-        _f1(d[45], (d[46],)),
-        _f1(d[48], (d[49],)), _f1(d[51], (d[52],)), _f2(d[54], (d[55], d[56])), _i2(d[57], (d[58], d[59])),
-        _i1(d[60], (d[61],)), _f1(d[63], (d[64],)), _i1(d[66], (d[67],)), _f2(d[69], (d[70], d[71])),
-        _i2(d[72], (d[73], d[74])), _f2(d[75], (d[76], d[77])),
-        _tel(d[78], (d[79],)), _i1(d[81], (d[82],)), _i1(d[84], (d[85],)), _i1(d[87], (d[88],)),
-        _stat(d[90], (d[91],)),
-        _i1(d[93], (d[94],)))
+        _f1(d[21], (d[22],)), _f1(d[24], (d[25],)), _f1(d[27], (d[28],)), _i1(d[30], (d[31],)), _i1(d[33], (d[34],)),
+        _f1(d[36], (d[37],)), _f2(d[39], (d[40], d[41])), _f1(d[42], (d[43],)), _f1(d[45], (d[46],)),
+        _f1(d[48], (d[49],)),
+        _f1(d[51], (d[52],)), _f1(d[54], (d[55],)), _f2(d[57], (d[58], d[59])), _i2(d[60], (d[61], d[62])),
+        _i1(d[63], (d[64],)), _f1(d[66], (d[67],)), _i1(d[69], (d[70],)), _f2(d[72], (d[73], d[74])),
+        _i2(d[75], (d[76], d[77])), _f2(d[78], (d[79], d[80])),
+        _tel(d[81], (d[82],)), _i1(d[84], (d[85],)), _i1(d[87], (d[88],)), _i1(d[90], (d[91],)),
+        _stat(d[93], (d[94],)),
+        _i1(d[96], (d[97],)))
 
 
 @njit(**_JIT)

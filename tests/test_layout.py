@@ -169,7 +169,7 @@ def test_the_architecture_page_shows_the_fault_policy_as_declared():
 #: the modules that declare array layouts (named columns of the arrays the kernels share)
 LAYOUT_MODULES = ("server/model/layout.py", "server/devices/layout.py", "server/control.py", "server/safety.py",
                   "server/tick.py", "server/servo.py", "server/devices/hd_native.py", "server/shm.py",
-                  "server/devices/frozen.py")
+                  "server/devices/frozen.py", "server/devices/mapping.py")
 
 
 #: not columns but vocabulary several layouts share on purpose: return codes (the controller's

@@ -15,9 +15,13 @@ these, keep the device within its own caps; its ``info`` is the inner device's (
 device's units: by the mapping's force rule the configured gains are felt as they are, so
 ``safe.py`` compares them with the device's figures directly).
 
-The haptic tick will run the two kernels itself (``mapping`` holds the array): until it does,
-this wrapper makes the loop call the driver from Python (no ``tick_arrays``) with the mapping
-applied around it.
+The haptic loop does not call this wrapper's ``read`` / ``write``: it holds the array the loop's
+tick maps with. The loop drives ``inner`` as it would drive it unmapped (a simulated device's
+``tick_arrays``, a device-clocked one's ``servo_io``, a Python driver's ``read`` / ``write``) and
+the compiled tick runs ``map_state`` after the read and ``map_command`` before the write on
+``mapping`` (``server/tick.py``, ``TK_MAPPED``), so the clutch's state in it is the tick's. Its
+own ``read`` / ``write`` are the same kernels on the same array, for a caller outside the loop's
+tick (the driver contract, the loop's re-index at an engagement).
 """
 from __future__ import annotations
 
@@ -120,8 +124,9 @@ class MappedDevice(DeviceDriver):
         if callable(warm):
             warm()
 
-    #: the inner driver's extras that mean the same through the mapping (never ``tick_arrays``
-    #: or ``native``: the loop would drive the device around the mapping)
+    #: the inner driver's extras that mean the same through the mapping (never ``tick_arrays``,
+    #: ``servo_io`` or ``native``: whoever drives the device by them must map around it, as the
+    #: loop's tick does with ``inner``'s)
     _PASSED = frozenset({"counters", "status_text", "last_command", "config", "identity", "spec", "hand",
                          "watch_frozen"})
 

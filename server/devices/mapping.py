@@ -8,6 +8,10 @@ The two calls (numba, no allocation, over the preallocated mapping array ``m``, 
 - ``map_command(cmd, m, out)``, right before the device is written: the scene's wrench ``cmd``
   (float64[6], the safety filter's output, left untouched) becomes the device's in ``out``.
 
+The haptic tick (``server/tick.py``) makes both calls itself when the loop's device has a mapping
+(``TK_MAPPED``; ``m`` is ``TickArrays.map`` and ``out`` its block ``M_CMD``): the array and the
+clutch's state in it are the loop's, shared with the :class:`~.mapped.MappedDevice` that holds it.
+
 Contract
 --------
 Parameters: the scale ``s`` > 0 (scene metres per device metre: a 7.5 cm omega workspace onto a
@@ -79,7 +83,9 @@ M_CLUTCHED = 23    # 1 while the clutch is held
 M_FROZEN = 24      # 24..30 the scene pose frozen at the clutch (x y z qw qx qy qz)
 M_GAIN = 31        # g, the command's gain
 M_CLUTCHES = 32    # clutch presses so far
-NM = 34
+M_CMD = 34         # 34..39 the device's wrench (device frame): map_command's ``out`` in the tick,
+                   # what the device was last written (a held servo tick writes it again)
+NM = 40
 
 #: the ``[device]`` keys the mapping takes (the rest of the table is the driver's)
 MAPPING_KEYS = ("workspace_scale", "workspace_offset_m", "workspace_rotation", "clutch_button", "clutch_ramp_s")
@@ -331,5 +337,5 @@ def effective(c: MappingConfig) -> dict:
             "clutch_ramp_s": c.clutch_ramp_s}
 
 
-__all__ = ["MAPPING_KEYS", "M_CLUTCHED", "M_GAIN", "MappingConfig", "NM", "map_command", "map_state", "new_mapping",
-           "parse_mapping", "split", "unmap_state"]
+__all__ = ["MAPPING_KEYS", "M_CLUTCHED", "M_CMD", "M_GAIN", "MappingConfig", "NM", "map_command", "map_state",
+           "new_mapping", "parse_mapping", "split", "unmap_state"]

@@ -234,7 +234,7 @@ def test_a_mapping_wraps_the_driver_and_limits_come_in_the_scenes_units():
     inner_lim = load_device("sim", {"kind": "spatial"}, period_s=1e-3).limits
     d = load_device("sim", {"kind": "spatial", "workspace_scale": 10.0, "workspace_offset_m": [0.0, 0.0, 0.5]},
                     period_s=1e-3)
-    assert isinstance(d, MappedDevice) and not hasattr(d, "tick_arrays")   # the loop calls it from Python
+    assert isinstance(d, MappedDevice) and not hasattr(d, "tick_arrays")   # the loop drives d.inner's; the tick maps
     lim = d.limits
     assert lim.max_force_n == pytest.approx(10.0 * inner_lim.max_force_n)
     assert lim.max_speed_m_per_s == pytest.approx(10.0 * inner_lim.max_speed_m_per_s)
