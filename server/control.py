@@ -800,7 +800,8 @@ class Controller:
 
     def watch_frozen(self, on: bool) -> None:
         """The tick's frozen-position watch on (``safety.frozen_s``) or off (a driver that watches
-        its own raw readings, a mapped device whose clutch holds the row still on purpose)."""
+        its own raw readings). The tick runs it on the raw row, before the mapping, against the
+        force written to the device: a held clutch cannot trip it."""
         fz.set_parameters(self.cp, CP_FROZEN, frozen_s=self.frozen_s if on else 0.0, min_force_n=self.frozen_force_n)
         fz.reset(self.cs, CS_FROZEN)
 
