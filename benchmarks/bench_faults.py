@@ -580,7 +580,10 @@ def analyse(rows: np.ndarray, lim: dict, ev: dict, case: Case | None = None) -> 
     dq = np.zeros_like(at)
     df[1:] = np.abs(np.diff(f, axis=0))
     dq[1:] = np.abs(np.diff(tq, axis=0))
-    mark("step over rate limit", (df > rate_f + TOL).any(axis=1) | (dq > rate_t + TOL).any(axis=1))
+    # a cut (the fault policy's output "cut": a device fault, a stall trip) is zero at once, by
+    # design: a step to exactly zero on a row in fault is that, whatever the force was before
+    cut = (state == LS["fault"]) & ~np.any(f != 0.0, axis=1) & ~np.any(tq != 0.0, axis=1)
+    mark("step over rate limit", ((df > rate_f + TOL).any(axis=1) | (dq > rate_t + TOL).any(axis=1)) & ~cut)
     mark("over the fade/ramp envelope", (af > gain[:, None] * cap_f + TOL).any(axis=1)
          | (at > gain[:, None] * cap_t + TOL).any(axis=1))
     # a fade (the gain going down: watchdog, session ended, fault, stop) never pushes harder
