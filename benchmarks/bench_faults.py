@@ -608,13 +608,17 @@ def analyse(rows: np.ndarray, lim: dict, ev: dict, case: Case | None = None) -> 
         if m > lim["first_max_n"] + TOL:
             broken["first command after ramp-in"] = broken.get("first command after ramp-in", 0) + 1
             bad[i] = True
-    # watchdog: silent longer than watchdog_s (+1 step) and still engaged
+    # watchdog: silent longer than watchdog_s (+1 step) and still engaged; counted, as the loop
+    # counts it, from the end of the loop's own last stall (a gap of 10 periods or more between
+    # rows: while the loop did not run, the environment's updates waited in its socket)
     new_upd = np.zeros(len(rows), dtype=bool)
     new_upd[1:] = upd[1:] > upd[:-1]
     last_upd_t = np.full(len(rows), np.nan)
     cur = np.nan
     for i in range(len(rows)):
         if new_upd[i] or (i == 0 and upd[0] > 0):
+            cur = t[i]
+        elif i > 0 and t[i] - t[i - 1] >= 10 * dt and np.isfinite(cur):
             cur = t[i]
         last_upd_t[i] = cur
     silent = t - last_upd_t

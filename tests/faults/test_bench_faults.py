@@ -85,6 +85,19 @@ def test_a_cut_to_zero_in_fault_is_not_a_step_over_the_rate_limit():
     assert bf.analyse(r3, LIM, {})["broken"].get("step over rate limit", 0) == base + 1
 
 
+def test_silence_counts_from_the_end_of_the_loops_own_stall():
+    """A stall of the loop (no rows for 150 ms) is not the environment's silence: the loop counts
+    it from the stall's end, and so does the check; 150 ms of rows with no update still is."""
+    r = _rows()
+    r[:, TEL["t_s"]] = np.concatenate([np.arange(500) * 1e-3, 0.65 + np.arange(500) * 1e-3])
+    r[:, TEL["updates"]] = np.concatenate([np.arange(500) // 16, 40 + np.arange(500) // 16])
+    r[500:560, TEL["updates"]] = r[499, TEL["updates"]]  # the first update after the stall at +60 ms
+    assert "silent past the watchdog, still engaged" not in bf.analyse(r, LIM, {})["broken"]
+    r2 = _rows()
+    r2[400:560, TEL["updates"]] = r2[399, TEL["updates"]]  # 160 ms of rows, no update
+    assert "silent past the watchdog, still engaged" in bf.analyse(r2, LIM, {})["broken"]
+
+
 def test_the_checker_flags_a_late_fade_and_a_jump_in_at_ramp_in():
     r = _fade(_rows(), 500)
     r[500:, TEL["gain"]] = np.clip(r[500:, TEL["gain"]] + 0.2, 0, 1)  # fading too slowly
