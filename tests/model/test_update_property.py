@@ -8,15 +8,13 @@ from linkage_helpers import random_normals
 from hapticproxy.server.model import ContactParams, LocalModel, ToolSpec
 from hapticproxy.server.model.layout import S_Q, S_QD
 
-_MODELS = {}
-
-
 def _model(kind):
-    if kind not in _MODELS:
-        tool = {"1dof": ToolSpec.one_dof(1.0), "planar": ToolSpec.planar(0.5, 1e-3),
-                "spatial": ToolSpec.spatial(0.5, (1e-3, 2e-3, 3e-3))}[kind]
-        _MODELS[kind] = LocalModel(tool, ContactParams(3000.0, 20.0), period_s=1e-3, capacity=16)
-    return _MODELS[kind]
+    """A new model per example: one reused across examples carried an earlier example's state
+    into the next (CI's fresh clone once found a falsifying example that no fresh model
+    reproduces), so an example was not a function of its inputs."""
+    tool = {"1dof": ToolSpec.one_dof(1.0), "planar": ToolSpec.planar(0.5, 1e-3),
+            "spatial": ToolSpec.spatial(0.5, (1e-3, 2e-3, 3e-3))}[kind]
+    return LocalModel(tool, ContactParams(3000.0, 20.0), period_s=1e-3, capacity=16)
 
 
 def _contact_set(rng, kind, keys, epsilon):
@@ -32,7 +30,7 @@ def _contact_set(rng, kind, keys, epsilon):
     return k, cp, nrm, d, rng.normal(size=n) * 0.05
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=300, deadline=None, derandomize=True)
 @given(kind=st.sampled_from(["1dof", "planar", "spatial"]),
        epsilon=st.floats(0.0, 0.01),
        seed=st.integers(0, 2**32 - 1),
