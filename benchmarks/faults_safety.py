@@ -390,8 +390,10 @@ def _accurate(row: dict, broken: dict, bf) -> None:
                fault=snap.get("fault"), rate_hz=4000.0, load="2 processes burning the 2 cores")
     if snap.get("fault") == Fault.STALLS_REPEATED.name.lower() or "stalls_repeated" in str(snap.get("fault")):
         broken["stall trips latched"] = 1
-    if float(snap.get("spin_ns", 0)) > 0.25 * 250_000:
-        broken["spin over a quarter of the period"] = 1
+    from ..server.tick import SPIN_MAX_SHARE
+
+    if float(snap.get("spin_ns", 0)) > SPIN_MAX_SHARE * 250_000:
+        broken["spin over its share of the period"] = 1
     lim = {"force_cap_n": float(snap["force_cap_n"]), "torque_cap_n_m": float(snap["torque_cap_n_m"]),
            "rate_limit_n_per_step": float(snap["rate_limit_n_per_step"]),
            "torque_rate_n_m_per_step": float(settings["safety"]["torque_rate_n_m_per_s"]) / 4000.0,

@@ -498,9 +498,8 @@ class HapticLoop:
 
     def _run_compiled(self, max_steps, duration_s) -> None:
         tk = self.tk
-        # the spin never takes more than a quarter of the period: the thread sleeps every period,
-        # so SCHED_FIFO never meets the kernel's real-time throttling (95 % of each second)
-        tk[tick.TK_SPIN_NS] = min(int(self.clock.spin_ns), self.period_ns // 4)
+        # the spin never takes more than tick.SPIN_MAX_SHARE of the period (why: there)
+        tk[tick.TK_SPIN_NS] = min(int(self.clock.spin_ns), int(self.period_ns * tick.SPIN_MAX_SHARE))
         self.shared.status[ST["spin_ns"]] = float(tk[tick.TK_SPIN_NS])
         end_ns = None if duration_s is None else self.clock.now_ns() + int(duration_s * 1e9)
         n0 = int(tk[tick.TK_TICKS])

@@ -23,9 +23,9 @@ reads or writes, each with its layout declared once where its owner lives (``con
 Who calls it:
 
 - ``run_ticks(T)``, a compiled loop that owns the clock (absolute deadlines; ``clock_nanosleep``
-  until ``spin_ns`` before each, then a spin on the monotonic clock; ``spin_ns`` is at most a
-  quarter of the period, so the thread sleeps every period and never meets the kernel's
-  real-time throttling). It releases the GIL and returns to Python only on events: a step that
+  until ``spin_ns`` before each, then a spin on the monotonic clock; ``spin_ns`` is at most
+  ``SPIN_MAX_SHARE`` of the period, so the thread sleeps in every period and never meets the
+  kernel's real-time throttling). It releases the GIL and returns to Python only on events: a step that
   needs Python (an update to apply or acknowledge, a stall, the environment's silence), a tick
   that reported a fault, a fade that ended, housekeeping due, a datagram waiting (``poll`` on the
   transport's socket), a stop. The plain steps between (most of them) never touch Python.
@@ -108,6 +108,15 @@ TK_POLL_COUNT = 36      # ticks since it was
 TK_MAPPED = 37          # 1: the device is seen through the workspace mapping ``T.map`` (map_state
                         # after the read, map_command before the write); 0: as it is
 NTK = 38
+
+#: the largest share of a period ``run_ticks`` may spin before a deadline. The thread then sleeps
+#: at least the rest of every period (SCHED_FIFO stays far below the kernel's real-time
+#: throttling, 95 % of each second, and the core's other threads run then). Not less: a
+#: ``clock_nanosleep`` on this class of VM wakes 25-35 us late at p50 and 35-75 us at p99 (timer
+#: slack 1 ns, SCHED_FIFO; /tmp/slp.py-style measurement, 2026-12-05), so at 10 kHz a quarter
+#: period (25 us) woke late in most periods (``bench loop --rate 10000 --seconds 15``: lateness
+#: p50 3 / p99 21 us, missed 0.065 %) and 60 % does not (p50 1 / p99 10 us, missed 0.038 %).
+SPIN_MAX_SHARE = 0.6
 
 IO_EXTERNAL = 0
 IO_SIM = 1

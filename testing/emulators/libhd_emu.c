@@ -7,7 +7,8 @@
  * with emu_block.h and emu_models.h generated from the Python declarations.
  *
  * The scheduler owns the clock, as OpenHaptics' does: hdStartScheduler starts a servo pthread
- * that ticks every 1 ms on absolute deadlines (clock_nanosleep TIMER_ABSTIME) and, each tick,
+ * that ticks every 1 ms on absolute deadlines (clock_nanosleep TIMER_ABSTIME, then a short spin:
+ * a device's servo clock is its hardware's, not a sleep's wake-up) and, each tick,
  * calls every scheduled callback (highest priority first); one returning HD_CALLBACK_DONE is
  * removed, hdScheduleSynchronous waits for its callback to be done. A callback frames its device
  * access with hdBeginFrame (the state is sampled: transform, velocities, buttons) and hdEndFrame
@@ -32,6 +33,7 @@
 #include <sched.h>
 #include <string.h>
 #include <sys/mman.h>
+#include <sys/prctl.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -360,6 +362,13 @@ static void *servo(void *arg) {
     const char *rate_env = getenv("HAPTICPROXY_EMU_HD_RATE_HZ");
     double rate_hz = rate_env ? atof(rate_env) : 1000.0;
     const long period = rate_hz > 0.0 ? (long)(1e9 / rate_hz) : 1000000;
+    /* HAPTICPROXY_EMU_HD_SPIN_US: the spin before each deadline (default 150 us, at most half a
+       period; 0: a plain sleep, the timer's own jitter) */
+    const char *spin_env = getenv("HAPTICPROXY_EMU_HD_SPIN_US");
+    long spin_ns = (long)((spin_env ? atof(spin_env) : 150.0) * 1000.0);
+    if (spin_ns < 0) spin_ns = 0;
+    if (spin_ns > period / 2) spin_ns = period / 2;
+    prctl(PR_SET_TIMERSLACK, 1UL, 0UL, 0UL, 0UL);  /* the default 50 us slack would add to every sleep */
     while (!__atomic_load_n(&g_stop, __ATOMIC_ACQUIRE)) {
         struct timespec now;
         clock_gettime(CLOCK_MONOTONIC, &now);
@@ -377,7 +386,15 @@ static void *servo(void *arg) {
         while (next.tv_nsec >= 1000000000L) { next.tv_nsec -= 1000000000L; next.tv_sec++; }
         clock_gettime(CLOCK_MONOTONIC, &now);
         if ((now.tv_sec - next.tv_sec) * 1000000000L + (now.tv_nsec - next.tv_nsec) > 10 * period) next = now;  /* no burst */
-        clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &next, NULL);
+        /* a device's servo clock is its hardware's (the Touch's 1 kHz frames), not a sleep's
+           wake-up: sleep until spin_ns before the deadline, then spin to it (a plain sleep wakes
+           25-75 us late on a VM, and that, not the tick, would be the jitter measured) */
+        struct timespec wake = next;
+        wake.tv_nsec -= spin_ns;
+        while (wake.tv_nsec < 0) { wake.tv_nsec += 1000000000L; wake.tv_sec--; }
+        clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &wake, NULL);
+        do { clock_gettime(CLOCK_MONOTONIC, &now); }
+        while (now.tv_sec < next.tv_sec || (now.tv_sec == next.tv_sec && now.tv_nsec < next.tv_nsec));
         if (extra_ms > 0.0) {
             struct timespec ex = {(time_t)(extra_ms / 1000.0), (long)(fmod(extra_ms, 1000.0) * 1e6)};
             nanosleep(&ex, NULL);
