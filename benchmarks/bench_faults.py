@@ -168,7 +168,8 @@ CASES = _matrix()
 
 # ------------------------------------------------------------------------------ the rig
 def settings_for(url: str, *, device: str = "sim", device_port: int = 0, realtime: bool = True,
-                 seconds: float = 10.0, device_watchdog_s: float = DEVICE_WATCHDOG_S, flush_rows: int = 512):
+                 seconds: float = 10.0, device_watchdog_s: float = DEVICE_WATCHDOG_S, flush_rows: int = 512,
+                 protocol_thread: bool = False):
     from ..server import config as cfgmod
 
     if device == "sim":
@@ -180,7 +181,7 @@ def settings_for(url: str, *, device: str = "sim", device_port: int = 0, realtim
                "link_timeout_s": 0.1, "watchdog_s": DEVICE_WATCHDOG_S,
                "workspace_min_m": WORKSPACE[0], "workspace_max_m": WORKSPACE[1]}
     return cfgmod.load({
-        "loop": {"rate_hz": RATE_HZ, "realtime": realtime},
+        "loop": {"rate_hz": RATE_HZ, "realtime": realtime, "protocol_thread": protocol_thread},
         "transport": {"url": url},
         "status": {"address": f"127.0.0.1:{_port()}"},
         "model": {"epsilon_m": 0.005},
@@ -365,8 +366,10 @@ def _ring(sup) -> np.ndarray:
 
 
 def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, seconds: float = 6.0,
-             device_watchdog_s: float = DEVICE_WATCHDOG_S, workdir: str | None = None, keep_rows: bool = False) -> dict:
-    """Run one case; returns its row (see the module docstring)."""
+             device_watchdog_s: float = DEVICE_WATCHDOG_S, workdir: str | None = None, keep_rows: bool = False,
+             protocol_thread: bool = False) -> dict:
+    """Run one case; returns its row (see the module docstring). ``protocol_thread``: the server's
+    ``[loop] protocol_thread`` (the tick in a clock thread of its own)."""
     from ..server import telemetry
     from ..server.daemon import Supervisor
 
@@ -383,7 +386,8 @@ def run_case(case: Case, *, engine: str = "pymunk", realtime: bool = True, secon
             url = f"zenoh://127.0.0.1:{_port(socket.SOCK_STREAM)}/faults{os.getpid()}"
         dev_port = _port() if case.device == "remote" else 0
         s = settings_for(url, device=case.device, device_port=dev_port, realtime=realtime, seconds=seconds + 10,
-                         device_watchdog_s=device_watchdog_s, flush_rows=64 if case.kind == "crash" else 512)
+                         device_watchdog_s=device_watchdog_s, flush_rows=64 if case.kind == "crash" else 512,
+                         protocol_thread=protocol_thread)
         if case.device == "remote":
             dev_proc = DeviceProcess(dev_port, tmp.name, seconds + 60)
             opened.callback(dev_proc.close)

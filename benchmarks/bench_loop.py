@@ -132,10 +132,10 @@ def _run(settings: cfgmod.Settings, seconds: float, naive: bool) -> dict:
     return {"snap": snap, "steps": steps, "counts": counts}
 
 
-def run(rate_hz: float, seconds: float, naive_seconds: float) -> dict:
-    def settings():
+def run(rate_hz: float, seconds: float, naive_seconds: float, protocol_thread: bool = False) -> dict:
+    def settings(thread=protocol_thread):
         return cfgmod.load({
-            "loop": {"rate_hz": rate_hz},
+            "loop": {"rate_hz": rate_hz, "protocol_thread": thread},
             "transport": {"url": f"udp://127.0.0.1:{free_port()}"},
             "status": {"address": f"127.0.0.1:{free_port()}"},
             "device": {"driver": "sim", "kind": "planar", "hand": {"type": "constant", "wrench": [0.0, -0.5, 0.0]}},
@@ -143,7 +143,7 @@ def run(rate_hz: float, seconds: float, naive_seconds: float) -> dict:
         })
 
     real = _run(settings(), seconds, naive=False)
-    naive = _run(settings(), naive_seconds, naive=True) if naive_seconds > 0 else None
+    naive = _run(settings(False), naive_seconds, naive=True) if naive_seconds > 0 else None
     s = real["snap"]
     steps = max(1, real["steps"])
     lat, comp = s["lateness_us"], s["compute_us"]
@@ -160,6 +160,10 @@ def run(rate_hz: float, seconds: float, naive_seconds: float) -> dict:
         "spin_us": s["spin_ns"] / 1000.0,
         "updates": int(s["updates"]),
         "faults": int(s["faults_total"]),
+        "protocol_thread": protocol_thread,
+        # with a clock thread: its ticks, and those it held (Python had the lock: nothing ticked)
+        "clock_ticks": int(s["servo_ticks"]) if protocol_thread else None,
+        "clock_held": int(s["servo_held"]) if protocol_thread else None,
     }
     if naive is not None:
         n = naive["snap"]
@@ -187,6 +191,9 @@ def main(argv: list[str] | None = None) -> int:
                          "of each update step, so that a p99 is not one of the few largest of a few hundred; "
                          "0: skip it)")
     ap.add_argument("--update-steps-only", action="store_true", help="only the update-step measurement")
+    ap.add_argument("--protocol-thread", action="store_true",
+                    help="the real loop with [loop] protocol_thread: the tick in a clock thread of its own, the "
+                         "protocol beside it")
     args = ap.parse_args(argv)
     if not (100 <= args.rate <= 20000) or not args.seconds > 0:
         print("hapticproxy bench loop: --rate must be in [100, 20000] Hz and --seconds > 0", file=sys.stderr)
@@ -197,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     naive_s = min(args.seconds, 20.0) if args.naive_seconds is None else args.naive_seconds
     try:
-        res = {} if args.update_steps_only else run(args.rate, args.seconds, naive_s)
+        res = {} if args.update_steps_only else run(args.rate, args.seconds, naive_s, args.protocol_thread)
     except RuntimeError as exc:
         print(f"hapticproxy bench loop: {exc}", file=sys.stderr)
         return 1
@@ -226,6 +233,10 @@ def print_report(res: dict) -> None:
         print(f"  lateness us  p50 {_us(lat, 'p50')}  p99 {_us(lat, 'p99')}  p99.9 {_us(lat, 'p999')}  "
               f"max {_us(lat, 'max')};  missed {100 * res['missed_fraction']:.3f} %")
         print(f"  step us      p50 {_us(st, 'p50')}  p99 {_us(st, 'p99')}  max {_us(st, 'max')}")
+        if res.get("protocol_thread"):
+            held, ticks = res["clock_held"], res["clock_ticks"]
+            print(f"  clock thread {ticks} ticks, {held} held while Python had the lock "
+                  f"({100 * held / max(1, held + ticks):.3f} %)")
         if "naive_lateness_us" in res:
             nl = res["naive_lateness_us"]
             print(f"  naive loop   lateness p99 {_us(nl, 'p99')} us, missed {100 * res['naive_missed_fraction']:.3f} % "

@@ -189,10 +189,11 @@ def _same_socket_runners():
             holder["t"].real.close()
 
 
-def _settings(bf, url: str, case: LifecycleCase, *, device: str = "sim", device_port: int = 0, seconds: float = 20.0):
+def _settings(bf, url: str, case: LifecycleCase, *, device: str = "sim", device_port: int = 0, seconds: float = 20.0,
+              protocol_thread: bool = False):
     from ..server import config as cfgmod
 
-    s = bf.settings_for(url, device=device, device_port=device_port, seconds=seconds)
+    s = bf.settings_for(url, device=device, device_port=device_port, seconds=seconds, protocol_thread=protocol_thread)
     data = s.as_dict()
     data.pop("preset", None)
     if device == "sim":
@@ -229,8 +230,10 @@ def _kick(rows: np.ndarray, t_engage: float, row: dict) -> None:
         row["violations"] += row["broken"]["kick at engagement"]
 
 
-def run_lifecycle_case(case: LifecycleCase, bf, *, engine: str = "pymunk", realtime: bool = True) -> dict:
-    """Run one lifecycle case on the real server (``bf``: the bench_faults module)."""
+def run_lifecycle_case(case: LifecycleCase, bf, *, engine: str = "pymunk", realtime: bool = True,
+                       protocol_thread: bool = False) -> dict:
+    """Run one lifecycle case on the real server (``bf``: the bench_faults module; ``protocol_thread``:
+    the server's ``[loop] protocol_thread``)."""
     from ..server.daemon import Supervisor
     from ..server.lifecycle import Fault
 
@@ -238,7 +241,8 @@ def run_lifecycle_case(case: LifecycleCase, bf, *, engine: str = "pymunk", realt
     tmp = tempfile.TemporaryDirectory(prefix="hp-lifecycle-")
     remote = case.kind == "rearm"
     dev_port = bf._port() if remote else 0
-    s = _settings(bf, url, case, device="remote" if remote else "sim", device_port=dev_port)
+    s = _settings(bf, url, case, device="remote" if remote else "sim", device_port=dev_port,
+                  protocol_thread=protocol_thread)
     if not realtime:
         data = s.as_dict()
         data["loop"]["realtime"] = False

@@ -303,6 +303,15 @@ class HapticLoop:
         tick.tick_at(dw.ctypes.data, 0, 0)
         tk[tick.TK_STOP] = 1
         tick.run_ticks_at(dw.ctypes.data)
+        if self.clock_thread:  # the clock thread's loop (its body never runs: SB_RUN is 0)
+            from . import servo
+
+            blk = np.zeros(servo.NSB, dtype=np.int64)
+            blk[servo.SB_TK] = tk.ctypes.data
+            blk[servo.SB_DESC] = dw.ctypes.data
+            servo.run_clock(blk)
+            servo.lock_between_ticks(tk, 0, 0)
+            servo.unlock(tk)
         warm = getattr(self.device, "warm_up", None)
         if callable(warm):
             warm()
@@ -452,6 +461,10 @@ class HapticLoop:
             sh.status[ST["compute_max_us"]] = 0.0
             sh.status[ST["overruns"]] = 0.0
             sh.status[ST["missed_deadlines"]] = 0.0
+        self._count_late_compiles()
+        self.publisher.publish(now)
+
+    def _count_late_compiles(self) -> None:
         self._hk_n += 1
         if self._hk_n % 100 == 0 and self._kernels_compiled >= 0:
             # about once a second: a kernel compiled after warm-up stalls the loop for seconds;
@@ -460,9 +473,8 @@ class HapticLoop:
             for d in self._kernels:  # the dispatchers found at warm-up: a few us, no module scan
                 n += len(d.overloads)
             if n > self._kernels_compiled:
-                sh.status[ST["late_compiles"]] += n - self._kernels_compiled
+                self.shared.status[ST["late_compiles"]] += n - self._kernels_compiled
                 self._kernels_compiled = n
-        self.publisher.publish(now)
 
     # ---------------------------------------------------------------------------- running
     def run(self, *, max_steps: int | None = None, duration_s: float | None = None) -> None:
@@ -476,6 +488,8 @@ class HapticLoop:
 
         if type(self.clock) is MonotonicClock and self.device_clocked:
             self._run_device_clocked(duration_s)
+        elif type(self.clock) is MonotonicClock and self.clock_thread:
+            self._run_threaded(duration_s)
         elif type(self.clock) is not MonotonicClock or self._io == tick.IO_EXTERNAL:
             # (a driver in Python is read and written by Python every step)
             self._run_steps(max_steps, duration_s)
@@ -579,6 +593,7 @@ class HapticLoop:
                     rcs = int(tk[tick.TK_RC_STICKY])
                     tk[tick.TK_RC_STICKY] = 0
                     now = self.clock.now_ns()
+                    self.life.take_tick_fade(now)
                     self.life.after_tick(rcs, now)
                     self._service(now)
                     if self._T is not binding._keep[0]:
@@ -590,6 +605,172 @@ class HapticLoop:
                     end_ns = None
         finally:
             self._driver.schedule_python()  # the servo thread must not reach arrays freed after this
+
+    @property
+    def clock_thread(self) -> bool:
+        """``[loop] protocol_thread`` on a device the tick reaches by itself (the simulated one,
+        ``IO_SIM``): the tick runs in a clock thread of its own (:meth:`_run_threaded`)."""
+        return bool(self.settings["loop"]["protocol_thread"]) and self._io != tick.IO_EXTERNAL
+
+    def _run_threaded(self, duration_s) -> None:
+        """The tick in a clock thread of its own (``servo.run_clock``: compiled, no GIL, absolute
+        deadlines, never back in Python until the end) and everything Python does on this thread,
+        beside it: reading and decoding datagrams, applying and acknowledging updates, the
+        lifecycle, housekeeping, the status. Python takes the tick's lock (``TK_LOCK``) only to
+        change or read what the tick uses (an update's model change, the acknowledgement's proxy
+        state, a transition, a fault's cut), never to decode or send; a tick that finds it held
+        ticks nothing and counts itself held (``servo_held`` in ``bench loop``). What the tick
+        must do at once it does in its own thread: a device fault's or a non-finite value's cut, a
+        stall as long as the device's watchdog cut, the environment's silence starting the fade;
+        Python names and classifies them at its next pass (within a millisecond)."""
+        import select
+        import threading
+
+        from .servo import SB_CMD, SB_RUN, SB_TK, ServoBinding, lock, lock_between_ticks, run_clock, unlock
+
+        tk = self.tk
+        binding = ServoBinding(self.period_ns)
+        blk = binding.block
+        blk[SB_TK] = tk.__array_interface__["data"][0]
+        blk[SB_CMD] = self._wcmd.__array_interface__["data"][0]
+        lock(tk)
+        try:
+            tk[tick.TK_SPIN_NS] = min(int(self.clock.spin_ns), int(self.period_ns * tick.SPIN_MAX_SHARE))
+            self.shared.status[ST["spin_ns"]] = float(tk[tick.TK_SPIN_NS])
+            tk[tick.TK_DEV_WD_NS] = self.life.dev_wd_ns
+            tk[tick.TK_STALL_SEEN] = 0
+            tk[tick.TK_RC_STICKY] = 0
+            now = self.clock.now_ns()
+            if tk[tick.TK_DEADLINE_NS] < now:  # started a while ago (a test): not missed deadlines
+                tk[tick.TK_DEADLINE_NS] = now + self.period_ns
+                tk[tick.TK_LAST_WRITE_NS] = now
+            binding.bind(self._T)
+            blk[SB_RUN] = 1
+        finally:
+            unlock(tk)
+        self.servo = binding
+        clock = threading.Thread(target=run_clock, args=(blk,), name="hapticproxy-clock", daemon=True)
+        clock.start()
+        fd = int(tk[tick.TK_FD])
+        proto = self.proto
+        end_ns = None if duration_s is None else self.clock.now_ns() + int(duration_s * 1e9)
+        applied_tick = -1  # TK_TICKS when the last update was applied: its ack waits for a tick after it
+        # Python takes the lock in the gap after a tick with half a period ahead of it (its work
+        # with the lock takes some us, an engagement milliseconds), and waits for that gap at most
+        # two periods (a clock thread held or stalled)
+        room_ns = self.period_ns // 2
+        patience_ns = 2 * self.period_ns
+        try:
+            while not self.stopped:
+                # wait for a datagram; while an acknowledgement waits for its tick, a period at most
+                wait_s = self.dt_s if proto._ack_due is not None else 0.001
+                if fd >= 0:
+                    readable = bool(select.select((fd,), (), (), wait_s)[0])
+                else:
+                    time.sleep(wait_s)
+                    readable = True  # a transport without a socket is polled every millisecond
+                now = self.clock.now_ns()
+                if readable:
+                    proto.poll(now)  # decoded and checked beside the tick: the protocol's own state
+                hk_due = tk[tick.TK_HK_COUNT] >= tk[tick.TK_HK_EVERY]
+                if hk_due:
+                    tk[tick.TK_HK_COUNT] = 0
+                    proto.endpoint.poll(now)  # the sessions' timers: the protocol's own state
+                ack = proto._ack_due if proto._ack_due is not None and tk[tick.TK_TICKS] > applied_tick else None
+                st = tk[tick.TK_STATE]
+                if not (proto._pending is not None or ack is not None or hk_due or tk[tick.TK_RC_STICKY] != 0
+                        or tk[tick.TK_STALL_SEEN] != 0 or st == tick._LS_FADING or st == tick._LS_STOPPING):
+                    continue
+                lock_between_ticks(tk, room_ns, patience_ns)
+                try:
+                    now = self.clock.now_ns()
+                    if proto._pending is not None:
+                        applied_tick = int(tk[tick.TK_TICKS])
+                    acked = self.threaded_pass(now, ack, hk_due)
+                    if self._T is not binding._keep[0]:
+                        binding.bind(self._T)  # an engagement bound the tick to the new model's arrays
+                finally:
+                    unlock(tk)
+                if acked:
+                    proto.survive(proto.ack_send, ack, now)
+                if hk_due:
+                    self._housekeeping_unlocked(now)
+                if end_ns is not None and now >= end_ns and not self.stopping:
+                    lock(tk)
+                    try:
+                        self.request_stop()
+                    finally:
+                        unlock(tk)
+                    end_ns = None
+        finally:
+            blk[SB_RUN] = 0
+            clock.join()
+
+    def threaded_pass(self, now: int, ack, hk_due: bool) -> bool:
+        """What this thread does with the tick's lock held, beside a clock thread: the tick's
+        results (a fade it started, a stall it saw, faults), the environment's silence, the half
+        of an acknowledgement that reads the tick's state (``ack``: the update to acknowledge, or
+        None), the update received to apply, housekeeping's lifecycle part. True: ``ack`` is ready
+        to send (after the lock is released)."""
+        tk = self.tk
+        life = self.life
+        proto = self.proto
+        rcs = int(tk[tick.TK_RC_STICKY])
+        tk[tick.TK_RC_STICKY] = 0
+        life.take_tick_fade(now)
+        if tk[tick.TK_STALL_SEEN] != 0:
+            tk[tick.TK_STALL_SEEN] = 0
+            life.see_wake(int(tk[tick.TK_STALL_WAKE_NS]), int(tk[tick.TK_STALL_FROM_NS]))
+        life.after_tick(rcs, now)
+        if proto._pending is None:
+            life.check_silence(now)
+        acked = False
+        if ack is not None:
+            proto._ack_due = None
+            self._acked = False
+            proto.survive(self._ack_read, ack, now)
+            acked = self._acked
+        upd = proto._pending
+        if upd is not None:
+            proto._pending = None
+            proto.survive(proto._apply_stage, upd, now)
+        if hk_due:
+            self._housekeeping_locked(now)
+        return acked
+
+    def _ack_read(self, upd, now: int) -> None:
+        self._acked = self.proto.ack_read(upd, now)
+
+    def _housekeeping_locked(self, now: int) -> None:
+        """The part of :meth:`_housekeeping` that changes what the tick uses (the lifecycle's
+        checks, the supervisor's requests), with a clock thread: run with the tick's lock held."""
+        self.life.housekeeping(now)
+        sh = self.shared
+        ctrl_ = sh.control
+        if self.parent_pid and os.getppid() != self.parent_pid:
+            self._stop_flag = True
+        if ctrl_[CT["stop"]] != ctrl_[CT["stop_ack"]] or self._stop_flag:
+            ctrl_[CT["stop_ack"]] = ctrl_[CT["stop"]]
+            self.request_stop()
+        if ctrl_[CT["rearm"]] != ctrl_[CT["rearm_ack"]]:
+            ctrl_[CT["rearm_ack"]] = ctrl_[CT["rearm"]]
+            self.rearm()
+
+    def _housekeeping_unlocked(self, now: int) -> None:
+        """The rest of :meth:`_housekeeping` (statistics, the late-compile count, the status): the
+        tick's arrays only read, as the status readers of other processes read them."""
+        sh = self.shared
+        ctrl_ = sh.control
+        if ctrl_[CT["reset_stats"]] != ctrl_[CT["reset_ack"]]:
+            ctrl_[CT["reset_ack"]] = ctrl_[CT["reset_stats"]]
+            sh.hist_late[:] = 0
+            sh.hist_step[:] = 0
+            sh.status[ST["lateness_max_us"]] = 0.0
+            sh.status[ST["compute_max_us"]] = 0.0
+            sh.status[ST["overruns"]] = 0.0
+            sh.status[ST["missed_deadlines"]] = 0.0
+        self._count_late_compiles()
+        self.publisher.publish(now)
 
     def _after_compiled_tick(self) -> None:
         """What a tick run by ``run_ticks`` left for Python: its results, a datagram, housekeeping."""

@@ -126,6 +126,15 @@ class Lifecycle:
         if self.state == LS["engaged"] and wake - max(proto.last_update_ns, self.stall_at) > self.watchdog_ns:
             self.transition("fading", Reason.SILENT, (wake - proto.last_update_ns) * 1e-6)
 
+    def take_tick_fade(self, now: int) -> None:
+        """A tick in a thread of its own (a clock or a servo thread) started the silence fade by
+        itself (``servo._locked_tick``: the target to zero, ``TK_STATE`` fading): the transition it
+        stands for, before anything else of this pass (an update that arrived meanwhile then
+        resumes from it; without it the loop would stay engaged with its target at zero)."""
+        lp = self.loop
+        if self.state == LS["engaged"] and int(lp.tk[tick.TK_STATE]) == LS["fading"]:
+            self.transition("fading", Reason.SILENT, (now - lp.proto.last_update_ns) * 1e-6)
+
     def after_fade(self) -> None:
         """Gain reached zero while fading or stopping."""
         if self.state == LS["stopping"]:

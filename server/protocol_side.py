@@ -229,6 +229,11 @@ class ProtocolSide:
         self._ack_wrench = loop.ctrl.cs[ctl.CS_HAND:ctl.CS_HAND + 6]
         #: the device's inputs (buttons, gripper) of the newest read: a view of the state row
         self._ack_inputs = loop.dev[DS_BUTTONS:DS_BUTTONS + 3]
+        # what the acknowledgement sends, copied from the tick's arrays when read (``ack_read``)
+        self._ack_wrench_copy = np.zeros(6)
+        self._ack_inputs_copy = np.zeros(3)
+        self._ack_state = ""
+        self._ack_time_s = 0.0
         self._R = np.zeros((3, 3))
         self._c = np.zeros(3)
         # arrays the tick gets while no model is engaged (active = 0: never stepped)
@@ -350,12 +355,21 @@ class ProtocolSide:
         """The engine's advice (epsilon to use next, the lead; one kernel) and the ProxyState that
         acknowledges ``upd`` (applied in the previous step; ``ack_seq`` its seq, not the newest
         received since). Nothing if its session no longer owns the model (closed, timed out)."""
+        if self.ack_read(upd, now):
+            self.ack_send(upd, now)
+
+    def ack_read(self, upd, now: int) -> bool:
+        """The half of :meth:`ack` that reads what the tick writes (the proxy, the hand wrench, the
+        device's inputs), into arrays of its own: with a clock thread, it runs with the tick's lock
+        held and :meth:`ack_send` after it is released. False: nothing to acknowledge."""
         lp = self.loop
         m = self.model
         if m is None or upd.session_id != self.session_id:
-            return
-        state = SERVER_STATE_BY_CODE[int(lp.life.state)]
+            return False
+        self._ack_state = SERVER_STATE_BY_CODE[int(lp.life.state)]
+        self._ack_time_s = m.time_s
         adv = self.advice
+        self._ack_inputs_copy[:] = self._ack_inputs
         if self._linkage:
             # the root frame's pose and twist; the hand wrench as the wrench on the root frame's
             # origin plus one effort per joint (J_h^T F_h split by coordinates)
@@ -363,18 +377,28 @@ class ProtocolSide:
             m.joint_state_into(self._ack_wrench, js)
             pose, twist, wrench, effort, jq, jqd = js
             advice_update(*adv.kernel_arrays, now * 1e-9, pose, twist, upd.tool_pose, upd.separation_m, False)
-            if self.endpoint.send_proxy_state(self.session_id, now, pose, twist, wrench, server_time_s=m.time_s,
-                                              joint_position=jq, joint_velocity=jqd, joint_effort=effort,
-                                              server_state=state, epsilon_m=adv.epsilon_m, lead_s=adv.lead_s,
-                                              ack_seq=upd.seq, trusted=True, inputs=self._ack_inputs):
-                self.acks += 1
-            return
+            return True
         mg = self._margs
         ctl.ack_state(mg[0], mg[1], mg[2], self._R, self._c, self._scratch_pose, *adv.kernel_arrays, now * 1e-9,
                       upd.tool_pose, upd.separation_m)
-        if self.endpoint.send_proxy_state(self.session_id, now, self._ack_pose, self._ack_twist, self._ack_wrench,
-                                          server_time_s=m.time_s, server_state=state, epsilon_m=adv.epsilon_m,
-                                          lead_s=adv.lead_s, ack_seq=upd.seq, trusted=True, inputs=self._ack_inputs):
+        self._ack_wrench_copy[:] = self._ack_wrench
+        return True
+
+    def ack_send(self, upd, now: int) -> None:
+        """The ProxyState :meth:`ack_read` prepared, sent (only the protocol's own state)."""
+        adv = self.advice
+        if self._linkage:
+            pose, twist, wrench, effort, jq, jqd = self._jstate
+            if self.endpoint.send_proxy_state(self.session_id, now, pose, twist, wrench, server_time_s=self._ack_time_s,
+                                              joint_position=jq, joint_velocity=jqd, joint_effort=effort,
+                                              server_state=self._ack_state, epsilon_m=adv.epsilon_m, lead_s=adv.lead_s,
+                                              ack_seq=upd.seq, trusted=True, inputs=self._ack_inputs_copy):
+                self.acks += 1
+            return
+        if self.endpoint.send_proxy_state(self.session_id, now, self._ack_pose, self._ack_twist, self._ack_wrench_copy,
+                                          server_time_s=self._ack_time_s, server_state=self._ack_state,
+                                          epsilon_m=adv.epsilon_m, lead_s=adv.lead_s, ack_seq=upd.seq, trusted=True,
+                                          inputs=self._ack_inputs_copy):
             self.acks += 1
 
     def engage(self, upd, now: int) -> None:

@@ -47,7 +47,12 @@ SB_HELD = 7          # ticks held because Python had the lock
 SB_RING = 8          # address of int64[SB_RING_N]: each tick's start, index SB_TICKS_ALL % SB_RING_N
 SB_RING_N = 9
 SB_ALL = 10          # callbacks (ticks run + held)
-NSB = 12
+SB_TK = 11           # clock thread: the address of the tick's words (int64[tick.NTK])
+SB_RUN = 12          # clock thread: 1 while it should run (Python sets 0 to end it)
+SB_MISSED = 13       # clock thread: periods skipped while held, counted at the next tick run
+SB_CMD = 14          # clock thread: the address of the command the device is written (stable:
+                     # the controller's, or the mapping's image of it), for a held tick
+NSB = 16
 
 @njit(**_JIT)
 def servo_tick(blk):
@@ -68,26 +73,96 @@ def servo_tick(blk):
             late = now - (last + blk[SB_PERIOD_NS])
             if late < 0:
                 late = 0
-        # the environment's silence starts the fade here, at once (Python makes it a transition)
-        if tk[tk_.TK_STATE] == tk_.LS_ENGAGED and now - tk[tk_.TK_QUIET_SINCE_NS] > tk[tk_.TK_WATCHDOG_NS]:
-            T.cs[ctl.CS_TARGET] = 0.0
-        rcs = tk_.tick(T, now, late)
-        if (rcs >> 8) != 0 or (rcs & 0xFF) == ctl.RC_NONFINITE:
-            # a device fault or a non-finite value: zero from the next tick on, whenever Python acts
-            sf.reset(T.cs[ctl.CS_SAFETY:ctl.CS_SAFETY + sf.NSS])
-        tk[tk_.TK_RC_STICKY] |= rcs
-        blk[SB_TICKS] += 1
+        _locked_tick(blk, T, now, late)
         atomic_store(tk, tk_.TK_LOCK, 0)
     else:
-        # Python is changing the tick's state: the device gets the previous command again (in its
-        # own frame: through a mapping, what map_command made of it)
-        if tk[tk_.TK_IO] == tk_.IO_NATIVE:
-            call_i32_ptr_ptr(tk[tk_.TK_NATIVE_WRITE], tk[tk_.TK_NATIVE_CTX], tk_.device_command(T).ctypes.data)
-        blk[SB_HELD] += 1
+        _held_tick(blk, T)
     blk[SB_LAST_NS] = now
     if blk[SB_END] != 0:
         call_i32_ptr_ptr(blk[SB_END], blk[SB_CTX], 0)
     return 1
+
+
+@njit(**_JIT)
+def _locked_tick(blk, T, now, late):
+    """A tick run with the lock taken (a servo thread's or the clock thread's)."""
+    tk = T.tk
+    # the environment's silence starts the fade here, at once, and the rows say so from this tick
+    # on; Python makes it the transition it is (``LoopLife.take_tick_fade``) at its next pass
+    if tk[tk_.TK_STATE] == tk_.LS_ENGAGED and now - tk[tk_.TK_QUIET_SINCE_NS] > tk[tk_.TK_WATCHDOG_NS]:
+        T.cs[ctl.CS_TARGET] = 0.0
+        tk[tk_.TK_STATE] = tk_._LS_FADING
+    rcs = tk_.tick(T, now, late)
+    if (rcs >> 8) != 0 or (rcs & 0xFF) == ctl.RC_NONFINITE:
+        # a device fault or a non-finite value: zero from the next tick on, whenever Python acts
+        sf.reset(T.cs[ctl.CS_SAFETY:ctl.CS_SAFETY + sf.NSS])
+    tk[tk_.TK_RC_STICKY] |= rcs
+    blk[SB_TICKS] += 1
+
+
+@njit(**_JIT)
+def _held_tick(blk, T):
+    """Python is changing the tick's state: the device gets the previous command again (in its
+    own frame: through a mapping, what map_command made of it)."""
+    tk = T.tk
+    if tk[tk_.TK_IO] == tk_.IO_NATIVE:
+        call_i32_ptr_ptr(tk[tk_.TK_NATIVE_WRITE], tk[tk_.TK_NATIVE_CTX], tk_.device_command(T).ctypes.data)
+    blk[SB_HELD] += 1
+
+
+@njit(**_JIT)
+def clock_tick(blk, tk, now, late, missed):
+    """One period of the clock thread, woken at ``now`` (see :func:`run_clock`)."""
+    blk[SB_ALL] += 1
+    if blk[SB_RING] != 0:
+        ring = tk_.as_i64(blk[SB_RING], (blk[SB_RING_N],))
+        ring[(blk[SB_ALL] - 1) % blk[SB_RING_N]] = now
+    if atomic_cas(tk, tk_.TK_LOCK, 0, 1) == 0:
+        # the arrays are read from the descriptor with the lock held: an engagement binds new ones
+        # (under the lock), and the old descriptor may be gone after it
+        T = tk_.tick_arrays_at(blk[SB_DESC])
+        tk_.count_missed(T, missed + blk[SB_MISSED])
+        blk[SB_MISSED] = 0
+        gap = now - tk[tk_.TK_LAST_WRITE_NS]
+        if gap > tk[tk_.TK_STALL_GAP_NS]:
+            # the process did not run (a stall): Python classifies it (LoopLife.see_wake); the
+            # environment's silence counts from its end (its updates waited in the socket)
+            tk[tk_.TK_STALL_SEEN] += 1
+            tk[tk_.TK_STALL_WAKE_NS] = now
+            tk[tk_.TK_STALL_FROM_NS] = tk[tk_.TK_LAST_WRITE_NS]
+            if tk[tk_.TK_QUIET_SINCE_NS] < now:
+                tk[tk_.TK_QUIET_SINCE_NS] = now
+            if tk[tk_.TK_DEV_WD_NS] > 0 and gap >= tk[tk_.TK_DEV_WD_NS]:
+                # as long as the device's watchdog: it cut the output; nothing comes back until
+                # Python's stall recovery ramps it in (the same cut as LoopLife.on_stall_trip's)
+                sf.reset(T.cs[ctl.CS_SAFETY:ctl.CS_SAFETY + sf.NSS])
+                T.cs[ctl.CS_TARGET] = 0.0
+        _locked_tick(blk, T, now, late)
+        tk[tk_.TK_TICKS] += 1
+        tk[tk_.TK_HK_COUNT] += 1
+        atomic_store(tk, tk_.TK_LOCK, 0)
+    else:
+        # Python is changing the tick's state: the arrays may be rebound right now, so a held
+        # tick reaches only the words and the command (both the loop's for its whole life)
+        blk[SB_MISSED] += missed
+        if tk[tk_.TK_IO] == tk_.IO_NATIVE:
+            call_i32_ptr_ptr(tk[tk_.TK_NATIVE_WRITE], tk[tk_.TK_NATIVE_CTX], blk[SB_CMD])
+        blk[SB_HELD] += 1
+    blk[SB_LAST_NS] = now
+
+
+@njit(**_JIT)
+def run_clock(blk):
+    """The clock thread of a loop that owns the clock (``[loop] protocol_thread``): wait for each
+    deadline (``tick.wait_until_deadline``: absolute deadlines, sleep then a bounded spin) and tick
+    with the lock taken, or hold (the previous command again) while Python has it, until
+    ``SB_RUN`` is 0. Never returns to Python in between, never takes the GIL: everything Python
+    does (the protocol, the lifecycle, housekeeping) runs on another thread, beside it."""
+    tk = tk_.as_i64(blk[SB_TK], (tk_.NTK,))
+    while blk[SB_RUN] != 0:
+        now, late, missed = tk_.wait_until_deadline(tk)
+        clock_tick(blk, tk, now, late, missed)
+    return 0
 
 
 @cfunc(types.uint32(types.voidptr), cache=True, nogil=True, error_model="numpy")
@@ -141,6 +216,26 @@ def lock(tk):
     """Take the tick lock for Python (spins; a servo tick holds it for one tick at most)."""
     while atomic_cas(tk, tk_.TK_LOCK, 0, 2) != 0:
         pass
+
+
+@njit(**_JIT)
+def lock_between_ticks(tk, room_ns, patience_ns):
+    """Take the tick lock for Python in the gap after a tick (the clock thread's): once the tick of
+    the current period has ended and the next deadline is at least ``room_ns`` away, so that what
+    Python does with the lock ends before the next tick wants it. After ``patience_ns`` of
+    waiting (a clock thread held, stalled, or gone) it takes the lock as :func:`lock` does.
+    Returns the time it waited, ns."""
+    t0 = monotonic_ns()
+    period = tk[tk_.TK_PERIOD_NS]
+    while True:
+        now = monotonic_ns()
+        deadline = tk[tk_.TK_DEADLINE_NS]
+        # (the clock thread moves the deadline on as it wakes, before it takes the lock: a tick
+        # that ended after the start of the current period is this period's)
+        if ((tk[tk_.TK_LAST_WRITE_NS] >= deadline - period and deadline - now >= room_ns)
+                or now - t0 > patience_ns):
+            if atomic_cas(tk, tk_.TK_LOCK, 0, 2) == 0:
+                return now - t0
 
 
 @njit(**_JIT)

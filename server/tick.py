@@ -107,7 +107,12 @@ TK_POLL_EVERY = 35      # a transport without a socket is polled by Python every
 TK_POLL_COUNT = 36      # ticks since it was
 TK_MAPPED = 37          # 1: the device is seen through the workspace mapping ``T.map`` (map_state
                         # after the read, map_command before the write); 0: as it is
-NTK = 38
+TK_DEV_WD_NS = 38       # the device's watchdog: a gap between ticks this long is a stall trip
+                        # (the clock thread cuts at once, Python classifies it: LoopLife.see_wake)
+TK_STALL_SEEN = 39      # clock thread: stalls seen since Python last took them
+TK_STALL_WAKE_NS = 40   # clock thread: the wake-up that ended the last stall seen
+TK_STALL_FROM_NS = 41   # clock thread: the end of the tick before it
+NTK = 42
 
 #: the largest share of a period ``run_ticks`` may spin before a deadline. The thread then sleeps
 #: at least the rest of every period (SCHED_FIFO stays far below the kernel's real-time
@@ -214,10 +219,10 @@ def _after_needs_python(T):
 
 
 @njit(**_JIT)
-def wait_deadline(T):
-    """Sleep, then spin, until the next deadline; move it on (skipping whole periods missed, which
-    the safety filter's gain still counts). Returns ``(wake_ns, late_ns)``."""
-    tk = T.tk
+def wait_until_deadline(tk):
+    """Sleep, then spin, until the next deadline; move it on, skipping whole periods missed
+    (counted in ``TK_MISSED``). Returns ``(wake_ns, late_ns, missed)``; the caller counts the
+    missed periods where the tick's arrays keep them (:func:`count_missed`)."""
     deadline = tk[TK_DEADLINE_NS]
     period = tk[TK_PERIOD_NS]
     wake_at = deadline - tk[TK_SPIN_NS]
@@ -228,14 +233,31 @@ def wait_deadline(T):
     while now < deadline:
         now = monotonic_ns()
     late = now - deadline
+    missed = 0
     if late >= period:
         missed = late // period
         tk[TK_MISSED] += missed
-        T.stat[0].missed_deadlines += float(missed)
         tk[TK_DEADLINE_NS] = deadline + (missed + 1) * period
-        T.cs[ctl.CS_SKIPPED] += float(missed)
     else:
         tk[TK_DEADLINE_NS] = deadline + period
+    return now, late, missed
+
+
+@njit(**_JIT)
+def count_missed(T, missed):
+    """Whole periods skipped: in the status, and in the safety filter's gain (which moves on as if
+    they had run)."""
+    if missed > 0:
+        T.stat[0].missed_deadlines += float(missed)
+        T.cs[ctl.CS_SKIPPED] += float(missed)
+
+
+@njit(**_JIT)
+def wait_deadline(T):
+    """Sleep, then spin, until the next deadline; move it on (skipping whole periods missed, which
+    the safety filter's gain still counts). Returns ``(wake_ns, late_ns)``."""
+    now, late, missed = wait_until_deadline(T.tk)
+    count_missed(T, missed)
     return now, late
 
 

@@ -139,26 +139,34 @@ def _case(name: str) -> bf.Case:
     return next(c for c in bf.CASES if c.name.startswith(name))
 
 
-def _run(name: str, seconds: float = 4.0) -> dict:
+def _run(name: str, seconds: float = 4.0, protocol_thread: bool = False) -> dict:
     # not real-time (a CI box may refuse SCHED_FIFO), and the in-process sim device's watchdog
     # at 0.5 s as in the other real-server tests: a loaded box may stall a loop for 50 ms
-    return bf.run_case(_case(name), engine="stub", realtime=False, seconds=seconds, device_watchdog_s=0.5)
+    return bf.run_case(_case(name), engine="stub", realtime=False, seconds=seconds, device_watchdog_s=0.5,
+                       protocol_thread=protocol_thread)
 
 
-def test_client_killed_mid_contact_fades_within_the_promise():
-    row = _run("client killed mid-contact")
+#: the server's two ways of running the tick on the real clock: the compiled loop that hands
+#: steps back to Python in its own thread, and a clock thread with the protocol beside it
+LOOPS = [pytest.param(False, id="one-thread"), pytest.param(True, id="clock-thread")]
+
+
+@pytest.mark.parametrize("protocol_thread", LOOPS)
+def test_client_killed_mid_contact_fades_within_the_promise(protocol_thread):
+    row = _run("client killed mid-contact", protocol_thread=protocol_thread)
     _check(row)  # incl. "fade not at zero within fade_s" and "silent past the watchdog, still engaged"
     assert row["fades"] >= 1 and row["fade_ms"] is not None and row["detect_ms"] is not None
 
 
 @pytest.mark.realtime
-def test_a_stalled_loop_is_cut_by_the_device_watchdog_and_recovers_by_itself():
+@pytest.mark.parametrize("protocol_thread", LOOPS)
+def test_a_stalled_loop_is_cut_by_the_device_watchdog_and_recovers_by_itself(protocol_thread):
     """Real time: the recovery waits until the loop has been on time for 0.5 s on the wall clock;
     on a loaded box a 4 s run ended first twice ('no recovery after the stall', 112 and 120
     missed deadlines; the second on CI's fresh clone, where the stall also came while the force
     was 1.5 N, and the analysis counted the cut as a step: no longer), so the run is 6 s. The
     stall rules in simulated time: tests/server/test_stalls.py."""
-    row = _run("server loop stalled 100 ms", seconds=6.0)
+    row = _run("server loop stalled 100 ms", seconds=6.0, protocol_thread=protocol_thread)
     _check(row)
     assert row["state_after_stall"] == "fault"  # the output stayed off right after the stall
     assert row["device_watchdog_trips"] >= 1 and row["zero_ms"] is not None  # cut by its own watchdog
@@ -166,13 +174,14 @@ def test_a_stalled_loop_is_cut_by_the_device_watchdog_and_recovers_by_itself():
     assert row["device_first_after_rearm_n"] is not None and row["device_first_after_rearm_n"] <= 0.2
 
 
+@pytest.mark.parametrize("protocol_thread", LOOPS)
 @pytest.mark.parametrize("name", [pytest.param("stall 120 ms while engaged", marks=pytest.mark.realtime),
                                   "re-arm after a device fault, pushing hand", "first engagement, pushing hand"])
-def test_lifecycle_cases_keep_every_promise_on_the_real_server(name):
+def test_lifecycle_cases_keep_every_promise_on_the_real_server(name, protocol_thread):
     from hapticproxy.benchmarks import faults_lifecycle as lc
 
     case = next(c for c in lc.cases() if c.name.startswith(name))
-    row = lc.run_lifecycle_case(case, bf, engine="stub", realtime=False)
+    row = lc.run_lifecycle_case(case, bf, engine="stub", realtime=False, protocol_thread=protocol_thread)
     assert "error" not in row, row
     assert row["violations"] == 0, (row["case"], row["broken"], row["transitions"])
     assert row["peak_n"] <= row["steady_n"] + 1.0, row

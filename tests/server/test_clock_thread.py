@@ -1,0 +1,193 @@
+"""``[loop] protocol_thread``: the tick in a clock thread of its own (``servo.run_clock``), the
+protocol, the lifecycle and housekeeping on the Python thread beside it, sharing the tick's arrays
+through one lock word.
+
+The clock thread's period (``servo.clock_tick``) is a pure function of the words and arrays it is
+given, so its contract is tested by calling it on a real loop's arrays with a chosen ``now``:
+nothing here asserts a time. What it promises: with the lock free it ticks and counts the tick;
+with the lock held by Python it ticks nothing, counts the tick held and keeps the periods it
+missed for the next tick run; the environment's silence starts the fade in the tick itself and
+the rows say "fading" from that tick; a gap between ticks longer than the stall gap is reported
+to Python with its end, and the environment's silence counts from that end; a gap as long as the
+device's watchdog cuts the output at once. Python's side: a fade the tick started is a transition
+before an update that arrived meanwhile resumes from it. The whole server with a clock thread runs
+the fault and lifecycle cases of ``tests/faults/test_bench_faults.py`` (``clock-thread``).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from server_harness import make_settings
+
+from hapticproxy.server import control as ctl
+from hapticproxy.server import safety as sf
+from hapticproxy.server import servo, tick
+from hapticproxy.server.clock import MonotonicClock
+from hapticproxy.server.lifecycle import LS, Reason
+from hapticproxy.server.loop import HapticLoop
+from hapticproxy.server.shm import ST, TEL
+
+
+
+@pytest.fixture
+def armed():
+    """A real loop on the monotonic clock (started, idle), bound to a clock thread's block that no
+    thread runs: the test calls ``clock_tick`` itself."""
+    lp = HapticLoop.build(make_settings(loop={"protocol_thread": True}), clock=MonotonicClock(spin_ns=20_000))
+    try:
+        lp.warm_up()
+        lp.start()
+        b = servo.ServoBinding(lp.period_ns)
+        b.block[servo.SB_TK] = lp.tk.ctypes.data
+        b.block[servo.SB_CMD] = lp._wcmd.ctypes.data
+        b.bind(lp._T)
+        lp.tk[tick.TK_DEV_WD_NS] = 2 * int(lp.tk[tick.TK_STALL_GAP_NS])  # the device's watchdog
+        yield lp, b
+    finally:
+        lp.close()
+
+
+def _now(lp, after_ns=0):
+    """A wake-up one period after the loop's last tick (plus ``after_ns``)."""
+    return int(lp.tk[tick.TK_LAST_WRITE_NS]) + lp.period_ns + after_ns
+
+
+def test_the_lock_free_it_ticks_and_counts_the_tick(armed):
+    lp, b = armed
+    tk = lp.tk
+    n0, ticks0 = int(b.block[servo.SB_TICKS]), int(tk[tick.TK_TICKS])
+    now = _now(lp)
+    servo.clock_tick(b.block, tk, now, 0, 0)
+    assert int(b.block[servo.SB_TICKS]) == n0 + 1 and int(tk[tick.TK_TICKS]) == ticks0 + 1
+    assert int(b.block[servo.SB_HELD]) == 0
+    assert int(tk[tick.TK_LAST_WRITE_NS]) >= now  # the tick wrote the device
+    assert int(tk[tick.TK_LOCK]) == 0  # and let the lock go
+    assert int(tk[tick.TK_STALL_SEEN]) == 0
+
+
+def test_the_lock_held_by_python_nothing_ticks_and_missed_periods_wait(armed):
+    lp, b = armed
+    tk = lp.tk
+    ticks0 = int(tk[tick.TK_TICKS])
+    last = int(tk[tick.TK_LAST_WRITE_NS])
+    missed0 = float(lp.shared.status[ST["missed_deadlines"]])
+    skipped0 = float(lp.ctrl.cs[ctl.CS_SKIPPED])
+    tk[tick.TK_LOCK] = 2  # Python has it
+    servo.clock_tick(b.block, tk, _now(lp), 0, 3)
+    assert int(b.block[servo.SB_HELD]) == 1 and int(tk[tick.TK_TICKS]) == ticks0
+    assert int(tk[tick.TK_LAST_WRITE_NS]) == last  # the device was not ticked
+    assert int(tk[tick.TK_LOCK]) == 2  # the lock is Python's still
+    assert int(b.block[servo.SB_MISSED]) == 3
+    assert float(lp.ctrl.cs[ctl.CS_SKIPPED]) == skipped0  # not counted while held
+    tk[tick.TK_LOCK] = 0
+    servo.clock_tick(b.block, tk, _now(lp), 0, 1)
+    # the next tick run counts them: the safety filter's gain moves on over every skipped period
+    assert int(b.block[servo.SB_MISSED]) == 0
+    assert int(tk[tick.TK_TICKS]) == ticks0 + 1
+    assert float(lp.shared.status[ST["missed_deadlines"]]) == missed0 + 4
+    assert float(lp.ctrl.cs[ctl.CS_SKIPPED]) in (0.0, skipped0 + 4)  # (the tick's filter consumes it)
+
+
+def test_silence_starts_the_fade_in_the_tick_and_the_rows_say_fading(armed):
+    lp, b = armed
+    tk, cs = lp.tk, lp.ctrl.cs
+    tk[tick.TK_STATE] = LS["engaged"]  # as if a session had engaged
+    cs[ctl.CS_TARGET] = 1.0
+    now = _now(lp)
+    tk[tick.TK_QUIET_SINCE_NS] = now - int(tk[tick.TK_WATCHDOG_NS])  # exactly the watchdog: not yet
+    servo.clock_tick(b.block, tk, now, 0, 0)
+    assert int(tk[tick.TK_STATE]) == LS["engaged"] and cs[ctl.CS_TARGET] == 1.0
+    now = _now(lp)
+    tk[tick.TK_QUIET_SINCE_NS] = now - int(tk[tick.TK_WATCHDOG_NS]) - 1
+    servo.clock_tick(b.block, tk, now, 0, 0)
+    assert int(tk[tick.TK_STATE]) == LS["fading"] and cs[ctl.CS_TARGET] == 0.0
+    head = int(lp.shared.head[0])
+    assert lp.shared.ring[(head - 1) % lp.shared.ring_rows, TEL["loop_state"]] == LS["fading"]
+
+
+def test_a_gap_longer_than_the_stall_gap_is_reported_with_its_end(armed):
+    lp, b = armed
+    tk, cs = lp.tk, lp.ctrl.cs
+    gap = int(tk[tick.TK_STALL_GAP_NS])
+    last = int(tk[tick.TK_LAST_WRITE_NS])
+    tk[tick.TK_QUIET_SINCE_NS] = last
+    now = last + gap  # not longer: no stall
+    servo.clock_tick(b.block, tk, now, 0, 0)
+    assert int(tk[tick.TK_STALL_SEEN]) == 0
+    last = int(tk[tick.TK_LAST_WRITE_NS])
+    cs[ctl.CS_SAFETY + sf.SS_GAIN] = 1.0
+    cs[ctl.CS_TARGET] = 1.0
+    now = last + gap + 1  # longer, but shorter than the device's watchdog
+    assert gap + 1 < int(tk[tick.TK_DEV_WD_NS])
+    servo.clock_tick(b.block, tk, now, 0, 0)
+    assert int(tk[tick.TK_STALL_SEEN]) == 1
+    assert int(tk[tick.TK_STALL_WAKE_NS]) == now and int(tk[tick.TK_STALL_FROM_NS]) == last
+    assert int(tk[tick.TK_QUIET_SINCE_NS]) == now  # the silence counts from the stall's end
+    assert cs[ctl.CS_TARGET] == 1.0  # not cut: the device's watchdog did not trip
+
+
+def test_a_gap_as_long_as_the_device_watchdog_cuts_at_once(armed):
+    lp, b = armed
+    tk, cs = lp.tk, lp.ctrl.cs
+    last = int(tk[tick.TK_LAST_WRITE_NS])
+    cs[ctl.CS_SAFETY + sf.SS_GAIN] = 1.0
+    cs[ctl.CS_SAFETY + sf.SS_TARGET] = 1.0
+    cs[ctl.CS_TARGET] = 1.0
+    servo.clock_tick(b.block, tk, last + int(tk[tick.TK_DEV_WD_NS]), 0, 0)
+    assert int(tk[tick.TK_STALL_SEEN]) == 1
+    # the safety filter starts again from zero gain, and nothing ramps it back in by itself
+    assert cs[ctl.CS_TARGET] == 0.0 and cs[ctl.CS_SAFETY + sf.SS_TARGET] == 0.0
+    assert cs[ctl.CS_SAFETY + sf.SS_GAIN] == 0.0
+    assert not np.any(lp.ctrl.cmd)
+
+
+def test_python_takes_the_lock_in_the_gap_after_a_tick(armed):
+    lp, b = armed
+    tk = lp.tk
+    period = lp.period_ns
+    now = MonotonicClock().now_ns()
+    # the tick of this period has ended (a tenth of a period after it began) and the next
+    # deadline is more than half a period away: taken at once
+    tk[tick.TK_DEADLINE_NS] = now + 100 * period
+    tk[tick.TK_LAST_WRITE_NS] = now + 99 * period + period // 10
+    waited = servo.lock_between_ticks(tk, period // 2, 10**9)
+    assert int(tk[tick.TK_LOCK]) == 2 and waited < 10**9
+    servo.unlock(tk)
+    # this period's tick has not run yet (the clock thread moved the deadline on as it woke, and
+    # is about to take the lock): Python waits, here until its patience ends
+    tk[tick.TK_LAST_WRITE_NS] = now + 99 * period - 1
+    waited = servo.lock_between_ticks(tk, period // 2, 2 * period)
+    assert waited > 2 * period and int(tk[tick.TK_LOCK]) == 2
+    servo.unlock(tk)
+    # this period's tick has run but the next deadline is nearer than the room Python asks for
+    now = MonotonicClock().now_ns()
+    tk[tick.TK_DEADLINE_NS] = now + period // 4
+    tk[tick.TK_LAST_WRITE_NS] = now - period // 2
+    waited = servo.lock_between_ticks(tk, period // 2, 2 * period)
+    assert waited > 2 * period and int(tk[tick.TK_LOCK]) == 2
+    servo.unlock(tk)
+
+
+def test_a_fade_the_tick_started_is_a_transition_before_an_update_resumes(rig_factory):
+    """Simulated time: the loop engaged, the clock thread has started the silence fade (target
+    zero, rows fading) and an update arrives before Python's next pass. The pass makes the fade
+    the transition it is, then the update resumes it: engaged, target 1. Without the first, the
+    loop would stay "engaged" with its target at zero, the force fading out for good."""
+    r = rig_factory()
+    r.run(1.0)
+    lp = r.loop
+    assert lp.state_name == "engaged"
+    lp.tk[tick.TK_STATE] = LS["fading"]  # what servo._locked_tick does on silence
+    lp.ctrl.cs[ctl.CS_TARGET] = 0.0
+    for _ in range(100):  # the engine's next update, received (decoded) beside the tick
+        r.env.service()
+        r.clock.advance(lp.period_ns)
+        lp.proto.poll(r.clock.now_ns())
+        if lp.proto._pending is not None:
+            break
+    assert lp.proto._pending is not None
+    lp.threaded_pass(r.clock.now_ns(), None, False)
+    reasons = [Reason(t[4]) for t in lp.shared.transitions_since(0)]
+    assert reasons[-2:] == [Reason.SILENT, Reason.RESUMED]
+    assert lp.state_name == "engaged" and lp.ctrl.cs[ctl.CS_TARGET] == 1.0
+    assert int(lp.tk[tick.TK_STATE]) == LS["engaged"]
