@@ -303,21 +303,20 @@ class HapticLoop:
         tick.tick_at(dw.ctypes.data, 0, 0)
         tk[tick.TK_STOP] = 1
         tick.run_ticks_at(dw.ctypes.data)
-        if self.clock_thread:  # the clock thread's loop (its body never runs: SB_RUN is 0)
+        if self.clock_thread or self.device_clocked:
             from . import servo
 
             blk = np.zeros(servo.NSB, dtype=np.int64)
             blk[servo.SB_TK] = tk.ctypes.data
             blk[servo.SB_DESC] = dw.ctypes.data
-            servo.run_clock(blk)
-            servo.lock_between_ticks(tk, 0, 0)
+            if self.clock_thread:
+                servo.run_clock(blk)  # the clock thread's loop (its body never runs: SB_RUN is 0)
+            servo.lock_between_ticks(tk, blk, 0, 0)  # the Python side's lock
             servo.unlock(tk)
         warm = getattr(self.device, "warm_up", None)
         if callable(warm):
             warm()
         if self.device_clocked:  # the servo callback and the device's C functions (cfuncs: compiled at import)
-            from . import servo  # noqa: F401
-
             self._driver.servo_io()
         self._kernels = package_kernels()
         self._kernels_compiled = sum(len(d.overloads) for d in self._kernels)
@@ -545,11 +544,8 @@ class HapticLoop:
 
     def _run_device_clocked(self, duration_s) -> None:
         """The tick runs in the device's servo thread (``servo.SERVO_CALLBACK``); this thread runs
-        the rest, whenever a datagram arrives and at least every millisecond, with the tick lock
-        held (a servo tick that finds it held writes the previous command again). The tick's
-        results accumulate in ``TK_RC_STICKY`` until taken here."""
-        import select
-
+        the rest beside it (:meth:`_serve_beside`). The tick's results accumulate in
+        ``TK_RC_STICKY`` until taken here."""
         from .servo import SERVO_CALLBACK, ServoBinding, lock, unlock
 
         tk = self.tk
@@ -570,39 +566,8 @@ class HapticLoop:
             unlock(tk)
         self.servo = binding
         self._driver.schedule(SERVO_CALLBACK, binding.address)
-        fd = int(tk[tick.TK_FD])
-        end_ns = None if duration_s is None else self.clock.now_ns() + int(duration_s * 1e9)
-        hk_ns = int(tk[tick.TK_HK_EVERY]) * int(self.period_ns)
-        next_hk = self.clock.now_ns() + hk_ns
         try:
-            while not self.stopped:
-                if fd >= 0:
-                    readable = bool(select.select((fd,), (), (), 0.001)[0])
-                else:
-                    time.sleep(0.001)
-                    readable = True  # a transport without a socket is polled every millisecond
-                now = self.clock.now_ns()
-                hk_due = now >= next_hk
-                if not python_has_work(tk, readable, hk_due):
-                    continue
-                if hk_due:
-                    next_hk = now + hk_ns
-                    tk[tick.TK_HK_COUNT] = max(int(tk[tick.TK_HK_COUNT]), int(tk[tick.TK_HK_EVERY]) - 1)
-                lock(tk)
-                try:
-                    rcs = int(tk[tick.TK_RC_STICKY])
-                    tk[tick.TK_RC_STICKY] = 0
-                    now = self.clock.now_ns()
-                    self.life.take_tick_fade(now)
-                    self.life.after_tick(rcs, now)
-                    self._service(now)
-                    if self._T is not binding._keep[0]:
-                        binding.bind(self._T)  # an engagement bound the tick to the new model's arrays
-                finally:
-                    unlock(tk)
-                if end_ns is not None and now >= end_ns and not self.stopping:
-                    self.request_stop()
-                    end_ns = None
+            self._serve_beside(binding, duration_s)
         finally:
             self._driver.schedule_python()  # the servo thread must not reach arrays freed after this
 
@@ -614,19 +579,14 @@ class HapticLoop:
 
     def _run_threaded(self, duration_s) -> None:
         """The tick in a clock thread of its own (``servo.run_clock``: compiled, no GIL, absolute
-        deadlines, never back in Python until the end) and everything Python does on this thread,
-        beside it: reading and decoding datagrams, applying and acknowledging updates, the
-        lifecycle, housekeeping, the status. Python takes the tick's lock (``TK_LOCK``) only to
-        change or read what the tick uses (an update's model change, the acknowledgement's proxy
-        state, a transition, a fault's cut), never to decode or send; a tick that finds it held
-        ticks nothing and counts itself held (``servo_held`` in ``bench loop``). What the tick
-        must do at once it does in its own thread: a device fault's or a non-finite value's cut, a
-        stall as long as the device's watchdog cut, the environment's silence starting the fade;
-        Python names and classifies them at its next pass (within a millisecond)."""
-        import select
+        deadlines, never back in Python until the end); everything Python does runs on this
+        thread, beside it (:meth:`_serve_beside`). What the tick must do at once it does in its
+        own thread: a device fault's or a non-finite value's cut, a stall as long as the device's
+        watchdog cut, the environment's silence starting the fade; Python names and classifies
+        them at its next pass (within a millisecond)."""
         import threading
 
-        from .servo import SB_CMD, SB_RUN, SB_TK, ServoBinding, lock, lock_between_ticks, run_clock, unlock
+        from .servo import SB_CMD, SB_RUN, SB_TK, ServoBinding, lock, run_clock, unlock
 
         tk = self.tk
         binding = ServoBinding(self.period_ns)
@@ -651,60 +611,77 @@ class HapticLoop:
         self.servo = binding
         clock = threading.Thread(target=run_clock, args=(blk,), name="hapticproxy-clock", daemon=True)
         clock.start()
-        fd = int(tk[tick.TK_FD])
-        proto = self.proto
-        end_ns = None if duration_s is None else self.clock.now_ns() + int(duration_s * 1e9)
-        applied_tick = -1  # TK_TICKS when the last update was applied: its ack waits for a tick after it
-        # Python takes the lock in the gap after a tick with half a period ahead of it (its work
-        # with the lock takes some us, an engagement milliseconds), and waits for that gap at most
-        # two periods (a clock thread held or stalled)
-        room_ns = self.period_ns // 2
-        patience_ns = 2 * self.period_ns
         try:
-            while not self.stopped:
-                # wait for a datagram; while an acknowledgement waits for its tick, a period at most
-                wait_s = self.dt_s if proto._ack_due is not None else 0.001
-                if fd >= 0:
-                    readable = bool(select.select((fd,), (), (), wait_s)[0])
-                else:
-                    time.sleep(wait_s)
-                    readable = True  # a transport without a socket is polled every millisecond
-                now = self.clock.now_ns()
-                if readable:
-                    proto.poll(now)  # decoded and checked beside the tick: the protocol's own state
-                hk_due = tk[tick.TK_HK_COUNT] >= tk[tick.TK_HK_EVERY]
-                if hk_due:
-                    tk[tick.TK_HK_COUNT] = 0
-                    proto.endpoint.poll(now)  # the sessions' timers: the protocol's own state
-                ack = proto._ack_due if proto._ack_due is not None and tk[tick.TK_TICKS] > applied_tick else None
-                st = tk[tick.TK_STATE]
-                if not (proto._pending is not None or ack is not None or hk_due or tk[tick.TK_RC_STICKY] != 0
-                        or tk[tick.TK_STALL_SEEN] != 0 or st == tick._LS_FADING or st == tick._LS_STOPPING):
-                    continue
-                lock_between_ticks(tk, room_ns, patience_ns)
-                try:
-                    now = self.clock.now_ns()
-                    if proto._pending is not None:
-                        applied_tick = int(tk[tick.TK_TICKS])
-                    acked = self.threaded_pass(now, ack, hk_due)
-                    if self._T is not binding._keep[0]:
-                        binding.bind(self._T)  # an engagement bound the tick to the new model's arrays
-                finally:
-                    unlock(tk)
-                if acked:
-                    proto.survive(proto.ack_send, ack, now)
-                if hk_due:
-                    self._housekeeping_unlocked(now)
-                if end_ns is not None and now >= end_ns and not self.stopping:
-                    lock(tk)
-                    try:
-                        self.request_stop()
-                    finally:
-                        unlock(tk)
-                    end_ns = None
+            self._serve_beside(binding, duration_s)
         finally:
             blk[SB_RUN] = 0
             clock.join()
+
+    def _serve_beside(self, binding, duration_s) -> None:
+        """Everything Python does while another thread ticks (a clock thread, a device's servo
+        thread): wait on the socket, decode and check datagrams, send acknowledgements, keep the
+        sessions' timers and publish the status without the tick's lock; take ``TK_LOCK`` only to
+        change or read what the tick uses (:meth:`threaded_pass`), in the gap after a tick with
+        half a period ahead (``servo.lock_between_ticks``), so that this work ends before the
+        next tick wants the lock. A tick that finds it held ticks nothing (a device's servo tick
+        writes the previous command again) and counts itself held (``servo_held``)."""
+        import select
+
+        from .servo import SB_PERIOD_NS, SB_TICKS, lock, lock_between_ticks, unlock
+
+        tk = self.tk
+        blk = binding.block
+        fd = int(tk[tick.TK_FD])
+        proto = self.proto
+        end_ns = None if duration_s is None else self.clock.now_ns() + int(duration_s * 1e9)
+        hk_ns = int(tk[tick.TK_HK_EVERY]) * int(self.period_ns)
+        next_hk = self.clock.now_ns() + hk_ns
+        applied_tick = -1  # SB_TICKS when the last update was applied: its ack waits for a tick after it
+        # the lock's work takes some us (an engagement milliseconds); waited for at most two
+        # periods of the ticking thread (one held or stalled)
+        room_ns = int(blk[SB_PERIOD_NS]) // 2
+        patience_ns = 2 * int(blk[SB_PERIOD_NS])
+        while not self.stopped:
+            # wait for a datagram; while an acknowledgement waits for its tick, a period at most
+            wait_s = self.dt_s if proto._ack_due is not None else 0.001
+            if fd >= 0:
+                readable = bool(select.select((fd,), (), (), wait_s)[0])
+            else:
+                time.sleep(wait_s)
+                readable = True  # a transport without a socket is polled every millisecond
+            now = self.clock.now_ns()
+            if readable:
+                proto.poll(now)  # decoded and checked beside the tick: the protocol's own state
+            hk_due = now >= next_hk
+            if hk_due:
+                next_hk = now + hk_ns
+                proto.endpoint.poll(now)  # the sessions' timers: the protocol's own state
+            ack = proto._ack_due if proto._ack_due is not None and blk[SB_TICKS] > applied_tick else None
+            st = tk[tick.TK_STATE]
+            if not (proto._pending is not None or ack is not None or hk_due or tk[tick.TK_RC_STICKY] != 0
+                    or tk[tick.TK_STALL_SEEN] != 0 or st == tick._LS_FADING or st == tick._LS_STOPPING):
+                continue
+            lock_between_ticks(tk, blk, room_ns, patience_ns)
+            try:
+                now = self.clock.now_ns()
+                if proto._pending is not None:
+                    applied_tick = int(blk[SB_TICKS])
+                acked = self.threaded_pass(now, ack, hk_due)
+                if self._T is not binding._keep[0]:
+                    binding.bind(self._T)  # an engagement bound the tick to the new model's arrays
+            finally:
+                unlock(tk)
+            if acked:
+                proto.survive(proto.ack_send, ack, now)
+            if hk_due:
+                self._housekeeping_unlocked(now)
+            if end_ns is not None and now >= end_ns and not self.stopping:
+                lock(tk)
+                try:
+                    self.request_stop()
+                finally:
+                    unlock(tk)
+                end_ns = None
 
     def threaded_pass(self, now: int, ack, hk_due: bool) -> bool:
         """What this thread does with the tick's lock held, beside a clock thread: the tick's

@@ -52,6 +52,8 @@ SB_RUN = 12          # clock thread: 1 while it should run (Python sets 0 to end
 SB_MISSED = 13       # clock thread: periods skipped while held, counted at the next tick run
 SB_CMD = 14          # clock thread: the address of the command the device is written (stable:
                      # the controller's, or the mapping's image of it), for a held tick
+SB_NEXT_NS = 15      # when the next tick is due (written after each tick, run or held): Python
+                     # takes the lock only with room before it (``lock_between_ticks``)
 NSB = 16
 
 @njit(**_JIT)
@@ -78,6 +80,7 @@ def servo_tick(blk):
     else:
         _held_tick(blk, T)
     blk[SB_LAST_NS] = now
+    blk[SB_NEXT_NS] = now + blk[SB_PERIOD_NS]
     if blk[SB_END] != 0:
         call_i32_ptr_ptr(blk[SB_END], blk[SB_CTX], 0)
     return 1
@@ -149,6 +152,7 @@ def clock_tick(blk, tk, now, late, missed):
             call_i32_ptr_ptr(tk[tk_.TK_NATIVE_WRITE], tk[tk_.TK_NATIVE_CTX], blk[SB_CMD])
         blk[SB_HELD] += 1
     blk[SB_LAST_NS] = now
+    blk[SB_NEXT_NS] = tk[tk_.TK_DEADLINE_NS]  # (moved on as the thread woke)
 
 
 @njit(**_JIT)
@@ -219,21 +223,17 @@ def lock(tk):
 
 
 @njit(**_JIT)
-def lock_between_ticks(tk, room_ns, patience_ns):
-    """Take the tick lock for Python in the gap after a tick (the clock thread's): once the tick of
-    the current period has ended and the next deadline is at least ``room_ns`` away, so that what
-    Python does with the lock ends before the next tick wants it. After ``patience_ns`` of
-    waiting (a clock thread held, stalled, or gone) it takes the lock as :func:`lock` does.
-    Returns the time it waited, ns."""
+def lock_between_ticks(tk, blk, room_ns, patience_ns):
+    """Take the tick lock for Python in the gap after a tick (a clock thread's or a device's servo
+    thread's, ``blk`` its block): once the next tick is due at least ``room_ns`` from now
+    (``SB_NEXT_NS``, written after each tick: while a tick is under way it still names the one
+    under way, which is due already), so that what Python does with the lock ends before the
+    next tick wants it. After ``patience_ns`` of waiting (the ticking thread stalled, or gone) it
+    takes the lock as :func:`lock` does. Returns the time it waited, ns."""
     t0 = monotonic_ns()
-    period = tk[tk_.TK_PERIOD_NS]
     while True:
         now = monotonic_ns()
-        deadline = tk[tk_.TK_DEADLINE_NS]
-        # (the clock thread moves the deadline on as it wakes, before it takes the lock: a tick
-        # that ended after the start of the current period is this period's)
-        if ((tk[tk_.TK_LAST_WRITE_NS] >= deadline - period and deadline - now >= room_ns)
-                or now - t0 > patience_ns):
+        if blk[SB_NEXT_NS] - now >= room_ns or now - t0 > patience_ns:
             if atomic_cas(tk, tk_.TK_LOCK, 0, 2) == 0:
                 return now - t0
 

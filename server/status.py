@@ -130,7 +130,8 @@ def format_status(s: dict) -> str:
         f"{_device_fault_name(s.get('device_fault', 0))}; stall trips {s.get('stall_trips', 0)}, "
         f"recovered {s.get('stall_recoveries', 0)})",
         f"rate         {rate:.0f} Hz, {s.get('steps', 0)} steps, overruns {s.get('overruns', 0)}, "
-        f"missed deadlines {s.get('missed_deadlines', 0)}",
+        f"missed deadlines {s.get('missed_deadlines', 0)}"
+        + (f", held ticks {s.get('servo_held', 0)} (the tick's lock was Python's)" if s.get("servo_ticks") else ""),
         f"lateness us  p50 {lat.get('p50')}  p99 {lat.get('p99')}  p99.9 {lat.get('p999')}  "
         f"max {_f(s.get('lateness_max_us'))}",
         f"compute us   p50 {comp.get('p50')}  p99 {comp.get('p99')}  max {_f(s.get('compute_max_us'))}",

@@ -362,12 +362,13 @@ static void *servo(void *arg) {
     const char *rate_env = getenv("HAPTICPROXY_EMU_HD_RATE_HZ");
     double rate_hz = rate_env ? atof(rate_env) : 1000.0;
     const long period = rate_hz > 0.0 ? (long)(1e9 / rate_hz) : 1000000;
-    /* HAPTICPROXY_EMU_HD_SPIN_US: the spin before each deadline (default 150 us, at most half a
-       period; 0: a plain sleep, the timer's own jitter) */
+    /* HAPTICPROXY_EMU_HD_SPIN_US: the spin before each deadline (default 150 us, at most a
+       quarter of the period: a FIFO thread spinning longer starves the process's other threads
+       on a 2-core machine; 0: a plain sleep, the timer's own jitter) */
     const char *spin_env = getenv("HAPTICPROXY_EMU_HD_SPIN_US");
     long spin_ns = (long)((spin_env ? atof(spin_env) : 150.0) * 1000.0);
     if (spin_ns < 0) spin_ns = 0;
-    if (spin_ns > period / 2) spin_ns = period / 2;
+    if (spin_ns > period / 4) spin_ns = period / 4;
     prctl(PR_SET_TIMERSLACK, 1UL, 0UL, 0UL, 0UL);  /* the default 50 us slack would add to every sleep */
     while (!__atomic_load_n(&g_stop, __ATOMIC_ACQUIRE)) {
         struct timespec now;

@@ -143,29 +143,33 @@ def test_a_gap_as_long_as_the_device_watchdog_cuts_at_once(armed):
 
 def test_python_takes_the_lock_in_the_gap_after_a_tick(armed):
     lp, b = armed
-    tk = lp.tk
+    tk, blk = lp.tk, b.block
     period = lp.period_ns
-    now = MonotonicClock().now_ns()
-    # the tick of this period has ended (a tenth of a period after it began) and the next
-    # deadline is more than half a period away: taken at once
-    tk[tick.TK_DEADLINE_NS] = now + 100 * period
-    tk[tick.TK_LAST_WRITE_NS] = now + 99 * period + period // 10
-    waited = servo.lock_between_ticks(tk, period // 2, 10**9)
+    # after a tick: the next one is due more than the room Python asks for away: taken at once
+    blk[servo.SB_NEXT_NS] = MonotonicClock().now_ns() + 100 * period
+    waited = servo.lock_between_ticks(tk, blk, period // 2, 10**9)
     assert int(tk[tick.TK_LOCK]) == 2 and waited < 10**9
     servo.unlock(tk)
-    # this period's tick has not run yet (the clock thread moved the deadline on as it woke, and
-    # is about to take the lock): Python waits, here until its patience ends
-    tk[tick.TK_LAST_WRITE_NS] = now + 99 * period - 1
-    waited = servo.lock_between_ticks(tk, period // 2, 2 * period)
-    assert waited > 2 * period and int(tk[tick.TK_LOCK]) == 2
-    servo.unlock(tk)
-    # this period's tick has run but the next deadline is nearer than the room Python asks for
-    now = MonotonicClock().now_ns()
-    tk[tick.TK_DEADLINE_NS] = now + period // 4
-    tk[tick.TK_LAST_WRITE_NS] = now - period // 2
-    waited = servo.lock_between_ticks(tk, period // 2, 2 * period)
-    assert waited > 2 * period and int(tk[tick.TK_LOCK]) == 2
-    servo.unlock(tk)
+    # the next tick is due sooner than that (or is under way: due already): Python waits, here
+    # until its patience ends
+    for ahead in (period // 4, -period // 10):
+        blk[servo.SB_NEXT_NS] = MonotonicClock().now_ns() + ahead
+        waited = servo.lock_between_ticks(tk, blk, period // 2, 2 * period)
+        assert waited > 2 * period and int(tk[tick.TK_LOCK]) == 2
+        servo.unlock(tk)
+
+
+def test_each_tick_says_when_the_next_is_due(armed):
+    """What ``lock_between_ticks`` reads: after a run tick and after a held one alike, the next
+    deadline (the clock thread moved it on as it woke)."""
+    lp, b = armed
+    tk, blk = lp.tk, b.block
+    for lock_word in (0, 2):
+        tk[tick.TK_LOCK] = lock_word
+        tk[tick.TK_DEADLINE_NS] = _now(lp) + lp.period_ns
+        servo.clock_tick(blk, tk, _now(lp), 0, 0)
+        assert int(blk[servo.SB_NEXT_NS]) == int(tk[tick.TK_DEADLINE_NS])
+    tk[tick.TK_LOCK] = 0
 
 
 def test_a_fade_the_tick_started_is_a_transition_before_an_update_resumes(rig_factory):
