@@ -12,7 +12,9 @@ minus the absolute deadline, 1 us bins, upper edges), ``step_us`` (``p50``, ``p9
 write), ``missed_fraction`` (steps that finished after the next deadline / steps),
 ``missed_deadlines`` (whole periods skipped), ``rt_scheduling``, ``spin_us``, ``updates``,
 ``faults``, ``naive_lateness_us`` (``p50``, ``p99``, ``p999``, ``max``), ``naive_missed_fraction``,
-``p99_ratio_naive_over_loop``, ``machine``; then ``update_steps`` (per tool kind: the CPU time of
+``p99_ratio_naive_over_loop``, ``machine``, ``protocol_thread`` (the loop ran a clock thread),
+``clock_ticks`` and ``clock_held`` (its ticks run, and held while Python had the tick's lock; None
+without one); then ``update_steps`` (per tool kind: the CPU time of
 the steps that receive, apply, acknowledge, or do none of these with a model update;
 ``benchmarks/update_steps.py``), ``apply_p99_max_us``, ``receive_p99_max_us``,
 ``ack_p99_max_us``, ``p50_over_plain_max`` (the costliest update step's p50 over a plain step's
@@ -132,7 +134,7 @@ def _run(settings: cfgmod.Settings, seconds: float, naive: bool) -> dict:
     return {"snap": snap, "steps": steps, "counts": counts}
 
 
-def run(rate_hz: float, seconds: float, naive_seconds: float, protocol_thread: bool = False) -> dict:
+def run(rate_hz: float, seconds: float, naive_seconds: float, protocol_thread="auto") -> dict:
     def settings(thread=protocol_thread):
         return cfgmod.load({
             "loop": {"rate_hz": rate_hz, "protocol_thread": thread},
@@ -160,10 +162,11 @@ def run(rate_hz: float, seconds: float, naive_seconds: float, protocol_thread: b
         "spin_us": s["spin_ns"] / 1000.0,
         "updates": int(s["updates"]),
         "faults": int(s["faults_total"]),
-        "protocol_thread": protocol_thread,
-        # with a clock thread: its ticks, and those it held (Python had the lock: nothing ticked)
-        "clock_ticks": int(s["servo_ticks"]) if protocol_thread else None,
-        "clock_held": int(s["servo_held"]) if protocol_thread else None,
+        # the server's [loop] protocol_thread as it ran: a clock thread's ticks, and those it held
+        # (Python had the tick's lock: nothing ticked); None without one
+        "protocol_thread": bool(s["servo_ticks"]),
+        "clock_ticks": int(s["servo_ticks"]) if s["servo_ticks"] else None,
+        "clock_held": int(s["servo_held"]) if s["servo_ticks"] else None,
     }
     if naive is not None:
         n = naive["snap"]
@@ -191,9 +194,10 @@ def main(argv: list[str] | None = None) -> int:
                          "of each update step, so that a p99 is not one of the few largest of a few hundred; "
                          "0: skip it)")
     ap.add_argument("--update-steps-only", action="store_true", help="only the update-step measurement")
-    ap.add_argument("--protocol-thread", action="store_true",
-                    help="the real loop with [loop] protocol_thread: the tick in a clock thread of its own, the "
-                         "protocol beside it")
+    ap.add_argument("--loop", choices=("auto", "clock-thread", "one-thread"), default="auto",
+                    help="the server's [loop] protocol_thread: clock-thread (the tick in a thread of its own, "
+                         "the protocol beside it), one-thread (the compiled loop hands steps back to Python), "
+                         "auto (the server's default: clock-thread on 2 CPUs or more)")
     args = ap.parse_args(argv)
     if not (100 <= args.rate <= 20000) or not args.seconds > 0:
         print("hapticproxy bench loop: --rate must be in [100, 20000] Hz and --seconds > 0", file=sys.stderr)
@@ -204,7 +208,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     naive_s = min(args.seconds, 20.0) if args.naive_seconds is None else args.naive_seconds
     try:
-        res = {} if args.update_steps_only else run(args.rate, args.seconds, naive_s, args.protocol_thread)
+        res = {} if args.update_steps_only else run(args.rate, args.seconds, naive_s,
+                                                       {"auto": "auto", "clock-thread": True, "one-thread": False}[args.loop])
     except RuntimeError as exc:
         print(f"hapticproxy bench loop: {exc}", file=sys.stderr)
         return 1

@@ -105,9 +105,10 @@ class LoopConfig(_Table):
                   "spin phase before each deadline [us]; auto = measured sleep overshoot") = "auto"
     realtime: _doc(bool, "ask for SCHED_FIFO (reported in status when refused)") = True
     cpu: _num(-1, 1023, integer=True, doc="pin the loop process to this CPU (-1: no pinning)") = -1
-    protocol_thread: _doc(bool, "the tick runs in a clock thread of its own and the protocol, the lifecycle and "
-                                "housekeeping beside it, never between two ticks (needs 2 cores; a compiled "
-                                "device on the real clock)") = False
+    protocol_thread: _doc(Union[Literal["auto"], bool],
+                          "the tick runs in a clock thread of its own and the protocol, the lifecycle and "
+                          "housekeeping beside it, never between two ticks (a compiled device on the real clock); "
+                          "auto: when the loop may run on 2 CPUs or more (not with cpu pinning it to one)") = "auto"
 
 
 class TransportConfig(_Table):

@@ -574,8 +574,13 @@ class HapticLoop:
     @property
     def clock_thread(self) -> bool:
         """``[loop] protocol_thread`` on a device the tick reaches by itself (the simulated one,
-        ``IO_SIM``): the tick runs in a clock thread of its own (:meth:`_run_threaded`)."""
-        return bool(self.settings["loop"]["protocol_thread"]) and self._io != tick.IO_EXTERNAL
+        ``IO_SIM``): the tick runs in a clock thread of its own (:meth:`_run_threaded`). "auto":
+        when this process may run on two CPUs or more (on one, the Python thread waiting for the
+        gap after a tick would keep the clock thread, of the same real-time priority, off it)."""
+        want = self.settings["loop"]["protocol_thread"]
+        if want == "auto":
+            want = len(os.sched_getaffinity(0)) >= 2 if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1) >= 2
+        return bool(want) and self._io != tick.IO_EXTERNAL
 
     def _run_threaded(self, duration_s) -> None:
         """The tick in a clock thread of its own (``servo.run_clock``: compiled, no GIL, absolute

@@ -1,6 +1,7 @@
 """`hapticproxy bench loop` prints the documented figures (a short run; no timing asserted in the default
 run; the real-time test judges that the loop ran without a fault)."""
 import json
+import os
 import subprocess
 import sys
 
@@ -28,6 +29,9 @@ def test_bench_loop_prints_the_documented_keys():
     # faults: a count of the loop's own (an integer, not a flag or a rate); judged by the real-time test
     assert type(d["faults"]) is int and type(d["missed_deadlines"]) is int
     assert "update_steps" not in d  # --update-steps 0 skips that measurement (it once raised instead)
+    # the default loop on this (2-CPU) machine: a clock thread, its ticks counted with those it held
+    if len(os.sched_getaffinity(0)) >= 2:
+        assert d["protocol_thread"] is True and d["clock_ticks"] > 100 and type(d["clock_held"]) is int
 
 
 @pytest.mark.realtime

@@ -56,11 +56,12 @@ def test_the_lock_free_it_ticks_and_counts_the_tick(armed):
     lp, b = armed
     tk = lp.tk
     n0, ticks0 = int(b.block[servo.SB_TICKS]), int(tk[tick.TK_TICKS])
-    now = _now(lp)
-    servo.clock_tick(b.block, tk, now, 0, 0)
+    last = int(tk[tick.TK_LAST_WRITE_NS])
+    servo.clock_tick(b.block, tk, _now(lp), 0, 0)
     assert int(b.block[servo.SB_TICKS]) == n0 + 1 and int(tk[tick.TK_TICKS]) == ticks0 + 1
     assert int(b.block[servo.SB_HELD]) == 0
-    assert int(tk[tick.TK_LAST_WRITE_NS]) >= now  # the tick wrote the device
+    # the tick wrote the device (its end on the monotonic clock; the one before moved back)
+    assert int(tk[tick.TK_PREV_WRITE_NS]) == last and int(tk[tick.TK_LAST_WRITE_NS]) != last
     assert int(tk[tick.TK_LOCK]) == 0  # and let the lock go
     assert int(tk[tick.TK_STALL_SEEN]) == 0
 
