@@ -167,8 +167,9 @@ def test_each_tick_says_when_the_next_is_due(armed):
     tk, blk = lp.tk, b.block
     for lock_word in (0, 2):
         tk[tick.TK_LOCK] = lock_word
-        tk[tick.TK_DEADLINE_NS] = _now(lp) + lp.period_ns
-        servo.clock_tick(blk, tk, _now(lp), 0, 0)
+        now = _now(lp)
+        tk[tick.TK_DEADLINE_NS] = now + lp.period_ns // 3  # the thread woke 2/3 of a period late
+        servo.clock_tick(blk, tk, now, 0, 0)
         assert int(blk[servo.SB_NEXT_NS]) == int(tk[tick.TK_DEADLINE_NS])
     tk[tick.TK_LOCK] = 0
 
