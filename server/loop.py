@@ -663,14 +663,15 @@ class HapticLoop:
                 proto.endpoint.poll(now)  # the sessions' timers: the protocol's own state
             ack = proto._ack_due if proto._ack_due is not None and blk[SB_TICKS] > applied_tick else None
             st = tk[tick.TK_STATE]
-            if not (proto._pending is not None or ack is not None or hk_due or tk[tick.TK_RC_STICKY] != 0
+            if not ((proto._pending is not None and proto._ack_due is None) or ack is not None or hk_due
+                    or tk[tick.TK_RC_STICKY] != 0
                     or tk[tick.TK_STALL_SEEN] != 0 or st == tick._LS_FADING or st == tick._LS_STOPPING):
                 continue
             lock_between_ticks(tk, blk, room_ns, patience_ns)
             try:
                 now = self.clock.now_ns()
-                if proto._pending is not None:
-                    applied_tick = int(blk[SB_TICKS])
+                if proto._pending is not None and (proto._ack_due is None or ack is not None):
+                    applied_tick = int(blk[SB_TICKS])  # (threaded_pass applies it)
                 acked = self.threaded_pass(now, ack, hk_due)
                 if self._T is not binding._keep[0]:
                     binding.bind(self._T)  # an engagement bound the tick to the new model's arrays
@@ -713,7 +714,9 @@ class HapticLoop:
             proto.survive(self._ack_read, ack, now)
             acked = self._acked
         upd = proto._pending
-        if upd is not None:
+        if upd is not None and proto._ack_due is None:
+            # (an update applied before the last one's acknowledgement went out would replace it:
+            # every applied update is acknowledged, with the proxy state a tick after it)
             proto._pending = None
             proto.survive(proto._apply_stage, upd, now)
         if hk_due:

@@ -197,3 +197,34 @@ def test_a_fade_the_tick_started_is_a_transition_before_an_update_resumes(rig_fa
     assert reasons[-2:] == [Reason.SILENT, Reason.RESUMED]
     assert lp.state_name == "engaged" and lp.ctrl.cs[ctl.CS_TARGET] == 1.0
     assert int(lp.tk[tick.TK_STATE]) == LS["engaged"]
+
+
+def test_an_update_waits_until_the_last_one_is_acknowledged(rig_factory):
+    """Simulated time: an update arrives while the previous one's acknowledgement waits for its
+    tick. The pass leaves it pending (applying it would replace the acknowledgement due); the
+    pass that acknowledges the previous one then applies it, and it is acknowledged in turn."""
+    r = rig_factory()
+    r.run(1.0)
+    lp, proto = r.loop, r.loop.proto
+
+    def receive():
+        for _ in range(100):
+            r.env.service()
+            r.clock.advance(lp.period_ns)
+            proto.poll(r.clock.now_ns())
+            if proto._pending is not None:
+                return proto._pending
+        raise AssertionError("no update")
+
+    first = receive()
+    lp.threaded_pass(r.clock.now_ns(), None, False)
+    assert proto._pending is None and proto._ack_due is first
+    second = receive()
+    assert second is not first
+    lp.threaded_pass(r.clock.now_ns(), None, False)  # its acknowledgement not yet ready
+    assert proto._pending is second and proto._ack_due is first
+    acks = proto.acks
+    assert lp.threaded_pass(r.clock.now_ns(), first, False) is True
+    lp.proto.ack_send(first, r.clock.now_ns())
+    assert proto.acks == acks + 1
+    assert proto._pending is None and proto._ack_due is second
