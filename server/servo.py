@@ -137,9 +137,9 @@ def clock_tick(blk, tk, now, late, missed):
                 tk[tk_.TK_QUIET_SINCE_NS] = now
             if tk[tk_.TK_DEV_WD_NS] > 0 and gap >= tk[tk_.TK_DEV_WD_NS]:
                 # as long as the device's watchdog: it cut the output; nothing comes back until
-                # Python's stall recovery ramps it in (the same cut as LoopLife.on_stall_trip's)
+                # Python's stall recovery ramps it in (the same cut as LoopLife.on_stall_trip's:
+                # gain and target zero, CS_TARGET being the filter's own target)
                 sf.reset(T.cs[ctl.CS_SAFETY:ctl.CS_SAFETY + sf.NSS])
-                T.cs[ctl.CS_TARGET] = 0.0
         _locked_tick(blk, T, now, late)
         tk[tk_.TK_TICKS] += 1
         tk[tk_.TK_HK_COUNT] += 1

@@ -17,15 +17,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from server_harness import make_settings
+from server_harness import Rig, WatchdogDevice, make_settings
 
 from hapticproxy.server import control as ctl
 from hapticproxy.server import safety as sf
 from hapticproxy.server import servo, tick
-from hapticproxy.server.clock import MonotonicClock
+from hapticproxy.server.clock import MonotonicClock, SimClock
 from hapticproxy.server.lifecycle import LS, Reason
 from hapticproxy.server.loop import HapticLoop
 from hapticproxy.server.shm import ST, TEL
+from hapticproxy.testing.cleanup import made_then_ended
 
 
 
@@ -228,3 +229,50 @@ def test_an_update_waits_until_the_last_one_is_acknowledged(rig_factory):
     lp.proto.ack_send(first, r.clock.now_ns())
     assert proto.acks == acks + 1
     assert proto._pending is None and proto._ack_due is second
+
+
+@pytest.fixture
+def pushing_rig():
+    def make():
+        clock = SimClock(start_ns=1_000_000_000)
+        settings = make_settings()
+        dev = WatchdogDevice(clock, hand=lambda t: (0.0, -0.5, 0.0), period_s=settings.period_ns * 1e-9)
+        return Rig(settings, dev, {"start_pose": (0.0, 0.012, 0.0)}, clock=clock)
+
+    yield from made_then_ended(make)
+
+
+def _engaged_clock(pushing_rig):
+    """An engaged loop in simulated time (a session, a hand pushing the tool onto the floor),
+    bound to a clock thread's block that no thread runs: the test calls ``clock_tick`` with
+    chosen wake-ups."""
+    r = pushing_rig()
+    r.run(1.0)
+    lp = r.loop
+    assert lp.state_name == "engaged" and lp.ctrl.cs[ctl.CS_SAFETY + sf.SS_GAIN] == 1.0
+    assert np.abs(lp.ctrl.cmd).max() > 0.1  # pushing on the floor
+    b = servo.ServoBinding(lp.period_ns)
+    b.block[servo.SB_TK] = lp.tk.ctypes.data
+    b.block[servo.SB_CMD] = lp._wcmd.ctypes.data
+    b.bind(lp._T)
+    lp.tk[tick.TK_DEV_WD_NS] = 2 * int(lp.tk[tick.TK_STALL_GAP_NS])
+    lp.tk[tick.TK_QUIET_SINCE_NS] = 1 << 62  # the environment is not what this test is about
+    return r, b
+
+
+def test_a_stall_as_long_as_the_device_watchdog_cuts_and_nothing_comes_back_by_itself(pushing_rig):
+    r, b = _engaged_clock(pushing_rig)
+    lp = r.loop
+    tk, cs = lp.tk, lp.ctrl.cs
+    last = int(tk[tick.TK_LAST_WRITE_NS])
+    wd = int(tk[tick.TK_DEV_WD_NS])
+    servo.clock_tick(b.block, tk, last + wd - 1, 0, 0)  # a stall, shorter than the watchdog: no cut
+    assert int(tk[tick.TK_STALL_SEEN]) == 1 and cs[ctl.CS_SAFETY + sf.SS_GAIN] > 0.9
+    last = int(tk[tick.TK_LAST_WRITE_NS])
+    servo.clock_tick(b.block, tk, last + wd, 0, 0)  # as long as the watchdog: cut at once
+    assert int(tk[tick.TK_STALL_SEEN]) == 2
+    assert cs[ctl.CS_SAFETY + sf.SS_GAIN] == 0.0 and not np.any(lp.ctrl.cmd)
+    for _ in range(200):  # and it stays cut until Python's stall recovery ramps it in
+        now = int(tk[tick.TK_LAST_WRITE_NS]) + lp.period_ns
+        servo.clock_tick(b.block, tk, now, 0, 0)
+    assert cs[ctl.CS_SAFETY + sf.SS_GAIN] == 0.0 and not np.any(lp.ctrl.cmd)
