@@ -236,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="matrix: run only these run numbers of the seed's matrix (e.g. the worst ones again)")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="matrix: a server setting over the run's (a counterfactual; repeatable), e.g. "
-                         "passivity.velocity_threshold_m_per_s=0.2")
+                         "passivity.low_level_j=0.01")
     ap.add_argument("--worst", type=int, default=5, help="matrix: the worst runs printed per layer setting (default 5)")
     args = ap.parse_args(argv)
     if args.matrix:
