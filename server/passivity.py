@@ -4,9 +4,10 @@ The two-layer idea (Franken, Stramigioli et al., IEEE T-RO 2011): the controller
 what it is (transparency); below it, before the safety filter, a tank of energy decides how much
 of the command may *give* energy to the hand. The tank is the running balance of the hand's
 port (``control.port_energy``: each command held over a period times the handle's displacement
-during it), so the server can never give the hand more than the tank held at the start, what
-the hand put in, what the device's own damping dissipated and what an engine granted. Energy the
-hand puts in and the controller's dampers then dissipate stays counted in the tank (it entered
+during it), so the server can never give the hand more than the tank held at the start, (a
+share of) what the hand put in, what the device's own damping dissipated and what an engine
+granted, but for the error of one period's prediction (L5). Energy the hand puts in and the
+controller's dampers then dissipate stays counted in the tank (it entered
 the port and did not come back out): counting the coupling damper's dissipation on top would
 count it twice. The device's physical damping is outside the port (the motor's work minus it is
 what reaches the hand), so it feeds the tank: ``b |dx|^2 / T`` per period, the least a viscous
@@ -193,23 +194,11 @@ def allowance(tp, h):
 
 
 @njit(**_JIT)
-def predicted_work(cmd, o, twist, hand, period, mass):
-    """``P(g) = T g . v + a g . (g + h)`` for g = cmd[o:o+3] (contract, ``a = T^2 / m``)."""
-    a = period * period / mass
-    p = 0.0
-    for j in range(o, o + 3):
-        hj = hand[j] if math.isfinite(hand[j]) else 0.0
-        p += cmd[j] * (period * twist[j] + a * (cmd[j] + hj))
-    return p
-
-
-@njit(**_JIT)
 def _limit3(cmd, o, twist, hand, allow, period, mass):
     """cmd[o:o+3] to the nearest point of ``{g : P(g) <= allow}`` (contract L3). True when it
     changed."""
     a = period * period / mass
     # P(g) = a |g - c|^2 - a |c|^2 with c = -(T v + a h) / (2 a)
-    c0 = 0.0; c1 = 0.0; c2 = 0.0
     hj = hand[o] if math.isfinite(hand[o]) else 0.0
     c0 = -0.5 * (period * twist[o] / a + hj)
     hj = hand[o + 1] if math.isfinite(hand[o + 1]) else 0.0
