@@ -222,7 +222,7 @@ class PassivityConfig(_Table):
     device_rot_damping_n_m_s_per_rad: _num(0, 1e3, doc="and its rotational damping [N m s/rad]") = 0.0
     input_credit: _num(0, 1, lo_open=True, doc="the share of the energy the hand puts in that the tank keeps "
                        "(1: lossless, an undamped bounce keeps bouncing; below 1 the layer dissipates the rest, "
-                       "and an exchange that gives back what it took dies out)") = 0.5
+                       "and an exchange that gives back what it took dies out: EXPERIMENTS.md, walls)") = 1.0
     engine_grants: _doc(bool, "add the work an engine declares it does on the tool (ContactUpdate."
                         "work_on_tool_j) to the tank") = True
 

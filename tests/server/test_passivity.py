@@ -458,3 +458,32 @@ def test_the_recovery_slows_with_the_tank(enabled, tank, want):
         c.ts[pv.TS_TANK] = tank
         ctl.haptic_step(c.cp, c.cs, c.cc, dev, c.cmd, 1, *m.kernel_args(), c.hand, c.R, c.c)
     assert m.arrays()[0][P_REC_CUT] == pytest.approx(want)
+
+
+@pytest.mark.parametrize("kind, mass, inertia", [("planar", 0.4, 1e-3), ("spatial", 0.3, None), ("1dof", 0.2, None)])
+def test_the_loop_gives_the_layer_the_devices_moving_mass_and_inertia(kind, mass, inertia):
+    """``HapticLoop`` sets the prediction's mass and smallest moment from the device's
+    ``DeviceInfo`` (the simulated device states both; a 1-DOF one no rotation: the fallback), the
+    config's values first."""
+    from hapticproxy.server import config as cfg
+    from hapticproxy.server.clock import SimClock
+    from hapticproxy.server.loop import HapticLoop
+
+    for over, want_m in (({}, mass), ({"moving_mass_kg": 0.05}, 0.05)):
+        s = cfg.load({"transport": {"url": f"mem://passivity-figures-{kind}-{len(over)}"},
+                      "status": {"address": "127.0.0.1:1"}, "device": {"driver": "sim", "kind": kind},
+                      "passivity": over})
+        loop = HapticLoop.build(s, clock=SimClock(start_ns=1_000_000_000))
+        try:
+            info = loop.device.info
+            assert loop.ctrl.tp[pv.TP_MASS] == want_m == (over.get("moving_mass_kg") or info.moving_mass_kg)
+            want_i = info.moving_inertia_kg_m2 or pv.FALLBACK_INERTIA_KG_M2
+            assert loop.ctrl.tp[pv.TP_INERTIA] == want_i
+            if inertia is not None:
+                assert want_i == inertia
+            elif kind == "spatial":
+                assert 0.0 < want_i < 1.0
+            else:
+                assert want_i == pv.FALLBACK_INERTIA_KG_M2
+        finally:
+            loop.close()
