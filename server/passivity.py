@@ -84,7 +84,8 @@ L4. Continuous in the command (1-Lipschitz: the projection on a convex set), the
     output step by its rate limit; its caps scale a force towards 0, which stays in the ball.
 L5. With ``H' <= 0`` the output is predicted to give nothing (``P(f') <= 0``, ``P(t') <= 0``).
     What still reaches the hand is the prediction's error (the hand's force changing within a
-    period, the velocity changing while a force is withdrawn, a device lighter than stated),
+    period, the velocity changing while a force is withdrawn, the rate limit's lag behind a ball
+    that moves faster than it, a device lighter than stated),
     paid from the margin ``L``: limiting starts before the tank is empty.
 L6. Finite in, finite out (a non-finite command, twist or rendered wrench passes unchanged: the
     safety filter faults on a non-finite command); ``tc[TC_LIMITED]`` counts calls that changed
@@ -105,7 +106,7 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 TP_ON = 0          # 1: limit the command when the tank is short; 0: account only
 TP_H0 = 1          # the initial budget, J
 TP_HMAX = 2        # the tank's cap, J
-TP_HLOW = 3        # below this level the power-giving part is limited, J
+TP_HLOW = 3        # below this level (less the reserve) the allowance shrinks (L2), J
 TP_MASS = 4        # the moving mass at the handle, kg (the work prediction's ZOH term)
 TP_INERTIA = 5     # the smallest principal moment of inertia at the handle, kg m^2
 TP_BDEV = 6        # the device's declared viscous damping, N s/m
