@@ -151,14 +151,15 @@ WALL_CONTROLLERS = ("direct", "four_channel")
 
 
 def wall(kind: str, rate_hz: float, layer: bool, controller: str = "direct", factor: float = WALL_FACTOR,
-         budget_j: float | None = None) -> dict:
+         budget_j: float | None = None, input_credit: float | None = None) -> dict:
     """An undamped wall (B = 0) ``factor`` times Colgate and Schenkel's bound, ``K = factor 2 b / T``
     with ``b`` the ``kind`` device's default physical damping (``experiments.zwidth.device_physics``),
     rendered on that device with its physical damping set to 0 (translation and rotation): the
     z-width rig (``experiments.zwidth.run_point``: a constant 1 N push from 2 mm off the wall, a
     continuous device behind the hold), the layer on or off. ``ptp_1s_mm``: the handle's peak to
     peak 1-1.5 s after contact along the normal (the issue's goal with the layer: below 0.1 mm).
-    ``budget_j``: the layer's initial budget (None: the config's default)."""
+    ``budget_j``: the layer's initial budget, ``input_credit`` the share of the hand's input its
+    tank keeps (None: the config's defaults)."""
     from ..experiments import zwidth as zw
 
     _, b = zw.device_physics(kind, rate_hz)
@@ -169,14 +170,17 @@ def wall(kind: str, rate_hz: float, layer: bool, controller: str = "direct", fac
     table = {"enabled": bool(layer)}
     if budget_j is not None:
         table["initial_budget_j"] = float(budget_j)
+    if input_credit is not None:
+        table["input_credit"] = float(input_credit)
     verdict, reason, contact_s, ptp, fptp, _, ptp_1s = zw.run_point(
         kind, rate_hz, k, 0.0, controller=controller, layer_table={"passivity": table}, device=device)
     from ..server import config as cfg
 
-    budget = cfg.load({"passivity": table})["passivity"]["initial_budget_j"]
+    pas = cfg.load({"passivity": table})["passivity"]
+    budget = pas["initial_budget_j"]
     return {"kind": kind, "rate_hz": rate_hz, "controller": controller, "layer": "on" if layer else "off",
             "bound_device_b_n_s_per_m": b, "stiffness_n_per_m": k, "wall_damping_n_s_per_m": 0.0,
-            "device_damping_n_s_per_m": 0.0, "budget_j": budget, "contact_s": contact_s, "ptp_1s_mm": 1e3 * ptp_1s,
+            "device_damping_n_s_per_m": 0.0, "budget_j": budget, "input_credit": pas["input_credit"], "contact_s": contact_s, "ptp_1s_mm": 1e3 * ptp_1s,
             "ptp_window_mm": 1e3 * ptp, "force_ptp_window_n": fptp, "verdict": verdict, "reason": reason,
             "below_0_1mm": bool(1e3 * ptp_1s < 0.1)}
 
@@ -184,7 +188,7 @@ def wall(kind: str, rate_hz: float, layer: bool, controller: str = "direct", fac
 def _wall_line(r: dict) -> str:
     return (f"wall {r['kind']:>7} {r['rate_hz']:.0f} Hz {r['controller']:>12} layer {r['layer']:>3}: K "
             f"{r['stiffness_n_per_m']:g} N/m (5 x 2 b / T, b = {r['bound_device_b_n_s_per_m']:g}; device b = 0, B = 0), "
-            f"budget {1e3 * r['budget_j']:g} mJ, p-p 1 s after contact {r['ptp_1s_mm']:.4g} mm, over {zw_window()} "
+            f"budget {1e3 * r['budget_j']:g} mJ, credit {r['input_credit']:g}, p-p 1 s after contact {r['ptp_1s_mm']:.4g} mm, over {zw_window()} "
             f"{r['ptp_window_mm']:.4g} mm, force p-p {r['force_ptp_window_n']:.3g} N: {r['verdict']}"
             + (f" ({r['reason']})" if r["reason"] else ""))
 
@@ -228,6 +232,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="haptic rates of the walls, Hz, comma-separated (default 512,1000,4000)")
     ap.add_argument("--wall-budgets", default="",
                     help="walls with the layer on: initial budgets to run, J, comma-separated (default: the config's)")
+    ap.add_argument("--wall-credits", default="",
+                    help="walls with the layer on: the tank's input credits to run, 0-1, comma-separated (default: "
+                         "the config's)")
     ap.add_argument("--matrix", type=int, default=0, metavar="N",
                     help="instead: N random runs of the matrix (benchmarks/passivity_matrix.py), layer off and on")
     ap.add_argument("--matrix-seed", type=int, default=0, help="the matrix's seed (default 0)")
@@ -236,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="matrix: run only these run numbers of the seed's matrix (e.g. the worst ones again)")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="matrix: a server setting over the run's (a counterfactual; repeatable), e.g. "
-                         "passivity.velocity_threshold_m_per_s=0.2")
+                         "passivity.low_level_j=0.01")
     ap.add_argument("--worst", type=int, default=5, help="matrix: the worst runs printed per layer setting (default 5)")
     args = ap.parse_args(argv)
     if args.matrix:
@@ -294,14 +301,22 @@ def _walls(args) -> int:
         print(f"hapticproxy bench passivity: --wall-budgets: energies in J (0-0.05), got {args.wall_budgets!r}",
               file=sys.stderr)
         return 2
+    try:
+        credits = [float(k) for k in args.wall_credits.split(",") if k.strip()] or [None]
+    except ValueError:
+        credits = []
+    if not credits or not all(k is None or 0.0 < k <= 1.0 for k in credits):
+        print(f"hapticproxy bench passivity: --wall-credits: shares in (0, 1], got {args.wall_credits!r}",
+              file=sys.stderr)
+        return 2
     if args.json:
         print_json({"run": {"machine": f"{platform.node()} {platform.machine()}",
                             "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "walls": True}})
     for kind in ("1dof", "planar", "spatial"):
         for rate in rates:
             for controller in WALL_CONTROLLERS:
-                for layer, budget in [(False, None)] + [(True, b) for b in budgets]:
-                    r = wall(kind, rate, layer, controller, budget_j=budget)
+                for layer, budget, credit in [(False, None, None)] + [(True, b, k) for b in budgets for k in credits]:
+                    r = wall(kind, rate, layer, controller, budget_j=budget, input_credit=credit)
                     print_json({"wall": r}) if args.json else print(_wall_line(r))
     return 0
 

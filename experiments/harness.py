@@ -458,6 +458,7 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
     ``step_rigid``) and the plain-numpy reference step on copies of the live arrays with the
     step's hand wrench (the numba vs numpy cost on the run's own states)."""
     from ..server import config as cfgmod
+    from ..server import passivity as pv
     from ..server.clock import SimClock
     from ..server.loop import HapticLoop
 
@@ -546,7 +547,8 @@ def run_simulated(spec: RunSpec, *, record_penalty: bool = True, model_timing_ev
                        "distance_mm": round(advice.distance_m * 1e3, 3),
                        "lead_ms": round(advice.lead_s * 1e3, 2), "lag_ms": round(advice.lag_s * 1e3, 2),
                        "lag_samples": advice.lag_samples},
-                   "loop_updates": loop.updates,
+                   "loop_updates": loop.updates, "passivity_limited": int(counters["passivity_limited"]),
+                   "tank_low_j": float(loop.ctrl.ts[pv.TS_LOW]),
                    "update_errors": loop.update_errors, "model": loop.model.counters() if loop.model else {}})
         return tr
     finally:

@@ -235,6 +235,7 @@ def run_point(kind: str, rate_hz: float, k: float, b: float, *, controller: str 
                    recovery_speed_m_per_s=mc["recovery_speed_m_per_s"])
     m.reset(q0)
     c = ctl.Controller(settings, kind, device.limits)
+    c.set_moving_figures(device.info)  # as the loop does: the passivity layer's work prediction
     device.enable()
     row = empty_state()
     device.read(row)

@@ -26,9 +26,9 @@ Layout (all keys optional)::
     [safety]     max_force_n, max_torque_n_m, force_rate_n_per_s, torque_rate_n_m_per_s,
                  max_speed_m_per_s, max_angular_speed_rad_per_s, frozen_s, frozen_force_n, watchdog_s,
                  fade_s, ramp_in_s, stall_recover_s, stall_trips_max, stall_window_s, allow_outside_stable_region
-    [passivity]  enabled, initial_budget_j, max_tank_j, low_level_j, velocity_threshold_m_per_s,
-                 angular_velocity_threshold_rad_per_s, device_damping_n_s_per_m,
-                 device_rot_damping_n_m_s_per_rad, engine_grants (server/passivity.py)
+    [passivity]  enabled, initial_budget_j, max_tank_j, low_level_j, moving_mass_kg,
+                 moving_inertia_kg_m2, device_damping_n_s_per_m,
+                 device_rot_damping_n_m_s_per_rad, input_credit, engine_grants (server/passivity.py)
     [device]     driver (entry point name) and the driver's own keys (its Structs: devices/sim.py,
                  devices/remote.py, devices/hands.py for [device.hand]); the workspace mapping:
                  workspace_scale, workspace_offset_m, workspace_rotation, clutch_button,
@@ -216,14 +216,17 @@ class PassivityConfig(_Table):
     max_tank_j: _num(0, 100, doc="the tank's cap: what a hand's input can store for later [J]") = 0.05
     low_level_j: _num(0, 10, lo_open=True, doc="below this level the command is limited, smoothly, fully at an "
                       "empty tank [J]") = 0.005
-    velocity_threshold_m_per_s: _num(0, 1, lo_open=True, doc="the handle speed at which the limiting turns from "
-                                     "scaling the whole command (at rest) to removing the part along the motion; "
-                                     "nothing switches with the velocity's sign (1 mm/s chattered at the Nyquist "
-                                     "rate in tests/server/test_passivity.py) [m/s]") = 0.02
-    angular_velocity_threshold_rad_per_s: _num(0, 10, lo_open=True, doc="the same for rotation [rad/s]") = 0.2
+    moving_mass_kg: _num(0, 1e3, doc="the moving mass at the handle the layer predicts the next period's work "
+                         "with (0: the device's stated figure, else 0.02 kg: lighter predicts more, limits more) "
+                         "[kg]") = 0.0
+    moving_inertia_kg_m2: _num(0, 10, doc="the smallest principal moment of inertia at the handle, alike (0: the "
+                               "device's, else 1e-6) [kg m^2]") = 0.0
     device_damping_n_s_per_m: _num(0, 1e4, doc="the device's physical viscous damping, as its maker states it: "
                                    "what it dissipates feeds the tank (0: nothing assumed) [N s/m]") = 0.0
     device_rot_damping_n_m_s_per_rad: _num(0, 1e3, doc="and its rotational damping [N m s/rad]") = 0.0
+    input_credit: _num(0, 1, lo_open=True, doc="the share of the energy the hand puts in that the tank keeps "
+                       "(1: lossless, an undamped bounce keeps bouncing; below 1 the layer dissipates the rest, "
+                       "and an exchange that gives back what it took dies out: EXPERIMENTS.md, walls)") = 1.0
     engine_grants: _doc(bool, "add the work an engine declares it does on the tool (ContactUpdate."
                         "work_on_tool_j) to the tank") = True
 

@@ -413,7 +413,8 @@ def _hand_channel(cp, cs, cc, dev, ctype):
 @njit(**_JIT)
 def _command_out(cp, cs, cc, cmd, ctype, rc, dev):
     """Controller output (CS_CMDW, world) -> device frame -> the passivity layer (``passivity.limit``,
-    with the handle's twist from ``dev``) -> safety filter. Returns RC_*."""
+    with the handle's twist and the hand's measured wrench from ``dev``) -> safety filter.
+    Returns RC_*."""
     if ctype == CTRL_FOUR_CHANNEL:
         for j in range(6):
             cs[CS_CMDW + j] = cp[CP_EG] * cs[CS_ENV + j] - cs[CS_FC + j]
@@ -428,7 +429,8 @@ def _command_out(cp, cs, cc, cmd, ctype, rc, dev):
     # the passivity layer under the controller, before the safety filter (which then bounds every
     # step of what the layer asked by its rate limit)
     pv.limit(cp[CP_TANK:CP_TANK + pv.NTP], cs[CS_TANK:CS_TANK + pv.NTS], cc[CC_TANK:CC_TANK + pv.NTC], cmd,
-             dev[7:13])
+             dev[7:13], dev[13:19], cs[CS_SAFETY + sf.SS_PREV:CS_SAFETY + sf.SS_PREV + 6],
+             cp[CP_SAFETY + sf.SP_FRATE], cp[CP_SAFETY + sf.SP_TRATE])
     src = _safety(cp, cs, cc, cmd)
     if src != RC_OK:
         return src
@@ -740,12 +742,13 @@ class Controller:
         pas = settings["passivity"]
         pv.set_parameters(self.tp, enabled=pas["enabled"], initial_budget_j=pas["initial_budget_j"],
                           max_tank_j=pas["max_tank_j"], low_level_j=pas["low_level_j"],
-                          velocity_threshold_m_per_s=pas["velocity_threshold_m_per_s"],
-                          angular_velocity_threshold_rad_per_s=pas["angular_velocity_threshold_rad_per_s"],
+                          **dict(zip(("moving_mass_kg", "moving_inertia_kg_m2"),
+                                     pv.moving_figures(pas["moving_mass_kg"], pas["moving_inertia_kg_m2"]))),
                           device_damping_n_s_per_m=pas["device_damping_n_s_per_m"],
                           device_rot_damping_n_m_s_per_rad=pas["device_rot_damping_n_m_s_per_rad"],
-                          period_s=dt, engine_grants=pas["engine_grants"])
+                          period_s=dt, engine_grants=pas["engine_grants"], input_credit=pas["input_credit"])
         pv.reset(self.tp, self.ts)
+        self._moving_config = (pas["moving_mass_kg"], pas["moving_inertia_kg_m2"])
         #: the device's position frozen under force (``devices.frozen``; the tick runs the watch)
         self.frozen_s = saf["frozen_s"]
         self.frozen_force_n = fz.min_force_n(saf["frozen_force_n"], fmax)
@@ -761,6 +764,11 @@ class Controller:
     torque_cap_n_m = ArrayFloat("cp", CP_SAFETY + sf.SP_TMAX, doc="Cap on the torque's norm, N m.")
     force_rate_n_per_step = ArrayFloat("cp", CP_SAFETY + sf.SP_FRATE,
                                        doc="Largest change of the force vector per step, N.")
+
+    def set_moving_figures(self, info) -> None:
+        """The passivity layer's moving mass and inertia from the device's ``DeviceInfo`` where the
+        config sets none (``passivity.moving_figures``)."""
+        self.tp[pv.TP_MASS], self.tp[pv.TP_INERTIA] = pv.moving_figures(*self._moving_config, info)
 
     def set_offset(self, R_off: np.ndarray, p_off: np.ndarray, q_off: np.ndarray) -> None:
         self.cp[CP_ROFF:CP_ROFF + 9] = np.asarray(R_off, dtype=float).reshape(9)

@@ -133,6 +133,7 @@ class HapticLoop:
         self._owns_transport = False
         self._owns_device = False
         self.ctrl = controller or ctl.Controller(settings, self.device.kind, self.device.limits)
+        self.ctrl.set_moving_figures(getattr(self.device, "info", None))
         if self.ctrl.device_kind != self.device.kind:
             raise ValueError(f"controller: made for a {self.ctrl.device_kind} device, the device is {self.device.kind}")
         # a position frozen under force (devices.frozen): a driver that has the watch runs it on

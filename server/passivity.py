@@ -4,9 +4,10 @@ The two-layer idea (Franken, Stramigioli et al., IEEE T-RO 2011): the controller
 what it is (transparency); below it, before the safety filter, a tank of energy decides how much
 of the command may *give* energy to the hand. The tank is the running balance of the hand's
 port (``control.port_energy``: each command held over a period times the handle's displacement
-during it), so the server can never give the hand more than the tank held at the start, what
-the hand put in, what the device's own damping dissipated and what an engine granted. Energy the
-hand puts in and the controller's dampers then dissipate stays counted in the tank (it entered
+during it), so the server can never give the hand more than the tank held at the start, (a
+share of) what the hand put in, what the device's own damping dissipated and what an engine
+granted, but for the error of one period's prediction (L5). Energy the hand puts in and the
+controller's dampers then dissipate stays counted in the tank (it entered
 the port and did not come back out): counting the coupling damper's dissipation on top would
 count it twice. The device's physical damping is outside the port (the motor's work minus it is
 what reaches the hand), so it feeds the tank: ``b |dx|^2 / T`` per period, the least a viscous
@@ -25,41 +26,70 @@ Contract of ``account(tp, ts, w_j, dx2_m2, dr2_rad2)`` (after the ledger paired 
 displacement and rotation of the handle during it):
 
 A1. A non-finite ``w_j`` (or squared motion) changes nothing but the count ``TS_BAD``.
-A2. Otherwise ``H1 = min(TP_HMAX, H0 - w_j + (TP_BDEV dx2 + TP_BRDEV dr2) / TP_PERIOD)``: the
-    hand's energy drains it, what the hand puts in and the declared damping feed it, the cap
-    bounds what a hand can store for later. ``TS_GIVEN`` / ``TS_TAKEN`` / ``TS_DAMPED`` add the
-    positive part, the negative part of ``w_j`` and the damping's share.
+A2. Otherwise ``H1 = min(TP_HMAX, H0 - max(w_j, 0) + k max(-w_j, 0) + (TP_BDEV dx2 + TP_BRDEV
+    dr2) / TP_PERIOD)`` with ``k = TP_CREDIT`` in (0, 1]: the hand's energy drains it, the share
+    ``k`` of what the hand puts in and the declared damping feed it, the cap bounds what a hand
+    can store for later. With ``k = 1`` the tank is lossless: a handle bouncing on an undamped
+    wall under a constant push is passive and keeps bouncing on the energy it brought; with
+    ``k < 1`` the layer dissipates the rest, so an exchange that gives back what it took (a
+    bounce, a limit cycle) drains the tank and, once the allowance (L2) runs short, dies out.
+    ``TS_GIVEN`` / ``TS_TAKEN`` / ``TS_DAMPED`` add the positive part, the negative part of
+    ``w_j`` (all of it) and the damping's share.
 
 ``grant(tp, ts, e_j)``: an engine's declared work on the tool (``ContactUpdate.work_on_tool_j``)
 is added like the hand's input (capped at ``TP_HMAX``); a negative or non-finite grant adds
 nothing (the caller refuses it by name before).
 
-Contract of ``limit(tp, ts, tc, cmd, twist)`` (``cmd`` the controller's wrench, device frame;
-``twist`` the handle's twist, device frame; in place). Write ``f`` for the force, ``v`` for the
-velocity (torque and angular velocity alike, with ``TP_W0`` for ``TP_V0``), ``p = f . v`` the
-power the command gives the hand, ``H`` the tank level, ``L = TP_HLOW``:
+Contract of ``limit(tp, ts, tc, cmd, twist, hand, prev, force_rate, torque_rate)`` (``cmd`` the
+controller's wrench, device frame, in place; ``twist`` the handle's twist and ``hand`` the hand's
+measured wrench on the handle, device frame, a non-finite hand component read as 0: no sensor;
+``prev`` the wrench the device renders now, the safety filter's last output, and ``force_rate`` /
+``torque_rate`` the filter's largest change per period). The layer predicts the work a held
+command does over the next period from the handle's dynamics and keeps it within what the tank
+can pay once the force already rendered has been withdrawn.
 
-L1. Off (``TP_ON == 0``) or ``H >= L``: the command is unchanged.
-L2. The limiting factor ``beta`` is a smooth function of the level alone: 1 at ``H <= 0``, 0 at
-    ``H >= L``, ``s^2 (3 - 2 s)`` with ``s = 1 - H / L`` between (C1: no step in the level's
-    effect, the chatter a switched passivity controller has).
-L3. What is removed: ``f' = f - beta (max(0, p) v + v0^2 f) / (|v|^2 + v0^2)``. Moving
-    (``|v| >> v0``) that is the power-giving component along ``v`` (what is across ``v``, and a
-    force that takes energy, stay); at rest (``|v| << v0``, where the direction the handle will
-    move is not known yet) it is the whole force, scaled by ``1 - beta``. So ``|f' - f| <= beta
-    |f|``; where ``p > 0``, ``0 <= f' . v = (1 - beta) p`` (never a pull: the layer never turns
-    into a damper that takes energy); where ``p <= 0``, ``p <= f' . v <= 0``.
-L4. Continuous in the command, the velocity and the level (no switch at ``p = 0`` or at
-    ``v = 0``): ``|f'(v1) - f'(v2)| <= 2.5 beta |f| |v1 - v2| / v0`` for the same ``f`` and
-    ``H``. The safety filter after the layer bounds every output step by its rate limit,
-    whatever the layer asked.
-L5. With the tank empty (``beta = 1``) the output gives no power at the sampled velocity
-    (``f' . v <= 0``): what still reaches the hand is the motion within a period that the
-    command itself causes (zero-order hold) and the safety filter's rate limit taking a period
-    to follow; the margin ``L`` starts limiting before the tank is empty so that these are paid
-    from it first.
-L6. Finite in, finite out; ``tc[TC_LIMITED]`` counts calls that changed the command,
-    ``tc[TC_EMPTY]`` calls with ``H <= 0``; ``TS_BETA`` keeps the factor used.
+Write ``g`` for a force held over the period, ``v`` the sampled velocity, ``h`` the hand's force,
+``T = TP_PERIOD``, ``m = TP_MASS`` (the moving mass at the handle as the device states it) and
+``a = T^2 / m``; torques alike with ``TP_INERTIA`` (the smallest principal moment). Over a period
+of a zero-order hold the handle moves ``dx = v T + (g + h) T^2 / (2 m)`` (``v T + (g + h) T^2 / m``
+under a semi-implicit Euler step, as the simulated device integrates: the prediction takes the
+larger), so the command's work is predicted as
+
+    P(g) = T g . v + a g . (g + h)
+
+The quadratic term is the motion the force itself causes within the period, positive whatever
+its direction: why a force across the motion turns the velocity towards itself and then gives
+energy, and why an energy-taking damper ``-c v`` gives energy once ``c > m / T``. The rendered
+force ``p`` cannot vanish at once: the safety filter withdraws it over ``tau = |p| T / rate``, and
+with the force ramped down linearly over ``tau`` from the current velocity it does
+
+    R(p) = max(0, tau p . v / 2 + tau^2 (|p|^2 / 8 + p . h / 6) / m)
+
+(``reserve``; torque alike). ``H`` the tank level, ``H' = H - R(p_force) - R(p_torque)`` what is
+left once that is paid, ``L = TP_HLOW``:
+
+L1. Off (``TP_ON == 0``): the command is unchanged. On, with ``H' >= L`` and ``P <= H' / 2`` for
+    the force and for the torque: unchanged.
+L2. The period's allowance is a C1 function of ``H'``: ``A = (1 - beta(H')) max(H', 0)``, with
+    ``beta`` 1 at ``H' <= 0``, 0 at ``H' >= L``, ``s^2 (3 - 2 s)`` with ``s = 1 - H' / L`` between
+    (``beta_of``; ``TS_BETA``). So ``A = 0`` at an empty tank, ``~ 3 H'^3 / L^2`` near it, ``H'``
+    from ``L`` up, ``dA/dH'`` continuous and at most 27/16 (no step in the level's effect: the
+    chatter a switched passivity controller has). The force and the torque get half each.
+L3. The force is the nearest point to the controller's of ``{g : P(g) <= A / 2}``, a ball
+    (centre ``c = -(m v / T + h) / 2``, radius ``sqrt(A / (2 a) + |c|^2)``) that always holds 0
+    and, at rest, the force that balances the hand (a hand held by a wall keeps its wall at an
+    empty tank); the torque alike. ``|f' - f|`` is the distance to the ball.
+L4. Continuous in the command (1-Lipschitz: the projection on a convex set), the velocity, the
+    hand, the rendered wrench and the level. The safety filter after the layer bounds every
+    output step by its rate limit; its caps scale a force towards 0, which stays in the ball.
+L5. With ``H' <= 0`` the output is predicted to give nothing (``P(f') <= 0``, ``P(t') <= 0``).
+    What still reaches the hand is the prediction's error (the hand's force changing within a
+    period, the velocity changing while a force is withdrawn, the rate limit's lag behind a ball
+    that moves faster than it, a device lighter than stated),
+    paid from the margin ``L``: limiting starts before the tank is empty.
+L6. Finite in, finite out (a non-finite command, twist or rendered wrench passes unchanged: the
+    safety filter faults on a non-finite command); ``tc[TC_LIMITED]`` counts calls that changed
+    the command, ``tc[TC_EMPTY]`` calls with ``H <= 0``.
 
 ``reset(tp, ts)``: the tank at ``TP_H0`` and its books at zero.
 """
@@ -76,14 +106,15 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 TP_ON = 0          # 1: limit the command when the tank is short; 0: account only
 TP_H0 = 1          # the initial budget, J
 TP_HMAX = 2        # the tank's cap, J
-TP_HLOW = 3        # below this level the power-giving part is limited, J
-TP_V0 = 4          # velocity below which the removed part fades (L4), m/s
-TP_W0 = 5          # angular velocity alike, rad/s
+TP_HLOW = 3        # below this level (less the reserve) the allowance shrinks (L2), J
+TP_MASS = 4        # the moving mass at the handle, kg (the work prediction's ZOH term)
+TP_INERTIA = 5     # the smallest principal moment of inertia at the handle, kg m^2
 TP_BDEV = 6        # the device's declared viscous damping, N s/m
 TP_BRDEV = 7       # and rotational, N m s/rad
 TP_PERIOD = 8      # the haptic period, s
 TP_GRANTS = 9      # 1: engines' grants feed the tank
-NTP = 10
+TP_CREDIT = 10     # the share of the energy the hand puts in that feeds the tank, (0, 1]
+NTP = 11
 
 # ---- state (float64[NTS])
 TS_TANK = 0        # the tank level, J
@@ -125,7 +156,7 @@ def account(tp, ts, w_j, dx2_m2, dr2_rad2):
     else:
         ts[TS_TAKEN] -= w_j
     ts[TS_DAMPED] += damped
-    h = min(tp[TP_HMAX], ts[TS_TANK] - w_j + damped)
+    h = min(tp[TP_HMAX], ts[TS_TANK] - (w_j if w_j > 0.0 else tp[TP_CREDIT] * w_j) + damped)
     ts[TS_TANK] = h
     if h < ts[TS_LOW]:
         ts[TS_LOW] = h
@@ -156,71 +187,131 @@ def beta_of(tp, h):
 
 
 @njit(**_JIT)
-def _limit3(cmd, o, twist, beta, v0):
-    """cmd[o:o+3] less ``beta (max(0, p) v + v0^2 f) / (|v|^2 + v0^2)`` with v = twist[o:o+3]
-    (L3). True when the command changed."""
-    vx = twist[o]; vy = twist[o + 1]; vz = twist[o + 2]
-    p = cmd[o] * vx + cmd[o + 1] * vy + cmd[o + 2] * vz
-    d = vx * vx + vy * vy + vz * vz + v0 * v0
-    k = beta * max(p, 0.0) / d
-    rest = 1.0 - beta * v0 * v0 / d
-    hit = False
-    for j in range(3):
-        old = cmd[o + j]
-        cmd[o + j] = old * rest - k * twist[o + j]
-        if cmd[o + j] != old:
-            hit = True
-    return hit
+def allowance(tp, h):
+    """The period's allowance ``A(H) = (1 - beta(H)) max(H, 0)`` (contract L2), J."""
+    if h <= 0.0:
+        return 0.0
+    return (1.0 - beta_of(tp, h)) * h
 
 
 @njit(**_JIT)
-def limit(tp, ts, tc, cmd, twist):
-    """The command's power-giving part limited by the tank (contract L1-L6), in place."""
+def _limit3(cmd, o, twist, hand, allow, period, mass):
+    """cmd[o:o+3] to the nearest point of ``{g : P(g) <= allow}`` (contract L3). True when it
+    changed."""
+    a = period * period / mass
+    # P(g) = a |g - c|^2 - a |c|^2 with c = -(T v + a h) / (2 a)
+    hj = hand[o] if math.isfinite(hand[o]) else 0.0
+    c0 = -0.5 * (period * twist[o] / a + hj)
+    hj = hand[o + 1] if math.isfinite(hand[o + 1]) else 0.0
+    c1 = -0.5 * (period * twist[o + 1] / a + hj)
+    hj = hand[o + 2] if math.isfinite(hand[o + 2]) else 0.0
+    c2 = -0.5 * (period * twist[o + 2] / a + hj)
+    r2 = allow / a + c0 * c0 + c1 * c1 + c2 * c2
+    d0 = cmd[o] - c0; d1 = cmd[o + 1] - c1; d2 = cmd[o + 2] - c2
+    n2 = d0 * d0 + d1 * d1 + d2 * d2
+    if n2 <= r2:
+        return False
+    k = math.sqrt(max(r2, 0.0) / n2)
+    cmd[o] = c0 + k * d0
+    cmd[o + 1] = c1 + k * d1
+    cmd[o + 2] = c2 + k * d2
+    return True
+
+
+@njit(**_JIT)
+def reserve(prev, o, twist, hand, rate, period, mass):
+    """The work the rendered force ``p = prev[o:o+3]`` does while the safety filter's rate limit
+    withdraws it (contract L3): ``max(0, tau p . v / 2 + tau^2 (|p|^2 / 8 + p . h / 6) / m)``,
+    ``tau = |p| T / rate``, J."""
+    n2 = prev[o] * prev[o] + prev[o + 1] * prev[o + 1] + prev[o + 2] * prev[o + 2]
+    if not (n2 > 0.0 and rate > 0.0):
+        return 0.0
+    tau = math.sqrt(n2) * period / rate
+    pv = 0.0
+    ph = 0.0
+    for j in range(o, o + 3):
+        pv += prev[j] * twist[j]
+        if math.isfinite(hand[j]):
+            ph += prev[j] * hand[j]
+    r = 0.5 * tau * pv + tau * tau * (0.125 * n2 + ph / 6.0) / mass
+    return r if r > 0.0 else 0.0
+
+
+@njit(**_JIT)
+def limit(tp, ts, tc, cmd, twist, hand, prev, force_rate, torque_rate):
+    """The command kept within the work the tank can pay for the next period, less what
+    withdrawing the rendered wrench ``prev`` at the safety filter's rates (per period) will give
+    (contract L1-L6), in place."""
     h = ts[TS_TANK]
     if h <= 0.0:
         tc[TC_EMPTY] += 1
     if tp[TP_ON] == 0.0:
         ts[TS_BETA] = 0.0
         return
-    beta = beta_of(tp, h)
-    ts[TS_BETA] = beta
-    if beta == 0.0:
-        return
     for j in range(6):
-        if not (math.isfinite(cmd[j]) and math.isfinite(twist[j])):
+        if not (math.isfinite(cmd[j]) and math.isfinite(twist[j]) and math.isfinite(prev[j])):
+            ts[TS_BETA] = beta_of(tp, h)
             return  # the safety filter faults on a non-finite command; a bad twist limits nothing
-    hit = _limit3(cmd, 0, twist, beta, tp[TP_V0])
-    if _limit3(cmd, 3, twist, beta, tp[TP_W0]):
+    period = tp[TP_PERIOD]
+    h -= reserve(prev, 0, twist, hand, force_rate, period, tp[TP_MASS])
+    h -= reserve(prev, 3, twist, hand, torque_rate, period, tp[TP_INERTIA])
+    ts[TS_BETA] = beta_of(tp, h)
+    half = 0.5 * allowance(tp, h)
+    hit = _limit3(cmd, 0, twist, hand, half, period, tp[TP_MASS])
+    if _limit3(cmd, 3, twist, hand, half, period, tp[TP_INERTIA]):
         hit = True
     if hit:
         tc[TC_LIMITED] += 1
 
 
 def set_parameters(tp: np.ndarray, *, enabled: bool, initial_budget_j: float, max_tank_j: float, low_level_j: float,
-                   velocity_threshold_m_per_s: float, angular_velocity_threshold_rad_per_s: float,
+                   moving_mass_kg: float, moving_inertia_kg_m2: float,
                    device_damping_n_s_per_m: float, device_rot_damping_n_m_s_per_rad: float, period_s: float,
-                   engine_grants: bool = True) -> None:
-    """``tp`` from named values (the ``[passivity]`` table's keys), each checked."""
+                   engine_grants: bool = True, input_credit: float = 1.0) -> None:
+    """``tp`` from named values (the ``[passivity]`` table's keys, the moving mass and inertia
+    resolved: ``moving_figures``), each checked."""
     values = dict(initial_budget_j=initial_budget_j, max_tank_j=max_tank_j, low_level_j=low_level_j,
-                  velocity_threshold_m_per_s=velocity_threshold_m_per_s,
-                  angular_velocity_threshold_rad_per_s=angular_velocity_threshold_rad_per_s,
+                  moving_mass_kg=moving_mass_kg, moving_inertia_kg_m2=moving_inertia_kg_m2,
                   device_damping_n_s_per_m=device_damping_n_s_per_m,
                   device_rot_damping_n_m_s_per_rad=device_rot_damping_n_m_s_per_rad, period_s=period_s)
     for name, v in values.items():
         if not (math.isfinite(v) and v >= 0.0):
             raise ValueError(f"passivity.{name}: must be finite and >= 0, got {v!r}")
-    for name in ("low_level_j", "velocity_threshold_m_per_s", "angular_velocity_threshold_rad_per_s", "period_s"):
+    for name in ("low_level_j", "moving_mass_kg", "moving_inertia_kg_m2", "period_s"):
         if values[name] <= 0.0:
             raise ValueError(f"passivity.{name}: must be > 0, got {values[name]!r}")
+    if not (0.0 < input_credit <= 1.0):
+        raise ValueError(f"passivity.input_credit: must be in (0, 1], got {input_credit!r}")
     if initial_budget_j > max_tank_j:
         raise ValueError(f"passivity.initial_budget_j: {initial_budget_j} J is more than max_tank_j {max_tank_j} J")
     tp[TP_ON] = 1.0 if enabled else 0.0
     tp[TP_H0] = initial_budget_j
     tp[TP_HMAX] = max_tank_j
     tp[TP_HLOW] = low_level_j
-    tp[TP_V0] = velocity_threshold_m_per_s
-    tp[TP_W0] = angular_velocity_threshold_rad_per_s
+    tp[TP_MASS] = moving_mass_kg
+    tp[TP_INERTIA] = moving_inertia_kg_m2
     tp[TP_BDEV] = device_damping_n_s_per_m
     tp[TP_BRDEV] = device_rot_damping_n_m_s_per_rad
     tp[TP_PERIOD] = period_s
     tp[TP_GRANTS] = 1.0 if engine_grants else 0.0
+    tp[TP_CREDIT] = input_credit
+
+
+#: what the prediction assumes for a device that states no moving mass or inertia (and a config
+#: that sets none): lighter than the devices the project knows, so the zero-order-hold term is
+#: over-estimated and the layer limits more, never less
+FALLBACK_MASS_KG = 0.02
+FALLBACK_INERTIA_KG_M2 = 1e-6
+
+
+def moving_figures(config_mass_kg: float, config_inertia_kg_m2: float, info=None) -> tuple[float, float]:
+    """The moving mass and smallest principal moment the prediction uses: the config's when set
+    (> 0), else the device's stated figures (``DeviceInfo.moving_mass_kg`` /
+    ``moving_inertia_kg_m2``), else ``FALLBACK_*``."""
+    mass = config_mass_kg
+    if not mass > 0.0:
+        mass = getattr(info, "moving_mass_kg", None) or FALLBACK_MASS_KG
+    inertia = config_inertia_kg_m2
+    if not inertia > 0.0:
+        inertia = getattr(info, "moving_inertia_kg_m2", None) or FALLBACK_INERTIA_KG_M2
+    return float(mass), float(inertia)

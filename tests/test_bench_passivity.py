@@ -158,7 +158,8 @@ def test_matrix_rows_summary_and_the_layer_against_the_adversary(capsys):
 
 @pytest.mark.parametrize("argv", [["--matrix", "-1"], ["--matrix", "2", "--matrix-seconds", "0.5"],
                                   ["--walls", "--wall-rates", "x"], ["--walls", "--wall-rates", "50"],
-                                  ["--walls", "--wall-budgets", "0.1"], ["--walls", "--wall-budgets", "a"]])
+                                  ["--walls", "--wall-budgets", "0.1"], ["--walls", "--wall-budgets", "a"],
+                                  ["--walls", "--wall-credits", "0"], ["--walls", "--wall-credits", "1.5"]])
 def test_bad_matrix_and_wall_arguments_are_usage_errors(argv, capsys):
     assert bp.main(argv) == 2
     assert capsys.readouterr().err.startswith("hapticproxy bench passivity: --")
@@ -170,8 +171,12 @@ def test_an_undamped_wall_at_five_times_the_bound():
     on = bp.wall("planar", 1000.0, True)
     assert off["stiffness_n_per_m"] == on["stiffness_n_per_m"] == 5 * 2 * 2.0 * 1000.0
     assert math.isfinite(on["contact_s"]) and off["verdict"] == "unstable"
-    # the layer shrinks the undamped limit cycle several times over (it does not reach 0.1 mm)
-    assert on["ptp_1s_mm"] < off["ptp_1s_mm"] / 3
+    # a lossless tank (the default input credit, 1) lets the handle bounce on the energy it
+    # brought: passive, undamped, a few millimetres instead of the hold's 100 mm swing
+    assert on["input_credit"] == 1.0 and 0.1 < on["ptp_1s_mm"] < off["ptp_1s_mm"] / 3
+    # crediting half of the hand's input, each bounce drains the tank and the layer stops it
+    half = bp.wall("planar", 1000.0, True, input_credit=0.5)
+    assert half["ptp_1s_mm"] < 0.1 and half["verdict"] == "settled"
 
 
 def test_a_run_is_over_when_either_ledger_is_above_the_budget_plus_1mj():
@@ -190,12 +195,13 @@ def test_the_wall_rig_takes_the_device_without_its_physical_damping():
 
 
 def test_a_smaller_budget_leaves_less_for_the_undamped_wall_to_swing_with():
-    # nothing dissipates (no device damping, B = 0, a pure-force hand): what the layer lets out,
-    # the wall keeps; with 1 mJ instead of 10 the four-channel wall comes to rest
-    ten = bp.wall("planar", 1000.0, True, "four_channel")
-    one = bp.wall("planar", 1000.0, True, "four_channel", budget_j=0.001)
+    # nothing dissipates (no device damping, B = 0, a pure-force hand) but the layer: crediting
+    # half of what the hand puts in, the four-channel limit cycle drains the tank and dies once
+    # the allowance runs short; from 1 mJ within the first second, from 10 mJ later
+    ten = bp.wall("planar", 1000.0, True, "four_channel", input_credit=0.5)
+    one = bp.wall("planar", 1000.0, True, "four_channel", budget_j=0.001, input_credit=0.5)
     assert ten["budget_j"] == 0.01 and one["budget_j"] == 0.001
-    assert ten["ptp_1s_mm"] > 0.1 and one["ptp_1s_mm"] < 0.01 and one["verdict"] == "settled"
+    assert ten["ptp_1s_mm"] > 0.1 > one["ptp_1s_mm"] and one["verdict"] == "settled"
 
 
 def test_only_and_set_rerun_chosen_runs_under_another_setting(capsys):
@@ -207,8 +213,8 @@ def test_only_and_set_rerun_chosen_runs_under_another_setting(capsys):
         return lines[0]["run"], rows[1]
 
     head, plain = on_row()
-    head2, wide = on_row("--set", "passivity.velocity_threshold_m_per_s=0.2")
-    assert head2["set"] == {"passivity": {"velocity_threshold_m_per_s": 0.2}} and head["set"] == {}
+    head2, wide = on_row("--set", "passivity.low_level_j=0.01")
+    assert head2["set"] == {"passivity": {"low_level_j": 0.01}} and head["set"] == {}
     assert wide["excess_books_j"] < plain["excess_books_j"] / 2
 
 

@@ -148,6 +148,9 @@ class DeviceInfo:
     #: the mass moving with the handle [kg], without the hand (None: not stated); bounds the
     #: coupling's stiffness and damping at the loop's rate (``server/devices/safe.py``)
     moving_mass_kg: float | None = None
+    #: the smallest principal moment of inertia moving with the handle [kg m^2] (None: not
+    #: stated; the passivity layer's work prediction, ``server/passivity.py``)
+    moving_inertia_kg_m2: float | None = None
     #: radius of the sphere the handle reaches [m]
     workspace_radius_m: float | None = None
     workspace_min_m: tuple = (-0.1, -0.1, -0.1)

@@ -430,7 +430,15 @@ class SimDevice(DeviceDriver):
         hand = self.spec.hand
         return replace(info, buttons=hand.buttons, gripper=hand.gripper,
                        sensed=info.sensed + (("gripper",) if hand.gripper else ()),
-                       moving_mass_kg=float(self.spec.par[DP_MASS]))
+                       moving_mass_kg=float(self.spec.par[DP_MASS]),
+                       moving_inertia_kg_m2=self._inertia_min())
+
+    def _inertia_min(self):
+        if self.kind == "planar":
+            return float(self.spec.par[DP_IZZ])
+        if self.kind == "spatial":
+            return float(np.linalg.eigvalsh(self.spec.par[DP_IB:DP_IB + 9].reshape(3, 3))[0])
+        return None
 
     def enable(self) -> None:
         """Arm the output; clears a latched fault (a simulated device's causes are all gone)."""
