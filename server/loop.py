@@ -616,12 +616,15 @@ class HapticLoop:
             unlock(tk)
         self.servo = binding
         clock = threading.Thread(target=run_clock, args=(blk,), name="hapticproxy-clock", daemon=True)
-        clock.start()
+        clock.start()  # (it inherits this thread's scheduling: SCHED_FIFO when granted)
+        lowered = _below_the_clock_thread()
         try:
             self._serve_beside(binding, duration_s)
         finally:
             blk[SB_RUN] = 0
             clock.join()
+            if lowered is not None:
+                _set_fifo(lowered)
 
     def _serve_beside(self, binding, duration_s) -> None:
         """Everything Python does while another thread ticks (a clock thread, a device's servo
@@ -647,6 +650,7 @@ class HapticLoop:
         # periods of the ticking thread (one held or stalled)
         room_ns = int(blk[SB_PERIOD_NS]) // 2
         patience_ns = 2 * int(blk[SB_PERIOD_NS])
+        proto.defer_books = True
         while not self.stopped:
             # wait for a datagram; while an acknowledgement waits for its tick, a period at most
             wait_s = self.dt_s if proto._ack_due is not None else 0.001
@@ -680,6 +684,10 @@ class HapticLoop:
                 unlock(tk)
             if acked:
                 proto.survive(proto.ack_send, ack, now)
+            books = proto._books_due
+            if books is not None:
+                proto._books_due = None
+                proto.survive(proto.books, books, now)
             if hk_due:
                 self._housekeeping_unlocked(now)
             if end_ns is not None and now >= end_ns and not self.stopping:
@@ -802,6 +810,30 @@ class HapticLoop:
 
     def device_time_s(self) -> float:
         return float(self.dev[DS_TIME])
+
+def _below_the_clock_thread():
+    """Under SCHED_FIFO, this (Python) thread one priority below the clock thread, so that the
+    kernel always runs the clock thread first where the two meet on a CPU (at the same priority
+    FIFO would let the Python thread keep it, e.g. while it waits for the gap after a tick).
+    Returns the priority to restore, or None (not real-time, or not allowed)."""
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_FIFO:
+            return None
+        prio = os.sched_getparam(0).sched_priority
+        if prio <= os.sched_get_priority_min(os.SCHED_FIFO):
+            return None
+        _set_fifo(prio - 1)
+        return prio
+    except (AttributeError, OSError):
+        return None
+
+
+def _set_fifo(prio: int) -> None:
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+    except OSError:
+        pass
+
 
 def python_has_work(tk, readable: bool, hk_due: bool) -> bool:
     """Device-clocked: whether this thread takes the tick's lock now. Only when it has work (a

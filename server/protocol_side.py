@@ -216,6 +216,10 @@ class ProtocolSide:
         self.engagements = 0
         self._use_engine_frame = mcfg["contact_frame"] == "engine"
         self._pending = None  # the newest ContactUpdate received, applied in the next step
+        #: True beside a ticking thread (the loop's clock thread, a device's servo thread): an
+        #: applied update's books (:meth:`books`) wait in ``_books_due`` until the lock is released
+        self.defer_books = False
+        self._books_due = None
         self._ack_due = None  # the ContactUpdate applied in the previous step, acknowledged in this one
         # the two stages, bound once: a bound method made in the step would be an allocation there
         self._ack_stage = self.ack
@@ -296,14 +300,27 @@ class ProtocolSide:
                 return
             if upd.work_on_tool_j > 0.0:  # the engine's declared work (1.4): the passivity layer's tank
                 self.granted_j += lp.ctrl.grant(upd.work_on_tool_j)
-        self.track_env(upd, now)
+        # heard now: the environment's silence counts from here (before the tick runs again)
+        self.last_update_ns = now
+        self.quiet_since()
         self.updates += 1
         lp.tk[tick.TK_UPDATES] = self.updates
-        record_contacts(lp.shared.contacts, (now - lp.t0_ns) * 1e-9, float(upd.env_time_s), self.updates,
-                        keys.shape[0], keys, upd.position_m, upd.normal, upd.separation_m)
         if lp.life.state == LS["fading"] and lp.life.watchdog == WD_SILENT:
             lp.life.transition("engaged", Reason.RESUMED)
         self._ack_due = upd  # acknowledged in the next step, with the proxy state the update led to
+        if self.defer_books:
+            self._books_due = upd  # beside a ticking thread: after the tick's lock is released
+        else:
+            self.books(upd, now)
+
+    def books(self, upd, now: int) -> None:
+        """What an applied update leaves for the record, nothing the tick reads: the environment's
+        rate, the contact ring's row."""
+        lp = self.loop
+        self.track_env(upd, now)
+        keys = upd.keys
+        record_contacts(lp.shared.contacts, (now - lp.t0_ns) * 1e-9, float(upd.env_time_s), self.updates,
+                        keys.shape[0], keys, upd.position_m, upd.normal, upd.separation_m)
 
     def engine_q(self, upd):
         """The engine's tool configuration for the update (None: the paper's eq. 1). A linkage's
