@@ -218,9 +218,15 @@ def test_an_update_waits_until_the_last_one_is_acknowledged(rig_factory):
                 return proto._pending
         raise AssertionError("no update")
 
+    proto.defer_books = True  # as beside a ticking thread
     first = receive()
-    lp.threaded_pass(r.clock.now_ns(), None, False)
+    now = r.clock.now_ns()
+    lp.threaded_pass(now, None, False)
     assert proto._pending is None and proto._ack_due is first
+    # its books wait for the lock's release, but the silence counts from it before the tick runs
+    assert proto._books_due is first and int(lp.tk[tick.TK_QUIET_SINCE_NS]) == now
+    proto.books(proto._books_due, now)
+    proto._books_due = None
     second = receive()
     assert second is not first
     lp.threaded_pass(r.clock.now_ns(), None, False)  # its acknowledgement not yet ready
