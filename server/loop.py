@@ -314,6 +314,8 @@ class HapticLoop:
                 servo.run_clock(blk)  # the clock thread's loop (its body never runs: SB_RUN is 0)
             servo.lock_between_ticks(tk, blk, 0, 0)  # the Python side's lock
             servo.unlock(tk)
+            servo.lock(tk)  # (taken as the thread starts and at the stop: a compile there is a stall)
+            servo.unlock(tk)
         warm = getattr(self.device, "warm_up", None)
         if callable(warm):
             warm()

@@ -283,3 +283,33 @@ def test_a_stall_as_long_as_the_device_watchdog_cuts_and_nothing_comes_back_by_i
         now = int(tk[tick.TK_LAST_WRITE_NS]) + lp.period_ns
         servo.clock_tick(b.block, tk, now, 0, 0)
     assert cs[ctl.CS_SAFETY + sf.SS_GAIN] == 0.0 and not np.any(lp.ctrl.cmd)
+
+
+_WARM_PROBE = """
+import json, sys
+sys.path.insert(0, sys.argv[1])
+from server_harness import make_settings
+from hapticproxy.server import servo
+from hapticproxy.server.clock import MonotonicClock
+from hapticproxy.server.loop import HapticLoop
+lp = HapticLoop.build(make_settings(loop={"protocol_thread": True}), clock=MonotonicClock())
+lp.warm_up()
+print(json.dumps({n: len(getattr(servo, n).overloads) for n in ("run_clock", "lock", "unlock", "lock_between_ticks")}))
+lp.close()
+"""
+
+
+def test_warm_up_compiles_what_the_clock_thread_and_its_python_side_call():
+    """A fresh interpreter (nothing compiled or loaded yet): after ``warm_up`` every kernel the
+    clock thread's start, its Python side and its stop call has its signature. A cold-cache
+    fresh clone once compiled ``servo.lock`` as the thread started: the demo's loop faulted."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = subprocess.run([sys.executable, "-c", _WARM_PROBE, str(Path(__file__).parent)], capture_output=True,
+                         text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    counts = json.loads(out.stdout.strip().splitlines()[-1])
+    assert all(n >= 1 for n in counts.values()), counts
