@@ -716,8 +716,9 @@ class HapticLoop:
             tk[tick.TK_STALL_SEEN] = 0
             life.see_wake(int(tk[tick.TK_STALL_WAKE_NS]), int(tk[tick.TK_STALL_FROM_NS]))
         life.after_tick(rcs, now)
-        if proto._pending is None:
-            life.check_silence(now)
+        # (the environment's silence is the tick's to judge: it starts the fade itself, counted
+        # from the end of a stall it saw, and take_tick_fade above follows it; judged here too,
+        # a stall whose end the tick had not reported yet would read as the engine's silence)
         acked = False
         if ack is not None:
             proto._ack_due = None

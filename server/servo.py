@@ -141,6 +141,18 @@ def clock_tick(blk, tk, now, late, missed):
                 # gain and target zero, CS_TARGET being the filter's own target)
                 sf.reset(T.cs[ctl.CS_SAFETY:ctl.CS_SAFETY + sf.NSS])
         _locked_tick(blk, T, now, late)
+        end = tk[tk_.TK_LAST_WRITE_NS]
+        if end - now > tk[tk_.TK_STALL_GAP_NS]:
+            # the process stopped inside this tick (its device write came that much after its
+            # read): a stall like one between ticks, reported and cut the same way (the
+            # single-thread loop sees it in the same step: LoopLife.stalled_recently)
+            tk[tk_.TK_STALL_SEEN] += 1
+            tk[tk_.TK_STALL_WAKE_NS] = end
+            tk[tk_.TK_STALL_FROM_NS] = now
+            if tk[tk_.TK_QUIET_SINCE_NS] < end:
+                tk[tk_.TK_QUIET_SINCE_NS] = end
+            if tk[tk_.TK_DEV_WD_NS] > 0 and end - now >= tk[tk_.TK_DEV_WD_NS]:
+                sf.reset(T.cs[ctl.CS_SAFETY:ctl.CS_SAFETY + sf.NSS])
         tk[tk_.TK_TICKS] += 1
         tk[tk_.TK_HK_COUNT] += 1
         atomic_store(tk, tk_.TK_LOCK, 0)

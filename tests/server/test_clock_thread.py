@@ -23,7 +23,7 @@ from hapticproxy.server import control as ctl
 from hapticproxy.server import safety as sf
 from hapticproxy.server import servo, tick
 from hapticproxy.server.clock import MonotonicClock, SimClock
-from hapticproxy.server.lifecycle import LS, Reason
+from hapticproxy.server.lifecycle import LS, Fault, Reason
 from hapticproxy.server.loop import HapticLoop
 from hapticproxy.server.shm import ST, TEL
 from hapticproxy.testing.cleanup import made_then_ended
@@ -43,6 +43,9 @@ def armed():
         b.block[servo.SB_CMD] = lp._wcmd.ctypes.data
         b.bind(lp._T)
         lp.tk[tick.TK_DEV_WD_NS] = 2 * int(lp.tk[tick.TK_STALL_GAP_NS])  # the device's watchdog
+        # each tick ends at its wake-up (the wake-ups the tests choose, not the wall clock's)
+        lp.tk[tick.TK_SIMULATED] = 1
+        lp.tk[tick.TK_SIM_COST_NS] = 0
         yield lp, b
     finally:
         lp.close()
@@ -58,11 +61,12 @@ def test_the_lock_free_it_ticks_and_counts_the_tick(armed):
     tk = lp.tk
     n0, ticks0 = int(b.block[servo.SB_TICKS]), int(tk[tick.TK_TICKS])
     last = int(tk[tick.TK_LAST_WRITE_NS])
-    servo.clock_tick(b.block, tk, _now(lp), 0, 0)
+    now = _now(lp)
+    servo.clock_tick(b.block, tk, now, 0, 0)
     assert int(b.block[servo.SB_TICKS]) == n0 + 1 and int(tk[tick.TK_TICKS]) == ticks0 + 1
     assert int(b.block[servo.SB_HELD]) == 0
-    # the tick wrote the device (its end on the monotonic clock; the one before moved back)
-    assert int(tk[tick.TK_PREV_WRITE_NS]) == last and int(tk[tick.TK_LAST_WRITE_NS]) != last
+    # the tick wrote the device (its end; the one before moved back)
+    assert int(tk[tick.TK_PREV_WRITE_NS]) == last and int(tk[tick.TK_LAST_WRITE_NS]) == now
     assert int(tk[tick.TK_LOCK]) == 0  # and let the lock go
     assert int(tk[tick.TK_STALL_SEEN]) == 0
 
@@ -313,3 +317,51 @@ def test_warm_up_compiles_what_the_clock_thread_and_its_python_side_call():
     assert out.returncode == 0, out.stderr[-2000:]
     counts = json.loads(out.stdout.strip().splitlines()[-1])
     assert all(n >= 1 for n in counts.values()), counts
+
+
+def test_a_stall_inside_a_tick_is_reported_and_cut_like_one_between_ticks(pushing_rig):
+    """The process stopped between the tick's device read and its write (simulated: the tick's
+    own cost as long as the device's watchdog): the next tick's device read reports the device's
+    watchdog with no gap between ticks, so the tick itself reports the stall (its read and its
+    end) and cuts; Python then classifies it as a stall trip, which recovers by itself, not as a
+    device fault, which latches. Python's pass runs before the clock thread has reported it
+    first: it must not take the stall for the engine's silence."""
+    r, b = _engaged_clock(pushing_rig)
+    lp = r.loop
+    tk, cs = lp.tk, lp.ctrl.cs
+    wd = int(tk[tick.TK_DEV_WD_NS])
+    lp.tk[tick.TK_QUIET_SINCE_NS] = int(tk[tick.TK_LAST_WRITE_NS])
+    lp.proto.last_update_ns = int(tk[tick.TK_LAST_WRITE_NS])
+    now = int(tk[tick.TK_LAST_WRITE_NS]) + lp.period_ns
+    stall = max(wd, int(tk[tick.TK_WATCHDOG_NS])) + lp.period_ns  # past the engine's watchdog too
+    tk[tick.TK_SIM_COST_NS] = stall  # the stall, inside the tick
+    servo.clock_tick(b.block, tk, now, 0, 0)
+    tk[tick.TK_SIM_COST_NS] = 0
+    assert int(tk[tick.TK_STALL_SEEN]) == 1
+    assert int(tk[tick.TK_STALL_FROM_NS]) == now and int(tk[tick.TK_STALL_WAKE_NS]) == now + stall
+    assert int(tk[tick.TK_QUIET_SINCE_NS]) == now + stall
+    assert cs[ctl.CS_SAFETY + sf.SS_GAIN] == 0.0
+    # Python's pass, longer after the engine's last update than its watchdog (the stall): a stall
+    # trip, no fading
+    lp.threaded_pass(now + stall + lp.period_ns, None, False)
+    assert lp.state_name == "fault" and lp.fault == Fault.STALL and lp.stall_trips == 1
+    assert Reason.SILENT not in [Reason(t[4]) for t in lp.shared.transitions_since(0)]
+
+
+def test_python_before_the_clock_thread_after_a_stall_does_not_take_it_for_silence(pushing_rig):
+    """Both threads stopped 110 ms (longer than the engine's watchdog); Python's pass runs first,
+    before the clock thread's first tick has reported the stall: the engine was not silent, the
+    loop was stopped, so no fade; the tick then reports it, and it is a stall trip."""
+    r, b = _engaged_clock(pushing_rig)
+    lp = r.loop
+    tk = lp.tk
+    last = int(tk[tick.TK_LAST_WRITE_NS])
+    lp.tk[tick.TK_QUIET_SINCE_NS] = last
+    lp.proto.last_update_ns = last
+    end = last + int(tk[tick.TK_WATCHDOG_NS]) + 10_000_000
+    lp.threaded_pass(end, None, False)
+    assert lp.state_name == "engaged"
+    servo.clock_tick(b.block, tk, end + 1000, 0, 0)
+    lp.threaded_pass(end + 2000, None, False)
+    assert lp.state_name == "fault" and lp.fault == Fault.STALL
+    assert Reason.SILENT not in [Reason(t[4]) for t in lp.shared.transitions_since(0)]
