@@ -139,6 +139,30 @@ def try_realtime(priority: int = 80) -> tuple[bool, str]:
         return False, f"SCHED_FIFO refused: {exc.strerror}"
 
 
+def lower_fifo_priority() -> int | None:
+    """Under SCHED_FIFO, this thread one priority lower (a thread it started keeps the higher one,
+    and the kernel runs that one first where the two meet on a CPU: at equal FIFO priorities the
+    running one keeps it). Returns the priority to restore, or None (not real-time, not allowed)."""
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_FIFO:
+            return None
+        prio = os.sched_getparam(0).sched_priority
+        if prio <= os.sched_get_priority_min(os.SCHED_FIFO):
+            return None
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio - 1))
+        return prio
+    except (AttributeError, OSError):
+        return None
+
+
+def set_fifo_priority(prio: int) -> None:
+    """This thread back to SCHED_FIFO at ``prio`` (what :func:`lower_fifo_priority` returned)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+    except OSError:
+        pass
+
+
 def pin_to_cpu(cpu: int | None) -> bool:
     if cpu is None or not hasattr(os, "sched_setaffinity"):
         return False

@@ -442,29 +442,11 @@ class HapticLoop:
     # ---------------------------------------------------------------------------- housekeeping
     def _housekeeping(self, now: int) -> None:
         """Every 10 ms: the session timers, the lifecycle's checks, the supervisor's requests, the
-        late-compile count, the status."""
+        late-compile count, the status (beside a ticking thread the same two halves run apart:
+        :meth:`_housekeeping_locked` with the tick's lock, :meth:`_housekeeping_unlocked` after)."""
         self.proto.endpoint.poll(now)
-        self.life.housekeeping(now)
-        sh = self.shared
-        ctrl_ = sh.control
-        if self.parent_pid and os.getppid() != self.parent_pid:
-            self._stop_flag = True
-        if ctrl_[CT["stop"]] != ctrl_[CT["stop_ack"]] or self._stop_flag:
-            ctrl_[CT["stop_ack"]] = ctrl_[CT["stop"]]
-            self.request_stop()
-        if ctrl_[CT["rearm"]] != ctrl_[CT["rearm_ack"]]:
-            ctrl_[CT["rearm_ack"]] = ctrl_[CT["rearm"]]
-            self.rearm()
-        if ctrl_[CT["reset_stats"]] != ctrl_[CT["reset_ack"]]:
-            ctrl_[CT["reset_ack"]] = ctrl_[CT["reset_stats"]]
-            sh.hist_late[:] = 0
-            sh.hist_step[:] = 0
-            sh.status[ST["lateness_max_us"]] = 0.0
-            sh.status[ST["compute_max_us"]] = 0.0
-            sh.status[ST["overruns"]] = 0.0
-            sh.status[ST["missed_deadlines"]] = 0.0
-        self._count_late_compiles()
-        self.publisher.publish(now)
+        self._housekeeping_locked(now)
+        self._housekeeping_unlocked(now)
 
     def _count_late_compiles(self) -> None:
         self._hk_n += 1
@@ -515,8 +497,7 @@ class HapticLoop:
     def _run_compiled(self, max_steps, duration_s) -> None:
         tk = self.tk
         # the spin never takes more than tick.SPIN_MAX_SHARE of the period (why: there)
-        tk[tick.TK_SPIN_NS] = min(int(self.clock.spin_ns), int(self.period_ns * tick.SPIN_MAX_SHARE))
-        self.shared.status[ST["spin_ns"]] = float(tk[tick.TK_SPIN_NS])
+        self._arm_spin()
         end_ns = None if duration_s is None else self.clock.now_ns() + int(duration_s * 1e9)
         n0 = int(tk[tick.TK_TICKS])
         steps = 0
@@ -537,6 +518,12 @@ class HapticLoop:
                     self.request_stop()
                 max_steps = None
                 end_ns = None
+
+    def _arm_spin(self) -> None:
+        """The compiled wait's spin before each deadline: the calibrated one, at most
+        ``tick.SPIN_MAX_SHARE`` of the period (why: there)."""
+        self.tk[tick.TK_SPIN_NS] = min(int(self.clock.spin_ns), int(self.period_ns * tick.SPIN_MAX_SHARE))
+        self.shared.status[ST["spin_ns"]] = float(self.tk[tick.TK_SPIN_NS])
 
     @property
     def device_clocked(self) -> bool:
@@ -594,6 +581,7 @@ class HapticLoop:
         them at its next pass (within a millisecond)."""
         import threading
 
+        from .clock import lower_fifo_priority, set_fifo_priority
         from .servo import SB_CMD, SB_RUN, SB_TK, ServoBinding, lock, run_clock, unlock
 
         tk = self.tk
@@ -603,8 +591,7 @@ class HapticLoop:
         blk[SB_CMD] = self._wcmd.__array_interface__["data"][0]
         lock(tk)
         try:
-            tk[tick.TK_SPIN_NS] = min(int(self.clock.spin_ns), int(self.period_ns * tick.SPIN_MAX_SHARE))
-            self.shared.status[ST["spin_ns"]] = float(tk[tick.TK_SPIN_NS])
+            self._arm_spin()
             tk[tick.TK_DEV_WD_NS] = self.life.dev_wd_ns
             tk[tick.TK_STALL_SEEN] = 0
             tk[tick.TK_RC_STICKY] = 0
@@ -619,14 +606,14 @@ class HapticLoop:
         self.servo = binding
         clock = threading.Thread(target=run_clock, args=(blk,), name="hapticproxy-clock", daemon=True)
         clock.start()  # (it inherits this thread's scheduling: SCHED_FIFO when granted)
-        lowered = _below_the_clock_thread()
+        lowered = lower_fifo_priority()  # one below the clock thread's (it inherited this one)
         try:
             self._serve_beside(binding, duration_s)
         finally:
             blk[SB_RUN] = 0
             clock.join()
             if lowered is not None:
-                _set_fifo(lowered)
+                set_fifo_priority(lowered)
 
     def _serve_beside(self, binding, duration_s) -> None:
         """Everything Python does while another thread ticks (a clock thread, a device's servo
@@ -669,10 +656,10 @@ class HapticLoop:
                 next_hk = now + hk_ns
                 proto.endpoint.poll(now)  # the sessions' timers: the protocol's own state
             ack = proto._ack_due if proto._ack_due is not None and blk[SB_TICKS] > applied_tick else None
-            st = tk[tick.TK_STATE]
-            if not ((proto._pending is not None and proto._ack_due is None) or ack is not None or hk_due
-                    or tk[tick.TK_RC_STICKY] != 0
-                    or tk[tick.TK_STALL_SEEN] != 0 or st == tick._LS_FADING or st == tick._LS_STOPPING):
+            # an update to apply (once the last one's acknowledgement is out) or acknowledge
+            tk[tick.TK_NEEDS_PYTHON] = 1 if ((proto._pending is not None and proto._ack_due is None)
+                                              or ack is not None) else 0
+            if not python_has_work(tk, False, hk_due):  # (the datagrams were read above, unlocked)
                 continue
             lock_between_ticks(tk, blk, room_ns, patience_ns)
             try:
@@ -814,39 +801,15 @@ class HapticLoop:
     def device_time_s(self) -> float:
         return float(self.dev[DS_TIME])
 
-def _below_the_clock_thread():
-    """Under SCHED_FIFO, this (Python) thread one priority below the clock thread, so that the
-    kernel always runs the clock thread first where the two meet on a CPU (at the same priority
-    FIFO would let the Python thread keep it, e.g. while it waits for the gap after a tick).
-    Returns the priority to restore, or None (not real-time, or not allowed)."""
-    try:
-        if os.sched_getscheduler(0) != os.SCHED_FIFO:
-            return None
-        prio = os.sched_getparam(0).sched_priority
-        if prio <= os.sched_get_priority_min(os.SCHED_FIFO):
-            return None
-        _set_fifo(prio - 1)
-        return prio
-    except (AttributeError, OSError):
-        return None
-
-
-def _set_fifo(prio: int) -> None:
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
-    except OSError:
-        pass
-
-
 def python_has_work(tk, readable: bool, hk_due: bool) -> bool:
-    """Device-clocked: whether this thread takes the tick's lock now. Only when it has work (a
-    datagram waiting, housekeeping due, a tick's results to take, an update to apply or
-    acknowledge, a fade or a stop under way): each time it holds the lock, a servo tick may find it
-    held and write the previous command again (``servo_held``), and a loaded machine can preempt
-    this thread while it holds it."""
+    """Beside a ticking thread (a clock thread, a device's servo thread): whether the Python
+    thread takes the tick's lock now. Only when it has work (``readable``: a datagram to handle
+    with the lock; housekeeping due, a tick's results or a stall it saw to take, an update to
+    apply or acknowledge, a fade or a stop under way): each time it holds the lock, a tick may
+    find it held (``servo_held``), and a loaded machine can preempt this thread while it holds it."""
     st = tk[tick.TK_STATE]
     return bool(readable or hk_due or tk[tick.TK_RC_STICKY] != 0 or tk[tick.TK_NEEDS_PYTHON] != 0
-                or st == tick._LS_FADING or st == tick._LS_STOPPING)
+                or tk[tick.TK_STALL_SEEN] != 0 or st == tick._LS_FADING or st == tick._LS_STOPPING)
 
 
 def package_kernels() -> list:

@@ -365,3 +365,37 @@ def test_python_before_the_clock_thread_after_a_stall_does_not_take_it_for_silen
     lp.threaded_pass(end + 2000, None, False)
     assert lp.state_name == "fault" and lp.fault == Fault.STALL
     assert Reason.SILENT not in [Reason(t[4]) for t in lp.shared.transitions_since(0)]
+
+
+def test_an_update_brings_python_to_the_lock_by_itself():
+    """The real loop with a clock thread on the monotonic clock and housekeeping switched off: only
+    an update to apply or acknowledge brings the Python thread to the tick's lock (``TK_NEEDS_PYTHON``
+    through ``python_has_work``). An engine's session engages, and its updates are applied and
+    acknowledged (counts, no time asserted)."""
+    import threading
+
+    from hapticproxy.clients.runner import ClientRunner
+    from hapticproxy.clients.stub_engine import StubEngine
+
+    url = "mem://clock-thread-updates"
+    lp = HapticLoop.build(make_settings(loop={"protocol_thread": True}, transport={"url": url}),
+                          clock=MonotonicClock())
+    th = None
+    try:
+        lp.warm_up()
+        lp.start()
+        lp.tk[tick.TK_HK_EVERY] = 1 << 40  # no housekeeping pass
+        th = threading.Thread(target=lp.run, kwargs={"duration_s": 3.0}, daemon=True)
+        th.start()
+        runner = ClientRunner(StubEngine(seed=1), url, scene="testbed", realtime=True, connect_timeout_s=10.0)
+        st = runner.run(max_steps=60)
+        th.join(20)
+        assert not th.is_alive()
+        assert lp.servo is not None and lp.engagements == 1, (st, lp.counters())
+        assert lp.updates >= 10 and lp.acks >= lp.updates - 1, (lp.updates, lp.acks)
+        assert st["proxy_states"] >= 10
+    finally:
+        if th is not None and th.is_alive():
+            lp.request_stop()
+            th.join(10)
+        lp.close()

@@ -150,7 +150,7 @@ def test_device_clocked_python_takes_the_lock_only_when_it_has_work():
     assert not python_has_work(tk, False, False)
     assert python_has_work(tk, True, False) and python_has_work(tk, False, True)
     for word, value in ((tick.TK_RC_STICKY, 1 << 8), (tick.TK_NEEDS_PYTHON, 1), (tick.TK_STATE, LS["fading"]),
-                        (tick.TK_STATE, LS["stopping"])):
+                        (tick.TK_STATE, LS["stopping"]), (tick.TK_STALL_SEEN, 1)):
         w = tk.copy()
         w[word] = value
         assert python_has_work(w, False, False), word
