@@ -15,9 +15,9 @@ write), ``missed_fraction`` (steps that finished after the next deadline / steps
 ``p99_ratio_naive_over_loop``, ``machine``, ``protocol_thread`` (the loop ran a clock thread),
 ``clock_ticks`` and ``clock_held`` (its ticks run, and held while Python had the tick's lock; None
 without one); then ``update_steps`` (per tool kind: the CPU time of
-the steps that receive, apply, acknowledge, or do none of these with a model update;
-``benchmarks/update_steps.py``), ``apply_p99_max_us``, ``receive_p99_max_us``,
-``ack_p99_max_us``, ``p50_over_plain_max`` (the costliest update step's p50 over a plain step's
+the steps that receive, stage, apply (the tick) and acknowledge (Python, after it), or do none
+of these with a model update; ``benchmarks/update_steps.py``), ``apply_p99_max_us``,
+``receive_p99_max_us``, ``stage_p99_max_us``, ``p50_over_plain_max`` (the costliest update step's p50 over a plain step's
 in the same run), ``budget_us`` (a quarter of a 4 kHz period) and ``within_budget``.
 """
 from __future__ import annotations
@@ -257,7 +257,7 @@ def print_report(res: dict) -> None:
     print(f"  {'tool':<16} {'step':<13} {'n':>5} {'tick p50':>8} {'tick p99':>8} {'step p50':>8} {'step p99':>8} "
           f"{'max':>7} {'p50 / plain':>11}")
     for r in rows:
-        for k in ("receive", "apply", "ack", "housekeeping", "other"):
+        for k in ("receive", "stage", "apply", "housekeeping", "other"):
             d = r.get(f"{k}_us")
             if d is None:
                 continue
@@ -269,7 +269,7 @@ def print_report(res: dict) -> None:
         kc = r.get("tick_kernel_us")
         if kc:
             print(f"  {r['tool']:<16} {'tick kernel':<13} {'':>5} {kc['p50']:>8.2f} {kc['p99']:>8.2f}")
-    worst = max(res["apply_p99_max_us"], res["receive_p99_max_us"], res.get("ack_p99_max_us") or 0.0)
+    worst = max(res["apply_p99_max_us"], res["receive_p99_max_us"], res.get("stage_p99_max_us") or 0.0)
     print(f"  the costliest tick's p99: {res['tick_p99_max_us']:.1f} us; the budget (a quarter of a 10 kHz period): "
           f"{res['tick_budget_us']:g} us: {'within' if res['tick_within_budget'] else 'over'}")
     print(f"  the costliest whole step's p99 (tick and Python part): {worst:.1f} us; a quarter of a 4 kHz period: "

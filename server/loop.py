@@ -151,6 +151,8 @@ class HapticLoop:
         #: the supervisor's pid; when it changes (the supervisor died) the loop stops cleanly
         self.parent_pid = 0
         self._hk_n = 0
+        #: beside a ticking thread: the passes Python took the tick's lock for (each may hold a tick)
+        self.lock_passes = 0
         self._kernels_compiled = -1
         self._kernels: list = []
         self.dropped_at_start = 0  # datagrams that queued before start() (counted, not read)
@@ -207,6 +209,7 @@ class HapticLoop:
         tk[tick.TK_ACTIVE] = 0 if proto._margs is None else 1
         tk[tick.TK_LINKAGE] = 1 if largs is not None else 0
         tk[tick.TK_KIND] = int(kind)
+        tk[tick.TK_UPD_DESC] = 0 if proto.model is None else proto.model.slot_address
 
     _bind = bind  # (the name the parts used before the split)
 
@@ -377,7 +380,7 @@ class HapticLoop:
         clock = self.clock
         tk = self.tk
         self.life.see_wake(wake, int(tk[tick.TK_LAST_WRITE_NS]))
-        if self.proto._pending is None:
+        if self.proto._pending is None and self.proto._staged is None:
             # before the tick (a comparison): the step the environment's silence passes its
             # watchdog is the first that fades (an update waiting to be applied is not silence)
             self.life.check_silence(wake)
@@ -407,24 +410,16 @@ class HapticLoop:
         return not self.stopped
 
     def _service(self, wake: int) -> None:
-        """The step's Python part, after the tick: acknowledge the ContactUpdate the previous step
-        applied, then apply the one received before (applying: the model update; acknowledging:
-        the engine's advice, the ProxyState's encoding: each some us of Python, spread over
-        consecutive steps so that no step pays for two of them nor for housekeeping, unless
-        updates arrive in every step), the environment's silence, the transport, housekeeping."""
+        """The step's Python part, after the tick: take the tick's result for the update it
+        applied and acknowledge it, then stage the one received before for the next tick
+        (:meth:`ProtocolSide.exchange`), then the transport, housekeeping (not in a step that
+        was busy with an update, unless updates arrive in every step)."""
         proto = self.proto
-        busy = False
-        upd = proto._ack_due
-        if upd is not None:
-            proto._ack_due = None
-            busy = proto.survive(proto._ack_stage, upd, wake)
-        upd = proto._pending
-        if upd is not None:
-            proto._pending = None
-            busy = proto.survive(proto._apply_stage, upd, wake)
+        busy = proto.exchange(wake)
         if proto.poll(wake):
             busy = True
-        self.tk[tick.TK_NEEDS_PYTHON] = 1 if (proto._pending is not None or proto._ack_due is not None) else 0
+        # a step of Python's own for an update waiting (the tick applies a staged one by itself)
+        self.tk[tick.TK_NEEDS_PYTHON] = 1 if proto._pending is not None else 0
         self._maybe_housekeeping(busy)
 
     def _maybe_housekeeping(self, busy: bool) -> None:
@@ -617,15 +612,17 @@ class HapticLoop:
 
     def _serve_beside(self, binding, duration_s) -> None:
         """Everything Python does while another thread ticks (a clock thread, a device's servo
-        thread): wait on the socket, decode and check datagrams, send acknowledgements, keep the
-        sessions' timers and publish the status without the tick's lock; take ``TK_LOCK`` only to
-        change or read what the tick uses (:meth:`threaded_pass`), in the gap after a tick with
-        half a period ahead (``servo.lock_between_ticks``), so that this work ends before the
-        next tick wants the lock. A tick that finds it held ticks nothing (a device's servo tick
-        writes the previous command again) and counts itself held (``servo_held``)."""
+        thread): wait on the socket, decode and check datagrams, hand updates over and send their
+        acknowledgements (the update slot's handshake: no lock), keep the sessions' timers and
+        publish the status without the tick's lock; take ``TK_LOCK`` only to change what the
+        tick uses (:meth:`threaded_pass`: an engagement, a transition, a fault's cut,
+        housekeeping's lifecycle part), in the gap after a tick with half a period ahead
+        (``servo.lock_between_ticks``), so that this work ends before the next tick wants the
+        lock. A tick that finds it held ticks nothing (a device's servo tick writes the previous
+        command again) and counts itself held (``servo_held``)."""
         import select
 
-        from .servo import SB_PERIOD_NS, SB_TICKS, lock, lock_between_ticks, unlock
+        from .servo import SB_PERIOD_NS, lock, lock_between_ticks, unlock
 
         tk = self.tk
         blk = binding.block
@@ -634,15 +631,14 @@ class HapticLoop:
         end_ns = None if duration_s is None else self.clock.now_ns() + int(duration_s * 1e9)
         hk_ns = int(tk[tick.TK_HK_EVERY]) * int(self.period_ns)
         next_hk = self.clock.now_ns() + hk_ns
-        applied_tick = -1  # SB_TICKS when the last update was applied: its ack waits for a tick after it
         # the lock's work takes some us (an engagement milliseconds); waited for at most two
         # periods of the ticking thread (one held or stalled)
         room_ns = int(blk[SB_PERIOD_NS]) // 2
         patience_ns = 2 * int(blk[SB_PERIOD_NS])
-        proto.defer_books = True
         while not self.stopped:
-            # wait for a datagram; while an acknowledgement waits for its tick, a period at most
-            wait_s = self.dt_s if proto._ack_due is not None else 0.001
+            # wait for a datagram; while the tick has a staged update, a period at most (its
+            # acknowledgement goes out as soon as it is applied)
+            wait_s = self.dt_s if proto._staged is not None else 0.001
             if fd >= 0:
                 readable = bool(select.select((fd,), (), (), wait_s)[0])
             else:
@@ -655,30 +651,6 @@ class HapticLoop:
             if hk_due:
                 next_hk = now + hk_ns
                 proto.endpoint.poll(now)  # the sessions' timers: the protocol's own state
-            ack = proto._ack_due if proto._ack_due is not None and blk[SB_TICKS] > applied_tick else None
-            # an update to apply (once the last one's acknowledgement is out) or acknowledge
-            tk[tick.TK_NEEDS_PYTHON] = 1 if ((proto._pending is not None and proto._ack_due is None)
-                                              or ack is not None) else 0
-            if not python_has_work(tk, False, hk_due):  # (the datagrams were read above, unlocked)
-                continue
-            lock_between_ticks(tk, blk, room_ns, patience_ns)
-            try:
-                now = self.clock.now_ns()
-                if proto._pending is not None and (proto._ack_due is None or ack is not None):
-                    applied_tick = int(blk[SB_TICKS])  # (threaded_pass applies it)
-                acked = self.threaded_pass(now, ack, hk_due)
-                if self._T is not binding._keep[0]:
-                    binding.bind(self._T)  # an engagement bound the tick to the new model's arrays
-            finally:
-                unlock(tk)
-            if acked:
-                proto.survive(proto.ack_send, ack, now)
-            books = proto._books_due
-            if books is not None:
-                proto._books_due = None
-                proto.survive(proto.books, books, now)
-            if hk_due:
-                self._housekeeping_unlocked(now)
             if end_ns is not None and now >= end_ns and not self.stopping:
                 lock(tk)
                 try:
@@ -686,16 +658,32 @@ class HapticLoop:
                 finally:
                     unlock(tk)
                 end_ns = None
+            proto.exchange(now, locked=False)
+            tk[tick.TK_NEEDS_PYTHON] = 1 if proto.needs_lock else 0
+            hk_locked = hk_due and self._housekeeping_needs_lock()
+            if not python_has_work(tk, False, hk_locked):  # (the datagrams were read above, unlocked)
+                if hk_due:
+                    self._housekeeping_unlocked(now)
+                continue
+            lock_between_ticks(tk, blk, room_ns, patience_ns)
+            self.lock_passes += 1
+            try:
+                now = self.clock.now_ns()
+                self.threaded_pass(now, hk_locked)
+                if self._T is not binding._keep[0]:
+                    binding.bind(self._T)  # an engagement bound the tick to the new model's arrays
+            finally:
+                unlock(tk)
+            if hk_due:
+                self._housekeeping_unlocked(now)
 
-    def threaded_pass(self, now: int, ack, hk_due: bool) -> bool:
-        """What this thread does with the tick's lock held, beside a clock thread: the tick's
-        results (a fade it started, a stall it saw, faults), the environment's silence, the half
-        of an acknowledgement that reads the tick's state (``ack``: the update to acknowledge, or
-        None), the update received to apply, housekeeping's lifecycle part. True: ``ack`` is ready
-        to send (after the lock is released)."""
+    def threaded_pass(self, now: int, hk_due: bool) -> None:
+        """What this thread does with the tick's lock held, beside a ticking thread: the tick's
+        results (a fade it started, a stall it saw, faults), what the update's hand-over left for
+        the lock (an engagement, a transition: :meth:`ProtocolSide.exchange`), housekeeping's
+        lifecycle part."""
         tk = self.tk
         life = self.life
-        proto = self.proto
         rcs = int(tk[tick.TK_RC_STICKY])
         tk[tick.TK_RC_STICKY] = 0
         life.take_tick_fade(now)
@@ -706,24 +694,20 @@ class HapticLoop:
         # (the environment's silence is the tick's to judge: it starts the fade itself, counted
         # from the end of a stall it saw, and take_tick_fade above follows it; judged here too,
         # a stall whose end the tick had not reported yet would read as the engine's silence)
-        acked = False
-        if ack is not None:
-            proto._ack_due = None
-            self._acked = False
-            proto.survive(self._ack_read, ack, now)
-            acked = self._acked
-        upd = proto._pending
-        if upd is not None and proto._ack_due is None:
-            # (an update applied before the last one's acknowledgement went out would replace it:
-            # every applied update is acknowledged, with the proxy state a tick after it)
-            proto._pending = None
-            proto.survive(proto._apply_stage, upd, now)
+        if self.proto.needs_lock:
+            self.proto.exchange(now)
+            tk[tick.TK_NEEDS_PYTHON] = 0
         if hk_due:
             self._housekeeping_locked(now)
-        return acked
 
-    def _ack_read(self, upd, now: int) -> None:
-        self._acked = self.proto.ack_read(upd, now)
+    def _housekeeping_needs_lock(self) -> bool:
+        """Whether :meth:`_housekeeping_locked` has anything to do (a lifecycle check that may act,
+        a supervisor's request, a parent gone): beside a ticking thread the lock is taken for
+        housekeeping only then, not every 10 ms."""
+        ctrl_ = self.shared.control
+        return bool(self.life.has_housekeeping() or self._stop_flag
+                    or (self.parent_pid and os.getppid() != self.parent_pid)
+                    or ctrl_[CT["stop"]] != ctrl_[CT["stop_ack"]] or ctrl_[CT["rearm"]] != ctrl_[CT["rearm_ack"]])
 
     def _housekeeping_locked(self, now: int) -> None:
         """The part of :meth:`_housekeeping` that changes what the tick uses (the lifecycle's
@@ -763,7 +747,8 @@ class HapticLoop:
         self.life.after_tick(int(tk[tick.TK_RC]), wake)
         proto = self.proto
         busy = proto.poll(wake)
-        tk[tick.TK_NEEDS_PYTHON] = 1 if (proto._pending is not None or proto._ack_due is not None) else 0
+        busy = proto.exchange(wake) or busy  # (staged now: the next tick applies it)
+        tk[tick.TK_NEEDS_PYTHON] = 1 if proto._pending is not None else 0
         n = int(tk[tick.TK_HK_COUNT])
         every = int(tk[tick.TK_HK_EVERY])
         if n >= every and (not busy or n >= every + _HK_MAX_DEFER):
@@ -787,6 +772,7 @@ class HapticLoop:
             "engagements": self.engagements, "faults_total": self.faults_total,
             "dropped_at_start": self.dropped_at_start,
             "stall_trips": self.stall_trips, "stall_recoveries": self.stall_recoveries,
+            "lock_passes": self.lock_passes,
             "state": self.state_name, "fault": Fault(self.fault).name.lower(),
             "device_fault": DEV_FAULT_NAMES.get(self.device_fault, str(self.device_fault)),
         }
@@ -804,8 +790,9 @@ class HapticLoop:
 def python_has_work(tk, readable: bool, hk_due: bool) -> bool:
     """Beside a ticking thread (a clock thread, a device's servo thread): whether the Python
     thread takes the tick's lock now. Only when it has work (``readable``: a datagram to handle
-    with the lock; housekeeping due, a tick's results or a stall it saw to take, an update to
-    apply or acknowledge, a fade or a stop under way): each time it holds the lock, a tick may
+    with the lock; housekeeping due, a tick's results or a stall it saw to take, an update that
+    engages or brings a transition (``TK_NEEDS_PYTHON``; the others go through the update slot
+    without the lock), a fade or a stop under way): each time it holds the lock, a tick may
     find it held (``servo_held``), and a loaded machine can preempt this thread while it holds it."""
     st = tk[tick.TK_STATE]
     return bool(readable or hk_due or tk[tick.TK_RC_STICKY] != 0 or tk[tick.TK_NEEDS_PYTHON] != 0
@@ -848,8 +835,8 @@ _delegate("life", "state", "watchdog", "fault", "device_fault", "faults_total", 
           "stall_recoveries", "watchdog_ns", "stopping", "stopped")
 _delegate("proto", "transport", "endpoint", "models", "server_config", "rxbuf", "model", "session_id", "com_m",
           "last_update_ns", "last_env_time_s", "env_rate_hz", "updates", "acks", "update_errors", "engagements",
-          "advice", "poll_cut", "max_packets_per_step", "poll_budget_ns", "_pending", "_ack_due", "_apply_stage",
-          "_ack_stage", "_margs", "_linkage", "_largs")
+          "advice", "poll_cut", "max_packets_per_step", "poll_budget_ns", "_pending", "_staged", "_apply_stage",
+          "_margs", "_linkage", "_largs")
 for _name, _method in (("transition", "transition"), ("rearm", "rearm"), ("request_stop", "request_stop"),
                        ("_after_fade", "after_fade"), ("_on_fault", "on_fault")):
     setattr(HapticLoop, _name, (lambda m: lambda self, *a, **k: getattr(self.life, m)(*a, **k))(_method))

@@ -292,7 +292,16 @@ class Lifecycle:
                     self.fault = Fault.NONE
                     self.device_fault = 0
                     self.transition("idle", Reason.LINK_UP)
-        proto = lp.proto
-        if (proto.session_id and proto.session_id not in proto.endpoint.sessions and self.watchdog != WD_SESSION_ENDED
-                and (self.state == LS["engaged"] or self.state == LS["fading"])):
-            self.transition("fading", Reason.SESSION_ENDED, proto.session_id)
+        if self._session_ended():
+            self.transition("fading", Reason.SESSION_ENDED, lp.proto.session_id)
+
+    def _session_ended(self) -> bool:
+        """The engaged session is gone (closed, timed out) and its fade not begun."""
+        proto = self.loop.proto
+        return bool(proto.session_id and proto.session_id not in proto.endpoint.sessions
+                    and self.watchdog != WD_SESSION_ENDED and (self.state == LS["engaged"] or self.state == LS["fading"]))
+
+    def has_housekeeping(self) -> bool:
+        """:meth:`housekeeping` has something to check or do (beside a ticking thread it runs with
+        the tick's lock: only then is the lock taken for it)."""
+        return self.state == LS["fault"] or self._session_ended()

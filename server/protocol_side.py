@@ -1,12 +1,15 @@
 """The loop's protocol side: the one owner of the sessions, the engaged model and the updates.
 
 ``ProtocolSide`` reads the transport (:meth:`poll`: bounded in count and time; the session
-layer validates, the newest ContactUpdate is kept), applies an update to the model
-(:meth:`on_update`: the first of a session engages it: :meth:`engage` builds nothing new, it
-takes the model the Hello's check built, re-indexes the device and binds the tick to the model's
-arrays), and acknowledges it in the next step (:meth:`ack`: the engine's advice and the
-ProxyState). It runs in the Python part of a step, after the device was written; nothing here
-runs per haptic period unless an update arrived.
+layer validates, the newest ContactUpdate is kept) and hands each update to the tick
+(:meth:`exchange`): the first of a session engages the model (:meth:`engage`: it builds nothing
+new, it takes the model the Hello's check built, re-indexes the device and binds the tick to the
+model's arrays); every update is staged in the model's update slot (:meth:`stage`,
+``model/slot.py``), which the next tick applies and acknowledges from; the tick's result is
+taken and the ProxyState sent (:meth:`take`: the engine's advice, the acknowledgement from the
+slot). Staging and taking need no lock: the slot's words say whose its arrays are. It runs in
+the Python part of a step after the device was written, or in a thread beside the tick; nothing
+here runs per haptic period unless an update arrived.
 """
 from __future__ import annotations
 
@@ -20,10 +23,10 @@ from ..protocol.session import ServerConfig, ServerEndpoint
 from ..protocol.vocab import JOINT_TYPE_NAMES, TOOL_KIND_NAMES, TOOL_KINDS_BY_NAME
 from . import control as ctl
 from . import egress, ingest, tick
-from .devices.base import DS_BUTTONS
 from .lifecycle import LS, SERVER_STATE_BY_CODE, Fault, Reason
 from .loop_lifecycle import WD_SILENT
-from .model.layout import K_M
+from .model.layout import K_M, S_T
+from .model.slot import AX_GRANTED_J, AX_HAND, AX_INPUTS, AX_WORK_J
 from .model.model import ContactParams, LinkSpec, LocalModel, ToolSpec
 from .prediction import EngineAdvice, advice_update, tool_radius_m
 from .rings import record_contacts
@@ -215,29 +218,26 @@ class ProtocolSide:
         self.granted_j = 0.0  # energy engines granted the passivity layer (ContactUpdate.work_on_tool_j), J
         self.engagements = 0
         self._use_engine_frame = mcfg["contact_frame"] == "engine"
-        self._pending = None  # the newest ContactUpdate received, applied in the next step
-        #: True beside a ticking thread (the loop's clock thread, a device's servo thread): an
-        #: applied update's books (:meth:`books`) wait in ``_books_due`` until the lock is released
-        self.defer_books = False
-        self._books_due = None
-        self._ack_due = None  # the ContactUpdate applied in the previous step, acknowledged in this one
-        # the two stages, bound once: a bound method made in the step would be an allocation there
-        self._ack_stage = self.ack
+        self._pending = None  # the newest ContactUpdate received, staged in the next step
+        #: the ContactUpdate staged in the model's slot until the tick is done with it
+        #: (``TK_UPD_DONE`` reaches ``_stage_seq``); the next is staged after it is taken
+        self._staged = None
+        self._staged_ns = 0
+        self._stage_seq = 0
+        #: beside a ticking thread: what :meth:`exchange` left for a pass with the tick's lock (an
+        #: engagement, a taken update's transition)
+        self.needs_lock = False
+        # the stages, bound once: a bound method made in the step would be an allocation there
         self._apply_stage = self.on_update
+        self._take_stage = self._take
         self.advice: EngineAdvice | None = None
         self._scratch_pose = np.zeros(13)
         self._no_joints = np.zeros(0)
-        # the acknowledgement's arrays: views made once (the ack encodes from them as they are)
+        # the acknowledgement's arrays: views made once (the ack encodes from them as they are;
+        # the hand wrench and the inputs are the slot's, views made at engagement)
         self._ack_pose = self._scratch_pose[:7]
         self._ack_twist = self._scratch_pose[7:13]
-        self._ack_wrench = loop.ctrl.cs[ctl.CS_HAND:ctl.CS_HAND + 6]
-        #: the device's inputs (buttons, gripper) of the newest read: a view of the state row
-        self._ack_inputs = loop.dev[DS_BUTTONS:DS_BUTTONS + 3]
-        # what the acknowledgement sends, copied from the tick's arrays when read (``ack_read``)
-        self._ack_wrench_copy = np.zeros(6)
-        self._ack_inputs_copy = np.zeros(3)
-        self._ack_state = ""
-        self._ack_time_s = 0.0
+        self._ack_wrench = self._ack_inputs = None
         self._R = np.zeros((3, 3))
         self._c = np.zeros(3)
         # arrays the tick gets while no model is engaged (active = 0: never stepped)
@@ -266,6 +266,7 @@ class ProtocolSide:
         lp.tk[tick.TK_QUIET_SINCE_NS] = max(self.last_update_ns, lp.life.stall_at)
 
     def drop_model(self) -> None:
+        self._unstage()
         self.model = None
         self._margs = None
         self._cnt = self.no_cnt
@@ -274,44 +275,113 @@ class ProtocolSide:
         self.session_id = 0
         self.loop.bind()
 
+    # ------------------------------------------------------------------ the update's way
+    def exchange(self, now: int, locked: bool = True) -> bool:
+        """The updates' hand-over with the tick: take its result for the staged one (and send its
+        acknowledgement), then stage the newest received. ``locked``: the caller may change what
+        the tick uses (no tick runs meanwhile: the single-thread loop, or the tick's lock held);
+        else what needs it (an engagement, a transition a taken update brings) is left, and
+        ``needs_lock`` says so. True: something was done (the step was busy)."""
+        busy = False
+        self.needs_lock = False
+        if self._staged is not None:
+            if int(self.loop.tk[tick.TK_UPD_DONE]) != self._stage_seq:
+                return False  # the tick has not applied it yet; the next is staged after it
+            if not locked and self._take_needs_lock():
+                self.needs_lock = True
+                return False
+            upd = self._staged
+            self._staged = None
+            self.survive(self._take_stage, upd, now)
+            busy = True
+        upd = self._pending
+        if upd is not None:
+            if upd.session_id == self.session_id and self.model is not None:
+                self._pending = None
+                busy = self.survive(self._apply_stage, upd, now)  # (on_update: staged, no lock)
+            elif locked:
+                self._pending = None
+                busy = self.survive(self._apply_stage, upd, now)
+            else:
+                self.needs_lock = True
+        return busy
+
+    def _take_needs_lock(self) -> bool:
+        """Taking an update changes what the tick uses only when it resumes a fade the silence
+        started (a transition), or when the tick started one that Python has not made a
+        transition yet (``LoopLife.take_tick_fade`` first)."""
+        life = self.loop.life
+        return ((life.state == LS["fading"] and life.watchdog == WD_SILENT)
+                or int(self.loop.tk[tick.TK_STATE]) != int(life.state))
+
     def on_update(self, upd, now: int) -> None:
+        """An update: the owner's is staged (no lock needed); another session's engages the model
+        if it may (with the lock: ``exchange`` calls it so), then is staged; or it is dropped."""
         lp = self.loop
-        sid = upd.session_id
-        keys = upd.keys
-        if sid != self.session_id or self.model is None:
-            if self.model is not None and self.session_id in self.endpoint.sessions:
+        if self.model is not None and upd.session_id != self.session_id:
+            if self.session_id in self.endpoint.sessions:
                 return  # another session owns the model; its updates are the only ones applied
-            if self.model is not None and lp.ctrl.cs[ctl.CS_GAIN] > 0.0:
+            if lp.ctrl.cs[ctl.CS_GAIN] > 0.0:
                 # the previous session's force is still fading out: engage once it is gone, so
                 # the new session ramps in from zero (its updates until then are not acked)
                 return
+        if self.model is None or upd.session_id != self.session_id:
             if lp.life.stopping:
                 return
             self.engage(upd, now)
             if self.model is None:
                 return  # not engaged (a Hello the model cannot hold)
-        else:
-            # the decoder's read-only views go to the kernels as they are (no copies: the codec
-            # and the session checked them, and warm_up compiled the kernels for these types)
-            code = self.model.update_arrays(keys, upd.position_m, upd.normal, upd.separation_m,
-                                            upd.v_constr_m_per_s, keys.shape[0], self.engine_q(upd))
-            if code != 0:
-                self.update_errors += 1
-                return
-            if upd.work_on_tool_j > 0.0:  # the engine's declared work (1.4): the passivity layer's tank
-                self.granted_j += lp.ctrl.grant(upd.work_on_tool_j)
-        # heard now: the environment's silence counts from here (before the tick runs again)
-        self.last_update_ns = now
-        self.quiet_since()
-        self.updates += 1
-        lp.tk[tick.TK_UPDATES] = self.updates
+            self.stage(upd, now, engaging=True)
+            return
+        self.stage(upd, now)
+
+    def stage(self, upd, now: int, engaging: bool = False) -> None:
+        """``upd`` (decoded and checked: its arrays go as they are) into the engaged model's slot,
+        then published to the tick (``TK_UPD_SEQ``). Only while the slot is Python's (nothing
+        staged, or the tick done with it and taken). ``engaging``: the session's first update,
+        whose declared work is not granted (it is work since a previous update: there is none)."""
+        tk = self.loop.tk
+        U = self.model.slot
+        n = upd.keys.shape[0]
+        U.keys[:n] = upd.keys
+        U.pos[:n] = upd.position_m
+        U.nrm[:n] = upd.normal
+        U.sep[:n] = upd.separation_m
+        U.vc[:n] = upd.v_constr_m_per_s
+        q = self.engine_q(upd)
+        if q is not None:
+            U.q[:] = q
+        U.ax[AX_WORK_J] = 0.0 if engaging else max(0.0, float(upd.work_on_tool_j))
+        tk[tick.TK_UPD_N] = n
+        tk[tick.TK_UPD_USE_Q] = 0 if q is None else 1
+        tk[tick.TK_UPD_HEARD_NS] = now
+        self._staged = upd
+        self._staged_ns = now
+        self._stage_seq += 1
+        tk[tick.TK_UPD_SEQ] = self._stage_seq  # last: the arrays above are the tick's from here
+
+    def _unstage(self) -> None:
+        """Forget a staged update the tick has not applied (the model goes, or a new one binds):
+        called with no tick running."""
+        tk = self.loop.tk
+        self._staged = None
+        tk[tick.TK_UPD_DONE] = tk[tick.TK_UPD_SEQ] = self._stage_seq
+
+    def _take(self, upd, now: int) -> None:
+        """The tick applied the staged ``upd`` (``TK_UPD_CODE``) and left what acknowledges it in
+        the slot: the books, the transition it brings, the acknowledgement."""
+        lp = self.loop
+        if int(lp.tk[tick.TK_UPD_CODE]) != 0:
+            self.update_errors += 1  # refused by the model's kernel: nothing changed, no ack
+            return
+        self.granted_j += float(self.model.slot.ax[AX_GRANTED_J])
+        self.updates = int(lp.tk[tick.TK_UPDATES])
+        # heard when it was received (the tick counted the silence from there too)
+        self.last_update_ns = self._staged_ns
         if lp.life.state == LS["fading"] and lp.life.watchdog == WD_SILENT:
             lp.life.transition("engaged", Reason.RESUMED)
-        self._ack_due = upd  # acknowledged in the next step, with the proxy state the update led to
-        if self.defer_books:
-            self._books_due = upd  # beside a ticking thread: after the tick's lock is released
-        else:
-            self.books(upd, now)
+        self.books(upd, self._staged_ns)
+        self.ack(upd, now)
 
     def books(self, upd, now: int) -> None:
         """What an applied update leaves for the record, nothing the tick reads: the environment's
@@ -370,52 +440,36 @@ class ProtocolSide:
 
     def ack(self, upd, now: int) -> None:
         """The engine's advice (epsilon to use next, the lead; one kernel) and the ProxyState that
-        acknowledges ``upd`` (applied in the previous step; ``ack_seq`` its seq, not the newest
-        received since). Nothing if its session no longer owns the model (closed, timed out)."""
-        if self.ack_read(upd, now):
-            self.ack_send(upd, now)
-
-    def ack_read(self, upd, now: int) -> bool:
-        """The half of :meth:`ack` that reads what the tick writes (the proxy, the hand wrench, the
-        device's inputs), into arrays of its own: with a clock thread, it runs with the tick's lock
-        held and :meth:`ack_send` after it is released. False: nothing to acknowledge."""
-        lp = self.loop
+        acknowledges ``upd``, from the state the tick that applied it left in the slot (``ack_seq``
+        its seq, not the newest received since). Nothing if its session no longer owns the model
+        (closed, timed out)."""
         m = self.model
         if m is None or upd.session_id != self.session_id:
-            return False
-        self._ack_state = SERVER_STATE_BY_CODE[int(lp.life.state)]
-        self._ack_time_s = m.time_s
+            return
+        U = m.slot
+        state = SERVER_STATE_BY_CODE[int(self.loop.life.state)]
         adv = self.advice
-        self._ack_inputs_copy[:] = self._ack_inputs
+        time_s = float(U.ack_st[S_T])
         if self._linkage:
             # the root frame's pose and twist; the hand wrench as the wrench on the root frame's
             # origin plus one effort per joint (J_h^T F_h split by coordinates)
             js = self._jstate
-            m.joint_state_into(self._ack_wrench, js)
+            m.joint_state_into(self._ack_wrench, js, U.ack_st, U.ack_lw)
             pose, twist, wrench, effort, jq, jqd = js
             advice_update(*adv.kernel_arrays, now * 1e-9, pose, twist, upd.tool_pose, upd.separation_m, False)
-            return True
-        mg = self._margs
-        ctl.ack_state(mg[0], mg[1], mg[2], self._R, self._c, self._scratch_pose, *adv.kernel_arrays, now * 1e-9,
-                      upd.tool_pose, upd.separation_m)
-        self._ack_wrench_copy[:] = self._ack_wrench
-        return True
-
-    def ack_send(self, upd, now: int) -> None:
-        """The ProxyState :meth:`ack_read` prepared, sent (only the protocol's own state)."""
-        adv = self.advice
-        if self._linkage:
-            pose, twist, wrench, effort, jq, jqd = self._jstate
-            if self.endpoint.send_proxy_state(self.session_id, now, pose, twist, wrench, server_time_s=self._ack_time_s,
+            if self.endpoint.send_proxy_state(self.session_id, now, pose, twist, wrench, server_time_s=time_s,
                                               joint_position=jq, joint_velocity=jqd, joint_effort=effort,
-                                              server_state=self._ack_state, epsilon_m=adv.epsilon_m, lead_s=adv.lead_s,
-                                              ack_seq=upd.seq, trusted=True, inputs=self._ack_inputs_copy):
+                                              server_state=state, epsilon_m=adv.epsilon_m, lead_s=adv.lead_s,
+                                              ack_seq=upd.seq, trusted=True, inputs=self._ack_inputs):
                 self.acks += 1
             return
-        if self.endpoint.send_proxy_state(self.session_id, now, self._ack_pose, self._ack_twist, self._ack_wrench_copy,
-                                          server_time_s=self._ack_time_s, server_state=self._ack_state,
+        mg = self._margs
+        ctl.ack_state(mg[0], mg[1], U.ack_st, self._R, self._c, self._scratch_pose, *adv.kernel_arrays, now * 1e-9,
+                      upd.tool_pose, upd.separation_m)
+        if self.endpoint.send_proxy_state(self.session_id, now, self._ack_pose, self._ack_twist, self._ack_wrench,
+                                          server_time_s=time_s, server_state=state,
                                           epsilon_m=adv.epsilon_m, lead_s=adv.lead_s, ack_seq=upd.seq, trusted=True,
-                                          inputs=self._ack_inputs_copy):
+                                          inputs=self._ack_inputs):
             self.acks += 1
 
     def engage(self, upd, now: int) -> None:
@@ -452,9 +506,9 @@ class ProtocolSide:
         self._tool_kind = qkind
         self._qk = ctl.Q_KINDS[qkind]
         self._tool_q = np.zeros(model.nq)  # the engine's tool configuration of each update
-        if model.update_arrays(upd.keys, upd.position_m, upd.normal, upd.separation_m, upd.v_constr_m_per_s,
-                               upd.keys.shape[0], self.engine_q(upd)) != 0:
-            self.update_errors += 1
+        # (nothing is staged here: ``exchange`` hands an update on only once the slot is Python's)
+        self._ack_wrench = model.slot.ax[AX_HAND:AX_HAND + 6]
+        self._ack_inputs = model.slot.ax[AX_INPUTS:AX_INPUTS + 3]
         self.model = model
         self._margs = model.kernel_args()
         self._cnt = self._margs[5]
@@ -509,7 +563,7 @@ class ProtocolSide:
 
     def poll(self, wake: int) -> bool:
         """Read waiting datagrams without blocking (at most ``max_packets_per_step`` and
-        ``POLL_BUDGET`` of the period); the newest ContactUpdate wins (applied next step). True
+        ``POLL_BUDGET`` of the period); the newest ContactUpdate wins (staged next step). True
         when one was received."""
         lp = self.loop
         tr = self.transport

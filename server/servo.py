@@ -92,7 +92,7 @@ def _locked_tick(blk, T, now, late):
     tk = T.tk
     # the environment's silence starts the fade here, at once, and the rows say so from this tick
     # on; Python makes it the transition it is (``LoopLife.take_tick_fade``) at its next pass
-    if tk[tk_.TK_STATE] == tk_.LS_ENGAGED and now - tk[tk_.TK_QUIET_SINCE_NS] > tk[tk_.TK_WATCHDOG_NS]:
+    if tk_.silent(tk, now):
         T.cs[ctl.CS_TARGET] = 0.0
         tk[tk_.TK_STATE] = tk_._LS_FADING
     rcs = tk_.tick(T, now, late)

@@ -9,12 +9,15 @@ sampled and commanded first after the deadline:
    (``devices.frozen``, judged on the raw row) is the read's fault ``DEV_FAULT_FROZEN``; with a
    workspace mapping (``TK_MAPPED``), ``devices.mapping.map_state`` then turns the row into the
    scene's (scale, offset, rotation, the clutch; its array is ``T.map``);
-2. the controller, the model step and the safety filter (``control.haptic_step`` or
-   ``haptic_step_linkage``);
+2. a model update Python staged in the engaged model's slot (``model/slot.py``), applied by the
+   model's own update kernel (``apply_staged``), then the controller, the model step and the
+   safety filter (``control.haptic_step`` or ``haptic_step_linkage``);
 3. with a mapping, ``map_command`` turns the filter's wrench into the device's (``T.map``'s block
    ``M_CMD``); write the device (``IO_EXTERNAL``: the caller writes ``device_command(T)`` after
    the call);
-4. account: histograms, maxima and one telemetry row (``rings.account``).
+4. after a staged update was applied, what acknowledges it into the slot, which is then
+   Python's again (``acknowledge_staged``);
+5. account: histograms, maxima and one telemetry row (``rings.account``).
 
 It allocates nothing and touches no Python object; ``T`` (:class:`TickArrays`) holds every array it
 reads or writes, each with its layout declared once where its owner lives (``control``,
@@ -26,7 +29,8 @@ Who calls it:
   until ``spin_ns`` before each, then a spin on the monotonic clock; ``spin_ns`` is at most
   ``SPIN_MAX_SHARE`` of the period, so the thread sleeps in every period and never meets the
   kernel's real-time throttling). It releases the GIL and returns to Python only on events: a step that
-  needs Python (an update to apply or acknowledge, a stall, the environment's silence), a tick
+  needs Python (an update that engages a session, a stall, the environment's silence), a tick
+  that applied a staged update (its acknowledgement is Python's), a tick
   that reported a fault, a fade that ended, housekeeping due, a datagram waiting (``poll`` on the
   transport's socket), a stop. The plain steps between (most of them) never touch Python.
 - ``HapticLoop.step`` in Python (simulated time in tests, and the steps ``run_ticks`` hands back):
@@ -42,12 +46,16 @@ import numpy as np
 from numba import from_dtype, njit, types
 
 from . import control as ctl
-from .devices.base import DEV_FAULT_FROZEN
+from . import passivity as pv
+from .devices.base import DEV_FAULT_FROZEN, DS_BUTTONS
 from .devices.dynamics import sim_read, sim_write_hand
 from .devices.frozen import watch as frozen_watch
 from .devices.mapping import M_CMD, map_command, map_state
-from .native import address_as, call_i32_ptr_ptr, fd_readable, monotonic_ns, sleep_until_ns
+from .native import address_as, atomic_store, call_i32_ptr_ptr, fd_readable, monotonic_ns, sleep_until_ns
 from .lifecycle import LS
+from .model.kernels import update_rigid
+from .model.linkage import update_linkage
+from .model.slot import AX_GRANTED_J, AX_HAND, AX_INPUTS, AX_WORK_J, slot_at
 from .rings import account
 from .shm import STATUS_DTYPE, TEL_DTYPE
 
@@ -88,7 +96,7 @@ TK_SPIN_NS = 17         # how long before a deadline run_ticks stops sleeping an
 TK_HK_EVERY = 18        # ticks between housekeeping
 TK_HK_COUNT = 19        # ticks since the last housekeeping
 TK_FD = 20              # the transport's socket (-1: none; run_ticks then hands back each period)
-TK_NEEDS_PYTHON = 21    # 1: the next step has Python work (an update to apply or acknowledge)
+TK_NEEDS_PYTHON = 21    # 1: the next step has Python work (an update waiting: to engage, or for the slot)
 TK_WATCHDOG_NS = 22     # the environment's silence that starts a fade while engaged
 TK_QUIET_SINCE_NS = 23  # when the environment was last heard (or the loop's last stall ended)
 TK_STOP = 24            # 1: run_ticks returns at once (a request from Python or a signal)
@@ -112,7 +120,14 @@ TK_DEV_WD_NS = 38       # the device's watchdog: a gap between ticks this long i
 TK_STALL_SEEN = 39      # clock thread: stalls seen since Python last took them
 TK_STALL_WAKE_NS = 40   # clock thread: the wake-up that ended the last stall seen
 TK_STALL_FROM_NS = 41   # clock thread: the end of the tick before it
-NTK = 42
+TK_UPD_DESC = 42        # the engaged model's update slot (``model.slot``): its descriptor's address (0: none)
+TK_UPD_SEQ = 43         # Python: updates staged in the slot (moved on after the slot's arrays are written)
+TK_UPD_DONE = 44        # the tick: the staged update it applied last (== TK_UPD_SEQ: the slot is Python's)
+TK_UPD_CODE = 45        # the tick: the update kernel's code for it (``model.layout`` E_*; 0: applied)
+TK_UPD_N = 46           # Python: the staged update's rows
+TK_UPD_USE_Q = 47       # Python: 1: the slot's ``q`` is the engine's tool configuration (contact_frame engine)
+TK_UPD_HEARD_NS = 48    # Python: when the staged update was received (applied: the environment heard then)
+NTK = 49
 
 #: the largest share of a period ``run_ticks`` may spin before a deadline. The thread then sleeps
 #: at least the rest of every period (SCHED_FIFO stays far below the kernel's real-time
@@ -168,6 +183,11 @@ def tick(T, wake_ns, late_ns):
         rc_dev = DEV_FAULT_FROZEN
     if mapped:
         map_state(T.dev, T.map)  # device frame -> the scene's, the clutch (devices/mapping.py)
+    # a staged model update: applied before the model steps (after the device read: the sample
+    # keeps its time), acknowledged from this tick's state after the device write
+    staged = tk[TK_UPD_SEQ] != tk[TK_UPD_DONE] and tk[TK_UPD_DESC] != 0
+    if staged:
+        apply_staged(T)
     if tk[TK_LINKAGE] != 0:
         rc = ctl.haptic_step_linkage(T.cp, T.cs, T.cc, T.dev, T.cmd, T.par, T.lmeta, T.lk, T.lki, T.st, T.C, T.CI,
                                      T.cnt, T.wk, T.lw, T.hand)
@@ -185,6 +205,8 @@ def tick(T, wake_ns, late_ns):
                               wake_ns if simulated else monotonic_ns())
     elif io == IO_NATIVE:
         rc_w = call_i32_ptr_ptr(tk[TK_NATIVE_WRITE], tk[TK_NATIVE_CTX], wcmd.ctypes.data)
+    if staged:
+        acknowledge_staged(T)
     end = wake_ns + tk[TK_SIM_COST_NS] if simulated else monotonic_ns()
     tk[TK_LAST_WRITE_NS] = end
     account(T.tel, T.head, T.hist_late, T.hist_step, T.stat, tk[TK_PERIOD_NS], late_ns, end - wake_ns,
@@ -192,6 +214,51 @@ def tick(T, wake_ns, late_ns):
     packed = (rc & 0xFF) | ((rc_dev & 0xFF) << 8) | ((rc_w & 0xFF) << 16)
     tk[TK_RC] = packed
     return packed
+
+
+@njit(**_JIT)
+def apply_staged(T):
+    """The update staged in the engaged model's slot (``model/slot.py``), applied by the model's
+    own kernel; its code in ``TK_UPD_CODE``. Applied: counted (``TK_UPDATES``), the environment
+    heard when it was received (``TK_QUIET_SINCE_NS``), the work the engine declares into the
+    passivity layer's tank (``ax[AX_GRANTED_J]``: what the tank took). Refused: nothing changes
+    (the kernel's contract)."""
+    tk = T.tk
+    U = slot_at(tk[TK_UPD_DESC])
+    n = tk[TK_UPD_N]
+    use = tk[TK_UPD_USE_Q]
+    if tk[TK_LINKAGE] != 0:
+        code = update_linkage(T.par, T.lmeta, T.lk, T.lki, T.st, T.C, T.CI, T.cnt, T.wk, T.lw, U.keys, U.pos,
+                              U.nrm, U.sep, U.vc, n, U.sel, U.newF, U.newI, U.q, use, U.lw_e)
+    else:
+        code = update_rigid(tk[TK_KIND], T.par, T.st, T.C, T.CI, T.cnt, T.wk, U.keys, U.pos, U.nrm, U.sep, U.vc, n,
+                            U.sel, U.newF, U.newI, U.q, use, U.st_e, U.Re, U.ce)
+    tk[TK_UPD_CODE] = code
+    U.ax[AX_GRANTED_J] = 0.0
+    if code == 0:
+        tk[TK_UPDATES] += 1
+        if tk[TK_UPD_HEARD_NS] > tk[TK_QUIET_SINCE_NS]:
+            tk[TK_QUIET_SINCE_NS] = tk[TK_UPD_HEARD_NS]
+        U.ax[AX_GRANTED_J] = pv.grant(T.cp[ctl.CP_TANK:ctl.CP_TANK + pv.NTP], T.cs[ctl.CS_TANK:ctl.CS_TANK + pv.NTS],
+                                      U.ax[AX_WORK_J])
+
+
+@njit(**_JIT)
+def acknowledge_staged(T):
+    """After the tick that applied the staged update: what acknowledges it (the model's state, a
+    linkage's link poses, the hand wrench, the device's inputs) into the slot, then the slot is
+    Python's again (``TK_UPD_DONE``, an atomic store after them)."""
+    tk = T.tk
+    U = slot_at(tk[TK_UPD_DESC])
+    if tk[TK_UPD_CODE] == 0:
+        U.ack_st[:] = T.st
+        if tk[TK_LINKAGE] != 0:
+            U.ack_lw[:, :] = T.lw
+        for k in range(6):
+            U.ax[AX_HAND + k] = T.cs[ctl.CS_HAND + k]
+        for k in range(3):
+            U.ax[AX_INPUTS + k] = T.dev[DS_BUTTONS + k]
+    atomic_store(tk, TK_UPD_DONE, tk[TK_UPD_SEQ])
 
 
 @njit(**_JIT)
@@ -203,7 +270,15 @@ def _needs_python(T, wake_ns):
         return True
     if wake_ns - tk[TK_LAST_WRITE_NS] > tk[TK_STALL_GAP_NS]:
         return True
-    return tk[TK_STATE] == LS_ENGAGED and wake_ns - tk[TK_QUIET_SINCE_NS] > tk[TK_WATCHDOG_NS]
+    return silent(tk, wake_ns)
+
+
+@njit(**_JIT)
+def silent(tk, now_ns):
+    """Engaged, and the environment not heard for its watchdog (an update staged for the tick is
+    heard: it is applied in the next tick)."""
+    return (tk[TK_STATE] == LS_ENGAGED and now_ns - tk[TK_QUIET_SINCE_NS] > tk[TK_WATCHDOG_NS]
+            and tk[TK_UPD_SEQ] == tk[TK_UPD_DONE])
 
 
 @njit(**_JIT)
@@ -276,8 +351,12 @@ def run_ticks(T):
             tk[TK_LATE_NS] = late
             tk[TK_RETURNS] += 1
             return EV_STEP
+        done = tk[TK_UPD_DONE]
         tick(T, wake, late)
         tk[TK_TICKS] += 1
+        if tk[TK_UPD_DONE] != done:  # a staged update applied: its acknowledgement is Python's
+            tk[TK_RETURNS] += 1
+            return EV_TICKED
         tk[TK_HK_COUNT] += 1
         polled = False
         if tk[TK_FD] < 0:  # no socket to watch (Zenoh, memory): Python polls every millisecond

@@ -24,6 +24,7 @@ from ...protocol.quaternion import quat_to_matrix_into
 from ..readonly import ArrayFloat, ArrayInt, frozen_copies
 from . import kernels as _k
 from . import linkage as _lk
+from .slot import descriptor as slot_descriptor, new_slot
 from .layout import (
     C_CP, C_D, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
     CI_AGE, CI_KEY, CI_SLIP, CI_STATE, CONTACT_STATE_NAMES, E_OK, ERROR_FIELDS,
@@ -525,19 +526,24 @@ class LocalModel:
         self._cnt = np.zeros(NCOUNT, dtype=np.int64)
         self._wk = np.zeros(_k.workspace_size(self.capacity))
         self._hand = np.zeros(6)
-        self._sel = np.zeros(int(max_update_contacts), dtype=np.int64)
-        self._newF = np.zeros((self.capacity, NCOLS_F))
-        self._newI = np.zeros((self.capacity, NCOLS_I), dtype=np.int64)
+        #: the update slot (``slot.py``): what the server's tick applies updates from; its
+        #: scratch arrays are the update kernel's here too
+        self.slot = new_slot(int(max_update_contacts), self.capacity, self.nq,
+                             len(tool.links) if self.is_linkage else 0)
+        self._slot_desc = slot_descriptor(self.slot)
+        self._sel = self.slot.sel
+        self._newF = self.slot.newF
+        self._newI = self.slot.newI
         self._qe = np.zeros(7)  # placeholder engine configuration when none is given
-        self._st_e = np.zeros(NSTATE)
-        self._Re = np.zeros((3, 3))
-        self._ce = np.zeros(3)
+        self._st_e = self.slot.st_e
+        self._Re = self.slot.Re
+        self._ce = self.slot.ce
         self._fenv = self._st[S_FENV:S_FENV + self.hand_dim]
         self._q_at = S_Q
         if self.is_linkage:
             self._lmeta, self._lk, self._lki = linkage_arrays(tool, linkage_dynamics == "full")
             self._lw = np.zeros((len(tool.links), NLW))
-            self._lw_e = np.zeros((len(tool.links), NLW))
+            self._lw_e = self.slot.lw_e
             self._qe = np.zeros(self.nq)
             self._q_at = S_LQ
             # a bound method per instance: rigid models keep the class's step, untouched
@@ -950,12 +956,15 @@ class LocalModel:
         self.joint_state_into(np.asarray(hand_wrench_world, dtype=np.float64), out)
         return out
 
-    def joint_state_into(self, hand_wrench_world: np.ndarray, out) -> None:
+    def joint_state_into(self, hand_wrench_world: np.ndarray, out, st=None, lw=None) -> None:
         """:meth:`joint_state` into ``out`` = (pose, twist, wrench, effort, joint positions, joint
         rates), float64 arrays of those sizes (the loop's, allocated at engagement); the hand
-        wrench a float64 array of 6. For the step that acknowledges an update."""
+        wrench a float64 array of 6. For the step that acknowledges an update. ``st`` / ``lw``:
+        copies of the model's state and link poses to read instead (the slot's ``ack_st`` /
+        ``ack_lw``)."""
         pose, twist, wrench, effort, jq, jqd = out
-        _lk.joint_state(self._lmeta, self._lk, self._lki, self._st, self._lw, hand_wrench_world, pose, twist, wrench,
+        _lk.joint_state(self._lmeta, self._lk, self._lki, self._st if st is None else st,
+                        self._lw if lw is None else lw, hand_wrench_world, pose, twist, wrench,
                         effort, jq, jqd, self._q_at + self.nq, S_QD + self.dof)
 
     # -- raw arrays (for the reference implementation and for tests) --------------------------
@@ -966,6 +975,12 @@ class LocalModel:
         """``(kind, par, st, C, CI, cnt, wk)``: the arguments of ``kernels.step_rigid`` before the
         hand wrench, for callers that fuse the model step into their own kernel (the server loop)."""
         return self.kind, self._par, self._st, self._C, self._CI, self._cnt, self._wk
+
+    @property
+    def slot_address(self) -> int:
+        """The address of the update slot's descriptor (``slot.slot_at``), for the tick's
+        ``TK_UPD_DESC``."""
+        return int(self._slot_desc.__array_interface__["data"][0])
 
     def linkage_args(self):
         """``(lmeta, lk, lki, lw)``: the linkage arrays ``linkage.step_linkage`` takes besides

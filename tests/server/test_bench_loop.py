@@ -58,5 +58,5 @@ def test_bench_loop_prints_a_table_for_a_person():
     assert lines[0].startswith("update steps") and not out.stdout.lstrip().startswith("{")
     for tool in ("1dof", "planar", "spatial", "linkage-planar", "linkage-spatial"):
         kinds = {ln.split()[1] for ln in lines if ln.split()[:1] == [tool]}
-        assert {"receive", "apply", "ack", "plain"} <= kinds, (tool, kinds)
+        assert {"receive", "stage", "apply", "plain"} <= kinds, (tool, kinds)
     assert any("the budget" in ln for ln in lines[-3:])

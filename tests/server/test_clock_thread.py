@@ -180,66 +180,79 @@ def test_each_tick_says_when_the_next_is_due(armed):
     tk[tick.TK_LOCK] = 0
 
 
-def test_a_fade_the_tick_started_is_a_transition_before_an_update_resumes(rig_factory):
-    """Simulated time: the loop engaged, the clock thread has started the silence fade (target
-    zero, rows fading) and an update arrives before Python's next pass. The pass makes the fade
-    the transition it is, then the update resumes it: engaged, target 1. Without the first, the
-    loop would stay "engaged" with its target at zero, the force fading out for good."""
-    r = rig_factory()
-    r.run(1.0)
+def _receive(r):
+    """The engine's next update, received (decoded) beside the tick: the ContactUpdate."""
     lp = r.loop
-    assert lp.state_name == "engaged"
-    lp.tk[tick.TK_STATE] = LS["fading"]  # what servo._locked_tick does on silence
-    lp.ctrl.cs[ctl.CS_TARGET] = 0.0
-    for _ in range(100):  # the engine's next update, received (decoded) beside the tick
+    for _ in range(100):
         r.env.service()
         r.clock.advance(lp.period_ns)
         lp.proto.poll(r.clock.now_ns())
         if lp.proto._pending is not None:
-            break
-    assert lp.proto._pending is not None
-    lp.threaded_pass(r.clock.now_ns(), None, False)
+            return lp.proto._pending
+    raise AssertionError("no update")
+
+
+def _tick(lp, now):
+    """One tick as the clock thread runs it (its lock aside), ending at ``now``."""
+    lp.tk[tick.TK_SIMULATED] = 1
+    lp.tk[tick.TK_SIM_COST_NS] = 0
+    tick.tick_at(lp._desc_addr, now, 0)
+
+
+def test_a_fade_the_tick_started_is_a_transition_before_an_update_resumes(rig_factory):
+    """Simulated time: the loop engaged, the clock thread has started the silence fade (target
+    zero, rows fading) and an update arrives before Python's next pass. It is staged and applied
+    without the lock, but taking it waits for a pass with the lock, which makes the fade the
+    transition it is, then the update resumes it: engaged, target 1. Without the first, the loop
+    would stay "engaged" with its target at zero, the force fading out for good."""
+    r = rig_factory()
+    r.run(1.0)
+    lp = r.loop
+    proto = lp.proto
+    assert lp.state_name == "engaged"
+    lp.tk[tick.TK_STATE] = LS["fading"]  # what servo._locked_tick does on silence
+    lp.ctrl.cs[ctl.CS_TARGET] = 0.0
+    upd = _receive(r)
+    now = r.clock.now_ns()
+    assert proto.exchange(now, locked=False) is True and proto._staged is upd  # staged, no lock
+    _tick(lp, now)
+    assert proto.exchange(now, locked=False) is False and proto.needs_lock  # taking it: the lock's
+    assert proto._staged is upd and lp.state_name == "engaged"
+    lp.threaded_pass(now, False)
     reasons = [Reason(t[4]) for t in lp.shared.transitions_since(0)]
     assert reasons[-2:] == [Reason.SILENT, Reason.RESUMED]
     assert lp.state_name == "engaged" and lp.ctrl.cs[ctl.CS_TARGET] == 1.0
     assert int(lp.tk[tick.TK_STATE]) == LS["engaged"]
+    assert proto._staged is None
 
 
-def test_an_update_waits_until_the_last_one_is_acknowledged(rig_factory):
-    """Simulated time: an update arrives while the previous one's acknowledgement waits for its
-    tick. The pass leaves it pending (applying it would replace the acknowledgement due); the
-    pass that acknowledges the previous one then applies it, and it is acknowledged in turn."""
+def test_an_update_waits_in_the_decoder_while_the_slot_is_the_ticks(rig_factory):
+    """Simulated time, beside a ticking thread: an update is staged in the model's slot without
+    the lock; one received while the tick has not applied it waits (staging it would overwrite
+    the slot the tick reads); the pass after the tick applied the first takes it, sends its
+    acknowledgement (from the state the tick left in the slot) and stages the second."""
     r = rig_factory()
     r.run(1.0)
     lp, proto = r.loop, r.loop.proto
-
-    def receive():
-        for _ in range(100):
-            r.env.service()
-            r.clock.advance(lp.period_ns)
-            proto.poll(r.clock.now_ns())
-            if proto._pending is not None:
-                return proto._pending
-        raise AssertionError("no update")
-
-    proto.defer_books = True  # as beside a ticking thread
-    first = receive()
-    now = r.clock.now_ns()
-    lp.threaded_pass(now, None, False)
-    assert proto._pending is None and proto._ack_due is first
-    # its books wait for the lock's release, but the silence counts from it before the tick runs
-    assert proto._books_due is first and int(lp.tk[tick.TK_QUIET_SINCE_NS]) == now
-    proto.books(proto._books_due, now)
-    proto._books_due = None
-    second = receive()
+    tk = lp.tk
+    first = _receive(r)
+    heard = r.clock.now_ns()
+    assert proto.exchange(heard, locked=False) and proto._staged is first and proto._pending is None
+    seq = int(tk[tick.TK_UPD_SEQ])
+    assert seq == int(tk[tick.TK_UPD_DONE]) + 1
+    second = _receive(r)
     assert second is not first
-    lp.threaded_pass(r.clock.now_ns(), None, False)  # its acknowledgement not yet ready
-    assert proto._pending is second and proto._ack_due is first
-    acks = proto.acks
-    assert lp.threaded_pass(r.clock.now_ns(), first, False) is True
-    lp.proto.ack_send(first, r.clock.now_ns())
-    assert proto.acks == acks + 1
-    assert proto._pending is None and proto._ack_due is second
+    now = r.clock.now_ns()
+    assert proto.exchange(now, locked=False) is False  # the slot is the tick's: nothing changes
+    assert proto._staged is first and proto._pending is second and not proto.needs_lock
+    updates, acks = proto.updates, proto.acks
+    _tick(lp, now)
+    assert int(tk[tick.TK_UPD_DONE]) == seq and int(tk[tick.TK_UPD_CODE]) == 0
+    # applied: counted by the tick, the silence counted from when it was received
+    assert int(tk[tick.TK_UPDATES]) == updates + 1 and int(tk[tick.TK_QUIET_SINCE_NS]) >= heard
+    assert proto.exchange(now, locked=False) is True
+    assert proto.updates == updates + 1 and proto.acks == acks + 1 and proto.last_update_ns == heard
+    assert proto._staged is second and proto._pending is None and int(tk[tick.TK_UPD_SEQ]) == seq + 1
 
 
 @pytest.fixture
@@ -343,7 +356,7 @@ def test_a_stall_inside_a_tick_is_reported_and_cut_like_one_between_ticks(pushin
     assert cs[ctl.CS_SAFETY + sf.SS_GAIN] == 0.0
     # Python's pass, longer after the engine's last update than its watchdog (the stall): a stall
     # trip, no fading
-    lp.threaded_pass(now + stall + lp.period_ns, None, False)
+    lp.threaded_pass(now + stall + lp.period_ns, False)
     assert lp.state_name == "fault" and lp.fault == Fault.STALL and lp.stall_trips == 1
     assert Reason.SILENT not in [Reason(t[4]) for t in lp.shared.transitions_since(0)]
 
@@ -359,19 +372,68 @@ def test_python_before_the_clock_thread_after_a_stall_does_not_take_it_for_silen
     lp.tk[tick.TK_QUIET_SINCE_NS] = last
     lp.proto.last_update_ns = last
     end = last + int(tk[tick.TK_WATCHDOG_NS]) + 10_000_000
-    lp.threaded_pass(end, None, False)
+    lp.threaded_pass(end, False)
     assert lp.state_name == "engaged"
     servo.clock_tick(b.block, tk, end + 1000, 0, 0)
-    lp.threaded_pass(end + 2000, None, False)
+    lp.threaded_pass(end + 2000, False)
     assert lp.state_name == "fault" and lp.fault == Fault.STALL
     assert Reason.SILENT not in [Reason(t[4]) for t in lp.shared.transitions_since(0)]
 
 
+def test_updates_and_housekeeping_with_nothing_to_do_take_no_lock():
+    """The real loop with a clock thread on the monotonic clock, housekeeping every 10 ms: an
+    engine's session engages and its updates are applied and acknowledged through the update
+    slot; the Python thread takes the tick's lock for far fewer passes than there are updates
+    (before the slot: one per update and one per housekeeping, 100 a second). Counts only."""
+    import threading
+    import time
+
+    from hapticproxy.clients.runner import ClientRunner
+    from hapticproxy.clients.stub_engine import StubEngine
+
+    url = "mem://clock-thread-no-lock"
+    lp = HapticLoop.build(make_settings(loop={"protocol_thread": True}, transport={"url": url}),
+                          clock=MonotonicClock())
+    th = None
+    passes = []
+    try:
+        lp.warm_up()
+        lp.start()
+        th = threading.Thread(target=lp.run, kwargs={"duration_s": 3.0}, daemon=True)
+        th.start()
+        runner = ClientRunner(StubEngine(seed=2), url, scene="testbed", realtime=True, connect_timeout_s=10.0)
+
+        def pump(steps):
+            while runner.stats()["steps"] < steps:
+                wait = runner.poll()
+                if wait > 0:
+                    time.sleep(min(wait, 0.002))
+
+        try:
+            pump(20)  # engaged by now
+            p0, u0 = lp.lock_passes, lp.updates
+            pump(80)
+            passes.append((lp.lock_passes - p0, lp.updates - u0, lp.state_name))
+        finally:
+            runner.close()
+        th.join(20)
+        assert not th.is_alive()
+        n_passes, n_updates, state = passes[0]
+        assert state == "engaged" and n_updates >= 30, passes
+        assert n_passes < n_updates / 4, passes
+    finally:
+        if th is not None and th.is_alive():
+            lp.request_stop()
+            th.join(10)
+        lp.close()
+
+
 def test_an_update_brings_python_to_the_lock_by_itself():
     """The real loop with a clock thread on the monotonic clock and housekeeping switched off: only
-    an update to apply or acknowledge brings the Python thread to the tick's lock (``TK_NEEDS_PYTHON``
-    through ``python_has_work``). An engine's session engages, and its updates are applied and
-    acknowledged (counts, no time asserted)."""
+    the session's first update brings the Python thread to the tick's lock (an engagement:
+    ``TK_NEEDS_PYTHON`` through ``python_has_work``); the others go through the update slot. An
+    engine's session engages, and its updates are applied and acknowledged (counts, no time
+    asserted)."""
     import threading
 
     from hapticproxy.clients.runner import ClientRunner
