@@ -452,8 +452,25 @@ def predicted_growth_per_s(case: Case, **overrides) -> float | None:
     dev = effective_config({"kind": case.kind}, period_s=1.0 / case.rate_hz)
     n = RIGID_CONTACTS[case.kind]
     return rest_growth_per_s(case.mass_kg, dev["mass_kg"], dev["damping_n_s_per_m"], n * mdl["stiffness_n_per_m"],
-                             n * mdl["damping_n_s_per_m"], ctl["stiffness_n_per_m"], ctl["damping_n_s_per_m"],
+                             n * mdl["damping_n_s_per_m"], ctl["stiffness_n_per_m"], coupling_damping_for_case(case, s),
                              ctl["env_gain"])
+
+
+def coupling_damping_for_case(case: Case, settings) -> float:
+    """The coupling damping the server sets for ``case``'s rigid tool (``control.Controller.fit_tool``:
+    ``stability.coupling_damping_for_tool`` with the simulated device's mass, the config's stated
+    device damping and the model's capacity)."""
+    from ..server.devices.sim import effective_config
+    from ..server.stability import coupling_damping_for_tool
+
+    ctl, mdl, pas = settings["controller"], settings["model"], settings["passivity"]
+    dev = effective_config({"kind": case.kind}, period_s=1.0 / case.rate_hz)
+    b = coupling_damping_for_tool(
+        case.mass_kg, device_mass_kg=pas["moving_mass_kg"] or dev["mass_kg"],
+        device_damping_n_s_per_m=pas["device_damping_n_s_per_m"], contact_n_per_m=mdl["stiffness_n_per_m"],
+        contact_n_s_per_m=mdl["damping_n_s_per_m"], max_contacts=mdl["capacity"],
+        coupling_n_per_m=ctl["stiffness_n_per_m"], coupling_n_s_per_m=ctl["damping_n_s_per_m"], env_gain=ctl["env_gain"])
+    return ctl["damping_n_s_per_m"] if b is None else b
 
 
 # --------------------------------------------------------------------------- the sweep

@@ -31,6 +31,7 @@ envelopes, the rate limit). The filter's arrays are blocks of the controller's (
 """
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -40,6 +41,7 @@ from ..protocol.vocab import CONTROLLERS
 
 from . import passivity as pv
 from . import safety as sf
+from .devices import safe
 from .devices import frozen as fz
 from .readonly import ArrayBool, ArrayFloat, ArrayInt
 from .model.kernels import _rigid_pose, hand_to_world, step_rigid
@@ -51,6 +53,9 @@ from .model.layout import (
 from .model.linkage import hand_state_linkage, step_linkage
 from .model.model import quat_to_matrix
 from .prediction import advice_update
+from .stability import coupling_damping_for_tool
+
+log = logging.getLogger("hapticproxy.control")
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -749,6 +754,19 @@ class Controller:
                           period_s=dt, engine_grants=pas["engine_grants"], input_credit=pas["input_credit"])
         pv.reset(self.tp, self.ts)
         self._moving_config = (pas["moving_mass_kg"], pas["moving_inertia_kg_m2"])
+        #: the heavy-tool rule's inputs (``fit_tool``): the configured coupling, the contacts, the
+        #: handle's figures (its mass from ``set_moving_figures``)
+        mdl = settings["model"]
+        self._heavy = dict(coupling_n_per_m=float(ctl["stiffness_n_per_m"]), coupling_n_s_per_m=float(ctl["damping_n_s_per_m"]),
+                           env_gain=float(ctl["env_gain"]) if ctl["type"] == "four_channel" else 0.0,
+                           contact_n_per_m=float(mdl["stiffness_n_per_m"]), contact_n_s_per_m=float(mdl["damping_n_s_per_m"]),
+                           max_contacts=int(mdl["capacity"]), device_damping_n_s_per_m=float(pas["device_damping_n_s_per_m"]),
+                           device_mass_kg=float(pas["moving_mass_kg"]) if pas["moving_mass_kg"] > 0.0 else None)
+        self._rate_hz = 1.0 / dt
+        self._damping_cap = math.inf
+        self._fitted: dict[float, tuple[float, str]] = {}
+        #: the last ``fit_tool``: the tool's mass, the damping set, and why it falls short ("" if not)
+        self.fit = (0.0, float(ctl["damping_n_s_per_m"]), "")
         #: the device's position frozen under force (``devices.frozen``; the tick runs the watch)
         self.frozen_s = saf["frozen_s"]
         self.frozen_force_n = fz.min_force_n(saf["frozen_force_n"], fmax)
@@ -767,8 +785,51 @@ class Controller:
 
     def set_moving_figures(self, info) -> None:
         """The passivity layer's moving mass and inertia from the device's ``DeviceInfo`` where the
-        config sets none (``passivity.moving_figures``)."""
+        config sets none (``passivity.moving_figures``); the heavy-tool rule's handle mass likewise
+        (the config's ``passivity.moving_mass_kg``, else the device's stated figure, else none: the
+        rule then keeps the configured damping) and the most damping the device renders
+        (``devices.safe.gain_limits``)."""
         self.tp[pv.TP_MASS], self.tp[pv.TP_INERTIA] = pv.moving_figures(*self._moving_config, info)
+        if self._heavy["device_mass_kg"] is None:
+            m = getattr(info, "moving_mass_kg", None)
+            self._heavy["device_mass_kg"] = float(m) if m else None
+        if info is not None and int(self.cp[CP_TYPE]) != CTRL_DIRECT:
+            for lim in safe.gain_limits(info, self._rate_hz, CONTROLLERS[int(self.cp[CP_TYPE])]):
+                if lim.key == "controller.damping_n_s_per_m":
+                    self._damping_cap = lim.limit
+        self._fitted.clear()
+
+    def fit_tool(self, tool) -> tuple[float, float, str]:
+        """Set the coupling's translational damping for a session's rigid ``tool`` (a ``ToolSpec``)
+        by ``stability.coupling_damping_for_tool``: the configured damping, raised for a heavy tool
+        until the four-channel loop at rest on 1 to ``model.capacity`` contacts is stable with the
+        rule's margin. Capped at what the device renders (``_damping_cap``): a tool that needs more,
+        or that no damping steadies, gets the cap and a reason (logged; ``fit``). A linkage, or no
+        tool, keeps the configured damping. At engagement (``loop_lifecycle``), not per step: the
+        rule's bisection costs about a millisecond, and is kept per mass. Returns ``fit``: (mass,
+        damping, reason)."""
+        h = self._heavy
+        b = h["coupling_n_s_per_m"]
+        if tool is None or getattr(tool, "kind", "linkage") == "linkage" or int(self.cp[CP_TYPE]) == CTRL_DIRECT:
+            self.cp[CP_BT] = b
+            self.fit = (0.0, b, "")
+            return self.fit
+        mass = float(tool.mass_kg)
+        got = self._fitted.get(mass)
+        if got is None:
+            want = coupling_damping_for_tool(mass, **h)
+            why = ""
+            if want is None or want > self._damping_cap:
+                why = (f"tool.mass_kg: {mass:g} kg needs more coupling damping than the device renders "
+                       f"({self._damping_cap:g} N s/m) to rest stably")
+                want = min(self._damping_cap, max(b, self._damping_cap if want is None else want))
+            got = (want, why)
+            self._fitted[mass] = got
+            if why:
+                log.warning("%s", why)
+        self.cp[CP_BT] = got[0]
+        self.fit = (mass, got[0], got[1])
+        return self.fit
 
     def set_offset(self, R_off: np.ndarray, p_off: np.ndarray, q_off: np.ndarray) -> None:
         self.cp[CP_ROFF:CP_ROFF + 9] = np.asarray(R_off, dtype=float).reshape(9)
