@@ -32,8 +32,9 @@ and the largest |F - push| of the force the device renders along the push. A run
 Hello the server refuses is reported with its reason (the issue's other outcome).
 
 Each rigid tool's row also carries :func:`predicted_growth_per_s`: the growth rate of the
-four-channel loop at rest, linearised along the contact normal (positive: the tool bounces on the
-floor whatever the haptic rate; it says which heavy rigid tools do).
+four-channel loop at rest, linearised along the contact normal, with the coupling damping the
+engagement sets for the tool (:func:`coupling_damping_for_case`; positive: the tool bounces on the
+floor whatever the haptic rate; with the configured damping it says which heavy rigid tools did).
 
 ``run_lighttools(out, quick=...)`` writes ``lighttools.json`` and returns the summary.
 """
