@@ -817,7 +817,7 @@ class Controller:
         mass = float(tool.mass_kg)
         got = self._fitted.get(mass)
         if got is None:
-            want = coupling_damping_for_tool(mass, **h)
+            want = self._damping_for(mass)
             why = ""
             if want is None or want > self._damping_cap:
                 why = (f"tool.mass_kg: {mass:g} kg needs more coupling damping than the device renders "
@@ -830,6 +830,44 @@ class Controller:
         self.cp[CP_BT] = got[0]
         self.fit = (mass, got[0], got[1])
         return self.fit
+
+    def _damping_for(self, mass_kg: float) -> float | None:
+        return coupling_damping_for_tool(float(mass_kg), **self._heavy)
+
+    def hello_refusal(self, tool) -> str:
+        """Why a Hello's rigid ``tool`` is to be refused, or "": the coupling damping its rest loop
+        needs (``fit_tool``'s rule) is more than the device renders (``_damping_cap``). The reason
+        names the field, the damping needed and the largest mass below it that works (the
+        smallest failing mass, bisected in log mass from the lightest tool, which keeps the
+        configured damping, to ``tool``'s), within a Reject's 120 characters. For the handshake's
+        check (``ProtocolSide.check_hello``); Python, and only a refused tool costs a search."""
+        if tool is None or getattr(tool, "kind", "linkage") == "linkage" or int(self.cp[CP_TYPE]) == CTRL_DIRECT:
+            return ""
+        mass = float(tool.mass_kg)
+        cap = self._damping_cap
+
+        def fails(m: float) -> bool:
+            b = self._damping_for(m)
+            return b is None or b > cap
+
+        if not fails(mass):
+            return ""
+        lo = 1e-3
+        if fails(lo):
+            return ""  # the configured damping itself is beyond the device (the config's research override)
+        hi = mass
+        for _ in range(30):
+            mid = math.sqrt(lo * hi)
+            if fails(mid):
+                hi = mid
+            else:
+                lo = mid
+        need = self._damping_for(mass)
+        needs = "more coupling damping than any" if need is None else f"{need:.3g} N s/m of coupling damping"
+        step = 10.0 ** (math.floor(math.log10(lo)) - 2)  # three digits, rounded down: the value works
+        most = math.floor(lo / step) * step
+        return (f"tool.mass_kg: {mass:g} kg needs {needs} to rest, the device renders {cap:.3g}; "
+                f"at most {float(f'{most:.3g}'):g} kg")
 
     def set_offset(self, R_off: np.ndarray, p_off: np.ndarray, q_off: np.ndarray) -> None:
         self.cp[CP_ROFF:CP_ROFF + 9] = np.asarray(R_off, dtype=float).reshape(9)

@@ -191,6 +191,22 @@ def test_a_tool_the_device_cannot_damp_enough_is_capped_and_named():
     assert c.fit_tool(ToolSpec.planar(2.0, 1e-3)) == (2.0, pytest.approx(_rule(2.0, "planar")), "")
 
 
+def test_the_hello_refusal_names_the_field_and_the_largest_mass_that_works():
+    c = _controller(rate=100.0, safety={"allow_outside_stable_region": True})
+    why = c.hello_refusal(ToolSpec.planar(20.0, 1e-2))
+    assert why.startswith("tool.mass_kg: 20 kg needs 41.1 N s/m of coupling damping to rest, the device renders 40;")
+    assert len(why) <= 120, why
+    most = float(why.rsplit("at most ", 1)[1].split(" kg")[0])
+    # the largest that works: just below it the rule's damping is within the cap, just above not
+    assert _rule(most * 0.999, "planar") <= 40.0 < _rule(most * 1.01, "planar")
+    assert 2.0 < most < 20.0
+    assert c.hello_refusal(ToolSpec.planar(most * 0.99, 1e-2)) == ""
+    assert c.hello_refusal(ToolSpec.planar(2.0, 1e-3)) == ""
+    # at 1 kHz the device renders 400 N s/m: nothing is refused
+    assert _controller().hello_refusal(ToolSpec.planar(20.0, 1e-2)) == ""
+    assert _controller().hello_refusal(ToolSpec.planar(1000.0, 1.0)) == ""
+
+
 def test_the_rule_is_cheap_enough_for_an_engagement():
     """Counted, not timed: the bisection's Hurwitz checks per tool (each a few array operations
     over the contact counts), and a second engagement of the same mass reuses the first's."""
