@@ -806,7 +806,7 @@ class Controller:
         rule's margin. Capped at what the device renders (``_damping_cap``): a tool that needs more,
         or that no damping steadies, gets the cap and a reason (logged; ``fit``). A linkage, or no
         tool, keeps the configured damping. At engagement (``loop_lifecycle``), not per step: the
-        rule's bisection costs about a millisecond, and is kept per mass. Returns ``fit``: (mass,
+        rule's search costs about 20 Hurwitz checks (under a millisecond), and is kept per mass. Returns ``fit``: (mass,
         damping, reason)."""
         h = self._heavy
         b = h["coupling_n_s_per_m"]

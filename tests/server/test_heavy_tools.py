@@ -225,5 +225,5 @@ def test_the_rule_is_cheap_enough_for_an_engagement():
         c.fit_tool(ToolSpec.planar(2.0, 1e-3))
     finally:
         sb.rest_loop_stable = real
-    assert first <= 2 + 40 and len(calls) == first
+    assert first <= 25 and len(calls) == first
     assert np.isfinite(c.cp[ctl.CP_BT])
