@@ -53,7 +53,7 @@ from .model.layout import (
 from .model.linkage import hand_state_linkage, step_linkage
 from .model.model import quat_to_matrix
 from .prediction import advice_update
-from .stability import coupling_damping_for_tool
+from .stability import coupling_damping_for_tool, device_damper_limit_n_s_per_m, rot_coupling_damping_for_tool
 
 log = logging.getLogger("hapticproxy.control")
 
@@ -762,8 +762,18 @@ class Controller:
                            contact_n_per_m=float(mdl["stiffness_n_per_m"]), contact_n_s_per_m=float(mdl["damping_n_s_per_m"]),
                            max_contacts=int(mdl["capacity"]), device_damping_n_s_per_m=float(pas["device_damping_n_s_per_m"]),
                            device_mass_kg=float(pas["moving_mass_kg"]) if pas["moving_mass_kg"] > 0.0 else None)
+        self._heavy_rot = dict(coupling_n_m_per_rad=float(ctl["rot_stiffness_n_m_per_rad"]),
+                               coupling_n_m_s_per_rad=float(ctl["rot_damping_n_m_s_per_rad"]),
+                               env_gain=self._heavy["env_gain"],
+                               contact_damping_per_stiffness_s=float(mdl["damping_n_s_per_m"]) / float(mdl["stiffness_n_per_m"]),
+                               device_rot_damping_n_m_s_per_rad=float(pas["device_rot_damping_n_m_s_per_rad"]),
+                               device_inertia_kg_m2=(float(pas["moving_inertia_kg_m2"]) if pas["moving_inertia_kg_m2"] > 0.0
+                                                     else None))
         self._rate_hz = 1.0 / dt
         self._damping_cap = math.inf
+        self._rot_damping_cap = math.inf
+        #: the last ``fit_tool``'s rotational damping and why it falls short ("" if not)
+        self.fit_rot = (float(ctl["rot_damping_n_m_s_per_rad"]), "")
         self._fitted: dict[float, tuple[float, str]] = {}
         #: the last ``fit_tool``: the tool's mass, the damping set, and why it falls short ("" if not)
         self.fit = (0.0, float(ctl["damping_n_s_per_m"]), "")
@@ -793,10 +803,19 @@ class Controller:
         if self._heavy["device_mass_kg"] is None:
             m = getattr(info, "moving_mass_kg", None)
             self._heavy["device_mass_kg"] = float(m) if m else None
+        i_small = self._heavy_rot["device_inertia_kg_m2"] or getattr(info, "moving_inertia_kg_m2", None)
+        if self._heavy_rot["device_inertia_kg_m2"] is None:
+            # the rotational rule's damping grows with the handle's moment: its largest where stated
+            i = getattr(info, "moving_inertia_max_kg_m2", None) or i_small
+            self._heavy_rot["device_inertia_kg_m2"] = float(i) if i else None
         if info is not None and int(self.cp[CP_TYPE]) != CTRL_DIRECT:
             for lim in safe.gain_limits(info, self._rate_hz, CONTROLLERS[int(self.cp[CP_TYPE])]):
                 if lim.key == "controller.damping_n_s_per_m":
                     self._damping_cap = lim.limit
+                if lim.key == "controller.rot_damping_n_m_s_per_rad":
+                    self._rot_damping_cap = lim.limit
+        if i_small:  # the handle's own (smallest) moment bounds a rotational damper as its mass does a damper
+            self._rot_damping_cap = min(self._rot_damping_cap, device_damper_limit_n_s_per_m(float(i_small), self._rate_hz))
         self._fitted.clear()
 
     def fit_tool(self, tool) -> tuple[float, float, str]:
@@ -810,10 +829,14 @@ class Controller:
         damping, reason)."""
         h = self._heavy
         b = h["coupling_n_s_per_m"]
+        br = self._heavy_rot["coupling_n_m_s_per_rad"]
+        self.cp[CP_BR] = br
+        self.fit_rot = (br, "")
         if tool is None or getattr(tool, "kind", "linkage") == "linkage" or int(self.cp[CP_TYPE]) == CTRL_DIRECT:
             self.cp[CP_BT] = b
             self.fit = (0.0, b, "")
             return self.fit
+        self._fit_rot(tool)
         mass = float(tool.mass_kg)
         got = self._fitted.get(mass)
         if got is None:
@@ -830,6 +853,29 @@ class Controller:
         self.cp[CP_BT] = got[0]
         self.fit = (mass, got[0], got[1])
         return self.fit
+
+    def _fit_rot(self, tool) -> None:
+        """The rotational half of ``fit_tool``: ``stability.rot_coupling_damping_for_tool`` about the
+        tool's principal moments (a planar tool's I_zz; none for a 1dof tool or device), capped at
+        what the device renders (its figure; its moment x rate)."""
+        if tool.kind == "1dof" or self.device_kind == "1dof":
+            return
+        inertia = np.asarray(tool.inertia_kg_m2, dtype=np.float64)
+        moments = (float(inertia[2, 2]),) if tool.kind == "planar" else tuple(float(v) for v in np.linalg.eigvalsh(inertia))
+        got = self._fitted.get(moments)
+        if got is None:
+            want = rot_coupling_damping_for_tool(moments, **self._heavy_rot)
+            why = ""
+            cap = self._rot_damping_cap
+            if want is None or want > cap:
+                why = (f"tool.inertia_kg_m2: {max(moments):g} kg m^2 needs more rotational coupling damping than "
+                       f"the device renders ({cap:g} N m s/rad) to rest stably")
+                want = min(cap, max(self._heavy_rot["coupling_n_m_s_per_rad"], cap if want is None else want))
+                log.warning("%s", why)
+            got = (want, why)
+            self._fitted[moments] = got
+        self.cp[CP_BR] = got[0]
+        self.fit_rot = got
 
     def _damping_for(self, mass_kg: float) -> float | None:
         return coupling_damping_for_tool(float(mass_kg), **self._heavy)

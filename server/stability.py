@@ -227,9 +227,10 @@ def rest_loop_coefficients(tool_mass_kg, device_mass_kg, device_damping_n_s_per_
 
 def rest_loop_stable(tool_mass_kg: float, *, device_mass_kg: float, device_damping_n_s_per_m: float,
                      contact_n_per_m: float, contact_n_s_per_m: float, max_contacts: int, coupling_n_per_m: float,
-                     coupling_n_s_per_m: float, env_gain: float = 1.0) -> bool:
+                     coupling_n_s_per_m: float, env_gain: float = 1.0, contact_scales=None) -> bool:
     """Whether the four-channel loop at rest is stable on every number of contacts from 1 to
-    ``max_contacts`` (each ``contact_n_per_m``, ``contact_n_s_per_m``), as a continuous system.
+    ``max_contacts`` (each ``contact_n_per_m``, ``contact_n_s_per_m``), as a continuous system
+    (``contact_scales``: the multiples of one contact to check instead of 1..max_contacts).
 
     The loop (``experiments/lighttools.py`` ``rest_growth_per_s``, EXPERIMENTS.md "Why the heavy
     planar tool bounces"): along the contacts' normal, the proxy m_p on the n contacts (k_e = n k,
@@ -257,7 +258,8 @@ def rest_loop_stable(tool_mass_kg: float, *, device_mass_kg: float, device_dampi
     dampers drain it, unless b_c is large enough. As n grows the mass where they meet grows with it
     (1.7-2.5 kg on one contact on the planar device, 17-140 kg on 32), but the polynomial divided
     by n tends to a limit, so the damping needed stays bounded over every mass and count."""
-    n = np.arange(1, int(max_contacts) + 1, dtype=np.float64)
+    n = (np.arange(1, int(max_contacts) + 1, dtype=np.float64) if contact_scales is None
+         else np.asarray(contact_scales, dtype=np.float64))
     a4, a3, a2, a1, a0 = rest_loop_coefficients(float(tool_mass_kg), float(device_mass_kg),
                                                 float(device_damping_n_s_per_m), n * float(contact_n_per_m),
                                                 n * float(contact_n_s_per_m), float(coupling_n_per_m),
@@ -266,11 +268,12 @@ def rest_loop_stable(tool_mass_kg: float, *, device_mass_kg: float, device_dampi
     return bool(np.all((a4 > 0) & (a3 > 0) & (a2 > 0) & (a1 > 0) & (a0 > 0) & (hurwitz > 0)))
 
 
-def least_rest_damping_n_s_per_m(tool_mass_kg: float, **loop) -> float | None:
+def least_rest_damping_n_s_per_m(tool_mass_kg: float, start: float = 1.0, **loop) -> float | None:
     """The smallest coupling damping b_c at which :func:`rest_loop_stable` holds (``loop``: its
     keyword arguments but ``coupling_n_s_per_m``); 0 when the loop is stable undamped, None when
-    not even ``_B_SEARCH_MAX`` is; within ``_B_SEARCH_REL`` of it, on the stable side. Doubling
-    from 1 N s/m to the first stable value, then bisecting the last doubling: above the smallest,
+    not even ``_B_SEARCH_MAX`` is; within ``_B_SEARCH_REL`` of it (or of ``start``, if more), on the
+    stable side. Doubling
+    from ``start`` (1 N s/m) to the first stable value, then bisecting the last doubling: above the smallest,
     every damping is stable too (checked by the property tests, ``tests/server/test_heavy_tools.py``,
     up to 20x the rule's)."""
     def ok(b: float) -> bool:
@@ -278,12 +281,12 @@ def least_rest_damping_n_s_per_m(tool_mass_kg: float, **loop) -> float | None:
 
     if ok(0.0):
         return 0.0
-    lo, hi = 0.0, 1.0
+    lo, hi = 0.0, float(start)
     while not ok(hi):
         if hi >= _B_SEARCH_MAX:
             return None
         lo, hi = hi, min(2.0 * hi, _B_SEARCH_MAX)
-    while hi - lo > _B_SEARCH_REL * hi:
+    while hi - lo > _B_SEARCH_REL * max(hi, start):
         mid = 0.5 * (lo + hi)
         if ok(mid):
             hi = mid
@@ -320,3 +323,43 @@ def coupling_damping_for_tool(tool_mass_kg: float, *, device_mass_kg: float | No
     if least is None:
         return None
     return max(b0, HEAVY_TOOL_MARGIN * least)
+
+
+#: the rotational contacts' stiffness about the hand point, sum k r_i^2, as multiples of the
+#: coupling's rotational spring: the lever arms are the tool's geometry, which the server does not
+#: know, so every value from 1e-3 to 1e6 of it is checked (the unstable band sits where the tool's
+#: turn on its contacts meets the handle's on the coupling; the damping it needs stays bounded as
+#: the stiffness grows, as the translation's does with the contact count)
+ROT_CONTACT_SCALES = np.geomspace(1e-3, 1e6, 400)
+
+
+def rot_coupling_damping_for_tool(moments_kg_m2, *, device_inertia_kg_m2: float | None,
+                                  device_rot_damping_n_m_s_per_rad: float, contact_damping_per_stiffness_s: float,
+                                  coupling_n_m_per_rad: float, coupling_n_m_s_per_rad: float,
+                                  env_gain: float = 1.0) -> float | None:
+    """The coupling's rotational damping for a session's tool: :func:`coupling_damping_for_tool`'s
+    rule about each of the tool's principal ``moments_kg_m2`` (a planar tool's I_zz alone), the
+    largest. The same loop turned: the proxy's moment I_p on its contacts' rotational stiffness
+    K = sum k r_i^2 and damping (b / k) K (the contacts' time constant
+    ``contact_damping_per_stiffness_s``), the coupling's rotational spring and damper to the
+    handle's moment I_d (``device_inertia_kg_m2``, the device's stated smallest: the moving
+    inertia's figure) and damping; K over :data:`ROT_CONTACT_SCALES` x the coupling's spring, since
+    the lever arms are not known. A moment below the handle's meets no resonance and keeps the
+    configured damping (on the simulated planar device, I_d = 1e-3: up to 1e-3 kg m^2; a 2 kg rod of
+    150 mm, 3.75e-3, gets 0.060 N m s/rad, the most any moment gets there is 0.103). None stated:
+    the configured damping; None returned: no damping steadies it."""
+    b0 = float(coupling_n_m_s_per_rad)
+    if device_inertia_kg_m2 is None or not device_inertia_kg_m2 > 0.0:
+        return b0
+    out = b0
+    for ip in moments_kg_m2:
+        least = least_rest_damping_n_s_per_m(
+            float(ip), device_mass_kg=float(device_inertia_kg_m2), device_damping_n_s_per_m=device_rot_damping_n_m_s_per_rad,
+            contact_n_per_m=float(coupling_n_m_per_rad),
+            contact_n_s_per_m=float(contact_damping_per_stiffness_s) * float(coupling_n_m_per_rad), max_contacts=0,
+            coupling_n_per_m=coupling_n_m_per_rad, env_gain=env_gain, contact_scales=ROT_CONTACT_SCALES,
+            start=max(b0, 1e-6))
+        if least is None:
+            return None
+        out = max(out, HEAVY_TOOL_MARGIN * least)
+    return out
