@@ -32,8 +32,9 @@ and the largest |F - push| of the force the device renders along the push. A run
 Hello the server refuses is reported with its reason (the issue's other outcome).
 
 Each rigid tool's row also carries :func:`predicted_growth_per_s`: the growth rate of the
-four-channel loop at rest, linearised along the contact normal (positive: the tool bounces on the
-floor whatever the haptic rate; it says which heavy rigid tools do).
+four-channel loop at rest, linearised along the contact normal, with the coupling damping the
+engagement sets for the tool (:func:`coupling_damping_for_case`; positive: the tool bounces on the
+floor whatever the haptic rate; with the configured damping it says which heavy rigid tools did).
 
 ``run_lighttools(out, quick=...)`` writes ``lighttools.json`` and returns the summary.
 """
@@ -452,8 +453,25 @@ def predicted_growth_per_s(case: Case, **overrides) -> float | None:
     dev = effective_config({"kind": case.kind}, period_s=1.0 / case.rate_hz)
     n = RIGID_CONTACTS[case.kind]
     return rest_growth_per_s(case.mass_kg, dev["mass_kg"], dev["damping_n_s_per_m"], n * mdl["stiffness_n_per_m"],
-                             n * mdl["damping_n_s_per_m"], ctl["stiffness_n_per_m"], ctl["damping_n_s_per_m"],
+                             n * mdl["damping_n_s_per_m"], ctl["stiffness_n_per_m"], coupling_damping_for_case(case, s),
                              ctl["env_gain"])
+
+
+def coupling_damping_for_case(case: Case, settings) -> float:
+    """The coupling damping the server sets for ``case``'s rigid tool (``control.Controller.fit_tool``:
+    ``stability.coupling_damping_for_tool`` with the simulated device's mass, the config's stated
+    device damping and the model's capacity)."""
+    from ..server.devices.sim import effective_config
+    from ..server.stability import coupling_damping_for_tool
+
+    ctl, mdl, pas = settings["controller"], settings["model"], settings["passivity"]
+    dev = effective_config({"kind": case.kind}, period_s=1.0 / case.rate_hz)
+    b = coupling_damping_for_tool(
+        case.mass_kg, device_mass_kg=pas["moving_mass_kg"] or dev["mass_kg"],
+        device_damping_n_s_per_m=pas["device_damping_n_s_per_m"], contact_n_per_m=mdl["stiffness_n_per_m"],
+        contact_n_s_per_m=mdl["damping_n_s_per_m"], max_contacts=mdl["capacity"],
+        coupling_n_per_m=ctl["stiffness_n_per_m"], coupling_n_s_per_m=ctl["damping_n_s_per_m"], env_gain=ctl["env_gain"])
+    return ctl["damping_n_s_per_m"] if b is None else b
 
 
 # --------------------------------------------------------------------------- the sweep

@@ -168,9 +168,12 @@ class ModelConfig(_Table):
 class ControllerConfig(_Table):
     type: _doc(Literal[CONTROLLERS], "four_channel | coupler | direct (IR baseline)") = "four_channel"
     stiffness_n_per_m: _num(0, 1e6, doc="position channel, translational spring [N/m]") = 1500.0
-    damping_n_s_per_m: _num(0, 1e4, doc="position channel, translational damper [N s/m]") = 15.0
+    damping_n_s_per_m: _num(0, 1e4, doc="position channel, translational damper [N s/m]; a heavy tool's "
+                            "session gets more (stability.coupling_damping_for_tool)") = 15.0
     rot_stiffness_n_m_per_rad: _num(0, 1e4, doc="position channel, rotational spring [N m/rad]") = 1.5
-    rot_damping_n_m_s_per_rad: _num(0, 1e3, doc="position channel, rotational damper [N m s/rad]") = 0.015
+    rot_damping_n_m_s_per_rad: _num(0, 1e3, doc="position channel, rotational damper [N m s/rad]; a tool "
+                                    "turning heavier than the handle gets more (stability."
+                                    "rot_coupling_damping_for_tool)") = 0.015
     hand_gain: _num(0, 1, doc="force channel: measured hand wrench -> proxy") = 1.0
     env_gain: _num(0, 1, doc="force channel: environment wrench -> device") = 1.0
     mapping: _doc(Literal["index", "absolute"],

@@ -31,6 +31,7 @@ envelopes, the rate limit). The filter's arrays are blocks of the controller's (
 """
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -40,6 +41,7 @@ from ..protocol.vocab import CONTROLLERS
 
 from . import passivity as pv
 from . import safety as sf
+from .devices import safe
 from .devices import frozen as fz
 from .readonly import ArrayBool, ArrayFloat, ArrayInt
 from .model.kernels import _rigid_pose, hand_to_world, step_rigid
@@ -51,6 +53,9 @@ from .model.layout import (
 from .model.linkage import hand_state_linkage, step_linkage
 from .model.model import quat_to_matrix
 from .prediction import advice_update
+from .stability import coupling_damping_for_tool, device_damper_limit_n_s_per_m, rot_coupling_damping_for_tool
+
+log = logging.getLogger("hapticproxy.control")
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -749,6 +754,29 @@ class Controller:
                           period_s=dt, engine_grants=pas["engine_grants"], input_credit=pas["input_credit"])
         pv.reset(self.tp, self.ts)
         self._moving_config = (pas["moving_mass_kg"], pas["moving_inertia_kg_m2"])
+        #: the heavy-tool rule's inputs (``fit_tool``): the configured coupling, the contacts, the
+        #: handle's figures (its mass from ``set_moving_figures``)
+        mdl = settings["model"]
+        self._heavy = dict(coupling_n_per_m=float(ctl["stiffness_n_per_m"]), coupling_n_s_per_m=float(ctl["damping_n_s_per_m"]),
+                           env_gain=float(ctl["env_gain"]) if ctl["type"] == "four_channel" else 0.0,
+                           contact_n_per_m=float(mdl["stiffness_n_per_m"]), contact_n_s_per_m=float(mdl["damping_n_s_per_m"]),
+                           max_contacts=int(mdl["capacity"]), device_damping_n_s_per_m=float(pas["device_damping_n_s_per_m"]),
+                           device_mass_kg=float(pas["moving_mass_kg"]) if pas["moving_mass_kg"] > 0.0 else None)
+        self._heavy_rot = dict(coupling_n_m_per_rad=float(ctl["rot_stiffness_n_m_per_rad"]),
+                               coupling_n_m_s_per_rad=float(ctl["rot_damping_n_m_s_per_rad"]),
+                               env_gain=self._heavy["env_gain"],
+                               contact_damping_per_stiffness_s=float(mdl["damping_n_s_per_m"]) / float(mdl["stiffness_n_per_m"]),
+                               device_rot_damping_n_m_s_per_rad=float(pas["device_rot_damping_n_m_s_per_rad"]),
+                               device_inertia_kg_m2=(float(pas["moving_inertia_kg_m2"]) if pas["moving_inertia_kg_m2"] > 0.0
+                                                     else None))
+        self._rate_hz = 1.0 / dt
+        self._damping_cap = math.inf
+        self._rot_damping_cap = math.inf
+        #: the last ``fit_tool``'s rotational damping and why it falls short ("" if not)
+        self.fit_rot = (float(ctl["rot_damping_n_m_s_per_rad"]), "")
+        self._fitted: dict[float, tuple[float, str]] = {}
+        #: the last ``fit_tool``: the tool's mass, the damping set, and why it falls short ("" if not)
+        self.fit = (0.0, float(ctl["damping_n_s_per_m"]), "")
         #: the device's position frozen under force (``devices.frozen``; the tick runs the watch)
         self.frozen_s = saf["frozen_s"]
         self.frozen_force_n = fz.min_force_n(saf["frozen_force_n"], fmax)
@@ -767,8 +795,125 @@ class Controller:
 
     def set_moving_figures(self, info) -> None:
         """The passivity layer's moving mass and inertia from the device's ``DeviceInfo`` where the
-        config sets none (``passivity.moving_figures``)."""
+        config sets none (``passivity.moving_figures``); the heavy-tool rule's handle mass likewise
+        (the config's ``passivity.moving_mass_kg``, else the device's stated figure, else none: the
+        rule then keeps the configured damping) and the most damping the device renders
+        (``devices.safe.gain_limits``)."""
         self.tp[pv.TP_MASS], self.tp[pv.TP_INERTIA] = pv.moving_figures(*self._moving_config, info)
+        if self._heavy["device_mass_kg"] is None:
+            m = getattr(info, "moving_mass_kg", None)
+            self._heavy["device_mass_kg"] = float(m) if m else None
+        i_small = self._heavy_rot["device_inertia_kg_m2"] or getattr(info, "moving_inertia_kg_m2", None)
+        if self._heavy_rot["device_inertia_kg_m2"] is None:
+            # the rotational rule's damping grows with the handle's moment: its largest where stated
+            i = getattr(info, "moving_inertia_max_kg_m2", None) or i_small
+            self._heavy_rot["device_inertia_kg_m2"] = float(i) if i else None
+        if info is not None and int(self.cp[CP_TYPE]) != CTRL_DIRECT:
+            for lim in safe.gain_limits(info, self._rate_hz, CONTROLLERS[int(self.cp[CP_TYPE])]):
+                if lim.key == "controller.damping_n_s_per_m":
+                    self._damping_cap = lim.limit
+                if lim.key == "controller.rot_damping_n_m_s_per_rad":
+                    self._rot_damping_cap = lim.limit
+        if i_small:  # the handle's own (smallest) moment bounds a rotational damper as its mass does a damper
+            self._rot_damping_cap = min(self._rot_damping_cap, device_damper_limit_n_s_per_m(float(i_small), self._rate_hz))
+        self._fitted.clear()
+
+    def fit_tool(self, tool) -> tuple[float, float, str]:
+        """Set the coupling's translational damping for a session's rigid ``tool`` (a ``ToolSpec``)
+        by ``stability.coupling_damping_for_tool``: the configured damping, raised for a heavy tool
+        until the four-channel loop at rest on 1 to ``model.capacity`` contacts is stable with the
+        rule's margin. Capped at what the device renders (``_damping_cap``): a tool that needs more,
+        or that no damping steadies, gets the cap and a reason (logged; ``fit``). A linkage, or no
+        tool, keeps the configured damping. At engagement (``loop_lifecycle``), not per step: the
+        rule's search costs about 20 Hurwitz checks (under a millisecond), and is kept per mass. Returns ``fit``: (mass,
+        damping, reason)."""
+        h = self._heavy
+        b = h["coupling_n_s_per_m"]
+        br = self._heavy_rot["coupling_n_m_s_per_rad"]
+        self.cp[CP_BR] = br
+        self.fit_rot = (br, "")
+        if tool is None or getattr(tool, "kind", "linkage") == "linkage" or int(self.cp[CP_TYPE]) == CTRL_DIRECT:
+            self.cp[CP_BT] = b
+            self.fit = (0.0, b, "")
+            return self.fit
+        self._fit_rot(tool)
+        mass = float(tool.mass_kg)
+        got = self._fitted.get(mass)
+        if got is None:
+            want = self._damping_for(mass)
+            why = ""
+            if want is None or want > self._damping_cap:
+                why = (f"tool.mass_kg: {mass:g} kg needs more coupling damping than the device renders "
+                       f"({self._damping_cap:g} N s/m) to rest stably")
+                want = min(self._damping_cap, max(b, self._damping_cap if want is None else want))
+            got = (want, why)
+            self._fitted[mass] = got
+            if why:
+                log.warning("%s", why)
+        self.cp[CP_BT] = got[0]
+        self.fit = (mass, got[0], got[1])
+        return self.fit
+
+    def _fit_rot(self, tool) -> None:
+        """The rotational half of ``fit_tool``: ``stability.rot_coupling_damping_for_tool`` about the
+        tool's principal moments (a planar tool's I_zz; none for a 1dof tool or device), capped at
+        what the device renders (its figure; its moment x rate)."""
+        if tool.kind == "1dof" or self.device_kind == "1dof":
+            return
+        inertia = np.asarray(tool.inertia_kg_m2, dtype=np.float64)
+        moments = (float(inertia[2, 2]),) if tool.kind == "planar" else tuple(float(v) for v in np.linalg.eigvalsh(inertia))
+        got = self._fitted.get(moments)
+        if got is None:
+            want = rot_coupling_damping_for_tool(moments, **self._heavy_rot)
+            why = ""
+            cap = self._rot_damping_cap
+            if want is None or want > cap:
+                why = (f"tool.inertia_kg_m2: {max(moments):g} kg m^2 needs more rotational coupling damping than "
+                       f"the device renders ({cap:g} N m s/rad) to rest stably")
+                want = min(cap, max(self._heavy_rot["coupling_n_m_s_per_rad"], cap if want is None else want))
+                log.warning("%s", why)
+            got = (want, why)
+            self._fitted[moments] = got
+        self.cp[CP_BR] = got[0]
+        self.fit_rot = got
+
+    def _damping_for(self, mass_kg: float) -> float | None:
+        return coupling_damping_for_tool(float(mass_kg), **self._heavy)
+
+    def hello_refusal(self, tool) -> str:
+        """Why a Hello's rigid ``tool`` is to be refused, or "": the coupling damping its rest loop
+        needs (``fit_tool``'s rule) is more than the device renders (``_damping_cap``). The reason
+        names the field, the damping needed and the largest mass below it that works (the
+        smallest failing mass, bisected in log mass from the lightest tool, which keeps the
+        configured damping, to ``tool``'s), within a Reject's 120 characters. For the handshake's
+        check (``ProtocolSide.check_hello``); Python, and only a refused tool costs a search."""
+        if tool is None or getattr(tool, "kind", "linkage") == "linkage" or int(self.cp[CP_TYPE]) == CTRL_DIRECT:
+            return ""
+        mass = float(tool.mass_kg)
+        cap = self._damping_cap
+
+        def fails(m: float) -> bool:
+            b = self._damping_for(m)
+            return b is None or b > cap
+
+        if not fails(mass):
+            return ""
+        lo = 1e-3
+        if fails(lo):
+            return ""  # the configured damping itself is beyond the device (the config's research override)
+        hi = mass
+        for _ in range(30):
+            mid = math.sqrt(lo * hi)
+            if fails(mid):
+                hi = mid
+            else:
+                lo = mid
+        need = self._damping_for(mass)
+        needs = "more coupling damping than any" if need is None else f"{need:.3g} N s/m of coupling damping"
+        step = 10.0 ** (math.floor(math.log10(lo)) - 2)  # three digits, rounded down: the value works
+        most = math.floor(lo / step) * step
+        return (f"tool.mass_kg: {mass:g} kg needs {needs} to rest, the device renders {cap:.3g}; "
+                f"at most {float(f'{most:.3g}'):g} kg")
 
     def set_offset(self, R_off: np.ndarray, p_off: np.ndarray, q_off: np.ndarray) -> None:
         self.cp[CP_ROFF:CP_ROFF + 9] = np.asarray(R_off, dtype=float).reshape(9)

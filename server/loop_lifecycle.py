@@ -72,6 +72,9 @@ class Lifecycle:
             raise RuntimeError(f"haptic loop: no transition {frm} -> {to} ({Reason(reason).name})")
         c = lp.ctrl
         if to == "engaged":
+            # the coupling's damping for this session's tool (a heavy one rests: control.fit_tool)
+            model = lp.proto.model
+            c.fit_tool(model.tool if model is not None else None)
             c.engage(slide=lp.index_mapping)
             self.rendered_ever = True
         else:

@@ -32,6 +32,8 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numpy as np
+
 from ..protocol.vocab import CONTROLLERS, POLICIES  # noqa: F401 - the vocabulary, once
 
 #: b = DAMPING_PER_STIFFNESS_S x k: the damping the rows were measured with (the paper's 30 N s/m
@@ -193,4 +195,171 @@ def outside_stable_region(*, rate_hz: float, controller: str, policy: str, stiff
         out.append(("safety.force_rate_n_per_s",
                     f"{force_rate_n_per_s:g} N/s lets one step at {rate_hz:g} Hz change the force by "
                     f"{force_rate_n_per_s / rate_hz:.4g} N (at most {MAX_FORCE_STEP_N:g} N); nearest safe value {f_max:g}"))
+    return out
+
+
+# --------------------------------------------------------------------------- heavy tools at rest
+#: the coupling's damping is set this many times the smallest that keeps the rest loop stable
+#: (:func:`coupling_damping_for_tool`): at 1x the slowest mode only just stops growing and a landing's
+#: bounce would ring for ever; at 1.5x a 2 kg tool's slowest mode decays at 5.3 /s on the simulated
+#: planar device, 6.7 /s on the spatial one, 9.3 /s on the 1dof one (1 to 32 contacts)
+HEAVY_TOOL_MARGIN = 1.5
+#: the search for the smallest damping: doubling from 1 N s/m up to 1e5 (the config's key goes to
+#: 1e4), then bisecting the last doubling to within this share of it (about 20 checks in all)
+_B_SEARCH_MAX = 1e5
+_B_SEARCH_REL = 1e-4
+
+
+def rest_loop_coefficients(tool_mass_kg, device_mass_kg, device_damping_n_s_per_m, contact_n_per_m,
+                           contact_n_s_per_m, coupling_n_per_m, coupling_n_s_per_m, env_gain=1.0):
+    """The characteristic polynomial ``a4 s^4 + a3 s^3 + a2 s^2 + a1 s + a0`` of the four-channel
+    loop at rest on its contacts, along their normal (:func:`rest_loop_stable`); numpy arrays
+    broadcast (one per contact count, say). Returns ``(a4, a3, a2, a1, a0)``."""
+    mp, md, bd = tool_mass_kg, device_mass_kg, device_damping_n_s_per_m
+    ke, be, kc, bc, g = contact_n_per_m, contact_n_s_per_m, coupling_n_per_m, coupling_n_s_per_m, env_gain
+    a4 = mp * md
+    a3 = mp * (bc + bd) + md * (be + bc)
+    a2 = mp * kc + md * (ke + kc) + (1.0 + g) * be * bc + bd * (be + bc)
+    a1 = (1.0 + g) * (be * kc + ke * bc) + bd * (ke + kc)
+    a0 = (1.0 + g) * ke * kc
+    return a4, a3, a2, a1, a0
+
+
+def rest_loop_stable(tool_mass_kg: float, *, device_mass_kg: float, device_damping_n_s_per_m: float,
+                     contact_n_per_m: float, contact_n_s_per_m: float, max_contacts: int, coupling_n_per_m: float,
+                     coupling_n_s_per_m: float, env_gain: float = 1.0, contact_scales=None) -> bool:
+    """Whether the four-channel loop at rest is stable on every number of contacts from 1 to
+    ``max_contacts`` (each ``contact_n_per_m``, ``contact_n_s_per_m``), as a continuous system
+    (``contact_scales``: the multiples of one contact to check instead of 1..max_contacts).
+
+    The loop (``experiments/lighttools.py`` ``rest_growth_per_s``, EXPERIMENTS.md "Why the heavy
+    planar tool bounces"): along the contacts' normal, the proxy m_p on the n contacts (k_e = n k,
+    b_e = n b) and the coupling (k_c, b_c) to the handle (m_d, its damping b_d); the handle is
+    rendered g times the contacts' force less the coupling's; the hand's push is constant::
+
+        m_p x_p'' = -k_e x_p - b_e x_p' + k_c (x_d - x_p) + b_c (x_d' - x_p')
+        m_d x_d'' = -g (k_e x_p + b_e x_p') - k_c (x_d - x_p) - b_c (x_d' - x_p') - b_d x_d'
+
+    Its characteristic polynomial det(s^2 M + s B + K) (:func:`rest_loop_coefficients`)::
+
+        a4 = m_p m_d
+        a3 = m_p (b_c + b_d) + m_d (b_e + b_c)
+        a2 = m_p k_c + m_d (k_e + k_c) + (1 + g) b_e b_c + b_d (b_e + b_c)
+        a1 = (1 + g) (b_e k_c + k_e b_c) + b_d (k_e + k_c)
+        a0 = (1 + g) k_e k_c
+
+    By Routh and Hurwitz its roots all have negative real parts iff every a_i > 0 and
+    ``a3 a2 a1 - a4 a1^2 - a3^2 a0 > 0`` (which with them implies a3 a2 > a4 a1): the same verdict
+    as the eigenvalues' largest real part (``rest_growth_per_s`` < 0), in a few array operations.
+    Why it fails for heavy tools: the proxy on its contacts (sqrt((k_e + k_c) / m_p)) and the
+    handle on the coupling (sqrt(k_c / m_d)) are two resonators coupled one way much more strongly
+    than the other (the handle is given g k_e x_p, the proxy k_c x_d); where their frequencies
+    meet, m_p near m_d (k_e + k_c) / k_c, that non-reciprocal coupling feeds a mode faster than the
+    dampers drain it, unless b_c is large enough. As n grows the mass where they meet grows with it
+    (1.7-2.5 kg on one contact on the planar device, 17-140 kg on 32), but the polynomial divided
+    by n tends to a limit, so the damping needed stays bounded over every mass and count."""
+    n = (np.arange(1, int(max_contacts) + 1, dtype=np.float64) if contact_scales is None
+         else np.asarray(contact_scales, dtype=np.float64))
+    a4, a3, a2, a1, a0 = rest_loop_coefficients(float(tool_mass_kg), float(device_mass_kg),
+                                                float(device_damping_n_s_per_m), n * float(contact_n_per_m),
+                                                n * float(contact_n_s_per_m), float(coupling_n_per_m),
+                                                float(coupling_n_s_per_m), float(env_gain))
+    hurwitz = a3 * a2 * a1 - a4 * a1 * a1 - a3 * a3 * a0
+    return bool(np.all((a4 > 0) & (a3 > 0) & (a2 > 0) & (a1 > 0) & (a0 > 0) & (hurwitz > 0)))
+
+
+def least_rest_damping_n_s_per_m(tool_mass_kg: float, start: float = 1.0, **loop) -> float | None:
+    """The smallest coupling damping b_c at which :func:`rest_loop_stable` holds (``loop``: its
+    keyword arguments but ``coupling_n_s_per_m``); 0 when the loop is stable undamped, None when
+    not even ``_B_SEARCH_MAX`` is; within ``_B_SEARCH_REL`` of it (or of ``start``, if more), on the
+    stable side. Doubling
+    from ``start`` (1 N s/m) to the first stable value, then bisecting the last doubling: above the smallest,
+    every damping is stable too (checked by the property tests, ``tests/server/test_heavy_tools.py``,
+    up to 20x the rule's)."""
+    def ok(b: float) -> bool:
+        return rest_loop_stable(tool_mass_kg, coupling_n_s_per_m=b, **loop)
+
+    if ok(0.0):
+        return 0.0
+    lo, hi = 0.0, float(start)
+    while not ok(hi):
+        if hi >= _B_SEARCH_MAX:
+            return None
+        lo, hi = hi, min(2.0 * hi, _B_SEARCH_MAX)
+    while hi - lo > _B_SEARCH_REL * max(hi, start):
+        mid = 0.5 * (lo + hi)
+        if ok(mid):
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
+
+def coupling_damping_for_tool(tool_mass_kg: float, *, device_mass_kg: float | None, device_damping_n_s_per_m: float,
+                              contact_n_per_m: float, contact_n_s_per_m: float, max_contacts: int,
+                              coupling_n_per_m: float, coupling_n_s_per_m: float, env_gain: float = 1.0) -> float | None:
+    """The coupling's translational damping for a session's tool: the configured
+    ``coupling_n_s_per_m``, raised to ``HEAVY_TOOL_MARGIN`` times the least damping that keeps the
+    four-channel loop at rest stable (:func:`least_rest_damping_n_s_per_m`, on 1 to
+    ``max_contacts`` contacts) where that is more::
+
+        b_c = max(b_configured, HEAVY_TOOL_MARGIN x b_least(m_p, m_d, b_d, k, b, N, k_c, g))
+
+    Light tools keep the configured damping (with the default contacts, coupling and capacity
+    and no device damping assumed: every tool up to 0.79 kg on the simulated spatial device, 0.83
+    kg on the planar one, 1.09 kg on the 1dof one), so what they render does not change; a heavy
+    one gets at most 42.1 N s/m on the planar device (at 55 kg; 27.7 at 2 kg), 32.2 on the
+    spatial one, 22.3 on the 1dof one (42.4, 32.4, 22.4 with 64 contacts). The handle's
+    stated mass is needed (None: not stated, the configured damping is returned); its damping
+    ``device_damping_n_s_per_m`` only helps (0, nothing assumed, is the safe side). Returns None
+    when no damping up to the search's end makes the loop stable (the tool is to be refused)."""
+    b0 = float(coupling_n_s_per_m)
+    if device_mass_kg is None or not device_mass_kg > 0.0:
+        return b0
+    least = least_rest_damping_n_s_per_m(
+        tool_mass_kg, device_mass_kg=device_mass_kg, device_damping_n_s_per_m=device_damping_n_s_per_m,
+        contact_n_per_m=contact_n_per_m, contact_n_s_per_m=contact_n_s_per_m, max_contacts=max_contacts,
+        coupling_n_per_m=coupling_n_per_m, env_gain=env_gain)
+    if least is None:
+        return None
+    return max(b0, HEAVY_TOOL_MARGIN * least)
+
+
+#: the rotational contacts' stiffness about the hand point, sum k r_i^2, as multiples of the
+#: coupling's rotational spring: the lever arms are the tool's geometry, which the server does not
+#: know, so every value from 1e-3 to 1e6 of it is checked (the unstable band sits where the tool's
+#: turn on its contacts meets the handle's on the coupling; the damping it needs stays bounded as
+#: the stiffness grows, as the translation's does with the contact count)
+ROT_CONTACT_SCALES = np.geomspace(1e-3, 1e6, 400)
+
+
+def rot_coupling_damping_for_tool(moments_kg_m2, *, device_inertia_kg_m2: float | None,
+                                  device_rot_damping_n_m_s_per_rad: float, contact_damping_per_stiffness_s: float,
+                                  coupling_n_m_per_rad: float, coupling_n_m_s_per_rad: float,
+                                  env_gain: float = 1.0) -> float | None:
+    """The coupling's rotational damping for a session's tool: :func:`coupling_damping_for_tool`'s
+    rule about each of the tool's principal ``moments_kg_m2`` (a planar tool's I_zz alone), the
+    largest. The same loop turned: the proxy's moment I_p on its contacts' rotational stiffness
+    K = sum k r_i^2 and damping (b / k) K (the contacts' time constant
+    ``contact_damping_per_stiffness_s``), the coupling's rotational spring and damper to the
+    handle's moment I_d (``device_inertia_kg_m2``, the device's stated smallest: the moving
+    inertia's figure) and damping; K over :data:`ROT_CONTACT_SCALES` x the coupling's spring, since
+    the lever arms are not known. A moment below the handle's meets no resonance and keeps the
+    configured damping (on the simulated planar device, I_d = 1e-3: up to 1e-3 kg m^2; a 2 kg rod of
+    150 mm, 3.75e-3, gets 0.060 N m s/rad, the most any moment gets there is 0.103). None stated:
+    the configured damping; None returned: no damping steadies it."""
+    b0 = float(coupling_n_m_s_per_rad)
+    if device_inertia_kg_m2 is None or not device_inertia_kg_m2 > 0.0:
+        return b0
+    out = b0
+    for ip in moments_kg_m2:
+        least = least_rest_damping_n_s_per_m(
+            float(ip), device_mass_kg=float(device_inertia_kg_m2), device_damping_n_s_per_m=device_rot_damping_n_m_s_per_rad,
+            contact_n_per_m=float(coupling_n_m_per_rad),
+            contact_n_s_per_m=float(contact_damping_per_stiffness_s) * float(coupling_n_m_per_rad), max_contacts=0,
+            coupling_n_per_m=coupling_n_m_per_rad, env_gain=env_gain, contact_scales=ROT_CONTACT_SCALES,
+            start=max(b0, 1e-6))
+        if least is None:
+            return None
+        out = max(out, HEAVY_TOOL_MARGIN * least)
     return out

@@ -151,6 +151,10 @@ class DeviceInfo:
     #: the smallest principal moment of inertia moving with the handle [kg m^2] (None: not
     #: stated; the passivity layer's work prediction, ``server/passivity.py``)
     moving_inertia_kg_m2: float | None = None
+    #: the largest principal moment of inertia moving with the handle [kg m^2] (None: not stated;
+    #: the heavy-tool rule's rotational handle, ``stability.rot_coupling_damping_for_tool``, which
+    #: then takes the smallest)
+    moving_inertia_max_kg_m2: float | None = None
     #: radius of the sphere the handle reaches [m]
     workspace_radius_m: float | None = None
     workspace_min_m: tuple = (-0.1, -0.1, -0.1)

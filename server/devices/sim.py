@@ -431,13 +431,14 @@ class SimDevice(DeviceDriver):
         return replace(info, buttons=hand.buttons, gripper=hand.gripper,
                        sensed=info.sensed + (("gripper",) if hand.gripper else ()),
                        moving_mass_kg=float(self.spec.par[DP_MASS]),
-                       moving_inertia_kg_m2=self._inertia_min())
+                       moving_inertia_kg_m2=self._inertia_min(), moving_inertia_max_kg_m2=self._inertia_min(-1))
 
-    def _inertia_min(self):
+    def _inertia_min(self, which: int = 0):
+        """The handle's smallest principal moment (``which`` -1: the largest); None for one axis."""
         if self.kind == "planar":
             return float(self.spec.par[DP_IZZ])
         if self.kind == "spatial":
-            return float(np.linalg.eigvalsh(self.spec.par[DP_IB:DP_IB + 9].reshape(3, 3))[0])
+            return float(np.linalg.eigvalsh(self.spec.par[DP_IB:DP_IB + 9].reshape(3, 3))[which])
         return None
 
     def enable(self) -> None:

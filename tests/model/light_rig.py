@@ -131,7 +131,7 @@ def rest_on_floor(kind: str, mass_kg: float, inertia_kg_m2=None, *, rate_hz: flo
                   push_n: float = 1.0, size_m=(0.04, 0.04, 0.04), seconds: float = 1.0, window_s: float = 0.3,
                   controller: dict | None = None, contact: dict | None = None, gap_m: float = 0.001,
                   qd0=None, model_kw: dict | None = None, build=None, engine_frame: bool = True,
-                  device_cfg: dict | None = None) -> RestResult:
+                  device_cfg: dict | None = None, fit: bool = True) -> RestResult:
     """Put a tool of ``kind`` (``KINDS``) ``gap_m`` above the floor, the hand pushing its device
     down with ``push_n``, and run ``seconds`` of simulated time.
 
@@ -140,7 +140,8 @@ def rest_on_floor(kind: str, mass_kg: float, inertia_kg_m2=None, *, rate_hz: flo
     lying straight on the floor, the hand on its middle link. ``controller`` / ``contact``: config
     keys of ``[controller]`` / ``[model]``. ``qd0``: the proxy's initial velocity. ``build``:
     ``build(tool, contact_params, period_s)`` returns the LocalModel (default: as the server's
-    ``ModelFactory`` does, with these keys)."""
+    ``ModelFactory`` does, with these keys). ``fit``: the coupling's damping for the tool as the
+    loop sets it at engagement (``Controller.fit_tool``); False keeps the configured one."""
     model_keys = dict(contact or {})
     settings = cfg.load({"loop": {"rate_hz": rate_hz}, "controller": dict(controller or {}),
                          "model": model_keys, "safety": {"allow_outside_stable_region": True},
@@ -192,6 +193,11 @@ def rest_on_floor(kind: str, mass_kg: float, inertia_kg_m2=None, *, rate_hz: flo
         dev_cfg["axis"] = [0.0, 1.0, 0.0]
     device = make_sim_device(dev_cfg, period_s=dt, clock_ns=lambda: 0)
     c = ctl.Controller(settings, dkind, device.limits)
+    # as the loop does (HapticLoop's build, its engagement): the device's figures, then the
+    # coupling's damping for this tool (a heavy one's raised: control.Controller.fit_tool)
+    c.set_moving_figures(device.info)
+    if fit:
+        c.fit_tool(tool)
     device.enable()
     row = empty_state()
     device.read(row)
