@@ -147,6 +147,13 @@ class ModelFactory:
             (hello, (float(epsilon_m), int(max_contacts)), built)]
         return ""
 
+    def tool_of(self, hello):
+        """The tool of the model kept for ``hello`` by the last :meth:`check` (None: none kept)."""
+        for h, _, built in reversed(self._kept):
+            if h is hello:
+                return built[0]
+        return None
+
     def take(self, hello, epsilon_m: float, max_contacts: int):
         """The model the check built for this Hello with these grants, or a new one."""
         key = (float(epsilon_m), int(max_contacts))
@@ -413,10 +420,15 @@ class ProtocolSide:
                 min(int(hello.max_contacts), cfg.max_contacts, self.endpoint.codec.limits.max_contacts))
 
     def check_hello(self, hello) -> str:
-        """A Hello whose tool the model can hold with this server's contact parameters and rate:
-        "" or why not (Reject INVALID_HELLO), so a session never engages a tool that would fail.
-        The model built for the check is the one the engagement uses."""
-        return self.models.check(hello, *self.granted(hello))
+        """A Hello whose tool the model can hold with this server's contact parameters and rate,
+        and the controller can bring to rest on its contacts with the damping the device renders
+        (``Controller.hello_refusal``): "" or why not (Reject INVALID_HELLO), so a session never
+        engages a tool that would fail. The model built for the check is the one the engagement
+        uses."""
+        why = self.models.check(hello, *self.granted(hello))
+        if why:
+            return why
+        return self.loop.ctrl.hello_refusal(self.models.tool_of(hello))
 
     def track_env(self, upd, now: int) -> None:
         """The environment's rate over a window of arrivals: the last ``ENV_RATE_WINDOW`` updates

@@ -295,3 +295,43 @@ def test_the_controller_sets_the_rotational_damping_per_tool():
     c = _controller("1dof")
     c.fit_tool(ToolSpec.one_dof(2.0))
     assert c.cp[ctl.CP_BR] == BR
+
+
+def test_the_handshake_refuses_a_tool_the_device_cannot_bring_to_rest():
+    """Through the server's handshake (100 Hz, where the planar device renders at most 40 N s/m of
+    coupling damping): a 20 kg planar tool is refused by name with the largest mass that works;
+    a 2 kg one is welcome."""
+    from server_harness import make_settings
+
+    from hapticproxy.protocol.messages import ErrorCode, Hello, ToolKind
+    from hapticproxy.protocol.session import ClientEndpoint
+    from hapticproxy.protocol.transport import open_transport
+    from hapticproxy.server.clock import SimClock
+    from hapticproxy.server.loop import HapticLoop
+
+    s = make_settings(loop={"rate_hz": 100.0}, safety={"allow_outside_stable_region": True})
+    clock = SimClock(start_ns=1_000_000_000)
+    loop = HapticLoop.build(s, clock=clock)
+    tr = open_transport(s["transport"]["url"], "client")
+    try:
+        loop.start()
+        out = {}
+        for nonce, mass in ((1, 20.0), (2, 2.0)):
+            ep = ClientEndpoint(tr.send, Hello(client_nonce=nonce, tool_kind=ToolKind.PLANAR, mass_kg=mass,
+                                               inertia_kg_m2=(1e-2, 1e-2, 1e-2, 0.0, 0.0, 0.0), max_contacts=8))
+            ep.start(clock.now_ns())
+            for _ in range(50):
+                loop.step()
+                while (item := tr.recv()) is not None:
+                    ep.receive(item[0], item[1], clock.now_ns())
+                if ep.reject is not None or ep.established:
+                    break
+            out[mass] = ep
+        assert out[20.0].reject is not None and out[20.0].reject.code == ErrorCode.INVALID_HELLO
+        assert out[20.0].reject.reason.startswith("tool.mass_kg: 20 kg needs 41.1 N s/m of coupling damping"), \
+            out[20.0].reject.reason
+        assert "at most" in out[20.0].reject.reason
+        assert out[2.0].reject is None and out[2.0].established
+    finally:
+        tr.close()
+        loop.close()
