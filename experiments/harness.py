@@ -140,6 +140,7 @@ class RunSpec:
     device: tuple = ()                        # extra [device] keys as (key, value) pairs
     device_kind: str = "planar"               # planar | 1dof (along world x) | spatial
     safety: tuple = ()                        # extra [safety] keys as (key, value) pairs
+    passivity: tuple = ()                     # [passivity] keys as (key, value) pairs (the server's defaults else)
     #: simulated time only: the engine misreports its contacts the way real engines do, from
     #: ``misreport_from_s`` of engine time on (see :class:`Misreport`): "" (never), "flip" (the
     #: first contact's normal reversed in every ``misreport_every``-th update), "flip-hold" (reversed
@@ -197,6 +198,7 @@ class RunSpec:
             # the IR baselines, Fig. 17's stiff hole), at the force-rate limit they were measured with
             "safety": {"allow_outside_stable_region": True, "force_rate_n_per_s": 1000.0, **dict(self.safety)},
             "telemetry": {"ring_s": float(self.hand.start_s + self.seconds + 3.0)},
+            "passivity": dict(self.passivity),
         }
 
     def make_engine(self):

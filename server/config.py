@@ -222,8 +222,9 @@ class PassivityConfig(_Table):
     moving_inertia_kg_m2: _num(0, 10, doc="the smallest principal moment of inertia at the handle, alike (0: the "
                                "device's, else 1e-6) [kg m^2]") = 0.0
     device_damping_n_s_per_m: _num(0, 1e4, doc="the device's physical viscous damping, as its maker states it: "
-                                   "what it dissipates feeds the tank (0: nothing assumed) [N s/m]") = 0.0
-    device_rot_damping_n_m_s_per_rad: _num(0, 1e3, doc="and its rotational damping [N m s/rad]") = 0.0
+                                   "what it dissipates feeds the tank (0: the device's stated figure, a simulated "
+                                   "device's own; none stated: nothing assumed) [N s/m]") = 0.0
+    device_rot_damping_n_m_s_per_rad: _num(0, 1e3, doc="and its rotational damping, alike [N m s/rad]") = 0.0
     input_credit: _num(0, 1, lo_open=True, doc="the share of the energy the hand puts in that the tank keeps "
                        "(1: lossless, an undamped bounce keeps bouncing; below 1 the layer dissipates the rest, "
                        "and an exchange that gives back what it took dies out: EXPERIMENTS.md, walls)") = 1.0

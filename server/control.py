@@ -749,6 +749,7 @@ class Controller:
                           period_s=dt, engine_grants=pas["engine_grants"], input_credit=pas["input_credit"])
         pv.reset(self.tp, self.ts)
         self._moving_config = (pas["moving_mass_kg"], pas["moving_inertia_kg_m2"])
+        self._damping_config = (pas["device_damping_n_s_per_m"], pas["device_rot_damping_n_m_s_per_rad"])
         #: the device's position frozen under force (``devices.frozen``; the tick runs the watch)
         self.frozen_s = saf["frozen_s"]
         self.frozen_force_n = fz.min_force_n(saf["frozen_force_n"], fmax)
@@ -766,9 +767,11 @@ class Controller:
                                        doc="Largest change of the force vector per step, N.")
 
     def set_moving_figures(self, info) -> None:
-        """The passivity layer's moving mass and inertia from the device's ``DeviceInfo`` where the
-        config sets none (``passivity.moving_figures``)."""
+        """The passivity layer's moving mass and inertia, and the damping that feeds its tank, from
+        the device's ``DeviceInfo`` where the config sets none (``passivity.moving_figures``,
+        ``passivity.damping_figures``)."""
         self.tp[pv.TP_MASS], self.tp[pv.TP_INERTIA] = pv.moving_figures(*self._moving_config, info)
+        self.tp[pv.TP_BDEV], self.tp[pv.TP_BRDEV] = pv.damping_figures(*self._damping_config, info)
 
     def set_offset(self, R_off: np.ndarray, p_off: np.ndarray, q_off: np.ndarray) -> None:
         self.cp[CP_ROFF:CP_ROFF + 9] = np.asarray(R_off, dtype=float).reshape(9)

@@ -151,6 +151,11 @@ class DeviceInfo:
     #: the smallest principal moment of inertia moving with the handle [kg m^2] (None: not
     #: stated; the passivity layer's work prediction, ``server/passivity.py``)
     moving_inertia_kg_m2: float | None = None
+    #: the handle's physical viscous damping [N s/m] and rotational [N m s/rad], the least the
+    #: device itself dissipates (None: not stated); what it dissipates feeds the passivity
+    #: layer's tank (``server/passivity.py``: ``damping_figures``)
+    damping_n_s_per_m: float | None = None
+    rot_damping_n_m_s_per_rad: float | None = None
     #: radius of the sphere the handle reaches [m]
     workspace_radius_m: float | None = None
     workspace_min_m: tuple = (-0.1, -0.1, -0.1)

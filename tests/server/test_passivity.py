@@ -239,6 +239,15 @@ def test_moving_figures_config_then_device_then_fallback():
     assert pv.moving_figures(0.0, 0.0, None) == (pv.FALLBACK_MASS_KG, pv.FALLBACK_INERTIA_KG_M2)
 
 
+def test_damping_figures_config_then_device_then_nothing():
+    class Info:
+        damping_n_s_per_m = 2.0
+        rot_damping_n_m_s_per_rad = None
+    assert pv.damping_figures(3.0, 1e-3, Info()) == (3.0, 1e-3)
+    assert pv.damping_figures(0.0, 0.0, Info()) == (2.0, 0.0)
+    assert pv.damping_figures(0.0, 0.0, None) == (0.0, 0.0)
+
+
 @settings(**SET)
 @given(st.floats(0.0, 0.05), st.floats(-0.05, 0.05), st.floats(0.0, 1e-4), st.floats(0.0, 1e-2), st.floats(0, 5),
        st.floats(0, 0.1), st.sampled_from([1.0, 0.5, 0.1]))
@@ -461,15 +470,19 @@ def test_the_recovery_slows_with_the_tank(enabled, tank, want):
 
 
 @pytest.mark.parametrize("kind, mass, inertia", [("planar", 0.4, 1e-3), ("spatial", 0.3, None), ("1dof", 0.2, None)])
-def test_the_loop_gives_the_layer_the_devices_moving_mass_and_inertia(kind, mass, inertia):
-    """``HapticLoop`` sets the prediction's mass and smallest moment from the device's
-    ``DeviceInfo`` (the simulated device states both; a 1-DOF one no rotation: the fallback), the
-    config's values first."""
+def test_the_loop_gives_the_layer_the_devices_moving_mass_inertia_and_damping(kind, mass, inertia):
+    """``HapticLoop`` sets the prediction's mass and smallest moment, and the damping that feeds
+    the tank, from the device's ``DeviceInfo`` (the simulated device states them; a 1-DOF one no
+    rotation: the fallback inertia, no rotational damping), the config's values first."""
     from hapticproxy.server import config as cfg
     from hapticproxy.server.clock import SimClock
     from hapticproxy.server.loop import HapticLoop
 
-    for over, want_m in (({}, mass), ({"moving_mass_kg": 0.05}, 0.05)):
+    dev_b = {"1dof": 1.0, "planar": 2.0, "spatial": 1.0}[kind]          # the sim's defaults (devices/sim.py)
+    dev_br = {"1dof": 0.0, "planar": 2e-3, "spatial": 1e-3}[kind]
+    for over, want_m, want_b in (({}, mass, (dev_b, dev_br)), ({"moving_mass_kg": 0.05}, 0.05, (dev_b, dev_br)),
+                                 ({"device_damping_n_s_per_m": 0.5, "device_rot_damping_n_m_s_per_rad": 1e-4}, mass,
+                                  (0.5, 1e-4 if kind != "1dof" else 1e-4))):
         s = cfg.load({"transport": {"url": f"mem://passivity-figures-{kind}-{len(over)}"},
                       "status": {"address": "127.0.0.1:1"}, "device": {"driver": "sim", "kind": kind},
                       "passivity": over})
@@ -477,6 +490,9 @@ def test_the_loop_gives_the_layer_the_devices_moving_mass_and_inertia(kind, mass
         try:
             info = loop.device.info
             assert loop.ctrl.tp[pv.TP_MASS] == want_m == (over.get("moving_mass_kg") or info.moving_mass_kg)
+            # the damping that feeds the tank: the config's, else the device's own (the sim states it)
+            assert (loop.ctrl.tp[pv.TP_BDEV], loop.ctrl.tp[pv.TP_BRDEV]) == pytest.approx(want_b)
+            assert info.damping_n_s_per_m == dev_b
             want_i = info.moving_inertia_kg_m2 or pv.FALLBACK_INERTIA_KG_M2
             assert loop.ctrl.tp[pv.TP_INERTIA] == want_i
             if inertia is not None:
