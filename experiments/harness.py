@@ -44,8 +44,11 @@ from ..clients.geometry import advance_pose  # noqa: F401 - used below and by ex
 #: IR: Berkelman's intermediate representation = direct coupling, no proxy deformation (eq. 1
 #: at every update), no prediction. LM0: the local model (four-channel controller, proxy
 #: deformation) with active geometry. LM5: the same with epsilon-active geometry, 5 mm.
+#: The paper's methods. The IR is the paper's baseline and runs on the paper's server: without the
+#: passivity layer, which would stop the runaway the figures show it for (Fig. 6:
+#: ``rigid_with_layer``); LM0 / LM5 run with the server's defaults.
 METHODS: dict[str, dict] = {
-    "IR": {"controller": "direct", "policy": "rigid", "epsilon_m": 0.0},
+    "IR": {"controller": "direct", "policy": "rigid", "epsilon_m": 0.0, "passivity": (("enabled", False),)},
     "LM0": {"controller": "four_channel", "policy": "lm0", "epsilon_m": 0.0},
     "LM5": {"controller": "four_channel", "policy": "deformation", "epsilon_m": 0.005},
 }

@@ -213,7 +213,8 @@ class PassivityConfig(_Table):
                   "status and telemetry). Off by default: on, Figs. 6 and 9 change verdicts (EXPERIMENTS.md)") = False
     initial_budget_j: _num(0, 10, doc="the tank at start: energy the server may give the hand beyond what the "
                            "hand put in [J]") = 0.01
-    max_tank_j: _num(0, 100, doc="the tank's cap: what a hand's input can store for later [J]") = 0.05
+    max_tank_j: _num(0, 100, doc="the tank's cap: what a hand's input can store for later; the deformation "
+                     "recovery pays from it (a 1 N push 30 mm past a late wall: 30 mJ to lift the hand back) [J]") = 0.2
     low_level_j: _num(0, 10, lo_open=True, doc="below this level the command is limited, smoothly, fully at an "
                       "empty tank [J]") = 0.005
     moving_mass_kg: _num(0, 1e3, doc="the moving mass at the handle the layer predicts the next period's work "
