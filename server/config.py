@@ -210,7 +210,8 @@ class PassivityConfig(_Table):
     """The passivity layer under the controller (``server/passivity.py``: an energy tank at the
     hand's port that limits the command when it runs short)."""
     enabled: _doc(bool, "limit the command when the tank runs short (off: the tank is only accounted, in "
-                  "status and telemetry). Off by default: on, Figs. 6 and 9 change verdicts (EXPERIMENTS.md)") = False
+                  "status and telemetry). On by default: on the project's own scenes without delay it acts on no "
+                  "step (EXPERIMENTS.md, transparency)") = True
     initial_budget_j: _num(0, 10, doc="the tank at start: energy the server may give the hand beyond what the "
                            "hand put in [J]") = 0.01
     max_tank_j: _num(0, 100, doc="the tank's cap: what a hand's input can store for later; the deformation "

@@ -397,7 +397,7 @@ def test_the_config_table_is_checked_by_name_and_reaches_the_controller():
     c = ctl.Controller(s, "planar")
     assert c.tank_j == 0.02 and c.tp[pv.TP_ON] == 1.0 and c.tp[pv.TP_BDEV] == 3.0
     assert c.tp[pv.TP_PERIOD] == pytest.approx(1e-3)
-    assert not cfg.load().data["passivity"]["enabled"]  # off by default: see EXPERIMENTS.md
+    assert cfg.load().data["passivity"]["enabled"]  # on by default: transparency, EXPERIMENTS.md
     assert c.grant(0.01) == pytest.approx(0.01) and c.tank_j == pytest.approx(0.03)
 
 
