@@ -503,3 +503,48 @@ def test_the_loop_gives_the_layer_the_devices_moving_mass_inertia_and_damping(ki
                 assert want_i == pv.FALLBACK_INERTIA_KG_M2
         finally:
             loop.close()
+
+
+@settings(max_examples=40, deadline=None, derandomize=True, database=None)
+@given(st.lists(st.tuples(st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-2e-3, 2e-3), st.integers(1, 20)),
+                min_size=1, max_size=20), st.floats(0.0, 5.0), st.floats(0.0, 5e-3))
+def test_the_damping_a_simulated_device_states_dissipates_at_least_what_the_tank_credits(forces, b, br):
+    """The credit the tank takes for the device's stated damping (``damping_figures``, contract
+    A2: ``b |dx|^2 / T`` per period) never exceeds what the simulated device dissipated: the
+    command's work less the change of the handle's kinetic energy, measured from its readings."""
+    from hapticproxy.server.devices.sim import make_sim_device
+
+    now = [1_000_000_000]
+    dev = make_sim_device({"kind": "planar", "hand": {"type": "none"}, "damping_n_s_per_m": b,
+                           "rot_damping_n_m_s_per_rad": br, "workspace_min_m": [-1.0, -1.0],
+                           "workspace_max_m": [1.0, 1.0]}, period_s=T, clock_ns=lambda: now[0])
+    bd, brd = pv.damping_figures(0.0, 0.0, dev.info)
+    m, izz = dev.info.moving_mass_kg, dev.info.moving_inertia_kg_m2
+    from hapticproxy.server.devices.base import DEV_NSTATE
+
+    row = np.zeros(DEV_NSTATE)
+    dev.enable()
+    dev.read(row)
+
+    def pose(r):
+        return np.array([r[0], r[1], 2.0 * math.atan2(r[6], r[3])])
+
+    def kinetic(r):
+        return 0.5 * m * (r[7] ** 2 + r[8] ** 2) + 0.5 * izz * r[12] ** 2
+
+    p0, k0 = pose(row), kinetic(row)
+    work = credit = 0.0
+    for fx, fy, tz, held in forces:                 # each force held over ``held`` periods
+        for _ in range(held):
+            assert dev.write(np.array([fx, fy, 0.0, 0.0, 0.0, tz])) == 0
+            now[0] += int(T * 1e9)
+            dev.read(row)
+            p1 = pose(row)
+            d = p1 - p0
+            work += fx * d[0] + fy * d[1] + tz * d[2]
+            credit += (bd * (d[0] ** 2 + d[1] ** 2) + brd * d[2] ** 2) / T
+            p0 = p1
+    assert np.all(np.abs(row[:2]) < 0.9)            # never on an end-stop (it stores energy of its own)
+    dissipated = work - (kinetic(row) - k0)
+    assert credit <= dissipated + 1e-12
+    assert (bd, brd) == (b, br)                     # the device states its own figures
