@@ -113,8 +113,9 @@ def wall_rows(*, seeds=SEEDS, pushes=PUSHES_N, lags=LAGS_S, log=None) -> list[di
     return rows
 
 
-def peg_rows(*, lags=LAGS_S, quick: bool = False, log=None) -> list[dict]:
-    """The 1-DOF peg of Figs. 6/9 (deterministic: one run per row)."""
+def peg_rows(*, lags=LAGS_S, quick: bool = False, log=None, passivity: tuple = ()) -> list[dict]:
+    """The 1-DOF peg of Figs. 6/9 (deterministic: one run per row); ``passivity``: ``[passivity]``
+    keys over the server's defaults."""
     rows = []
     secs = F.PEG_QUICK_SECONDS if quick else F.PEG_SECONDS
     for method, pol, eps in (("LM0", "lm0", 0.0), ("LM5", "deformation", 0.005)):
@@ -126,6 +127,8 @@ def peg_rows(*, lags=LAGS_S, quick: bool = False, log=None) -> list[dict]:
                 if log:
                     log(f"fidelity: peg {method} {config} lag {lag * 1e3:g} ms")
                 spec = F.peg_spec(method, pol, eps, "simulated", quick).but(tool_lag_s=lag, **kw)
+                if passivity:
+                    spec = spec.but(passivity=tuple(passivity))
                 tr = run_simulated(spec)
                 m = F.peg_metrics(F.PegView.of_trace(tr), secs)
                 compliance_mm = 5.0 / spec.stiffness_n_per_m * 1e3

@@ -355,8 +355,15 @@ FIG9_METHODS = {"IR": ("rigid", 0.0), "LM0": ("lm0", 0.0), "LM5": ("deformation"
 PEG_FRAMES = ("engine", "proxy")
 
 
-def peg_spec(name: str, policy: str, epsilon_m: float, mode: str, quick: bool, *, contact_frame: str = "engine") -> RunSpec:
-    return RunSpec(method=name, controller="direct", policy=policy, epsilon_m=float(epsilon_m),
+def peg_spec(name: str, policy: str, epsilon_m: float, mode: str, quick: bool, *, contact_frame: str = "engine",
+             layer: bool | None = None) -> RunSpec:
+    """The 1-DOF peg; ``layer`` None: the rigid update (the paper's IR baseline) without the
+    passivity layer (``harness.METHODS``), the others with the server's default; else as said."""
+    if layer is None:
+        layer_keys = (("enabled", False),) if policy == "rigid" else ()
+    else:
+        layer_keys = (("enabled", bool(layer)),)
+    return RunSpec(method=name, controller="direct", policy=policy, epsilon_m=float(epsilon_m), passivity=layer_keys,
                    contact_frame=contact_frame, rate_hz=PEG_RATE_HZ, stiffness_n_per_m=10000.0,
                    damping_n_s_per_m=15.0, capacity=8, engine="peg1d", scene="peg1d",
                    env_rate_hz=(PEG_ENV_HZ, PEG_ENV_HZ), env_delay_s=PEG_DELAY_S,
@@ -496,6 +503,10 @@ def fig6(out, *, mode: str = "realtime", quick: bool = False, log=None) -> dict:
     direct coupling; ``rigid`` (no deformation) vs ``deformation``; on the server loop."""
     out = Path(out)
     res, views = _peg_figure("fig6", {p: (p, 0.0) for p in FIG6_POLICIES}, out, mode=mode, quick=quick, log=log)
+    # the rigid update once more with the passivity layer on: the runaway is what it stops
+    _log(log, f"fig6 rigid with the passivity layer ({mode})")
+    res["rigid"]["with_layer"] = peg_metrics(PegView.of_trace(run(peg_spec("rigid", "rigid", 0.0, mode, quick, layer=True),
+                                                                   mode)), PEG_QUICK_SECONDS if quick else PEG_SECONDS)
     plot_peg({p: views[("engine", p)] for p in FIG6_POLICIES}, res, out / "fig6.png", f"Fig. 6 (reproduction, server loop, {mode}): 1-DOF peg 1 kg, direct coupling,\n"
              "50 Hz engine + 20 ms delay, K = 10000 N/m, B = 15 N s/m, 5 N at 1 Hz, 512 Hz, active geometry", force=False)
     write_json(out / "metrics.json", res)

@@ -44,8 +44,11 @@ from ..clients.geometry import advance_pose  # noqa: F401 - used below and by ex
 #: IR: Berkelman's intermediate representation = direct coupling, no proxy deformation (eq. 1
 #: at every update), no prediction. LM0: the local model (four-channel controller, proxy
 #: deformation) with active geometry. LM5: the same with epsilon-active geometry, 5 mm.
+#: The paper's methods. The IR is the paper's baseline and runs on the paper's server: without the
+#: passivity layer, which would stop the runaway the figures show it for (Fig. 6:
+#: ``rigid_with_layer``); LM0 / LM5 run with the server's defaults.
 METHODS: dict[str, dict] = {
-    "IR": {"controller": "direct", "policy": "rigid", "epsilon_m": 0.0},
+    "IR": {"controller": "direct", "policy": "rigid", "epsilon_m": 0.0, "passivity": (("enabled", False),)},
     "LM0": {"controller": "four_channel", "policy": "lm0", "epsilon_m": 0.0},
     "LM5": {"controller": "four_channel", "policy": "deformation", "epsilon_m": 0.005},
 }
@@ -140,6 +143,7 @@ class RunSpec:
     device: tuple = ()                        # extra [device] keys as (key, value) pairs
     device_kind: str = "planar"               # planar | 1dof (along world x) | spatial
     safety: tuple = ()                        # extra [safety] keys as (key, value) pairs
+    passivity: tuple = ()                     # [passivity] keys as (key, value) pairs (the server's defaults else)
     #: simulated time only: the engine misreports its contacts the way real engines do, from
     #: ``misreport_from_s`` of engine time on (see :class:`Misreport`): "" (never), "flip" (the
     #: first contact's normal reversed in every ``misreport_every``-th update), "flip-hold" (reversed
@@ -197,6 +201,7 @@ class RunSpec:
             # the IR baselines, Fig. 17's stiff hole), at the force-rate limit they were measured with
             "safety": {"allow_outside_stable_region": True, "force_rate_n_per_s": 1000.0, **dict(self.safety)},
             "telemetry": {"ring_s": float(self.hand.start_s + self.seconds + 3.0)},
+            "passivity": dict(self.passivity),
         }
 
     def make_engine(self):

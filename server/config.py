@@ -213,10 +213,12 @@ class PassivityConfig(_Table):
     """The passivity layer under the controller (``server/passivity.py``: an energy tank at the
     hand's port that limits the command when it runs short)."""
     enabled: _doc(bool, "limit the command when the tank runs short (off: the tank is only accounted, in "
-                  "status and telemetry). Off by default: on, Figs. 6 and 9 change verdicts (EXPERIMENTS.md)") = False
+                  "status and telemetry). On by default: on the project's own scenes without delay it acts on no "
+                  "step (EXPERIMENTS.md, transparency)") = True
     initial_budget_j: _num(0, 10, doc="the tank at start: energy the server may give the hand beyond what the "
                            "hand put in [J]") = 0.01
-    max_tank_j: _num(0, 100, doc="the tank's cap: what a hand's input can store for later [J]") = 0.05
+    max_tank_j: _num(0, 100, doc="the tank's cap: what a hand's input can store for later; the deformation "
+                     "recovery pays from it (a 1 N push 30 mm past a late wall: 30 mJ to lift the hand back) [J]") = 0.2
     low_level_j: _num(0, 10, lo_open=True, doc="below this level the command is limited, smoothly, fully at an "
                       "empty tank [J]") = 0.005
     moving_mass_kg: _num(0, 1e3, doc="the moving mass at the handle the layer predicts the next period's work "
@@ -225,8 +227,9 @@ class PassivityConfig(_Table):
     moving_inertia_kg_m2: _num(0, 10, doc="the smallest principal moment of inertia at the handle, alike (0: the "
                                "device's, else 1e-6) [kg m^2]") = 0.0
     device_damping_n_s_per_m: _num(0, 1e4, doc="the device's physical viscous damping, as its maker states it: "
-                                   "what it dissipates feeds the tank (0: nothing assumed) [N s/m]") = 0.0
-    device_rot_damping_n_m_s_per_rad: _num(0, 1e3, doc="and its rotational damping [N m s/rad]") = 0.0
+                                   "what it dissipates feeds the tank (0: the device's stated figure, a simulated "
+                                   "device's own; none stated: nothing assumed) [N s/m]") = 0.0
+    device_rot_damping_n_m_s_per_rad: _num(0, 1e3, doc="and its rotational damping, alike [N m s/rad]") = 0.0
     input_credit: _num(0, 1, lo_open=True, doc="the share of the energy the hand puts in that the tank keeps "
                        "(1: lossless, an undamped bounce keeps bouncing; below 1 the layer dissipates the rest, "
                        "and an exchange that gives back what it took dies out: EXPERIMENTS.md, walls)") = 1.0

@@ -777,6 +777,7 @@ class Controller:
         self._fitted: dict[float, tuple[float, str]] = {}
         #: the last ``fit_tool``: the tool's mass, the damping set, and why it falls short ("" if not)
         self.fit = (0.0, float(ctl["damping_n_s_per_m"]), "")
+        self._damping_config = (pas["device_damping_n_s_per_m"], pas["device_rot_damping_n_m_s_per_rad"])
         #: the device's position frozen under force (``devices.frozen``; the tick runs the watch)
         self.frozen_s = saf["frozen_s"]
         self.frozen_force_n = fz.min_force_n(saf["frozen_force_n"], fmax)
@@ -794,12 +795,14 @@ class Controller:
                                        doc="Largest change of the force vector per step, N.")
 
     def set_moving_figures(self, info) -> None:
-        """The passivity layer's moving mass and inertia from the device's ``DeviceInfo`` where the
-        config sets none (``passivity.moving_figures``); the heavy-tool rule's handle mass likewise
+        """The passivity layer's moving mass and inertia, and the damping that feeds its tank, from
+        the device's ``DeviceInfo`` where the config sets none (``passivity.moving_figures``,
+        ``passivity.damping_figures``); the heavy-tool rule's handle mass likewise
         (the config's ``passivity.moving_mass_kg``, else the device's stated figure, else none: the
         rule then keeps the configured damping) and the most damping the device renders
         (``devices.safe.gain_limits``)."""
         self.tp[pv.TP_MASS], self.tp[pv.TP_INERTIA] = pv.moving_figures(*self._moving_config, info)
+        self.tp[pv.TP_BDEV], self.tp[pv.TP_BRDEV] = pv.damping_figures(*self._damping_config, info)
         if self._heavy["device_mass_kg"] is None:
             m = getattr(info, "moving_mass_kg", None)
             self._heavy["device_mass_kg"] = float(m) if m else None

@@ -12,7 +12,7 @@ the port and did not come back out): counting the coupling damper's dissipation 
 count it twice. The device's physical damping is outside the port (the motor's work minus it is
 what reaches the hand), so it feeds the tank: ``b |dx|^2 / T`` per period, the least a viscous
 damper ``b`` dissipates over a displacement ``dx`` in ``T`` (Cauchy-Schwarz), with ``b`` as the
-config declares it (0: nothing assumed).
+config declares it, else as the device states it, else 0 (``damping_figures``).
 
 Layouts (declared once; the controller embeds them as blocks of its arrays, ``CP_TANK``,
 ``CS_TANK``, ``CC_TANK``):
@@ -315,3 +315,17 @@ def moving_figures(config_mass_kg: float, config_inertia_kg_m2: float, info=None
     if not inertia > 0.0:
         inertia = getattr(info, "moving_inertia_kg_m2", None) or FALLBACK_INERTIA_KG_M2
     return float(mass), float(inertia)
+
+
+def damping_figures(config_b: float, config_br: float, info=None) -> tuple[float, float]:
+    """The viscous damping whose dissipation feeds the tank (contract A2), N s/m and N m s/rad:
+    the config's when set (> 0), else the device's stated figures (``DeviceInfo.damping_n_s_per_m``
+    / ``rot_damping_n_m_s_per_rad``: a simulated device states its own), else 0 (nothing assumed).
+    A figure above the device's true damping would credit energy it does not dissipate: a vendor's
+    figure only, never a guess. Why it matters: a four-channel controller renders the proxy,
+    which has no such damping, so in free motion the motor pays the device's damping along the
+    motion (Fig. 14: +0.3 N at 0.25 m/s against 2 N s/m); uncredited, that drains the tank as if
+    it were given to the hand (EXPERIMENTS.md, transparency)."""
+    b = config_b if config_b > 0.0 else (getattr(info, "damping_n_s_per_m", None) or 0.0)
+    br = config_br if config_br > 0.0 else (getattr(info, "rot_damping_n_m_s_per_rad", None) or 0.0)
+    return float(b), float(br)

@@ -155,6 +155,11 @@ class DeviceInfo:
     #: the heavy-tool rule's rotational handle, ``stability.rot_coupling_damping_for_tool``, which
     #: then takes the smallest)
     moving_inertia_max_kg_m2: float | None = None
+    #: the handle's physical viscous damping [N s/m] and rotational [N m s/rad], the least the
+    #: device itself dissipates (None: not stated); what it dissipates feeds the passivity
+    #: layer's tank (``server/passivity.py``: ``damping_figures``)
+    damping_n_s_per_m: float | None = None
+    rot_damping_n_m_s_per_rad: float | None = None
     #: radius of the sphere the handle reaches [m]
     workspace_radius_m: float | None = None
     workspace_min_m: tuple = (-0.1, -0.1, -0.1)

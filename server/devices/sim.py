@@ -431,7 +431,9 @@ class SimDevice(DeviceDriver):
         return replace(info, buttons=hand.buttons, gripper=hand.gripper,
                        sensed=info.sensed + (("gripper",) if hand.gripper else ()),
                        moving_mass_kg=float(self.spec.par[DP_MASS]),
-                       moving_inertia_kg_m2=self._inertia_min(), moving_inertia_max_kg_m2=self._inertia_min(-1))
+                       moving_inertia_kg_m2=self._inertia_min(), moving_inertia_max_kg_m2=self._inertia_min(-1),
+                       damping_n_s_per_m=float(self.spec.par[DP_B]),
+                       rot_damping_n_m_s_per_rad=float(self.spec.par[DP_BR]) if self.kind != "1dof" else None)
 
     def _inertia_min(self, which: int = 0):
         """The handle's smallest principal moment (``which`` -1: the largest); None for one axis."""

@@ -81,7 +81,16 @@ def test_quick_fidelity_writes_its_tables(tmp_path):
     assert all(r["force_step_max_n"] <= 1000.0 / 512.0 + 1e-6 for r in res["wall"])   # the rate limit
     peg = {(r["method"], r["config"]): r for r in res["peg"]}
     assert not any(r["unstable"] for r in res["peg"])
-    assert peg[("LM0", "recovery")]["peg_error_mm"] < 0.5 * peg[("LM0", "paper")]["peg_error_mm"]
+    # the peg without epsilon (active geometry, 20 ms behind): the recovery pushes the hand back
+    # to the hole's centre update after update, about 20 mJ/s given to the hand. With the
+    # passivity layer (the default) it slows and stops while the tank is low (10 mJ spent in the
+    # first 1.3 s), the peg leaves the centre and swings between the walls (EXPERIMENTS.md,
+    # transparency): the recovery still narrows the error; without the layer it halves it
+    assert peg[("LM0", "recovery")]["peg_error_mm"] < peg[("LM0", "paper")]["peg_error_mm"]
+    bare = FD.peg_rows(lags=(0.0,), quick=True, passivity=(("enabled", False),))
+    bare = {(r["method"], r["config"]): r for r in bare}
+    assert bare[("LM0", "recovery")]["peg_error_mm"] < 0.5 * bare[("LM0", "paper")]["peg_error_mm"]
+    assert bare[("LM0", "recovery")]["peg_error_mm"] < 0.5 * peg[("LM0", "recovery")]["peg_error_mm"]
 
 
 @pytest.mark.slow

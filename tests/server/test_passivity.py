@@ -239,6 +239,15 @@ def test_moving_figures_config_then_device_then_fallback():
     assert pv.moving_figures(0.0, 0.0, None) == (pv.FALLBACK_MASS_KG, pv.FALLBACK_INERTIA_KG_M2)
 
 
+def test_damping_figures_config_then_device_then_nothing():
+    class Info:
+        damping_n_s_per_m = 2.0
+        rot_damping_n_m_s_per_rad = None
+    assert pv.damping_figures(3.0, 1e-3, Info()) == (3.0, 1e-3)
+    assert pv.damping_figures(0.0, 0.0, Info()) == (2.0, 0.0)
+    assert pv.damping_figures(0.0, 0.0, None) == (0.0, 0.0)
+
+
 @settings(**SET)
 @given(st.floats(0.0, 0.05), st.floats(-0.05, 0.05), st.floats(0.0, 1e-4), st.floats(0.0, 1e-2), st.floats(0, 5),
        st.floats(0, 0.1), st.sampled_from([1.0, 0.5, 0.1]))
@@ -388,7 +397,7 @@ def test_the_config_table_is_checked_by_name_and_reaches_the_controller():
     c = ctl.Controller(s, "planar")
     assert c.tank_j == 0.02 and c.tp[pv.TP_ON] == 1.0 and c.tp[pv.TP_BDEV] == 3.0
     assert c.tp[pv.TP_PERIOD] == pytest.approx(1e-3)
-    assert not cfg.load().data["passivity"]["enabled"]  # off by default: see EXPERIMENTS.md
+    assert cfg.load().data["passivity"]["enabled"]  # on by default: transparency, EXPERIMENTS.md
     assert c.grant(0.01) == pytest.approx(0.01) and c.tank_j == pytest.approx(0.03)
 
 
@@ -461,15 +470,19 @@ def test_the_recovery_slows_with_the_tank(enabled, tank, want):
 
 
 @pytest.mark.parametrize("kind, mass, inertia", [("planar", 0.4, 1e-3), ("spatial", 0.3, None), ("1dof", 0.2, None)])
-def test_the_loop_gives_the_layer_the_devices_moving_mass_and_inertia(kind, mass, inertia):
-    """``HapticLoop`` sets the prediction's mass and smallest moment from the device's
-    ``DeviceInfo`` (the simulated device states both; a 1-DOF one no rotation: the fallback), the
-    config's values first."""
+def test_the_loop_gives_the_layer_the_devices_moving_mass_inertia_and_damping(kind, mass, inertia):
+    """``HapticLoop`` sets the prediction's mass and smallest moment, and the damping that feeds
+    the tank, from the device's ``DeviceInfo`` (the simulated device states them; a 1-DOF one no
+    rotation: the fallback inertia, no rotational damping), the config's values first."""
     from hapticproxy.server import config as cfg
     from hapticproxy.server.clock import SimClock
     from hapticproxy.server.loop import HapticLoop
 
-    for over, want_m in (({}, mass), ({"moving_mass_kg": 0.05}, 0.05)):
+    dev_b = {"1dof": 1.0, "planar": 2.0, "spatial": 1.0}[kind]          # the sim's defaults (devices/sim.py)
+    dev_br = {"1dof": 0.0, "planar": 2e-3, "spatial": 1e-3}[kind]
+    for over, want_m, want_b in (({}, mass, (dev_b, dev_br)), ({"moving_mass_kg": 0.05}, 0.05, (dev_b, dev_br)),
+                                 ({"device_damping_n_s_per_m": 0.5, "device_rot_damping_n_m_s_per_rad": 1e-4}, mass,
+                                  (0.5, 1e-4 if kind != "1dof" else 1e-4))):
         s = cfg.load({"transport": {"url": f"mem://passivity-figures-{kind}-{len(over)}"},
                       "status": {"address": "127.0.0.1:1"}, "device": {"driver": "sim", "kind": kind},
                       "passivity": over})
@@ -477,6 +490,9 @@ def test_the_loop_gives_the_layer_the_devices_moving_mass_and_inertia(kind, mass
         try:
             info = loop.device.info
             assert loop.ctrl.tp[pv.TP_MASS] == want_m == (over.get("moving_mass_kg") or info.moving_mass_kg)
+            # the damping that feeds the tank: the config's, else the device's own (the sim states it)
+            assert (loop.ctrl.tp[pv.TP_BDEV], loop.ctrl.tp[pv.TP_BRDEV]) == pytest.approx(want_b)
+            assert info.damping_n_s_per_m == dev_b
             want_i = info.moving_inertia_kg_m2 or pv.FALLBACK_INERTIA_KG_M2
             assert loop.ctrl.tp[pv.TP_INERTIA] == want_i
             if inertia is not None:
@@ -487,3 +503,48 @@ def test_the_loop_gives_the_layer_the_devices_moving_mass_and_inertia(kind, mass
                 assert want_i == pv.FALLBACK_INERTIA_KG_M2
         finally:
             loop.close()
+
+
+@settings(max_examples=40, deadline=None, derandomize=True, database=None)
+@given(st.lists(st.tuples(st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-2e-3, 2e-3), st.integers(1, 20)),
+                min_size=1, max_size=20), st.floats(0.0, 5.0), st.floats(0.0, 5e-3))
+def test_the_damping_a_simulated_device_states_dissipates_at_least_what_the_tank_credits(forces, b, br):
+    """The credit the tank takes for the device's stated damping (``damping_figures``, contract
+    A2: ``b |dx|^2 / T`` per period) never exceeds what the simulated device dissipated: the
+    command's work less the change of the handle's kinetic energy, measured from its readings."""
+    from hapticproxy.server.devices.sim import make_sim_device
+
+    now = [1_000_000_000]
+    dev = make_sim_device({"kind": "planar", "hand": {"type": "none"}, "damping_n_s_per_m": b,
+                           "rot_damping_n_m_s_per_rad": br, "workspace_min_m": [-1.0, -1.0],
+                           "workspace_max_m": [1.0, 1.0]}, period_s=T, clock_ns=lambda: now[0])
+    bd, brd = pv.damping_figures(0.0, 0.0, dev.info)
+    m, izz = dev.info.moving_mass_kg, dev.info.moving_inertia_kg_m2
+    from hapticproxy.server.devices.base import DEV_NSTATE
+
+    row = np.zeros(DEV_NSTATE)
+    dev.enable()
+    dev.read(row)
+
+    def pose(r):
+        return np.array([r[0], r[1], 2.0 * math.atan2(r[6], r[3])])
+
+    def kinetic(r):
+        return 0.5 * m * (r[7] ** 2 + r[8] ** 2) + 0.5 * izz * r[12] ** 2
+
+    p0, k0 = pose(row), kinetic(row)
+    work = credit = 0.0
+    for fx, fy, tz, held in forces:                 # each force held over ``held`` periods
+        for _ in range(held):
+            assert dev.write(np.array([fx, fy, 0.0, 0.0, 0.0, tz])) == 0
+            now[0] += int(T * 1e9)
+            dev.read(row)
+            p1 = pose(row)
+            d = p1 - p0
+            work += fx * d[0] + fy * d[1] + tz * d[2]
+            credit += (bd * (d[0] ** 2 + d[1] ** 2) + brd * d[2] ** 2) / T
+            p0 = p1
+    assert np.all(np.abs(row[:2]) < 0.9)            # never on an end-stop (it stores energy of its own)
+    dissipated = work - (kinetic(row) - k0)
+    assert credit <= dissipated + 1e-12
+    assert (bd, brd) == (b, br)                     # the device states its own figures
