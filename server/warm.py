@@ -23,6 +23,7 @@ from pathlib import Path
 SERVER_KERNEL_MODULES = (
     "hapticproxy.server.model.kernels",
     "hapticproxy.server.model.linkage",
+    "hapticproxy.server.model.slot",
     "hapticproxy.server.safety",
     "hapticproxy.server.control",
     "hapticproxy.server.tick",
