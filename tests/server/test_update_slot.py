@@ -214,3 +214,44 @@ def test_the_tick_reads_no_slot_without_a_model(rig_factory):
     updates = int(tk[tick.TK_UPDATES])
     _tick(lp, r.clock.now_ns())
     assert int(tk[tick.TK_UPDATES]) == updates and int(tk[tick.TK_UPD_DONE]) != int(tk[tick.TK_UPD_SEQ])
+
+
+def test_a_linkages_acknowledgement_is_the_state_of_the_tick_that_applied_it():
+    """A 3-bar chain pushed onto a floor: the tick that applies a staged update leaves the model's
+    state and the links' poses of that tick in the slot (the joint state the ProxyState reports is
+    computed from them), and the hand wrench of that tick, component by component."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_linkage_loop import LinkageRig
+
+    r = LinkageRig()
+    try:
+        r.run(1.0)
+        lp, proto = r.loop, r.loop.proto
+        assert lp.state_name == "engaged" and proto._linkage
+        m = proto.model
+        for _ in range(200):
+            r.env.service()
+            r.clock.advance(lp.period_ns)
+            proto.poll(r.clock.now_ns())
+            if proto._pending is not None:
+                break
+        now = r.clock.now_ns()
+        proto.exchange(now)
+        assert proto._staged is not None
+        U = m.slot
+        U.ack_lw[:] = np.nan
+        U.ax[:] = np.nan
+        _tick(lp, now)
+        np.testing.assert_array_equal(U.ack_lw, m._lw)
+        np.testing.assert_array_equal(U.ack_st, m._st)
+        hand = lp.ctrl.cs[ctl.CS_HAND:ctl.CS_HAND + 6]
+        assert len(set(hand.tolist())) > 1  # (the push: components that differ)
+        np.testing.assert_array_equal(U.ax[AX_HAND:AX_HAND + 6], hand)
+        acks = proto.acks
+        proto.exchange(now)
+        assert proto.acks == acks + 1
+    finally:
+        r.close()
