@@ -383,11 +383,9 @@ class ProtocolSide:
             return
         self.granted_j += float(self.model.slot.ax[AX_GRANTED_J])
         self.updates = int(lp.tk[tick.TK_UPDATES])
-        # heard when it was received (the tick counted the silence from there too)
-        self.last_update_ns = self._staged_ns
         if lp.life.state == LS["fading"] and lp.life.watchdog == WD_SILENT:
             lp.life.transition("engaged", Reason.RESUMED)
-        self.books(upd, self._staged_ns)
+        self.books(upd, self._staged_ns)  # (heard when received: the silence counts from there, as the tick's)
         self.ack(upd, now)
 
     def books(self, upd, now: int) -> None:
