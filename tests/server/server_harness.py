@@ -413,3 +413,25 @@ def break_contact_rule(case: str, rng, i: int, keys, pos, normal, sep, vc) -> bo
     else:
         return False
     return True
+
+
+def receive_update(rig, tries: int = 200):
+    """The engine's next update, received (decoded) as the Python side beside a ticking thread
+    does, without a step: the ContactUpdate now pending (``rig.loop.proto._pending``)."""
+    lp = rig.loop
+    for _ in range(tries):
+        rig.env.service()
+        rig.clock.advance(lp.period_ns)
+        lp.proto.poll(rig.clock.now_ns())
+        if lp.proto._pending is not None:
+            return lp.proto._pending
+    raise AssertionError("no update")
+
+
+def tick_once(loop, now: int) -> int:
+    """One tick as a clock thread runs it (its lock aside), ending at ``now``; its packed results."""
+    from hapticproxy.server import tick
+
+    loop.tk[tick.TK_SIMULATED] = 1
+    loop.tk[tick.TK_SIM_COST_NS] = 0
+    return tick.tick_at(loop._desc_addr, now, 0)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from server_harness import Rig, WatchdogDevice, make_settings
+from server_harness import Rig, WatchdogDevice, make_settings, receive_update, tick_once
 
 from hapticproxy.server import control as ctl
 from hapticproxy.server import safety as sf
@@ -180,25 +180,6 @@ def test_each_tick_says_when_the_next_is_due(armed):
     tk[tick.TK_LOCK] = 0
 
 
-def _receive(r):
-    """The engine's next update, received (decoded) beside the tick: the ContactUpdate."""
-    lp = r.loop
-    for _ in range(100):
-        r.env.service()
-        r.clock.advance(lp.period_ns)
-        lp.proto.poll(r.clock.now_ns())
-        if lp.proto._pending is not None:
-            return lp.proto._pending
-    raise AssertionError("no update")
-
-
-def _tick(lp, now):
-    """One tick as the clock thread runs it (its lock aside), ending at ``now``."""
-    lp.tk[tick.TK_SIMULATED] = 1
-    lp.tk[tick.TK_SIM_COST_NS] = 0
-    tick.tick_at(lp._desc_addr, now, 0)
-
-
 def test_a_fade_the_tick_started_is_a_transition_before_an_update_resumes(rig_factory):
     """Simulated time: the loop engaged, the clock thread has started the silence fade (target
     zero, rows fading) and an update arrives before Python's next pass. It is staged and applied
@@ -212,10 +193,10 @@ def test_a_fade_the_tick_started_is_a_transition_before_an_update_resumes(rig_fa
     assert lp.state_name == "engaged"
     lp.tk[tick.TK_STATE] = LS["fading"]  # what servo._locked_tick does on silence
     lp.ctrl.cs[ctl.CS_TARGET] = 0.0
-    upd = _receive(r)
+    upd = receive_update(r)
     now = r.clock.now_ns()
     assert proto.exchange(now, locked=False) is True and proto._staged is upd  # staged, no lock
-    _tick(lp, now)
+    tick_once(lp, now)
     assert proto.exchange(now, locked=False) is False and proto.needs_lock  # taking it: the lock's
     assert proto._staged is upd and lp.state_name == "engaged"
     lp.threaded_pass(now, False)
@@ -235,18 +216,18 @@ def test_an_update_waits_in_the_decoder_while_the_slot_is_the_ticks(rig_factory)
     r.run(1.0)
     lp, proto = r.loop, r.loop.proto
     tk = lp.tk
-    first = _receive(r)
+    first = receive_update(r)
     heard = r.clock.now_ns()
     assert proto.exchange(heard, locked=False) and proto._staged is first and proto._pending is None
     seq = int(tk[tick.TK_UPD_SEQ])
     assert seq == int(tk[tick.TK_UPD_DONE]) + 1
-    second = _receive(r)
+    second = receive_update(r)
     assert second is not first
     now = r.clock.now_ns()
     assert proto.exchange(now, locked=False) is False  # the slot is the tick's: nothing changes
     assert proto._staged is first and proto._pending is second and not proto.needs_lock
     updates, acks = proto.updates, proto.acks
-    _tick(lp, now)
+    tick_once(lp, now)
     assert int(tk[tick.TK_UPD_DONE]) == seq and int(tk[tick.TK_UPD_CODE]) == 0
     # applied: counted by the tick, the silence counted from when it was received
     assert int(tk[tick.TK_UPDATES]) == updates + 1 and int(tk[tick.TK_QUIET_SINCE_NS]) >= heard

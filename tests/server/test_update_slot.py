@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from numba import njit
+from server_harness import receive_update, tick_once
 
 from hapticproxy.server import control as ctl
 from hapticproxy.server import tick
@@ -38,21 +39,12 @@ def test_the_slots_descriptor_gives_views_of_its_own_arrays():
     assert U.newI[0, 1] == 9 and U.lw_e[0, 0] == 2.0 and U.ack_lw[0, 1] == 4.0 and U.ax[NAX - 1] == 1.5
 
 
-def _receive(r):
+def _received(r):
+    """The engaged rig's loop, protocol side, tick words and model, and the update just received
+    (pending, not staged) with the time it was received."""
     lp = r.loop
-    for _ in range(200):
-        r.env.service()
-        r.clock.advance(lp.period_ns)
-        lp.proto.poll(r.clock.now_ns())
-        if lp.proto._pending is not None:
-            return lp.proto._pending
-    raise AssertionError("no update")
-
-
-def _tick(lp, now):
-    lp.tk[tick.TK_SIMULATED] = 1
-    lp.tk[tick.TK_SIM_COST_NS] = 0
-    return tick.tick_at(lp._desc_addr, now, 0)
+    upd = receive_update(r)
+    return lp, lp.proto, lp.tk, lp.proto.model, upd, r.clock.now_ns()
 
 
 @pytest.fixture
@@ -69,11 +61,7 @@ def test_the_tick_applies_a_staged_update_and_leaves_its_acknowledgement(engaged
     acknowledgement's: the state after that tick's step, not before it), the hand wrench and the
     device's inputs of that tick; then the slot is Python's (``TK_UPD_DONE``)."""
     r = engaged
-    lp, proto = r.loop, r.loop.proto
-    tk = lp.tk
-    m = proto.model
-    upd = _receive(r)
-    now = r.clock.now_ns()
+    lp, proto, tk, m, upd, now = _received(r)
     n_upd = int(m._cnt[K_UPDATES])
     ticks_updates = int(tk[tick.TK_UPDATES])
     proto.exchange(now)
@@ -81,7 +69,7 @@ def test_the_tick_applies_a_staged_update_and_leaves_its_acknowledgement(engaged
     assert int(tk[tick.TK_UPD_SEQ]) != int(tk[tick.TK_UPD_DONE])
     U = m.slot
     U.ack_st[:] = np.nan
-    _tick(lp, now)
+    tick_once(lp, now)
     assert int(tk[tick.TK_UPD_SEQ]) == int(tk[tick.TK_UPD_DONE]) and int(tk[tick.TK_UPD_CODE]) == 0
     assert int(m._cnt[K_UPDATES]) == n_upd + 1 and int(tk[tick.TK_UPDATES]) == ticks_updates + 1
     assert int(m._cnt[K_M]) == upd.keys.shape[0] >= 1
@@ -89,7 +77,7 @@ def test_the_tick_applies_a_staged_update_and_leaves_its_acknowledgement(engaged
     np.testing.assert_array_equal(U.ax[AX_HAND:AX_HAND + 6], lp.ctrl.cs[ctl.CS_HAND:ctl.CS_HAND + 6])
     np.testing.assert_array_equal(U.ax[AX_INPUTS:AX_INPUTS + 3], lp.dev[DS_BUTTONS:DS_BUTTONS + 3])
     acks = proto.acks
-    _tick(lp, now + lp.period_ns)  # a tick with nothing staged leaves the slot alone
+    tick_once(lp, now + lp.period_ns)  # a tick with nothing staged leaves the slot alone
     assert not np.array_equal(U.ack_st, m._st)
     proto.exchange(now + lp.period_ns)
     assert proto.acks == acks + 1 and proto._staged is None
@@ -100,18 +88,14 @@ def test_an_update_the_models_kernel_refuses_changes_nothing_and_is_not_acknowle
     the slot after staging): refused, the model keeps its contacts, counted as an update error,
     no acknowledgement, the updates not counted, the silence not reset."""
     r = engaged
-    lp, proto = r.loop, r.loop.proto
-    tk = lp.tk
-    m = proto.model
-    upd = _receive(r)
-    now = r.clock.now_ns()
+    lp, proto, tk, m, upd, now = _received(r)
     proto.exchange(now)
     assert proto._staged is upd and upd.keys.shape[0] >= 1
     m.slot.nrm[0] = (0.0, 0.0, 0.0)
     C = m._C.copy()
     quiet = int(tk[tick.TK_QUIET_SINCE_NS])
     errors, acks, updates = proto.update_errors, proto.acks, int(tk[tick.TK_UPDATES])
-    _tick(lp, now)
+    tick_once(lp, now)
     assert int(tk[tick.TK_UPD_CODE]) != 0 and int(tk[tick.TK_UPD_DONE]) == int(tk[tick.TK_UPD_SEQ])
     assert int(tk[tick.TK_UPDATES]) == updates and int(tk[tick.TK_QUIET_SINCE_NS]) == quiet
     proto.exchange(now)
@@ -123,10 +107,7 @@ def test_a_staged_update_is_not_silence(engaged):
     """The environment's watchdog passed but an update waits in the slot: not silent (the tick
     applies it next); once the tick is done with the slot, silent."""
     r = engaged
-    lp, proto = r.loop, r.loop.proto
-    tk = lp.tk
-    upd = _receive(r)
-    now = r.clock.now_ns()
+    lp, proto, tk, _, upd, now = _received(r)
     proto.exchange(now)
     assert proto._staged is upd
     late = int(tk[tick.TK_QUIET_SINCE_NS]) + int(tk[tick.TK_WATCHDOG_NS]) + 1
@@ -142,14 +123,14 @@ def test_a_model_dropped_with_an_update_staged_leaves_nothing_for_the_tick(engag
     r = engaged
     lp, proto = r.loop, r.loop.proto
     tk = lp.tk
-    _receive(r)
+    receive_update(r)
     proto.exchange(r.clock.now_ns())
     assert proto._staged is not None
     proto.drop_model()
     assert int(tk[tick.TK_UPD_DESC]) == 0 and int(tk[tick.TK_UPD_DONE]) == int(tk[tick.TK_UPD_SEQ])
     assert proto._staged is None
     updates = int(tk[tick.TK_UPDATES])
-    _tick(lp, r.clock.now_ns())
+    tick_once(lp, r.clock.now_ns())
     assert int(tk[tick.TK_UPDATES]) == updates
 
 
@@ -158,7 +139,7 @@ def test_a_silence_that_passes_while_an_update_is_staged_is_not_a_fade(engaged):
     the update staged in the step before: no fade (it was heard), no transition at all."""
     r = engaged
     lp, proto = r.loop, r.loop.proto
-    upd = _receive(r)
+    upd = receive_update(r)
     proto.exchange(r.clock.now_ns())
     assert proto._staged is upd
     n = len(lp.shared.transitions_since(0))
@@ -181,7 +162,7 @@ def test_the_compiled_loop_hands_back_the_tick_that_applied_an_update(engaged):
     r = engaged
     lp, proto = r.loop, r.loop.proto
     tk = lp.tk
-    _receive(r)
+    receive_update(r)
     proto.exchange(r.clock.now_ns())
     assert proto._staged is not None
     now = time.monotonic_ns()  # (run_ticks waits on CLOCK_MONOTONIC)
@@ -212,7 +193,7 @@ def test_the_tick_reads_no_slot_without_a_model(rig_factory):
     assert lp.proto.model is None and int(tk[tick.TK_UPD_DESC]) == 0
     tk[tick.TK_UPD_SEQ] = int(tk[tick.TK_UPD_DONE]) + 1
     updates = int(tk[tick.TK_UPDATES])
-    _tick(lp, r.clock.now_ns())
+    tick_once(lp, r.clock.now_ns())
     assert int(tk[tick.TK_UPDATES]) == updates and int(tk[tick.TK_UPD_DONE]) != int(tk[tick.TK_UPD_SEQ])
 
 
@@ -232,19 +213,14 @@ def test_a_linkages_acknowledgement_is_the_state_of_the_tick_that_applied_it():
         lp, proto = r.loop, r.loop.proto
         assert lp.state_name == "engaged" and proto._linkage
         m = proto.model
-        for _ in range(200):
-            r.env.service()
-            r.clock.advance(lp.period_ns)
-            proto.poll(r.clock.now_ns())
-            if proto._pending is not None:
-                break
+        receive_update(r)
         now = r.clock.now_ns()
         proto.exchange(now)
         assert proto._staged is not None
         U = m.slot
         U.ack_lw[:] = np.nan
         U.ax[:] = np.nan
-        _tick(lp, now)
+        tick_once(lp, now)
         np.testing.assert_array_equal(U.ack_lw, m._lw)
         np.testing.assert_array_equal(U.ack_st, m._st)
         hand = lp.ctrl.cs[ctl.CS_HAND:ctl.CS_HAND + 6]
