@@ -121,11 +121,9 @@ def test_a_model_dropped_with_an_update_staged_leaves_nothing_for_the_tick(engag
     """The session ends (the model goes) while an update waits in the slot: the slot is forgotten
     (``TK_UPD_DONE`` = ``TK_UPD_SEQ``, no slot address), and the next ticks apply nothing."""
     r = engaged
-    lp, proto = r.loop, r.loop.proto
-    tk = lp.tk
-    receive_update(r)
-    proto.exchange(r.clock.now_ns())
-    assert proto._staged is not None
+    lp, proto, tk, _, upd, now = _received(r)
+    proto.exchange(now)
+    assert proto._staged is upd
     proto.drop_model()
     assert int(tk[tick.TK_UPD_DESC]) == 0 and int(tk[tick.TK_UPD_DONE]) == int(tk[tick.TK_UPD_SEQ])
     assert proto._staged is None
@@ -160,11 +158,9 @@ def test_the_compiled_loop_hands_back_the_tick_that_applied_an_update(engaged):
     import time
 
     r = engaged
-    lp, proto = r.loop, r.loop.proto
-    tk = lp.tk
-    receive_update(r)
-    proto.exchange(r.clock.now_ns())
-    assert proto._staged is not None
+    lp, proto, tk, _, upd, now = _received(r)
+    proto.exchange(now)
+    assert proto._staged is upd
     now = time.monotonic_ns()  # (run_ticks waits on CLOCK_MONOTONIC)
     tk[tick.TK_DEADLINE_NS] = now + lp.period_ns
     tk[tick.TK_LAST_WRITE_NS] = now
