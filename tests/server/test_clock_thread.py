@@ -442,3 +442,61 @@ def test_an_update_brings_python_to_the_lock_by_itself():
             lp.request_stop()
             th.join(10)
         lp.close()
+
+
+@pytest.mark.parametrize("stop_by", ["signal", "supervisor"])
+def test_beside_the_clock_thread_housekeeping_takes_the_lock_when_it_has_something_to_do(stop_by):
+    """Housekeeping takes the tick's lock only when it has something to do, and then it does it:
+    a session that ended (Bye) fades it and the loop goes idle for the session's end, not the
+    engine's silence; a supervisor's re-arm request is acknowledged at once even when there is
+    nothing to re-arm (a request left pending would re-arm a later fault); a stop requested by a
+    signal (``_stop_flag``) or by the supervisor (its control word) stops the loop. The real loop
+    on the monotonic clock; counts and states only."""
+    import threading
+    import time
+
+    from hapticproxy.clients.runner import ClientRunner
+    from hapticproxy.clients.stub_engine import StubEngine
+    from hapticproxy.server.shm import CT
+
+    url = "mem://clock-thread-housekeeping"
+    lp = HapticLoop.build(make_settings(loop={"protocol_thread": True}, transport={"url": url}),
+                          clock=MonotonicClock())
+    th = None
+
+    def wait_for(cond, seconds=10.0):
+        end = time.monotonic() + seconds
+        while not cond() and time.monotonic() < end:
+            time.sleep(0.01)
+        return cond()
+
+    try:
+        lp.warm_up()
+        lp.start()
+        th = threading.Thread(target=lp.run, kwargs={"duration_s": 60.0}, daemon=True)
+        th.start()
+        runner = ClientRunner(StubEngine(seed=3), url, scene="testbed", realtime=True, connect_timeout_s=10.0)
+        try:
+            while runner.stats()["steps"] < 30:
+                wait = runner.poll()
+                if wait > 0:
+                    time.sleep(min(wait, 0.002))
+        finally:
+            runner.close()  # Bye
+        assert wait_for(lambda: lp.state_name == "idle"), lp.state_name
+        reasons = [Reason(t[4]) for t in lp.shared.transitions_since(0)]
+        assert Reason.SESSION_ENDED in reasons and Reason.SILENT not in reasons, reasons
+        ctrl = lp.shared.control
+        ctrl[CT["rearm"]] += 1
+        assert wait_for(lambda: ctrl[CT["rearm_ack"]] == ctrl[CT["rearm"]])
+        if stop_by == "signal":
+            lp._stop_flag = True
+        else:
+            ctrl[CT["stop"]] += 1
+        th.join(10)
+        assert not th.is_alive() and lp.state_name == "stopped"
+    finally:
+        if th is not None and th.is_alive():
+            lp.request_stop()
+            th.join(10)
+        lp.close()
