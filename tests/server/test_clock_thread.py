@@ -447,7 +447,7 @@ def test_an_update_brings_python_to_the_lock_by_itself():
 @pytest.mark.parametrize("stop_by", ["signal", "supervisor"])
 def test_beside_the_clock_thread_housekeeping_takes_the_lock_when_it_has_something_to_do(stop_by):
     """Housekeeping takes the tick's lock only when it has something to do, and then it does it:
-    a session that ended (Bye) fades it and the loop goes idle for the session's end, not the
+    a stall trip's fault recovers once the loop has been on time; a session that ended (Bye) fades it and the loop goes idle for the session's end, not the
     engine's silence; a supervisor's re-arm request is acknowledged at once even when there is
     nothing to re-arm (a request left pending would re-arm a later fault); a stop requested by a
     signal (``_stop_flag``) or by the supervisor (its control word) stops the loop. The real loop
@@ -457,6 +457,7 @@ def test_beside_the_clock_thread_housekeeping_takes_the_lock_when_it_has_somethi
 
     from hapticproxy.clients.runner import ClientRunner
     from hapticproxy.clients.stub_engine import StubEngine
+    from hapticproxy.server.servo import lock, unlock
     from hapticproxy.server.shm import CT
 
     url = "mem://clock-thread-housekeeping"
@@ -476,11 +477,28 @@ def test_beside_the_clock_thread_housekeeping_takes_the_lock_when_it_has_somethi
         th = threading.Thread(target=lp.run, kwargs={"duration_s": 60.0}, daemon=True)
         th.start()
         runner = ClientRunner(StubEngine(seed=3), url, scene="testbed", realtime=True, connect_timeout_s=10.0)
-        try:
-            while runner.stats()["steps"] < 30:
+
+        def pump(until, seconds=10.0):
+            end = time.monotonic() + seconds
+            while not until() and time.monotonic() < end:
                 wait = runner.poll()
                 if wait > 0:
                     time.sleep(min(wait, 0.002))
+            return until()
+
+        try:
+            assert pump(lambda: runner.stats()["steps"] >= 30 and lp.state_name == "engaged"), lp.state_name
+            # a stall trip (as the loop's own stall of the device's watchdog makes it): in fault,
+            # recovered by housekeeping once the loop has been on time for stall_recover_s
+            lock(lp.tk)
+            try:
+                lp.life.stall_ns = 80_000_000
+                lp.life.on_stall_trip(lp.clock.now_ns(), own=True)
+                lp.life.ontime_since = lp.clock.now_ns()
+            finally:
+                unlock(lp.tk)
+            assert lp.state_name == "fault"
+            assert pump(lambda: lp.state_name == "engaged" and lp.stall_recoveries == 1), lp.state_name
         finally:
             runner.close()  # Bye
         assert wait_for(lambda: lp.state_name == "idle"), lp.state_name
