@@ -15,6 +15,10 @@ the fault and lifecycle cases of ``tests/faults/test_bench_faults.py`` (``clock-
 """
 from __future__ import annotations
 
+import threading
+import time
+from contextlib import contextmanager
+
 import numpy as np
 import pytest
 from server_harness import Rig, WatchdogDevice, make_settings, receive_update, tick_once
@@ -361,52 +365,72 @@ def test_python_before_the_clock_thread_after_a_stall_does_not_take_it_for_silen
     assert Reason.SILENT not in [Reason(t[4]) for t in lp.shared.transitions_since(0)]
 
 
-def test_updates_and_housekeeping_with_nothing_to_do_take_no_lock():
-    """The real loop with a clock thread on the monotonic clock, housekeeping every 10 ms: an
-    engine's session engages and its updates are applied and acknowledged through the update
-    slot; the Python thread takes the tick's lock for far fewer passes than there are updates
-    (before the slot: one per update and one per housekeeping, 100 a second). Counts only."""
-    import threading
-    import time
-
-    from hapticproxy.clients.runner import ClientRunner
-    from hapticproxy.clients.stub_engine import StubEngine
-
-    url = "mem://clock-thread-no-lock"
+@contextmanager
+def _loop_thread(url, duration_s, no_housekeeping=False):
+    """The real loop with a clock thread on the monotonic clock, run by a thread of its own for
+    ``duration_s`` (stopped and closed at the end whatever happened): ``(loop, thread)``."""
     lp = HapticLoop.build(make_settings(loop={"protocol_thread": True}, transport={"url": url}),
                           clock=MonotonicClock())
     th = None
-    passes = []
     try:
         lp.warm_up()
         lp.start()
-        th = threading.Thread(target=lp.run, kwargs={"duration_s": 3.0}, daemon=True)
+        if no_housekeeping:
+            lp.tk[tick.TK_HK_EVERY] = 1 << 40
+        th = threading.Thread(target=lp.run, kwargs={"duration_s": duration_s}, daemon=True)
         th.start()
-        runner = ClientRunner(StubEngine(seed=2), url, scene="testbed", realtime=True, connect_timeout_s=10.0)
-
-        def pump(steps):
-            while runner.stats()["steps"] < steps:
-                wait = runner.poll()
-                if wait > 0:
-                    time.sleep(min(wait, 0.002))
-
-        try:
-            pump(20)  # engaged by now
-            p0, u0 = lp.lock_passes, lp.updates
-            pump(80)
-            passes.append((lp.lock_passes - p0, lp.updates - u0, lp.state_name))
-        finally:
-            runner.close()
-        th.join(20)
-        assert not th.is_alive()
-        n_passes, n_updates, state = passes[0]
-        assert state == "engaged" and n_updates >= 30, passes
-        assert n_passes < n_updates / 4, passes
+        yield lp, th
     finally:
         if th is not None and th.is_alive():
             lp.request_stop()
             th.join(10)
         lp.close()
+
+
+def _engine(url, seed):
+    from hapticproxy.clients.runner import ClientRunner
+    from hapticproxy.clients.stub_engine import StubEngine
+
+    return ClientRunner(StubEngine(seed=seed), url, scene="testbed", realtime=True, connect_timeout_s=10.0)
+
+
+def _pump(runner, until, seconds=10.0):
+    """Run the engine (real time) until ``until()`` or ``seconds``; ``until()``."""
+    end = time.monotonic() + seconds
+    while not until() and time.monotonic() < end:
+        wait = runner.poll()
+        if wait > 0:
+            time.sleep(min(wait, 0.002))
+    return until()
+
+
+def _wait_for(cond, seconds=10.0):
+    end = time.monotonic() + seconds
+    while not cond() and time.monotonic() < end:
+        time.sleep(0.01)
+    return cond()
+
+
+def test_updates_and_housekeeping_with_nothing_to_do_take_no_lock():
+    """The real loop with a clock thread on the monotonic clock, housekeeping every 10 ms: an
+    engine's session engages and its updates are applied and acknowledged through the update
+    slot; the Python thread takes the tick's lock for far fewer passes than there are updates
+    (before the slot: one per update and one per housekeeping, 100 a second). Counts only."""
+    url = "mem://clock-thread-no-lock"
+    with _loop_thread(url, 3.0) as (lp, th):
+        runner = _engine(url, 2)
+        try:
+            _pump(runner, lambda: runner.stats()["steps"] >= 20, 60.0)  # engaged by now
+            p0, u0 = lp.lock_passes, lp.updates
+            _pump(runner, lambda: runner.stats()["steps"] >= 80, 60.0)
+            passes = (lp.lock_passes - p0, lp.updates - u0, lp.state_name)
+        finally:
+            runner.close()
+        th.join(20)
+        assert not th.is_alive()
+        n_passes, n_updates, state = passes
+        assert state == "engaged" and n_updates >= 30, passes
+        assert n_passes < n_updates / 4, passes
 
 
 def test_an_update_brings_python_to_the_lock_by_itself():
@@ -415,79 +439,33 @@ def test_an_update_brings_python_to_the_lock_by_itself():
     ``TK_NEEDS_PYTHON`` through ``python_has_work``); the others go through the update slot. An
     engine's session engages, and its updates are applied and acknowledged (counts, no time
     asserted)."""
-    import threading
-
-    from hapticproxy.clients.runner import ClientRunner
-    from hapticproxy.clients.stub_engine import StubEngine
-
     url = "mem://clock-thread-updates"
-    lp = HapticLoop.build(make_settings(loop={"protocol_thread": True}, transport={"url": url}),
-                          clock=MonotonicClock())
-    th = None
-    try:
-        lp.warm_up()
-        lp.start()
-        lp.tk[tick.TK_HK_EVERY] = 1 << 40  # no housekeeping pass
-        th = threading.Thread(target=lp.run, kwargs={"duration_s": 3.0}, daemon=True)
-        th.start()
-        runner = ClientRunner(StubEngine(seed=1), url, scene="testbed", realtime=True, connect_timeout_s=10.0)
-        st = runner.run(max_steps=60)
+    with _loop_thread(url, 3.0, no_housekeeping=True) as (lp, th):
+        st = _engine(url, 1).run(max_steps=60)
         th.join(20)
         assert not th.is_alive()
         assert lp.servo is not None and lp.engagements == 1, (st, lp.counters())
         assert lp.updates >= 10 and lp.acks >= lp.updates - 1, (lp.updates, lp.acks)
         assert st["proxy_states"] >= 10
-    finally:
-        if th is not None and th.is_alive():
-            lp.request_stop()
-            th.join(10)
-        lp.close()
 
 
 @pytest.mark.parametrize("stop_by", ["signal", "supervisor"])
 def test_beside_the_clock_thread_housekeeping_takes_the_lock_when_it_has_something_to_do(stop_by):
     """Housekeeping takes the tick's lock only when it has something to do, and then it does it:
-    a stall trip's fault recovers once the loop has been on time; a session that ended (Bye) fades it and the loop goes idle for the session's end, not the
-    engine's silence; a supervisor's re-arm request is acknowledged at once even when there is
-    nothing to re-arm (a request left pending would re-arm a later fault); a stop requested by a
-    signal (``_stop_flag``) or by the supervisor (its control word) stops the loop. The real loop
-    on the monotonic clock; counts and states only."""
-    import threading
-    import time
-
-    from hapticproxy.clients.runner import ClientRunner
-    from hapticproxy.clients.stub_engine import StubEngine
+    a stall trip's fault recovers once the loop has been on time; a session that ended (Bye)
+    fades it and the loop goes idle for the session's end, not the engine's silence; a
+    supervisor's re-arm request is acknowledged at once even when there is nothing to re-arm (a
+    request left pending would re-arm a later fault); a stop requested by a signal
+    (``_stop_flag``) or by the supervisor (its control word) stops the loop. The real loop on the
+    monotonic clock; counts and states only."""
     from hapticproxy.server.servo import lock, unlock
     from hapticproxy.server.shm import CT
 
     url = "mem://clock-thread-housekeeping"
-    lp = HapticLoop.build(make_settings(loop={"protocol_thread": True}, transport={"url": url}),
-                          clock=MonotonicClock())
-    th = None
-
-    def wait_for(cond, seconds=10.0):
-        end = time.monotonic() + seconds
-        while not cond() and time.monotonic() < end:
-            time.sleep(0.01)
-        return cond()
-
-    try:
-        lp.warm_up()
-        lp.start()
-        th = threading.Thread(target=lp.run, kwargs={"duration_s": 60.0}, daemon=True)
-        th.start()
-        runner = ClientRunner(StubEngine(seed=3), url, scene="testbed", realtime=True, connect_timeout_s=10.0)
-
-        def pump(until, seconds=10.0):
-            end = time.monotonic() + seconds
-            while not until() and time.monotonic() < end:
-                wait = runner.poll()
-                if wait > 0:
-                    time.sleep(min(wait, 0.002))
-            return until()
-
+    with _loop_thread(url, 60.0) as (lp, th):
+        runner = _engine(url, 3)
         try:
-            assert pump(lambda: runner.stats()["steps"] >= 30 and lp.state_name == "engaged"), lp.state_name
+            assert _pump(runner, lambda: runner.stats()["steps"] >= 30 and lp.state_name == "engaged"), lp.state_name
             # a stall trip (as the loop's own stall of the device's watchdog makes it): in fault,
             # recovered by housekeeping once the loop has been on time for stall_recover_s
             lock(lp.tk)
@@ -498,23 +476,18 @@ def test_beside_the_clock_thread_housekeeping_takes_the_lock_when_it_has_somethi
             finally:
                 unlock(lp.tk)
             assert lp.state_name == "fault"
-            assert pump(lambda: lp.state_name == "engaged" and lp.stall_recoveries == 1), lp.state_name
+            assert _pump(runner, lambda: lp.state_name == "engaged" and lp.stall_recoveries == 1), lp.state_name
         finally:
             runner.close()  # Bye
-        assert wait_for(lambda: lp.state_name == "idle"), lp.state_name
+        assert _wait_for(lambda: lp.state_name == "idle"), lp.state_name
         reasons = [Reason(t[4]) for t in lp.shared.transitions_since(0)]
         assert Reason.SESSION_ENDED in reasons and Reason.SILENT not in reasons, reasons
         ctrl = lp.shared.control
         ctrl[CT["rearm"]] += 1
-        assert wait_for(lambda: ctrl[CT["rearm_ack"]] == ctrl[CT["rearm"]])
+        assert _wait_for(lambda: ctrl[CT["rearm_ack"]] == ctrl[CT["rearm"]])
         if stop_by == "signal":
             lp._stop_flag = True
         else:
             ctrl[CT["stop"]] += 1
         th.join(10)
         assert not th.is_alive() and lp.state_name == "stopped"
-    finally:
-        if th is not None and th.is_alive():
-            lp.request_stop()
-            th.join(10)
-        lp.close()
