@@ -47,7 +47,7 @@ from .layout import (
     E_NORMAL_NOT_UNIT, E_NORMAL_OUT_OF_PLANE, E_OK, E_TOO_MANY,
     K_COLLISIONS, K_DEFORMED, K_DROPPED, K_LEFT, K_M, K_N_COLLIDING, K_N_IMPENDING,
     K_N_PENETRATING, K_N_SEPARATING, K_NEW, K_NONFINITE, K_PROXY, K_RANK, K_SLIPPING, K_STEPS,
-    K_FLIPS, K_FLIPS_TAKEN, K_RECOVERING, K_REKEYED, K_UPDATES,
+    K_FLIPS, K_FLIPS_TAKEN, K_HELD, K_RECOVERING, K_REKEYED, K_UPDATES,
     FLIP_DOT, FLIP_REFUSE_MAX, KEY_SLIDE_FACTOR, MAX_DOF, NCOLS_F, NCOLS_I, REKEY_COS, REKEY_DISTANCE_M,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
     P_EPS, P_ORIGIN, P_POLICY, P_REC_AGE, P_REC_CUT, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN,
@@ -400,6 +400,52 @@ def _recover(par, st, C, CI, cnt, m):
 
 
 @njit(**_JIT)
+def _plane_speed(vc_m_per_s, sprev_m, cut):
+    """The constraint's speed along its normal this step (set-position modulation).
+
+    Contract: the engine's ``v_constr`` unchanged, except for a constraint that advances into
+    the tool (``v_constr > 0``) at a contact touching at the last step (``sprev <= TOUCH_TOL_M``)
+    while the passivity layer is short (``cut > 0``): then ``(1 - cut) v_constr``, 0 from
+    ``cut >= 1``. Never faster than the engine's, never reversed, never changed for a receding
+    or separated constraint: only the part of an update's motion that pushes into the proxy,
+    and so stores energy in its penalty spring, waits for the budget. A non-finite cut holds
+    nothing back (the layer's level is checked where it is made)."""
+    if vc_m_per_s > 0.0 and cut > 0.0 and sprev_m <= TOUCH_TOL_M:
+        if cut >= 1.0:
+            return 0.0
+        return vc_m_per_s * (1.0 - cut)
+    return vc_m_per_s
+
+
+@njit(**_JIT)
+def _hold(par, st, C, cnt, m):
+    """Set-position modulation of the model's moving geometry (Lee and Huang's PSPM, for the
+    local model's constraints): the part of this step's constraint advance that ``_plane_speed``
+    holds back is moved from the constraint (``C_REC`` down) into the deformation (``C_DEF`` up),
+    so the proxy's separation grows by it and the rules' own recovery completes it later, at the
+    recovery's bounded speed, itself slowed by the same cut. A geometry jump needs nothing
+    here: the update rules (eqs. 4/5) never deepen a touching contact at an update; they deform
+    it, and the recovery is what stores that energy. ``K_HELD`` counts the contacts held."""
+    cut = par[P_REC_CUT]
+    n_h = 0
+    if cut > 0.0:
+        dt = par[P_DT]
+        t = st[S_T]
+        for i in range(m):
+            vc = C[i, C_VC]
+            # the advance eq. 2 adds from the last step to this one: none yet at an update's step
+            span = t - C[i, C_TU]
+            if span > dt:
+                span = dt
+            held = (vc - _plane_speed(vc, C[i, C_S], cut)) * span
+            if held > 0.0:
+                C[i, C_REC] -= held
+                C[i, C_DEF] += held
+                n_h += 1
+    cnt[K_HELD] = n_h
+
+
+@njit(**_JIT)
 def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, V, m):
     """Everything after the kinematics. Reads qd from st, leaves the new velocity in V[_V_QD]
     and the rendered wrenches in st; returns False when the result is not finite."""
@@ -417,6 +463,8 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
     for a in range(d):
         qd0[a] = st[S_QD + a]
         qd[a] = qd0[a]
+    cut = par[P_REC_CUT]
+    _hold(par, st, C, cnt, m)
     _recover(par, st, C, CI, cnt, m)
     if not _chol(D, L, d):
         return False
@@ -429,10 +477,10 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
     for i in range(m):
         n0 = C[i, C_N]; n1 = C[i, C_N + 1]; n2 = C[i, C_N + 2]
         # the constraint moves with v_constr along n since its update (eq. 2), and towards the
-        # tool by what the recovery took back of the deformation
+        # tool by what the recovery took back of the deformation (less what the layer held back)
         s = (n0 * (X[i, 0] - C[i, C_CP]) + n1 * (X[i, 1] - C[i, C_CP + 1])
              + n2 * (X[i, 2] - C[i, C_CP + 2]) - C[i, C_VC] * (t - C[i, C_TU]) - C[i, C_REC])
-        vn = -C[i, C_VC]
+        vn = -_plane_speed(C[i, C_VC], C[i, C_S], cut)
         for a in range(d):
             jn = n0 * Jpt[i, 0, a] + n1 * Jpt[i, 1, a] + n2 * Jpt[i, 2, a]
             Jn[i, a] = jn
@@ -590,7 +638,7 @@ def _core(d, h, par, st, C, CI, cnt, D, L, U, G, Y, Jh, Jpt, Jn, Bm, Cm, X, Zn, 
                 Zn[i, j] = 0.0
             CI[i, CI_SLIP] = 0
             continue
-        vn = -C[i, C_VC]
+        vn = -_plane_speed(C[i, C_VC], C[i, C_SPREV], cut)
         for a in range(d):
             vn += Jn[i, a] * qd[a]
         C[i, C_VN] = vn

@@ -66,9 +66,11 @@ C_Z = 16            # 16..18 friction bristle (stick spring elongation), world, 
 C_FT = 19           # 19..21 friction force on the proxy, world, N
 C_IMP = 22          # collision impulse at this contact this step, N s (eq. 11)
 C_DEF = 23          # deformation still to recover, m (>= 0): how far the update rules (eqs. 4/5)
-                    # put the local contact point out along n from the true feature
-C_REC = 24          # deformation recovered since the update, m (>= 0): the proxy's separation at this
-                    # contact is eq. 3 minus C_REC (the constraint moved towards the tool by it)
+                    # put the local contact point out along n from the true feature, and how far
+                    # the passivity layer held the constraint's advance back (``_hold``)
+C_REC = 24          # deformation recovered since the update, less the advance held back, m: the
+                    # proxy's separation at this contact is eq. 3 minus C_REC (the constraint moved
+                    # towards the tool by it; negative while the layer holds the constraint back)
 NCOLS_F = 25
 
 # --- contact store, int64 columns -------------------------------------------------------------
@@ -113,10 +115,12 @@ P_CPL_BT = 38       # ... its translational damper, N s/m
 P_CPL_KR = 39       # ... its rotational spring, N m/rad
 P_CPL_BR = 40       # ... its rotational damper, N m s/rad
 P_INTEG = 41        # INTEG_*: how the step treats the stiff and damped terms (stored as float)
-P_REC_CUT = 42      # deformation recovery: the share of P_REC_V the passivity layer takes away, 0..1
-                    # (the controller writes its last limiting factor every step it drives the proxy:
-                    # the recovery, an active element, slows as the layer's tank runs short and stops
-                    # when it is empty; 0: a bare model, or the layer off)
+P_REC_CUT = 42      # the share the passivity layer takes away, 0..1, of the model's two active
+                    # elements: the deformation recovery's P_REC_V, and the advance into the tool
+                    # (v_constr > 0) of a constraint the proxy touches (set-position modulation: the
+                    # held part becomes deformation, recovered later). The controller writes its
+                    # last limiting factor every step it drives the proxy: both slow as the layer's
+                    # tank runs short and stop when it is empty; 0: a bare model, or the layer off
 NPAR = 43
 
 # --- integrators (P_INTEG) --------------------------------------------------------------------
@@ -182,7 +186,9 @@ K_OSC_RUN = 20      # consecutive steps at whose start a coordinate of the proxy
                     # since the previous step's start without decaying, above DIVERGE_SPEED (a
                     # numerical instability's signature)
 K_DIVERGED = 21     # times K_OSC_RUN reached DIVERGE_STEPS (cumulative): the proxy's integration diverged
-NCOUNT = 22
+K_HELD = 22        # contacts whose constraint's advance into the tool the passivity layer held back
+                    # this step (set-position modulation: ``P_REC_CUT`` of v_constr, while touching)
+NCOUNT = 23
 
 # --- linkages ---------------------------------------------------------------------------------
 JT_ROOT = 0         # joint types, the protocol's JointType values

@@ -28,7 +28,7 @@ from .slot import descriptor as slot_descriptor, new_slot
 from .layout import (
     C_CP, C_D, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
     CI_AGE, CI_KEY, CI_SLIP, CI_STATE, CONTACT_STATE_NAMES, E_OK, ERROR_FIELDS,
-    K_COLLISIONS, K_DEFORMED, K_DROPPED, K_FLIPS, K_FLIPS_TAKEN, K_LEFT, K_RECOVERING, K_REKEYED, K_M, K_N_COLLIDING, K_N_IMPENDING,
+    K_COLLISIONS, K_DEFORMED, K_DROPPED, K_FLIPS, K_FLIPS_TAKEN, K_HELD, K_LEFT, K_RECOVERING, K_REKEYED, K_M, K_N_COLLIDING, K_N_IMPENDING,
     K_N_PENETRATING, K_N_SEPARATING, K_NEW, K_NONFINITE, K_PROXY, K_RANK, K_SLIPPING, K_STEPS,
     K_UPDATES, NCOLS_F, NCOLS_I, NCOUNT, NPAR, NSTATE,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_EPS, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK,
@@ -691,6 +691,12 @@ class LocalModel:
         return int(self._cnt[K_RECOVERING])
 
     @property
+    def held(self) -> int:
+        """Contacts whose constraint's advance into the tool the last step held back (the
+        passivity layer's set-position modulation, ``P_REC_CUT``)."""
+        return int(self._cnt[K_HELD])
+
+    @property
     def recovery_force_step_n(self) -> float:
         """Penalty force the recovery added at the last step at a fixed pose (k x the distance
         recovered, summed over the contacts), N: at most ``force_rate_n_per_s`` x the period."""
@@ -862,7 +868,7 @@ class LocalModel:
             "separating": int(c[K_N_SEPARATING]), "rank": int(c[K_RANK]),
             "slipping": int(c[K_SLIPPING]), "flips_refused": int(c[K_FLIPS]), "flips_taken": int(c[K_FLIPS_TAKEN]),
             "rekeyed": int(c[K_REKEYED]),
-            "recovering": int(c[K_RECOVERING]), "oscillating_steps": int(c[K_OSC_RUN]),
+            "recovering": int(c[K_RECOVERING]), "held": int(c[K_HELD]), "oscillating_steps": int(c[K_OSC_RUN]),
             "diverged": int(c[K_DIVERGED]),
         }
 

@@ -14,7 +14,7 @@ from .layout import (
     C_CP, C_DEF, C_FN, C_FT, C_IMP, C_N, C_P, C_REC, C_S, C_SPREV, C_TU, C_VC, C_VN, C_Z,
     CI_AGE, CI_SLIP, CI_STATE, CST_COLLIDING, CST_IMPENDING, CST_PENETRATING, CST_SEPARATING,
     K_COLLISIONS, K_M, K_N_COLLIDING, K_N_IMPENDING, K_N_PENETRATING, K_N_SEPARATING,
-    K_NONFINITE, K_PROXY, K_RANK, K_RECOVERING, K_SLIPPING, K_STEPS,
+    K_HELD, K_NONFINITE, K_PROXY, K_RANK, K_RECOVERING, K_SLIPPING, K_STEPS,
     P_AXIS, P_B, P_BT, P_DT, P_E, P_GRAV, P_HAND, P_INERTIA, P_K, P_KT, P_MASS, P_MUK, P_MUS,
     P_ORIGIN, P_REC_AGE, P_REC_CUT, P_REC_FRATE, P_REC_TAU, P_REC_V, P_REC_VN, PS_COLLIDING, PS_FREE, PS_RESTING,
     S_EREC, S_RECF, S_FENV, S_FH, S_FIMP, S_FPEN, S_GIMP, S_KE, S_KE_POST, S_KE_PRE, S_LQ, S_Q, S_QD, S_T,
@@ -305,6 +305,28 @@ def recover(par, st, C, CI, cnt, m: int) -> None:
     Cm[elig, C_REC] += step
 
 
+def plane_speed(vc, sprev, cut):
+    """``kernels._plane_speed`` over arrays: the constraint's speed along n, held back by the share
+    ``cut`` where it advances into the tool at a contact touching at the last step."""
+    vc = np.asarray(vc, dtype=float)
+    if not cut > 0:
+        return vc
+    held = (vc > 0) & (np.asarray(sprev) <= TOUCH_TOL_M)
+    return np.where(held, vc * max(1.0 - cut, 0.0), vc)
+
+
+def hold(par, st, C, cnt, m: int) -> None:
+    """``kernels._hold``: the held part of each constraint's advance since the last step moves
+    from ``C_REC`` into ``C_DEF``."""
+    Cm = C[:m]
+    span = np.minimum(st[S_T] - Cm[:, C_TU], par[P_DT])
+    held = (Cm[:, C_VC] - plane_speed(Cm[:, C_VC], Cm[:, C_S], par[P_REC_CUT])) * span
+    on = held > 0
+    Cm[on, C_REC] -= held[on]
+    Cm[on, C_DEF] += held[on]
+    cnt[K_HELD] = int(np.count_nonzero(on))
+
+
 def implicit_velocity(par, h, D, J, Jh, n, s, vn, touching, fn, ft, slip, z_prev, base, qd):
     """The implicit step's velocity (``kernels._implicit_step``) from its definition: with the
     contacts S that push at the step's end, (D + dt B + dt^2 K) dv = dt (base + sum_S J^T (f_0 n
@@ -392,6 +414,7 @@ def reference_step(kind, par, st, C, CI, cnt, hand, linkage: LinkageReference | 
     """One haptic step in numpy. Returns new (st, C, CI, cnt); inputs are not modified.
     ``linkage``: the tool's ``LinkageReference`` for a linkage model (its q is at ``S_LQ``)."""
     st = st.copy(); C = C.copy(); CI = CI.copy(); cnt = cnt.copy()
+    hold(par, st, C, cnt, int(cnt[K_M]))
     recover(par, st, C, CI, cnt, int(cnt[K_M]))
     if linkage is not None:
         d, h, nq, q_at = linkage.d, linkage.h, linkage.nqr + linkage.nl - 1, S_LQ
@@ -419,8 +442,9 @@ def reference_step(kind, par, st, C, CI, cnt, hand, linkage: LinkageReference | 
     s = (np.einsum("ij,ij->i", n, X - Cm[:, C_CP:C_CP + 3]) - vc * (t - Cm[:, C_TU])   # eq. 3 + eq. 2
          - Cm[:, C_REC])                                                                 # + recovery
     Jn = np.einsum("ij,ijk->ik", n, J)
-    vn = Jn @ qd0 - vc
     sprev = Cm[:, C_S].copy()
+    vc_now = plane_speed(vc, sprev, par[P_REC_CUT])
+    vn = Jn @ qd0 - vc_now
     state = np.select([s > TOUCH_TOL_M, vn > 0, sprev > 0], [CST_IMPENDING, CST_SEPARATING, CST_COLLIDING], CST_PENETRATING)
     Cm[:, C_SPREV] = sprev
     Cm[:, C_S] = s
@@ -454,7 +478,7 @@ def reference_step(kind, par, st, C, CI, cnt, hand, linkage: LinkageReference | 
 
     # penalty + stick-slip friction at s <= 0 from the post-impulse velocity
     touching = s <= TOUCH_TOL_M
-    vn1 = Jn @ qd - vc
+    vn1 = Jn @ qd - vc_now
     Cm[touching, C_VN] = vn1[touching]
     fn = np.where(touching, np.maximum(-k * s - b * vn1, 0.0), 0.0)
     Cm[:, C_FN] = fn
