@@ -58,10 +58,12 @@ class StatusPublisher:
             st[ST["flips_taken"]] = mc["flips_taken"]
             st[ST["diverged"]] = mc["diverged"]
             st[ST["recovering"]] = mc["recovering"]
+            st[ST["held"]] = mc["held"]
             st[ST["recovery_energy_j"]] = m.recovery_energy_j
         else:
             st[ST["model_nonfinite"]] = 0
             st[ST["recovering"]] = 0
+            st[ST["held"]] = 0
         if proto.advice is not None:
             st[ST["advised_epsilon_m"]] = proto.advice.epsilon_m
             st[ST["advised_lead_s"]] = proto.advice.lead_s

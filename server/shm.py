@@ -95,6 +95,9 @@ STATUS_LAYOUT = (
     ("tool_seq", "i"), ("tool_kind", "i"), ("tool_mass_kg", "f"), ("tool_com_x_m", "f"), ("tool_com_y_m", "f"),
     ("tool_com_z_m", "f"), ("tool_ixx_kg_m2", "f"), ("tool_iyy_kg_m2", "f"), ("tool_izz_kg_m2", "f"),
     ("tool_ixy_kg_m2", "f"), ("tool_ixz_kg_m2", "f"), ("tool_iyz_kg_m2", "f"),
+    # contacts whose constraint's advance into the tool the passivity layer held back at the
+    # last step (set-position modulation, ``kernels._hold``)
+    ("held", "i"),
 )
 _TOOL_FIELDS = ("tool_kind", "tool_mass_kg", "tool_com_x_m", "tool_com_y_m", "tool_com_z_m", "tool_ixx_kg_m2",
                 "tool_iyy_kg_m2", "tool_izz_kg_m2", "tool_ixy_kg_m2", "tool_ixz_kg_m2", "tool_iyz_kg_m2")

@@ -145,7 +145,7 @@ def format_status(s: dict) -> str:
         f"{s.get('refused_unusable', 0)}  sequence jumps {s.get('refused_seq_jump', 0)}  reversed normals "
         f"{s.get('flips_refused', 0)} (taken {s.get('flips_taken', 0)})  (renumbered keys continued "
         f"{s.get('rekeyed', 0)})  proxy diverged {s.get('diverged', 0)}",
-        f"fidelity     recovering {s.get('recovering', 0)} contacts (work on the hand "
+        f"fidelity     recovering {s.get('recovering', 0)} contacts, held back {s.get('held', 0)} (work on the hand "
         f"{1e3 * (s.get('recovery_energy_j') or 0.0):.1f} mJ)  engine told epsilon "
         f"{1e3 * (s.get('advised_epsilon_m') or 0.0):.1f} mm, lead {1e3 * (s.get('advised_lead_s') or 0.0):.1f} ms",
         f"watchdog     {('ok', 'environment silent: fading', 'session ended: fading')[wd] if 0 <= wd < 3 else wd}"

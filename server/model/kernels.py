@@ -1387,6 +1387,23 @@ def _refuse_reversal(C, CI, i, W, j, k, cp, nrm, P):
 
 
 @njit(**_JIT)
+def _held_depth(dr_m, now_m, cut):
+    """Set-position modulation of a depth an update takes at once (the rigid policy; a new
+    contact under the paper-literal one): of the deepening from ``now`` (the proxy's separation
+    at the contact, 0 for a new one) to the reported ``dr``, only the share ``1 - cut`` is taken;
+    the rest is deformation the recovery (or the next update) completes.
+
+    Contract: ``dr`` itself when ``cut <= 0``, non-finite, or nothing deepens (``dr >= now``);
+    otherwise ``dr + min(cut, 1) (now - dr)``: between ``dr`` and ``now``, ``now`` from
+    ``cut >= 1``, monotone in ``cut``: never deeper than reported, never shallower than now."""
+    if not cut > 0.0 or not dr_m < now_m:
+        return dr_m
+    if cut >= 1.0:
+        return now_m
+    return dr_m + cut * (now_m - dr_m)
+
+
+@njit(**_JIT)
 def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_in, nk, sel,
                  newF, newI, P, Pe, use_qe, Vk):
     """The rule table of the notes on a validated update (``sel[:nk]`` kept). ``P[k]``: pose row
@@ -1426,6 +1443,7 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
     m = cnt[K_M]
     t = st[S_T]
     policy = int(par[P_POLICY])
+    cut = par[P_REC_CUT]
     # current world points and proxy separations s_p of the existing contacts
     for i in range(m):
         k = CI[i, CI_KEY]
@@ -1672,7 +1690,10 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
         if found >= 0:
             s_p = W[found, _W_SP]
             if policy == POLICY_RIGID or dr > 0.0 or s_p < dr:
-                off = dr
+                # only the rigid policy deepens a contact here: by the share the layer allows
+                off = _held_depth(dr, s_p if s_p < 0.0 else 0.0, cut)
+                if off > dr:
+                    n_def += 1
             elif s_p <= 0.0:
                 off = s_p
                 n_def += 1
@@ -1690,7 +1711,9 @@ def apply_update(planar, par, st, C, CI, cnt, X, W, keys, cp, nrm, dsep, vc, n_i
         else:
             n_new += 1
             if policy == POLICY_RIGID or literal or dr > 0.0:
-                off = dr
+                off = _held_depth(dr, 0.0, cut)
+                if off > dr:
+                    n_def += 1
             else:
                 off = 0.0
                 touch = True

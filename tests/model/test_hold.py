@@ -112,3 +112,51 @@ def test_plane_speed_contract(vc, sprev, cut):
 def test_plane_speed_is_monotone_in_the_cut(vc, c1, c2):
     lo, hi = min(c1, c2), max(c1, c2)
     assert _plane_speed(vc, 0.0, hi) <= _plane_speed(vc, 0.0, lo)
+
+
+@pytest.mark.parametrize("cut", [0.0, 0.5, 1.0])
+def test_the_rigid_policy_takes_the_share_of_a_jump_the_layer_allows(cut):
+    """The rigid policy takes an update's depth at once (eq. 1, the paper's baseline): a floor
+    that jumps 2 mm into the resting tool (the same contact: within ``2 REKEY_DISTANCE_M``) is
+    2 mm deeper at once, a force step of 8 N per contact. With the layer short, only ``1 - cut`` of the jump is taken; the rest is
+    deformation (``C_DEF``), completed when the budget is back."""
+    jump = 0.002
+    m = LocalModel(ToolSpec.planar(0.25, 1.4e-4), ContactParams(K, 30.0), period_s=1e-3, policy="rigid",
+                   recovery_speed_m_per_s=0.0)
+    m.reset([0.0, HALF_HEIGHT, 0.0])
+    m.update(KEYS, CP, NRM, np.zeros(2), tool_q=[0.0, HALF_HEIGHT, 0.0])
+    for _ in range(300):
+        m.step(PUSH)
+    s0 = m.proxy_separations()[:2]
+    m.arrays()[0][P_REC_CUT] = cut
+    deformed = m.counters()["deformed"]
+    up = np.array([0.0, jump, 0.0])
+    m.update(KEYS, CP + up, NRM, s0 - jump, tool_q=list(m.q))
+    C = m.arrays()[2]
+    np.testing.assert_allclose(C[:2, C_DEF], cut * jump, rtol=1e-9, atol=1e-15)
+    assert m.counters()["deformed"] - deformed == (2 if cut > 0 else 0)
+    np.testing.assert_allclose(m.proxy_separations()[:2], s0 - (1.0 - cut) * jump, rtol=1e-9, atol=1e-15)
+    # a new contact that arrives penetrating: the same share
+    m2 = LocalModel(ToolSpec.planar(0.25, 1.4e-4), ContactParams(K, 30.0), period_s=1e-3, policy="rigid")
+    m2.reset([0.0, HALF_HEIGHT - jump, 0.0])
+    m2.arrays()[0][P_REC_CUT] = cut
+    m2.update(KEYS, CP, NRM, np.full(2, -jump), tool_q=list(m2.q))
+    np.testing.assert_allclose(m2.arrays()[2][:2, C_DEF], cut * jump, rtol=1e-9, atol=1e-15)
+
+
+@given(st.floats(-0.1, 0.1), st.floats(-0.1, 0.0), _cuts)
+def test_held_depth_contract(dr, now, cut):
+    from hapticproxy.server.model.kernels import _held_depth
+    off = _held_depth(dr, now, cut)
+    if cut > 0 and dr < now:
+        assert dr <= off <= now
+        assert off == (now if cut >= 1 else dr + cut * (now - dr))
+    else:
+        assert off == dr
+
+
+@given(st.floats(-0.1, -1e-6), st.floats(0.0, 1.0), st.floats(0.0, 1.0))
+def test_held_depth_is_monotone_in_the_cut(dr, c1, c2):
+    from hapticproxy.server.model.kernels import _held_depth
+    lo, hi = min(c1, c2), max(c1, c2)
+    assert _held_depth(dr, 0.0, lo) <= _held_depth(dr, 0.0, hi)
