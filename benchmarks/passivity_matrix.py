@@ -191,6 +191,7 @@ def run_case(case: Case, layer: bool, seconds: float = 3.0, *, budget_j: float =
     from ..server import passivity as pv
     from ..server.clock import SimClock
     from ..server.loop import HapticLoop
+    from ..server.shm import ST
     from ..testing.impair import Impairment, ImpairedTransport
 
     url = f"mem://passivity-matrix-{case.seed}-{case.index}-{int(layer)}"
@@ -229,6 +230,9 @@ def run_case(case: Case, layer: bool, seconds: float = 3.0, *, budget_j: float =
         engaged_at = -1
         crash = ""
         i = 0
+        held_steps = 0        # steps whose model held back a constraint's advance (set-position modulation)
+        held_status = 0       # the most contacts held back the status ever showed
+        status, ST_HELD = loop.shared.status, ST["held"]
         for i in range(n):
             env.service()
             try:
@@ -246,6 +250,10 @@ def run_case(case: Case, layer: bool, seconds: float = 3.0, *, budget_j: float =
             allow[i] = (c.tp[pv.TP_H0] + cs[ctl.CS_TANK + pv.TS_DAMPED] + cs[ctl.CS_TANK + pv.TS_GRANTED])
             if engaged_at < 0 and loop.updates > 0:
                 engaged_at = i
+            model = loop.proto.model
+            if model is not None and model.held > 0:
+                held_steps += 1
+            held_status = max(held_status, int(status[ST_HELD]))
         else:
             i = n
         devs, cmds, ehand, allow, tank = devs[:i], cmds[:i], ehand[:i], allow[:i], tank[:i]
@@ -264,6 +272,7 @@ def run_case(case: Case, layer: bool, seconds: float = 3.0, *, budget_j: float =
             "ledger_gap_j": float(np.max(np.abs(indep - ehand), initial=0.0)),
             "granted_j": float(ts[pv.TS_GRANTED]), "damped_j": float(ts[pv.TS_DAMPED]),
             "tank_low_j": float(ts[pv.TS_LOW]), "limited_steps": int(cnt["passivity_limited"]),
+            "held_steps": held_steps, "held_status_max": held_status,
             "faults": int(loop.faults_total), "last_reason": str(loop.last_reason), "crash": crash,
             "events": list(getattr(engine, "stats", {}).items()) and dict(engine.stats),
         })

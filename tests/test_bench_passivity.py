@@ -155,6 +155,9 @@ def test_matrix_rows_summary_and_the_layer_against_the_adversary(capsys):
     off, on = (pm.run_case(pm.draw(0, 6), layer, seconds=2.0) for layer in (False, True))
     assert off["engine"] == "adversary" and off["damped_j"] > 0.0 and off["excess_books_j"] > 0.01
     assert on["excess_books_j"] < min(off["excess_books_j"] / 10, 1e-3)
+    # its rams are held back while the tank is short (set-position modulation), and the status says so
+    assert off["held_steps"] == 0 and off["held_status_max"] == 0
+    assert on["events"]["rams"] > 0 and on["held_steps"] > 0 and on["held_status_max"] > 0
 
 
 @pytest.mark.parametrize("argv", [["--matrix", "-1"], ["--matrix", "2", "--matrix-seconds", "0.5"],
