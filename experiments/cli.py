@@ -51,7 +51,7 @@ def _summary(name: str, res: dict) -> list[str]:
 
 
 def run_one(name: str, out: str, *, mode: str, quick: bool, log, layer: str | None = None,
-            velocity: str = "device") -> dict:
+            velocity: str = "device", damping_credit: float | None = None) -> dict:
     if name == "tradeoff":
         from .tradeoff import run_tradeoff
 
@@ -67,7 +67,7 @@ def run_one(name: str, out: str, *, mode: str, quick: bool, log, layer: str | No
     if name == "zwidth":
         from .zwidth import run_zwidth
 
-        return run_zwidth(out, quick=quick, layer=layer, velocity=velocity, log=log)
+        return run_zwidth(out, quick=quick, layer=layer, velocity=velocity, damping_credit=damping_credit, log=log)
     if name == "lighttools":
         from .lighttools import run_lighttools
 
@@ -96,9 +96,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--velocity", choices=("device", "difference"), default=None,
                    help="zwidth: the velocity the controller reads: the device's (default) or the backward difference "
                         "of its positions (Colgate and Schenkel's wall)")
+    p.add_argument("--damping-credit", type=float, default=None, metavar="SHARE",
+                   help="zwidth, with --layer on: the share 0-1 of the device's damping the layer's tank credits "
+                        "([passivity] damping_credit; default 1)")
     args = p.parse_args(argv)
     if (args.layer is not None or args.velocity) and args.name not in ("zwidth", "all"):
         p.error("--layer and --velocity apply to the zwidth experiment only")
+    if args.damping_credit is not None and (args.name != "zwidth" or args.layer != "on"):
+        p.error("--damping-credit applies to the zwidth experiment with --layer on only")
+    if args.damping_credit is not None and not 0.0 <= args.damping_credit <= 1.0:
+        p.error(f"--damping-credit: expected a share in [0, 1], got {args.damping_credit}")
     if args.json and args.name not in ("zwidth", "lighttools", "all"):
         p.error("--json applies to the zwidth and lighttools experiments only")
     names = tuple(n for n in NAMES if n != "rates") if args.name == "all" else (args.name,)
@@ -110,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         started = time.time() - 1.0  # files older than this run are not its plots
         try:
             res = run_one(name, out, mode=args.mode, quick=args.quick, log=log, layer=args.layer,
-                          velocity=args.velocity or "device")
+                          velocity=args.velocity or "device", damping_credit=args.damping_credit)
         except (RuntimeError, ValueError, OSError) as exc:
             print(f"hapticproxy experiment {name}: {exc}", file=sys.stderr)
             status = 1

@@ -140,9 +140,12 @@ def classify(ptp_m: float, force_ptp_n: float, growth: float, push_n: float, *, 
     return "unstable", f"limit cycle {why}, x{growth:.2f}"
 
 
-def layer_settings(layer: str | None) -> tuple[dict, str]:
-    """The ``[passivity]`` table for ``--layer`` and a note: empty table and a note saying the
-    option is ignored when the config has no ``[passivity]`` table (the layer not merged)."""
+def layer_settings(layer: str | None, damping_credit: float | None = None) -> tuple[dict, str]:
+    """The ``[passivity]`` table for ``--layer`` (and ``--damping-credit``: the share of the
+    device's damping the tank credits) and a note: empty table and a note saying the option is
+    ignored when the config has no ``[passivity]`` table (the layer not merged)."""
+    if damping_credit is not None and layer != "on":
+        raise ValueError("--damping-credit: applies with --layer on only")
     if layer is None:
         return {}, ""
     if layer not in LAYER_CHOICES:
@@ -155,6 +158,12 @@ def layer_settings(layer: str | None) -> tuple[dict, str]:
         return {}, (f"--layer {layer} ignored: this server has no [passivity] settings (the passivity layer, "
                     f"issue 31 item 3, is not merged); measured without a layer")
     table = {"passivity": {"enabled": layer == "on"}}
+    if damping_credit is not None:
+        table["passivity"]["damping_credit"] = damping_credit
+        try:
+            cfg.load(table)
+        except cfg.ConfigError as exc:
+            raise ValueError(f"--damping-credit: {exc}") from None
     try:
         cfg.load(table)
     except cfg.ConfigError as exc:
@@ -503,19 +512,21 @@ def verdict(rate_hz: float, results: dict) -> str:
 
 def run_zwidth(out: str, *, quick: bool = False, kinds=None, rates=None, controllers=None,
                layer: str | None = None, k_grid=None, b_grid=None, plots: bool = True, velocity: str = "device",
-               log=None) -> dict:
+               damping_credit: float | None = None, log=None) -> dict:
     """The sweep: every rate x controller x kind x (K, B); PNGs and ``zwidth.json`` in ``out``
     (None: the module's ``KINDS``, ``RATES_HZ``, ``CONTROLLERS`` and grids)."""
     kinds, rates, controllers = kinds or KINDS, rates or RATES_HZ, controllers or CONTROLLERS
     os.makedirs(out, exist_ok=True)
-    layer_table, note = layer_settings(layer)
+    layer_table, note = layer_settings(layer, damping_credit)
     if note and log:
         log(note)
     kg = tuple(k_grid or (QUICK_K_GRID if quick else K_GRID_N_PER_M))
     bg = tuple(b_grid or (QUICK_B_GRID if quick else B_GRID_N_S_PER_M))
     res: dict = {"push_n": PUSH_N, "gap_m": GAP_M, "window_s": [WINDOW_START_S, WINDOW_END_S],
                  "ptp_max_mm": PTP_MAX_M * 1e3, "force_ptp_max_n": FORCE_PTP_MAX_FRACTION * PUSH_N,
-                 "layer": layer or "off", "layer_note": note, "velocity": velocity, "rates": {}}
+                 "layer": layer or "off", "layer_note": note, "velocity": velocity,
+                 "damping_credit": layer_table.get("passivity", {}).get("damping_credit", 1.0 if layer == "on" else None),
+                 "rates": {}}
     for rate in rates:
         per_rate: dict = {}
         for ctrl in controllers:

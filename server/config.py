@@ -28,7 +28,8 @@ Layout (all keys optional)::
                  fade_s, ramp_in_s, stall_recover_s, stall_trips_max, stall_window_s, allow_outside_stable_region
     [passivity]  enabled, initial_budget_j, max_tank_j, low_level_j, moving_mass_kg,
                  moving_inertia_kg_m2, device_damping_n_s_per_m,
-                 device_rot_damping_n_m_s_per_rad, input_credit, engine_grants (server/passivity.py)
+                 device_rot_damping_n_m_s_per_rad, input_credit, engine_grants, damping_credit
+                 (server/passivity.py)
     [device]     driver (entry point name) and the driver's own keys (its Structs: devices/sim.py,
                  devices/remote.py, devices/hands.py for [device.hand]); the workspace mapping:
                  workspace_scale, workspace_offset_m, workspace_rotation, clutch_button,
@@ -235,6 +236,10 @@ class PassivityConfig(_Table):
                        "and an exchange that gives back what it took dies out: EXPERIMENTS.md, walls)") = 1.0
     engine_grants: _doc(bool, "add the work an engine declares it does on the tool (ContactUpdate."
                         "work_on_tool_j) to the tank") = True
+    damping_credit: _num(0, 1, doc="the share of what the device's damping dissipates that feeds the tank (1: "
+                         "all, the most transparent: free motion costs the tank nothing; 0: none, the layer then "
+                         "also stops a limit cycle the device's damper absorbs, a wider renderable wall: "
+                         "EXPERIMENTS.md, z-width)") = 1.0
 
 
 class TelemetryConfig(_Table):

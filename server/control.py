@@ -749,8 +749,10 @@ class Controller:
                           max_tank_j=pas["max_tank_j"], low_level_j=pas["low_level_j"],
                           **dict(zip(("moving_mass_kg", "moving_inertia_kg_m2"),
                                      pv.moving_figures(pas["moving_mass_kg"], pas["moving_inertia_kg_m2"]))),
-                          device_damping_n_s_per_m=pas["device_damping_n_s_per_m"],
-                          device_rot_damping_n_m_s_per_rad=pas["device_rot_damping_n_m_s_per_rad"],
+                          **dict(zip(("device_damping_n_s_per_m", "device_rot_damping_n_m_s_per_rad"),
+                                     pv.damping_figures(pas["device_damping_n_s_per_m"],
+                                                        pas["device_rot_damping_n_m_s_per_rad"],
+                                                        share=pas["damping_credit"]))),
                           period_s=dt, engine_grants=pas["engine_grants"], input_credit=pas["input_credit"])
         pv.reset(self.tp, self.ts)
         self._moving_config = (pas["moving_mass_kg"], pas["moving_inertia_kg_m2"])
@@ -778,6 +780,7 @@ class Controller:
         #: the last ``fit_tool``: the tool's mass, the damping set, and why it falls short ("" if not)
         self.fit = (0.0, float(ctl["damping_n_s_per_m"]), "")
         self._damping_config = (pas["device_damping_n_s_per_m"], pas["device_rot_damping_n_m_s_per_rad"])
+        self._damping_share = float(pas["damping_credit"])
         #: the device's position frozen under force (``devices.frozen``; the tick runs the watch)
         self.frozen_s = saf["frozen_s"]
         self.frozen_force_n = fz.min_force_n(saf["frozen_force_n"], fmax)
@@ -802,7 +805,8 @@ class Controller:
         rule then keeps the configured damping) and the most damping the device renders
         (``devices.safe.gain_limits``)."""
         self.tp[pv.TP_MASS], self.tp[pv.TP_INERTIA] = pv.moving_figures(*self._moving_config, info)
-        self.tp[pv.TP_BDEV], self.tp[pv.TP_BRDEV] = pv.damping_figures(*self._damping_config, info)
+        self.tp[pv.TP_BDEV], self.tp[pv.TP_BRDEV] = pv.damping_figures(*self._damping_config, info,
+                                                                       share=self._damping_share)
         if self._heavy["device_mass_kg"] is None:
             m = getattr(info, "moving_mass_kg", None)
             self._heavy["device_mass_kg"] = float(m) if m else None

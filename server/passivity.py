@@ -317,7 +317,7 @@ def moving_figures(config_mass_kg: float, config_inertia_kg_m2: float, info=None
     return float(mass), float(inertia)
 
 
-def damping_figures(config_b: float, config_br: float, info=None) -> tuple[float, float]:
+def damping_figures(config_b: float, config_br: float, info=None, share: float = 1.0) -> tuple[float, float]:
     """The viscous damping whose dissipation feeds the tank (contract A2), N s/m and N m s/rad:
     the config's when set (> 0), else the device's stated figures (``DeviceInfo.damping_n_s_per_m``
     / ``rot_damping_n_m_s_per_rad``: a simulated device states its own), else 0 (nothing assumed).
@@ -325,7 +325,14 @@ def damping_figures(config_b: float, config_br: float, info=None) -> tuple[float
     figure only, never a guess. Why it matters: a four-channel controller renders the proxy,
     which has no such damping, so in free motion the motor pays the device's damping along the
     motion (Fig. 14: +0.3 N at 0.25 m/s against 2 N s/m); uncredited, that drains the tank as if
-    it were given to the hand (EXPERIMENTS.md, transparency)."""
+    it were given to the hand (EXPERIMENTS.md, transparency).
+
+    ``share`` (``[passivity] damping_credit``, 0..1) scales both: the knob between transparency (1:
+    the damper's dissipation all credited, the free-motion payment above costs the tank nothing)
+    and the renderable wall (0: the layer stops a limit cycle that the device's damper absorbs,
+    as it stops one on an undamped device). Outside [0, 1] or non-finite: ``ValueError`` naming it."""
+    if not (math.isfinite(share) and 0.0 <= share <= 1.0):
+        raise ValueError(f"passivity.damping_credit: must be in [0, 1], got {share!r}")
     b = config_b if config_b > 0.0 else (getattr(info, "damping_n_s_per_m", None) or 0.0)
     br = config_br if config_br > 0.0 else (getattr(info, "rot_damping_n_m_s_per_rad", None) or 0.0)
-    return float(b), float(br)
+    return float(b) * share, float(br) * share

@@ -246,6 +246,13 @@ def test_damping_figures_config_then_device_then_nothing():
     assert pv.damping_figures(3.0, 1e-3, Info()) == (3.0, 1e-3)
     assert pv.damping_figures(0.0, 0.0, Info()) == (2.0, 0.0)
     assert pv.damping_figures(0.0, 0.0, None) == (0.0, 0.0)
+    # the share the config credits (``damping_credit``), of either figure
+    assert pv.damping_figures(3.0, 1e-3, Info(), share=0.5) == (1.5, 5e-4)
+    assert pv.damping_figures(0.0, 0.0, Info(), share=0.25) == (0.5, 0.0)
+    assert pv.damping_figures(0.0, 0.0, Info(), share=0.0) == (0.0, 0.0)
+    for bad in (-0.1, 1.5, math.nan):
+        with pytest.raises(ValueError, match="damping_credit"):
+            pv.damping_figures(3.0, 1e-3, Info(), share=bad)
 
 
 @settings(**SET)
@@ -422,6 +429,20 @@ def test_the_declared_device_damping_feeds_the_tank_through_the_controllers_ledg
     assert c.ts[pv.TS_DAMPED] == pytest.approx(want, rel=1e-9) and c.cs[ctl.CS_EHAND] == 0.0
 
 
+@pytest.mark.parametrize("share", [0.0, 0.4, 1.0])
+def test_the_damping_credit_is_the_share_of_the_devices_damping_the_tank_is_fed(share):
+    """``[passivity] damping_credit``: the share of the config's damping figure the tank credits
+    from the start (the device's figures alike: the loop's test below)."""
+    from hapticproxy.server import config as cfg
+    from hapticproxy.server import control as ctl
+
+    s = cfg.load({"device": {"driver": "sim", "kind": "planar"},
+                  "passivity": {"damping_credit": share, "device_damping_n_s_per_m": 3.0}})
+    assert ctl.Controller(s, "planar").tp[pv.TP_BDEV] == pytest.approx(share * 3.0, rel=1e-12)
+    with pytest.raises(Exception, match="damping_credit"):
+        cfg.load({"passivity": {"damping_credit": 1.5}})
+
+
 @pytest.mark.parametrize("vy, hand, want", [(-0.5, 0.0, 0.5), (0.5, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, -0.5, 0.5),
                                              (0.0, math.nan, 0.0)])
 def test_the_controller_limits_its_command_by_the_handles_twist_and_hand(vy, hand, want):
@@ -482,7 +503,9 @@ def test_the_loop_gives_the_layer_the_devices_moving_mass_inertia_and_damping(ki
     dev_br = {"1dof": 0.0, "planar": 2e-3, "spatial": 1e-3}[kind]
     for over, want_m, want_b in (({}, mass, (dev_b, dev_br)), ({"moving_mass_kg": 0.05}, 0.05, (dev_b, dev_br)),
                                  ({"device_damping_n_s_per_m": 0.5, "device_rot_damping_n_m_s_per_rad": 1e-4}, mass,
-                                  (0.5, 1e-4 if kind != "1dof" else 1e-4))):
+                                  (0.5, 1e-4 if kind != "1dof" else 1e-4)),
+                                 # the share credited (``damping_credit``) of the device's own figures
+                                 ({"damping_credit": 0.25, "moving_mass_kg": 0.0}, mass, (0.25 * dev_b, 0.25 * dev_br))):
         s = cfg.load({"transport": {"url": f"mem://passivity-figures-{kind}-{len(over)}"},
                       "status": {"address": "127.0.0.1:1"}, "device": {"driver": "sim", "kind": kind},
                       "passivity": over})
