@@ -160,3 +160,28 @@ def test_held_depth_is_monotone_in_the_cut(dr, c1, c2):
     from hapticproxy.server.model.kernels import _held_depth
     lo, hi = min(c1, c2), max(c1, c2)
     assert _held_depth(dr, 0.0, lo) <= _held_depth(dr, 0.0, hi)
+
+
+def test_an_approaching_constraint_arrives_on_time_and_is_held_from_the_step_after_it_touches():
+    """A floor rising at 50 mm/s towards a box 1 mm above it with the layer half short: it is not
+    held while apart (it arrives when the engine says), and from the step after the first touch
+    it is (the step that first touches saw an advance made while apart: its damper sees the full
+    speed). The numpy reference agrees at every step, the touching one included."""
+    m = LocalModel(ToolSpec.planar(0.25, 1.4e-4), ContactParams(K, 30.0), period_s=1e-3,
+                   recovery_speed_m_per_s=0.0)
+    m.reset([0.0, HALF_HEIGHT + 0.001, 0.0])
+    m.update(KEYS, CP, NRM, np.full(2, 0.001), np.full(2, 0.05), tool_q=list(m.q))
+    m.arrays()[0][P_REC_CUT] = 0.5
+    touched = None
+    for i in range(60):
+        par, st_, C, CI, cnt = m.arrays()
+        rst, rC, rCI, rcnt = reference_step(m.kind, par, st_, C, CI, cnt, np.zeros(3))
+        m.step(np.zeros(3))
+        np.testing.assert_allclose(C[:2], rC[:2], rtol=1e-9, atol=1e-12)
+        np.testing.assert_array_equal(CI[:2], rCI[:2])
+        assert cnt[K_HELD] == rcnt[K_HELD]
+        if touched is None and C[0, C_S] <= TOUCH_TOL_M:
+            touched = i
+            assert cnt[K_HELD] == 0                              # apart until now: nothing held
+    assert touched is not None and 18 <= touched <= 22           # 1 mm at 50 mm/s: on time
+    assert m.held == 2
