@@ -171,6 +171,13 @@ def layer_settings(layer: str | None, damping_credit: float | None = None) -> tu
     return table, ""
 
 
+def layer_label(res: dict) -> str:
+    """How the plots name the passivity layer's setting of a run (``run_zwidth``'s result)."""
+    if res.get("layer") != "on":
+        return "passivity layer off"
+    return f"passivity layer on, damping credit {res.get('damping_credit', 1.0):g}"
+
+
 def device_physics(kind: str, rate_hz: float) -> tuple[float, float]:
     """The simulated device's default moving mass [kg] and translational damping b [N s/m]."""
     c = effective_config({"kind": kind}, period_s=1.0 / rate_hz)
@@ -422,7 +429,8 @@ def presets_at(rate_hz: float) -> list[str]:
     return [name for name, (table, _) in cfg.PRESETS.items() if float(table["loop"]["rate_hz"]) == rate_hz]
 
 
-def plot_rate(path: str, rate_hz: float, results: dict, *, note: str = "", velocity: str = "device") -> None:
+def plot_rate(path: str, rate_hz: float, results: dict, *, note: str = "", velocity: str = "device",
+              layer: str = "") -> None:
     """One PNG per rate: a panel per controller and kind, the grid's stable / unstable points,
     the Colgate-Schenkel line and the marks."""
     import matplotlib
@@ -486,10 +494,11 @@ def plot_rate(path: str, rate_hz: float, results: dict, *, note: str = "", veloc
              + f": constant {PUSH_N:g} N push, no hand mass or damping; unstable = > {PTP_MAX_M * 1e3:g} mm or "
              f"> {FORCE_PTP_MAX_FRACTION * PUSH_N:g} N p-p {WINDOW_START_S:g}-{WINDOW_END_S:g} s after contact and "
              f"not shrinking; velocity: {'the device' + chr(39) + 's' if velocity == 'device' else 'backward difference'}")
-    if note:
-        title += "\n" + note
+    extra = [x for x in (layer, note) if x]
+    for line in extra:
+        title += "\n" + line
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout(rect=(0, 1.1 / (4.4 * len(ctrls) + 1.6), 1, 0.95 if not note else 0.93))
+    fig.tight_layout(rect=(0, 1.1 / (4.4 * len(ctrls) + 1.6), 1, 0.95 - 0.02 * len(extra)))
     fig.savefig(path, dpi=90)
     plt.close(fig)
 
@@ -550,7 +559,7 @@ def run_zwidth(out: str, *, quick: bool = False, kinds=None, rates=None, control
         res.setdefault("verdicts", []).append(verdict(rate, per_rate))
         if plots:
             path = os.path.join(out, f"zwidth_{rate:g}hz.png")
-            plot_rate(path, rate, per_rate, note=note, velocity=velocity)
+            plot_rate(path, rate, per_rate, note=note, velocity=velocity, layer=layer_label(res))
             res.setdefault("plots", []).append(path)
     res = _clean(res)
     with open(os.path.join(out, "zwidth.json"), "w") as fh:
