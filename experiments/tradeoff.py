@@ -417,7 +417,9 @@ def region_settings(layer: str | None = None) -> dict:
     # the server builds its models without naming an integrator: a model built so says which
     integrator = LocalModel(ToolSpec.planar(0.25, 1e-3), warm=False).integrator
     enabled = bool(d["passivity"]["enabled"]) if layer is None else layer == "on"
-    return {"passivity_enabled": enabled, "layer": "default" if layer is None else layer, "integrator": integrator,
+    return {"passivity_enabled": enabled, "layer": "default" if layer is None else layer,
+            "passivity": {k: v for k, v in dict(d["passivity"]).items() if k != "enabled"},
+            "integrator": integrator,
             "coupling_damping": "the configured [controller] damping, raised for a heavy tool at engagement "
                                 "(stability.coupling_damping_for_tool)",
             "controller_damping_n_s_per_m": float(d["controller"]["damping_n_s_per_m"]),
