@@ -69,6 +69,8 @@ def test_bad_region_arguments_exit_2_naming_the_option(tmp_path, monkeypatch, ca
 
     for name in ("run_tradeoff", "run_region", "stable_region"):
         monkeypatch.setattr(T, name, ran)
+    from hapticproxy.experiments import figures
+    monkeypatch.setitem(figures.FIGURES, "fig6", ran)
     with pytest.raises(SystemExit) as e:
         cli.main(argv + ["--out", str(tmp_path)])
     assert e.value.code == 2
