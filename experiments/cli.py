@@ -20,7 +20,10 @@ run the 1-DOF peg (1-DOF device, peg engine, 20 ms delay), Figs. 14-17 the plana
 ``metrics.json`` (keyed by method) into ``--out`` and prints a one-line summary per method.
 ``zwidth`` also takes ``--layer on|off`` (the passivity layer, where the server has one),
 ``--velocity device|difference`` (what the controller reads) and ``--json`` (its summary on stdout);
-``lighttools`` takes ``--json`` too (every run's row on stdout). Exit status 0, 2 on bad arguments, 1 when a run fails.
+``lighttools`` takes ``--json`` too (every run's row on stdout). ``tradeoff --region-only`` runs only
+the stable-region grid (``--region-controllers 'four_channel;direct'``, ``--region-rates 512,1000,4000``:
+a part of it; ``--layer on|off``: with or without the passivity layer, else the server's default) and
+prints its table. Exit status 0, 2 on bad arguments, 1 when a run fails.
 """
 from __future__ import annotations
 
@@ -33,6 +36,25 @@ from ..protocol.logs import doc_summary
 
 NAMES = ("fig6", "fig9", "fig14", "fig16", "fig17", "tradeoff", "rates", "fidelity", "literal", "zwidth",
          "lighttools")
+
+
+def _names(text: str) -> tuple[str, ...]:
+    """``--region-controllers``: row names separated by ';' (the names hold commas)."""
+    names = tuple(n.strip() for n in text.split(";") if n.strip())
+    if not names:
+        raise argparse.ArgumentTypeError("expected row names separated by ';', e.g. 'four_channel;direct'")
+    return names
+
+
+def _rates(text: str) -> tuple[float, ...]:
+    """``--region-rates``: haptic rates in Hz separated by ','."""
+    try:
+        rates = tuple(float(r) for r in text.split(",") if r.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected rates in Hz separated by ',', e.g. 512,1000,4000; got {text!r}")
+    if not rates:
+        raise argparse.ArgumentTypeError("expected rates in Hz separated by ',', e.g. 512,1000,4000")
+    return rates
 
 
 def _summary(name: str, res: dict) -> list[str]:
@@ -51,10 +73,14 @@ def _summary(name: str, res: dict) -> list[str]:
 
 
 def run_one(name: str, out: str, *, mode: str, quick: bool, log, layer: str | None = None,
-            velocity: str = "device", damping_credit: float | None = None) -> dict:
+            velocity: str = "device", damping_credit: float | None = None, region_only: bool = False,
+            region_controllers=None, region_rates=None) -> dict:
     if name == "tradeoff":
-        from .tradeoff import run_tradeoff
+        from .tradeoff import run_region, run_tradeoff
 
+        if region_only:
+            return run_region(out, quick=quick, log=log, controllers=region_controllers, rates=region_rates,
+                              layer=layer)
         return run_tradeoff(out, quick=quick, log=log)
     if name == "rates":
         from .tradeoff import run_rates
@@ -90,8 +116,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="figures: the real server in real time (default) or simulated time")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--layer", choices=("on", "off"), default=None,
-                   help="zwidth: with or without the passivity layer (ignored, with a note, where the server has "
-                        "no [passivity] settings)")
+                   help="zwidth, tradeoff --region-only: with or without the passivity layer (zwidth: ignored, with a "
+                        "note, where the server has no [passivity] settings; the region: the server's default unless given)")
     p.add_argument("--json", action="store_true", help="zwidth, lighttools: print the summary as JSON on stdout")
     p.add_argument("--velocity", choices=("device", "difference"), default=None,
                    help="zwidth: the velocity the controller reads: the device's (default) or the backward difference "
@@ -99,9 +125,28 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--damping-credit", type=float, default=None, metavar="SHARE",
                    help="zwidth, with --layer on: the share 0-1 of the device's damping the layer's tank credits "
                         "([passivity] damping_credit; default 1)")
+    p.add_argument("--region-only", action="store_true",
+                   help="tradeoff: only the stable-region grid (writes stable_region.json, .md, .png)")
+    p.add_argument("--region-controllers", type=_names, default=None, metavar="ROW[;ROW...]",
+                   help="tradeoff --region-only: only these rows of the grid (their names, ';'-separated)")
+    p.add_argument("--region-rates", type=_rates, default=None, metavar="HZ[,HZ...]",
+                   help="tradeoff --region-only: only these haptic rates of the grid (comma-separated)")
     args = p.parse_args(argv)
-    if (args.layer is not None or args.velocity) and args.name not in ("zwidth", "all"):
-        p.error("--layer and --velocity apply to the zwidth experiment only")
+    if (args.region_only or args.region_controllers or args.region_rates) and args.name != "tradeoff":
+        p.error("--region-only, --region-controllers and --region-rates apply to the tradeoff experiment only")
+    if (args.region_controllers or args.region_rates) and not args.region_only:
+        p.error("--region-controllers and --region-rates need --region-only")
+    if args.region_only:
+        from .tradeoff import region_rows
+
+        try:
+            region_rows(args.region_controllers, args.region_rates, quick=args.quick)
+        except ValueError as exc:
+            p.error(str(exc))
+    if args.velocity and args.name not in ("zwidth", "all"):
+        p.error("--velocity applies to the zwidth experiment only")
+    if args.layer is not None and args.name not in ("zwidth", "all") and not args.region_only:
+        p.error("--layer applies to the zwidth experiment and tradeoff --region-only only")
     if args.damping_credit is not None and (args.name != "zwidth" or args.layer != "on"):
         p.error("--damping-credit applies to the zwidth experiment with --layer on only")
     if args.damping_credit is not None and not 0.0 <= args.damping_credit <= 1.0:
@@ -117,7 +162,9 @@ def main(argv: list[str] | None = None) -> int:
         started = time.time() - 1.0  # files older than this run are not its plots
         try:
             res = run_one(name, out, mode=args.mode, quick=args.quick, log=log, layer=args.layer,
-                          velocity=args.velocity or "device", damping_credit=args.damping_credit)
+                          velocity=args.velocity or "device", damping_credit=args.damping_credit,
+                          region_only=args.region_only, region_controllers=args.region_controllers,
+                          region_rates=args.region_rates)
         except (RuntimeError, ValueError, OSError) as exc:
             print(f"hapticproxy experiment {name}: {exc}", file=sys.stderr)
             status = 1
@@ -149,13 +196,17 @@ def main(argv: list[str] | None = None) -> int:
             from .lighttools import summary_json
 
             print(summary_json(res) if args.json else "\n".join(res["summary"]))
+        elif name == "tradeoff" and args.region_only:
+            from .tradeoff import region_md
+
+            print(region_md(res["stable_region"]))
         elif name == "tradeoff":
             print(f"tradeoff: {len(res['rows'])} configurations; table {os.path.join(out, 'tradeoff.md')}, "
                   f"stable region {os.path.join(out, 'stable_region.md')}, Pareto plot {os.path.join(out, 'pareto.png')}")
         else:
             for line in _summary(name, res):
                 print(line)
-        what = {"tradeoff": "tradeoff.json, tables", "rates": "rates.json, rates.md",
+        what = {"tradeoff": "stable_region.json, stable_region.md" if args.region_only else "tradeoff.json, tables", "rates": "rates.json, rates.md",
                 "fidelity": "fidelity.json, fidelity.md", "literal": "literal.json, literal.md",
                 "zwidth": "zwidth.json", "lighttools": "lighttools.json"}.get(name, "metrics.json")
         # name the plots this run wrote (a quick fidelity run writes none)

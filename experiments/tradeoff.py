@@ -41,8 +41,14 @@ deformation with the model's default deformation recovery, the server's default 
 contact frame, no advice to the engine; the ``recovery`` and ``advice`` dimensions vary those) and a grid for the stable region
 (the largest stable stiffness at each haptic rate for each controller, with the paper's
 damping ratio, and for the four-channel controller also with a fixed b = 30 N s/m). Writes
-``tradeoff.json`` (every row), ``tradeoff.md`` (the table), ``stable_region.md``,
-``pareto.png`` and ``stable_region.png``.
+``tradeoff.json`` (every row), ``tradeoff.md`` (the table), ``stable_region.json``,
+``stable_region.md``, ``pareto.png`` and ``stable_region.png``.
+
+``--region-only`` (:func:`run_region`) runs only the stable-region grid (``--region-controllers``,
+``--region-rates``: a part of it) and writes only the ``stable_region.*`` files. The region runs
+with the server's current defaults (:func:`region_settings`, recorded in ``stable_region.json``):
+the passivity layer as configured by default (``--layer on|off``: with or without it), the
+model's default integrator, the controller's coupling damping as engagement sets it for the peg.
 """
 from __future__ import annotations
 
@@ -85,6 +91,8 @@ class Config:
     #: uses the granted epsilon, ``epsilon_m``), "epsilon" (the epsilon to use next, up to
     #: ``epsilon_m``), "epsilon+lead" (and the lead it extrapolates the proxy's pose by)
     advice: str = "none"
+    #: the passivity layer: None = the server's default ``[passivity] enabled``; "on" / "off"
+    layer: str | None = None
 
     @property
     def damping_n_s_per_m(self) -> float:
@@ -100,7 +108,8 @@ class Config:
                       method="custom",
                       recovery=() if self.recovery_speed_m_per_s is None else
                       (("speed_m_per_s", float(self.recovery_speed_m_per_s)),),
-                      predict_epsilon=self.advice in ("epsilon", "epsilon+lead"), lead=self.advice == "epsilon+lead")
+                      predict_epsilon=self.advice in ("epsilon", "epsilon+lead"), lead=self.advice == "epsilon+lead",
+                      passivity=() if self.layer is None else (("enabled", self.layer == "on"),))
         if scenario == "wall":
             return RunSpec(scene="testbed", hand=Hand("constant", (0.0, 0.5, 0.0), start_s=HAND_START_S),
                            seconds=QUICK_WALL_SECONDS if quick else WALL_SECONDS, **common)
@@ -116,8 +125,9 @@ class Config:
         b = "" if self.damping_fixed_n_s_per_m is None else f" b={self.damping_fixed_n_s_per_m:g}"
         rec = "" if self.recovery_speed_m_per_s is None else f" rec={self.recovery_speed_m_per_s * 1e3:g}mm/s"
         adv = "" if self.advice == "none" else f" advice={self.advice}"
+        lay = "" if self.layer is None else f" layer={self.layer}"
         return (f"{self.controller}/{self.policy} {self.rate_hz:g} Hz k={self.stiffness_n_per_m:g}{b} "
-                f"eps={self.epsilon_m * 1e3:g}mm cap={self.capacity} env={env} Hz{rec}{adv} {self.kernel}")
+                f"eps={self.epsilon_m * 1e3:g}mm cap={self.capacity} env={env} Hz{rec}{adv}{lay} {self.kernel}")
 
 
 BASE = Config()
@@ -181,8 +191,11 @@ def _p(a, q) -> float | None:
     return None if a is None or len(a) == 0 else round(float(np.percentile(a, q)), 3)
 
 
-def evaluate(cfg: Config, *, seeds=SEEDS, quick: bool = False, scenarios=("wall", "hole")) -> dict:
-    """Run ``cfg`` on the scenarios over ``seeds`` (simulated time); one row of the table."""
+def evaluate(cfg: Config, *, seeds=SEEDS, quick: bool = False, scenarios=("wall", "hole"),
+             model_timing_every: int = MODEL_TIMING_EVERY) -> dict:
+    """Run ``cfg`` on the scenarios over ``seeds`` (simulated time); one row of the table.
+    ``model_timing_every`` 0: no model-step timing (the stable region uses no cost column; the
+    timing runs on copies of the state, so it changes no other column)."""
     row: dict = {"label": cfg.label(), **{k: v for k, v in asdict(cfg).items()}}
     row["env_rate_hz"] = list(cfg.env_rate_hz)
     row["damping_n_s_per_m"] = cfg.damping_n_s_per_m
@@ -193,7 +206,7 @@ def evaluate(cfg: Config, *, seeds=SEEDS, quick: bool = False, scenarios=("wall"
     for sc in scenarios:
         for seed in seeds:
             try:
-                tr = run_simulated(cfg.spec(sc, seed, quick), model_timing_every=MODEL_TIMING_EVERY)
+                tr = run_simulated(cfg.spec(sc, seed, quick), model_timing_every=model_timing_every)
             except RunFailed as exc:  # e.g. the model refused the contact parameters at engagement
                 failed.append(exc.loop_exception or str(exc))
                 continue
@@ -369,24 +382,74 @@ def run_rates(out, *, quick: bool = False, log=None) -> dict:
     return {"realtime_rates": rt}
 
 
-def stable_region(*, quick: bool, seeds, log=None) -> list[dict]:
+def region_rows(controllers=None, rates=None, *, quick: bool = False) -> tuple[tuple, tuple]:
+    """The stable-region grid's controller rows (``REGION_CONTROLLERS`` entries) and rates, all of
+    them or the ones named (``controllers``: row names, ``rates``: haptic rates in Hz, each on the
+    grid). A name or rate not on the grid: ``ValueError`` naming it and what there is."""
+    grid_rates = QUICK_REGION_RATES if quick else REGION_RATES
+    rows = REGION_CONTROLLERS
+    if controllers:
+        names = [n for n, _ in REGION_CONTROLLERS]
+        unknown = [c for c in controllers if c not in names]
+        if unknown:
+            raise ValueError(f"region controllers: {', '.join(map(repr, unknown))} not in the grid; "
+                             f"expected some of {', '.join(map(repr, names))}")
+        rows = tuple(r for r in REGION_CONTROLLERS if r[0] in controllers)
+    out_rates = grid_rates
+    if rates:
+        unknown = [r for r in rates if float(r) not in grid_rates]
+        if unknown:
+            raise ValueError(f"region rates: {', '.join(f'{r:g}' for r in unknown)} Hz not in the grid; "
+                             f"expected some of {', '.join(f'{r:g}' for r in grid_rates)}")
+        out_rates = tuple(r for r in grid_rates if r in {float(x) for x in rates})
+    return rows, out_rates
+
+
+def region_settings(layer: str | None = None) -> dict:
+    """What the stable region runs with besides its grid: the server's current defaults, read
+    from the code (the config's ``[passivity] enabled``, ``LocalModel``'s integrator, the
+    controller's configured coupling damping that ``stability.coupling_damping_for_tool`` raises
+    for a heavy tool at engagement), and what the harness sets (``harness.RunSpec.settings_dict``)."""
+    from ..server import config as cfgmod
+    from ..server.model.model import LocalModel, ToolSpec
+
+    d = cfgmod.load({"safety": {"allow_outside_stable_region": True}})
+    # the server builds its models without naming an integrator: a model built so says which
+    integrator = LocalModel(ToolSpec.planar(0.25, 1e-3), warm=False).integrator
+    enabled = bool(d["passivity"]["enabled"]) if layer is None else layer == "on"
+    return {"passivity_enabled": enabled, "layer": "default" if layer is None else layer,
+            "passivity": {k: v for k, v in dict(d["passivity"]).items() if k != "enabled"},
+            "integrator": integrator,
+            "coupling_damping": "the configured [controller] damping, raised for a heavy tool at engagement "
+                                "(stability.coupling_damping_for_tool)",
+            "controller_damping_n_s_per_m": float(d["controller"]["damping_n_s_per_m"]),
+            "device": "simulated planar device, stepped once per haptic period (no zero-order hold)",
+            "force_rate_n_per_s": 1000.0, "engine": "stub 30-60 Hz", "tool": "the testbed's 0.25 kg peg"}
+
+
+def stable_region(*, quick: bool, seeds, log=None, controllers=None, rates=None, layer: str | None = None) -> list[dict]:
     """The stable band of contact stiffness per (controller, rate): stiffness ascending; a
     stiffness is stable when no run of ``evaluate`` (the wall push and 6 s of Fig. 16's
     shaking, every seed) is unstable. Too soft a hole also fails (the 1 N shaking turns the
     peg and walks it out of the hole), so the band has a lower end too. ``largest stable``: the
     top of the first contiguous band of stable stiffnesses; the scan stops after two unstable
-    stiffnesses in a row above a stable one."""
-    rates = QUICK_REGION_RATES if quick else REGION_RATES
+    stiffnesses in a row above a stable one. ``controllers``, ``rates``: only those rows and
+    rates of the grid (:func:`region_rows`); ``layer``: "on" / "off" the passivity layer (None: the
+    server's default)."""
+    if layer not in (None, "on", "off"):
+        raise ValueError(f"layer: expected on, off or None (the server's default), got {layer!r}")
+    rows, rates = region_rows(controllers, rates, quick=quick)
     ks = QUICK_REGION_STIFFNESS if quick else REGION_STIFFNESS
     out = []
-    for name, kw in REGION_CONTROLLERS:
+    for name, kw in rows:
         for r in rates:
             tried = []
             lo = hi = None
             bad_run = 0
+            t0 = time.perf_counter()
             for k in ks:
-                cfg = replace(BASE, rate_hz=r, stiffness_n_per_m=k, **kw)
-                row = evaluate(cfg, seeds=seeds, quick=quick, scenarios=("wall", "hole_long"))
+                cfg = replace(BASE, rate_hz=r, stiffness_n_per_m=k, layer=layer, **kw)
+                row = evaluate(cfg, seeds=seeds, quick=quick, scenarios=("wall", "hole_long"), model_timing_every=0)
                 tried.append({"stiffness_n_per_m": k, "unstable": row["unstable"], "refused": row["refused"],
                               "energy_injected_mj": row["energy_injected_mj"], "drift_mm": row.get("drift_mm"),
                               "rotation_deg": row.get("rotation_deg"), "wall_error_mm": row.get("wall_error_mm"),
@@ -402,13 +465,33 @@ def stable_region(*, quick: bool, seeds, log=None) -> list[dict]:
                     elif hi is not None and all(not t["unstable"] for t in tried if t["stiffness_n_per_m"] >= lo):
                         hi = k
             refused = next((t["stiffness_n_per_m"] for t in tried if t["refused"]), None)
+            wall_s = round(time.perf_counter() - t0, 1)
             if log:
                 log(f"tradeoff: stable region {name} {r:g} Hz: stable from {lo} to {hi} N/m"
-                    f"{f'; refused from {refused:g} N/m' if refused else ''}")
+                    f"{f'; refused from {refused:g} N/m' if refused else ''} ({wall_s:g} s)")
             out.append({"controller": name, "rate_hz": r, "smallest_stable_stiffness_n_per_m": lo,
                         "largest_stable_stiffness_n_per_m": hi, "smallest_refused_stiffness_n_per_m": refused,
-                        "tried": tried})
+                        "wall_s": wall_s, "tried": tried})
     return out
+
+
+def run_region(out, *, quick: bool = False, log=None, controllers=None, rates=None, layer: str | None = None) -> dict:
+    """``hapticproxy experiment tradeoff --region-only``: only the stable-region grid (all of it,
+    or the ``controllers`` rows and ``rates`` named), with the server's current defaults
+    (:func:`region_settings`; ``layer`` "off": without the passivity layer, as measured before it). Writes ``stable_region.json``, ``stable_region.md`` and
+    ``stable_region.png``. Returns ``{"stable_region": [...], "settings": {...}, ...}``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    seeds = QUICK_SEEDS if quick else REGION_SEEDS
+    t0 = time.perf_counter()
+    region = stable_region(quick=quick, seeds=seeds, log=log, controllers=controllers, rates=rates, layer=layer)
+    res = {"mode": "simulated time", "quick": quick, "seeds": list(seeds),
+           "damping_per_stiffness_s": DAMPING_PER_STIFFNESS_S, "settings": region_settings(layer),
+           "wall_s": round(time.perf_counter() - t0, 1), "stable_region": region}
+    (out / "stable_region.json").write_text(json.dumps(res, indent=1, default=float) + "\n")
+    (out / "stable_region.md").write_text(region_md(region) + "\n")
+    plot_region(region, out / "stable_region.png")
+    return res
 
 
 def pareto_front(rows: list[dict], cost: str, err: str) -> list[dict]:
@@ -468,6 +551,10 @@ def run_tradeoff(out, *, quick: bool = False, log=None, realtime: bool = True) -
            "pareto_hole": [r["label"] for r in pareto_front(rows, "cpu_load_pct", "drift_mm")]}
     (out / "tradeoff.json").write_text(json.dumps(res, indent=1, default=float) + "\n")
     (out / "tradeoff.md").write_text(table_md(rows, rt) + "\n")
+    (out / "stable_region.json").write_text(json.dumps(
+        {"mode": "simulated time", "quick": quick, "seeds": list(QUICK_SEEDS if quick else REGION_SEEDS),
+         "damping_per_stiffness_s": DAMPING_PER_STIFFNESS_S, "settings": region_settings(),
+         "stable_region": region}, indent=1, default=float) + "\n")
     (out / "stable_region.md").write_text(region_md(region) + "\n")
     plot_pareto(rows, out / "pareto.png")
     plot_region(region, out / "stable_region.png")

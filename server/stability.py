@@ -4,9 +4,16 @@
 ``stable_region``) sweeps, per controller and haptic rate, the contact stiffness from 1 kN/m to
 1 MN/m with the paper's damping per stiffness (b = 7.5 ms x k), on the planar testbed with the
 paper's 0.25 kg peg: a stiffness is stable when neither the wall push nor 6 s of Fig. 16's
-shaking is unstable on any of three engine seeds. :data:`MEASURED` is its result (the
-``largest_stable_stiffness_n_per_m`` of ``docs/experiments/tradeoff.json``; a test keeps the two
-equal, so re-running the sweep and forgetting this table fails).
+shaking is unstable on any of three engine seeds. :data:`MEASURED` is its result before issue 31
+(2026-11-22: the explicit step, no passivity layer; the ``largest_stable_stiffness_n_per_m`` of
+``docs/experiments/tradeoff.json``; a test keeps the two equal, so re-running the sweep and
+forgetting this table fails).
+
+Re-measured with the server's current defaults (2026-12-05, ``hapticproxy experiment tradeoff
+--region-only``: the implicit step, the layer on; ``docs/experiments/stable_region.json``), every
+row's band reaches at least this table's value at every rate (a test checks it), so the bound is
+kept as it was: inside the new region everywhere, conservative where the implicit step took the
+explicit step's limit away (EXPERIMENTS.md "The stable region" says why it is not raised).
 
 The rule (:func:`stable_contact_limits`):
 

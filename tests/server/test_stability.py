@@ -11,6 +11,8 @@ from hapticproxy.server import stability as st
 
 ROOT = Path(__file__).resolve().parents[2]
 REGION = json.loads((ROOT / "docs" / "experiments" / "tradeoff.json").read_text())["stable_region"]
+#: the same grid re-measured with the server's current defaults (issue 31: the implicit step, the layer)
+REMEASURED = json.loads((ROOT / "docs" / "experiments" / "stable_region.json").read_text())
 #: the sweep's row -> the config that row was measured with (experiments/tradeoff.py REGION_CONTROLLERS)
 ROW_CONFIG = {
     "four_channel": dict(controller={"type": "four_channel"}, model={"policy": "deformation"}),
@@ -38,6 +40,26 @@ def test_the_table_is_the_measured_one():
         assert tuple(rows[name][rate] for rate in st.RATES_HZ) == ks, name
     assert tuple(rows[st.FIXED_DAMPING_ROW][rate] for rate in st.RATES_HZ) == st.MEASURED_FIXED_DAMPING
     assert set(rows) == set(st.MEASURED) | {st.FIXED_DAMPING_ROW}
+
+
+def test_the_bound_lies_inside_the_region_re_measured_with_the_current_defaults():
+    new = {(r["controller"], r["rate_hz"]): r for r in REMEASURED["stable_region"]}
+    bound = dict(st.MEASURED, **{st.FIXED_DAMPING_ROW: st.MEASURED_FIXED_DAMPING})
+    assert set(new) == {(row, rate) for row in bound for rate in st.RATES_HZ}   # every cell re-measured
+    for row, ks in bound.items():
+        for rate, k in zip(st.RATES_HZ, ks):
+            e = new[(row, rate)]
+            # every stiffness from the band's lower end up to the bound was stable in the re-measurement
+            assert e["smallest_stable_stiffness_n_per_m"] is not None, (row, rate)
+            assert e["largest_stable_stiffness_n_per_m"] >= k, (row, rate, k)
+            inside = [t for t in e["tried"] if e["smallest_stable_stiffness_n_per_m"] <= t["stiffness_n_per_m"] <= k]
+            assert inside and not any(t["unstable"] or t["refused"] for t in inside), (row, rate, k)
+    # measured with what the server runs by default
+    s = REMEASURED["settings"]
+    assert s["passivity_enabled"] == cfg.load({})["passivity"]["enabled"] and s["layer"] == "default"
+    from hapticproxy.server.model.model import LocalModel, ToolSpec
+    assert s["integrator"] == LocalModel(ToolSpec.planar(0.25, 1e-3), warm=False).integrator
+    assert not REMEASURED["quick"]
 
 
 @pytest.mark.parametrize("row", sorted(st.MEASURED))
