@@ -237,9 +237,10 @@ class PassivityConfig(_Table):
     engine_grants: _doc(bool, "add the work an engine declares it does on the tool (ContactUpdate."
                         "work_on_tool_j) to the tank") = True
     damping_credit: _num(0, 1, doc="the share of what the device's damping dissipates that feeds the tank (1: "
-                         "all, the most transparent: free motion costs the tank nothing; 0: none, the layer then "
-                         "also stops a limit cycle the device's damper absorbs, a wider renderable wall: "
-                         "EXPERIMENTS.md, z-width)") = 1.0
+                         "all, the most transparent: free motion costs the tank nothing; 0.5: the layer also stops "
+                         "a limit cycle beyond the device's bound that its damper absorbs, every direct-coupling "
+                         "z-width panel a quarter to a half wider, a late wall's recovery limited on ~4 % of steps; "
+                         "0: a little wider still, Fig. 14's approach limited on 7 %: EXPERIMENTS.md, z-width)") = 1.0
 
 
 class TelemetryConfig(_Table):
