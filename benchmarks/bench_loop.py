@@ -134,10 +134,10 @@ def _run(settings: cfgmod.Settings, seconds: float, naive: bool) -> dict:
     return {"snap": snap, "steps": steps, "counts": counts}
 
 
-def run(rate_hz: float, seconds: float, naive_seconds: float, protocol_thread="auto") -> dict:
+def run(rate_hz: float, seconds: float, naive_seconds: float, protocol_thread="auto", spin_us="auto") -> dict:
     def settings(thread=protocol_thread):
         return cfgmod.load({
-            "loop": {"rate_hz": rate_hz, "protocol_thread": thread},
+            "loop": {"rate_hz": rate_hz, "protocol_thread": thread, "spin_us": spin_us},
             "transport": {"url": f"udp://127.0.0.1:{free_port()}"},
             "status": {"address": f"127.0.0.1:{free_port()}"},
             "device": {"driver": "sim", "kind": "planar", "hand": {"type": "constant", "wrench": [0.0, -0.5, 0.0]}},
@@ -198,7 +198,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="the server's [loop] protocol_thread: clock-thread (the tick in a thread of its own, "
                          "the protocol beside it), one-thread (the compiled loop hands steps back to Python), "
                          "auto (the server's default: clock-thread on 2 CPUs or more)")
+    ap.add_argument("--spin-us", default="auto", metavar="US",
+                    help="the server's [loop] spin_us: the spin before each deadline, us (auto: calibrated; the "
+                         "compiled loops cap it at 60 %% of the period)")
     args = ap.parse_args(argv)
+    if args.spin_us != "auto":
+        try:
+            args.spin_us = float(args.spin_us)
+        except ValueError:
+            args.spin_us = -1.0
+        if not 0.0 <= args.spin_us <= 5000.0:
+            print("hapticproxy bench loop: --spin-us must be auto or a number of us in [0, 5000]", file=sys.stderr)
+            return 2
     if not (100 <= args.rate <= 20000) or not args.seconds > 0:
         print("hapticproxy bench loop: --rate must be in [100, 20000] Hz and --seconds > 0", file=sys.stderr)
         return 2
@@ -209,7 +220,8 @@ def main(argv: list[str] | None = None) -> int:
     naive_s = min(args.seconds, 20.0) if args.naive_seconds is None else args.naive_seconds
     try:
         res = {} if args.update_steps_only else run(args.rate, args.seconds, naive_s,
-                                                       {"auto": "auto", "clock-thread": True, "one-thread": False}[args.loop])
+                                                       {"auto": "auto", "clock-thread": True, "one-thread": False}[args.loop],
+                                                       spin_us=args.spin_us)
     except RuntimeError as exc:
         print(f"hapticproxy bench loop: {exc}", file=sys.stderr)
         return 1

@@ -8,17 +8,18 @@ import sys
 import pytest
 
 
-def _bench_loop_json() -> dict:
+def _bench_loop_json(*extra: str) -> dict:
     out = subprocess.run([sys.executable, "-m", "hapticproxy.cli.main", "bench", "loop", "--json", "--rate", "1000",
-                          "--seconds", "1", "--naive-seconds", "0.5", "--update-steps", "0"], capture_output=True, text=True,
-                         timeout=300)
+                          "--seconds", "1", "--naive-seconds", "0.5", "--update-steps", "0", *extra],
+                         capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     return json.loads(out.stdout)
 
 
 def test_bench_loop_prints_the_documented_keys():
-    d = _bench_loop_json()
+    d = _bench_loop_json("--spin-us", "300")
     assert d["rate_hz"] == 1000.0
+    assert d["spin_us"] == 300.0          # the [loop] spin_us it was given (under the 60 % cap at 1 kHz)
     for k in ("p50", "p99", "p999", "max"):
         assert d["lateness_us"][k] is not None and d["naive_lateness_us"][k] is not None
     for k in ("p50", "p99"):
@@ -42,7 +43,8 @@ def test_bench_loop_runs_without_a_fault():
     assert d["faults"] == 0, d
 
 
-@pytest.mark.parametrize("bad", [["--rate", "5"], ["--update-steps", "-1"], ["--update-steps-only", "--update-steps", "0"]])
+@pytest.mark.parametrize("bad", [["--rate", "5"], ["--update-steps", "-1"], ["--update-steps-only", "--update-steps", "0"],
+                                 ["--spin-us", "x"], ["--spin-us", "-3"], ["--spin-us", "6000"]])
 def test_bench_loop_rejects_bad_arguments(bad):
     out = subprocess.run([sys.executable, "-m", "hapticproxy.cli.main", "bench", "loop", *bad],
                          capture_output=True, text=True, timeout=60)
