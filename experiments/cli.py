@@ -90,8 +90,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="figures: the real server in real time (default) or simulated time")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--layer", choices=("on", "off"), default=None,
-                   help="zwidth: with or without the passivity layer (ignored, with a note, where the server has "
-                        "no [passivity] settings)")
+                   help="zwidth: with or without the passivity layer (default off: the bare hold; ignored, with a "
+                        "note, where the server has no [passivity] settings)")
     p.add_argument("--json", action="store_true", help="zwidth, lighttools: print the summary as JSON on stdout")
     p.add_argument("--velocity", choices=("device", "difference"), default=None,
                    help="zwidth: the velocity the controller reads: the device's (default) or the backward difference "
