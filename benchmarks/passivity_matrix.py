@@ -177,7 +177,7 @@ def independent_ledger(dev: np.ndarray, cmd: np.ndarray) -> np.ndarray:
     return out
 
 
-def run_case(case: Case, layer: bool, seconds: float = 3.0, *, budget_j: float = 0.01, trace: bool = False,
+def run_case(case: Case, layer: bool, seconds: float = 3.0, *, budget_j: float | None = None, trace: bool = False,
              settings_over: dict | None = None) -> dict:
     """One run of ``case`` with the layer on or off; the row it reports (module docstring). With
     ``trace``: the row's ``trace`` holds per step the raw device pose and twist, the command, both
@@ -202,10 +202,13 @@ def run_case(case: Case, layer: bool, seconds: float = 3.0, *, budget_j: float =
     if case.scene == "hole":
         dev.update({"initial_pose": [0.0, 0.0, HOLE_THETA], "rotation_limit_rad": HOLE_THETA + 1.0})
     table = {"transport": {"url": url}, "status": {"address": "127.0.0.1:1"}, "device": dev,
-             "passivity": {"enabled": bool(layer), "initial_budget_j": budget_j}, "telemetry": {"ring_s": 1.0}}
+             "passivity": {"enabled": bool(layer)}, "telemetry": {"ring_s": 1.0}}
+    if budget_j is not None:
+        table["passivity"]["initial_budget_j"] = budget_j
     for section, keys in (settings_over or {}).items():
         table[section] = {**table.get(section, {}), **keys}
     settings = cfgmod.load(table)
+    budget_j = float(settings["passivity"]["initial_budget_j"])  # the books' H0, whatever set it
     clock = SimClock(start_ns=_NS)
     loop = HapticLoop.build(settings, clock=clock)
     engine = _make_engine(case, seconds + 1.0)
@@ -326,7 +329,7 @@ def line(r: dict) -> str:
     return (f"#{r['index']} {r['engine']}/{r['scene']} {r['env_rate_hz']:.0f} Hz, delay {r['delay_ms']:.0f} ms "
             f"+-{r['jitter_ms']:.0f}, loss {100 * r['loss']:.0f} %, {h}, layer {r['layer']}: excess books "
             f"{1e3 * r['excess_books_j']:+.2f} mJ, independent {1e3 * r['excess_indep_j']:+.2f} mJ (given at most "
-            f"{1e3 * r['given_max_j']:.2f} mJ, budget {1e3 * r['budget_j']:.0f}), limited {r['limited_steps']} of "
+            f"{1e3 * r['given_max_j']:.2f} mJ, budget {1e3 * r['budget_j']:g}), limited {r['limited_steps']} of "
             f"{r['steps']} steps, faults {r['faults']}" + (f", CRASH {r['crash']}" if r["crash"] else ""))
 
 

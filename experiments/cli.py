@@ -116,8 +116,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="figures: the real server in real time (default) or simulated time")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--layer", choices=("on", "off"), default=None,
-                   help="zwidth, tradeoff --region-only: with or without the passivity layer (zwidth: ignored, with a "
-                        "note, where the server has no [passivity] settings; the region: the server's default unless given)")
+                   help="zwidth, tradeoff --region-only: with or without the passivity layer (zwidth: default off, "
+                        "the bare hold; ignored, with a note, where the server has no [passivity] settings; the "
+                        "region: the server's default unless given)")
     p.add_argument("--json", action="store_true", help="zwidth, lighttools: print the summary as JSON on stdout")
     p.add_argument("--velocity", choices=("device", "difference"), default=None,
                    help="zwidth: the velocity the controller reads: the device's (default) or the backward difference "

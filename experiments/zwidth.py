@@ -143,11 +143,14 @@ def classify(ptp_m: float, force_ptp_n: float, growth: float, push_n: float, *, 
 def layer_settings(layer: str | None, damping_credit: float | None = None) -> tuple[dict, str]:
     """The ``[passivity]`` table for ``--layer`` (and ``--damping-credit``: the share of the
     device's damping the tank credits) and a note: empty table and a note saying the option is
-    ignored when the config has no ``[passivity]`` table (the layer not merged)."""
+    ignored when the config has no ``[passivity]`` table (the layer not merged). No ``--layer`` is
+    ``off``: the bare hold's region, whatever the server's passivity settings (with
+    ``input_credit`` below 1 the layer settles walls beyond the bound: EXPERIMENTS.md, passivity)."""
     if damping_credit is not None and layer != "on":
         raise ValueError("--damping-credit: applies with --layer on only")
     if layer is None:
-        return {}, ""
+        table, note = layer_settings("off")
+        return table, ("" if table else note)
     if layer not in LAYER_CHOICES:
         raise ValueError(f"--layer: expected on or off, got {layer!r}")
     try:
@@ -218,8 +221,9 @@ def run_point(kind: str, rate_hz: float, k: float, b: float, *, controller: str 
     constant push; returns ``(verdict, reason, contact_s, ptp_m, force_ptp_n, growth, ptp_1s_m)`` (and the trace of
     the handle's height and the command along the normal when ``keep_trace``). ``device``: keys of the
     simulated device's table over its defaults (``damping_n_s_per_m = 0``: no physical damping); the
-    server's settings are derived from that device."""
-    layer_table = layer_table or {}
+    server's settings are derived from that device. ``layer_table`` None: the layer off (the bare
+    hold)."""
+    layer_table = layer_settings(None)[0] if layer_table is None else layer_table
     settings = cfg.load(_settings_dict(kind, rate_hz, controller, k, b, layer_table, True))
     dt = settings.period_ns * 1e-9
     mass, _ = device_physics(kind, rate_hz)

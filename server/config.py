@@ -233,7 +233,12 @@ class PassivityConfig(_Table):
     device_rot_damping_n_m_s_per_rad: _num(0, 1e3, doc="and its rotational damping, alike [N m s/rad]") = 0.0
     input_credit: _num(0, 1, lo_open=True, doc="the share of the energy the hand puts in that the tank keeps "
                        "(1: lossless, an undamped bounce keeps bouncing; below 1 the layer dissipates the rest, "
-                       "and an exchange that gives back what it took dies out: EXPERIMENTS.md, walls)") = 1.0
+                       "and an exchange that gives back what it took dies out). 1 with the 10 mJ budget (the "
+                       "default): the project's scenes untouched, a late engine's recovery does its work. For "
+                       "a device with little or unknown damping (no maker's figure) and stiff walls: 0.45 with "
+                       "initial_budget_j = 0.002 settles undamped walls at 5x the Colgate-Schenkel bound within "
+                       "1 s, but holds back the recovery on a delayed active scene, and bench faults' killed-loop "
+                       "case is still settling a second before the kill (EXPERIMENTS.md, passivity)") = 1.0
     engine_grants: _doc(bool, "add the work an engine declares it does on the tool (ContactUpdate."
                         "work_on_tool_j) to the tank") = True
     damping_credit: _num(0, 1, doc="the share of what the device's damping dissipates that feeds the tank (1: "

@@ -138,6 +138,22 @@ def test_a_damping_credit_without_the_layer_or_out_of_range_is_a_usage_error(tmp
     assert e.value.code == 2
 
 
+def test_no_layer_option_is_the_bare_hold_whatever_the_layers_default():
+    """The output says "layer": "off" without ``--layer``; the rig runs that way even where the
+    server's default layer would act on the wall (input_credit below 1 settles walls beyond the
+    bound: EXPERIMENTS.md, passivity)."""
+    if "passivity" not in Z.cfg.load({}).data:
+        pytest.skip("no passivity layer in this server")
+    assert Z.layer_settings(None) == ({"passivity": {"enabled": False}}, "")
+    k = 5 * 2 * 2.0 * RATE          # 5x the bound of the planar device (2 N s/m), then no damping: it rings
+    bare = Z.run_point(KIND, RATE, k, 0.0, device={"damping_n_s_per_m": 0.0})
+    off = Z.run_point(KIND, RATE, k, 0.0, device={"damping_n_s_per_m": 0.0},
+                      layer_table={"passivity": {"enabled": False}})
+    settling = {"passivity": {"enabled": True, "input_credit": 0.45, "initial_budget_j": 0.002}}
+    held = Z.run_point(KIND, RATE, k, 0.0, device={"damping_n_s_per_m": 0.0}, layer_table=settling)
+    assert bare[:7] == off[:7] and bare[0] == "unstable" and held[0] != "unstable"
+
+
 def test_layer_and_json_are_refused_for_other_experiments(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["fig6", "--out", str(tmp_path), "--layer", "on"])

@@ -34,8 +34,10 @@ def test_a_speed_trip_fade_never_pushes_harder_than_where_it_started(rig_factory
     # resting on the wall with 0.5 N, then the hand yanks the handle away at 30 N: the speed
     # trips a fade while the device flies away from the proxy, stretching the coupling spring
     yank_at = 2.0
+    # (the fade alone, without the passivity layer: with input_credit 0.45 and a 2 mJ budget the
+    # layer holds the pull-back at the trip to 0.58 N, and the fade has less to show)
     dev = PointDevice(hand=lambda t: (0.0, -0.5, 0.0) if t < yank_at else (0.0, 30.0, 0.0))
-    r = rig_factory(device=dev, safety={"max_speed_m_per_s": 0.5})
+    r = rig_factory(device=dev, safety={"max_speed_m_per_s": 0.5}, passivity={"enabled": False})
     rows = r.run(3.0)
     cmds = np.array(dev.commands)
     assert r.loop.ctrl.counters()["speed_trips"] > 0 and r.loop.state_name == "fault"

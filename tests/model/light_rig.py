@@ -131,7 +131,7 @@ def rest_on_floor(kind: str, mass_kg: float, inertia_kg_m2=None, *, rate_hz: flo
                   push_n: float = 1.0, size_m=(0.04, 0.04, 0.04), seconds: float = 1.0, window_s: float = 0.3,
                   controller: dict | None = None, contact: dict | None = None, gap_m: float = 0.001,
                   qd0=None, model_kw: dict | None = None, build=None, engine_frame: bool = True,
-                  device_cfg: dict | None = None, fit: bool = True) -> RestResult:
+                  device_cfg: dict | None = None, fit: bool = True, passivity: dict | None = None) -> RestResult:
     """Put a tool of ``kind`` (``KINDS``) ``gap_m`` above the floor, the hand pushing its device
     down with ``push_n``, and run ``seconds`` of simulated time.
 
@@ -141,11 +141,13 @@ def rest_on_floor(kind: str, mass_kg: float, inertia_kg_m2=None, *, rate_hz: flo
     keys of ``[controller]`` / ``[model]``. ``qd0``: the proxy's initial velocity. ``build``:
     ``build(tool, contact_params, period_s)`` returns the LocalModel (default: as the server's
     ``ModelFactory`` does, with these keys). ``fit``: the coupling's damping for the tool as the
-    loop sets it at engagement (``Controller.fit_tool``); False keeps the configured one."""
+    loop sets it at engagement (``Controller.fit_tool``); False keeps the configured one.
+    ``passivity``: config keys of ``[passivity]`` (the layer at its defaults if None)."""
     model_keys = dict(contact or {})
     settings = cfg.load({"loop": {"rate_hz": rate_hz}, "controller": dict(controller or {}),
                          "model": model_keys, "safety": {"allow_outside_stable_region": True},
-                         "device": {"driver": "sim", "kind": _device_kind(kind)}})
+                         "device": {"driver": "sim", "kind": _device_kind(kind)},
+                         "passivity": dict(passivity or {})})
     mc = settings["model"]
     cparams = ContactParams(mc["stiffness_n_per_m"], mc["damping_n_s_per_m"], mc["restitution"], mc["mu_static"],
                             mc["mu_kinetic"])

@@ -124,7 +124,11 @@ def test_heavy_rigid_tools_rest_on_contacts_in_their_own_frame(kind):
 
 
 def test_the_heavy_planar_tool_bounces_with_the_configured_damping():
-    r = rest_on_floor("planar", 2.0, rate_hz=1000.0, seconds=3.0, engine_frame=False, fit=False)
+    # the coupling's counterfactual, without the passivity layer: with input_credit 0.45 and a
+    # 2 mJ budget (the undamped walls' setting, EXPERIMENTS.md) the layer drains this bounce and
+    # stops it (3.5e-5 m/s), which would hide what the damping rule is for
+    r = rest_on_floor("planar", 2.0, rate_hz=1000.0, seconds=3.0, engine_frame=False, fit=False,
+                      passivity={"enabled": False})
     assert r.finite and r.counters["diverged"] == 0
     assert r.linear_m_per_s > 1e-3
 

@@ -186,9 +186,13 @@ def test_shutdown_ramps_down_then_says_bye(rig_factory):
 
 
 def test_caps_and_rate_limit_hold_under_an_adversarial_environment(rig_factory):
-    """An engine that reports the floor a metre deep, flipping sides every update."""
+    """An engine that reports the floor a metre deep, flipping sides every update. The safety
+    filter alone: with the passivity layer at the undamped walls' setting (input_credit 0.45, a
+    2 mJ budget: EXPERIMENTS.md) the command is held below the cap and the cap is never reached
+    (the layer's own tests: tests/server/test_passivity.py, tests/test_bench_passivity.py)."""
     dev = PointDevice(hand=PUSH)
-    r = rig_factory(device=dev, model={"stiffness_n_per_m": 1e5}, safety={"allow_outside_stable_region": True})
+    r = rig_factory(device=dev, model={"stiffness_n_per_m": 1e5}, safety={"allow_outside_stable_region": True},
+                    passivity={"enabled": False})
     env = r.env
     flip = {"n": 0}
     orig = env.contacts
