@@ -237,8 +237,9 @@ class PassivityConfig(_Table):
                        "default): the project's scenes untouched, a late engine's recovery does its work. For "
                        "a device with little or unknown damping (no maker's figure) and stiff walls: 0.45 with "
                        "initial_budget_j = 0.002 settles undamped walls at 5x the Colgate-Schenkel bound within "
-                       "1 s, but holds back the recovery on a delayed active scene, and bench faults' killed-loop "
-                       "case is still settling a second before the kill (EXPERIMENTS.md, passivity)") = 1.0
+                       "1 s, but holds back the recovery on a delayed active scene, and a device that states no "
+                       "damping approaches a wall a little later (the four-channel controller's free-motion "
+                       "push is withheld sooner: EXPERIMENTS.md, passivity)") = 1.0
     engine_grants: _doc(bool, "add the work an engine declares it does on the tool (ContactUpdate."
                         "work_on_tool_j) to the tank") = True
     damping_credit: _num(0, 1, doc="the share of what the device's damping dissipates that feeds the tank (1: "
