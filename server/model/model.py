@@ -400,9 +400,11 @@ class ContactSnapshot:
     state: list = field(default_factory=list)
     slipping: np.ndarray | None = None
     age_updates: np.ndarray | None = None
-    #: deformation the update rules put in and the recovery has not yet taken back, m (>= 0)
+    #: deformation the update rules put in, and advance the passivity layer held back, that the
+    #: recovery has not yet taken back, m (>= 0)
     deformation_m: np.ndarray | None = None
-    #: deformation taken back by the recovery since the contact's last update, m (>= 0)
+    #: deformation taken back by the recovery since the contact's last update, less the advance
+    #: the layer held back, m (negative while the held part exceeds what was recovered)
     recovered_m: np.ndarray | None = None
 
 
