@@ -30,7 +30,8 @@ stub`` for the analytic one) on loopback. Faults are injected in user space (no 
 
 One JSON row per case (``--json``: JSON lines; otherwise a table): ``case``, ``max_force_n``
 (largest force component commanded to the device), ``max_force_step_n`` (largest change of a
-force component in one haptic step), ``force_cap_n``, ``rate_limit_n_per_step``, ``fade_ms``
+force component in one haptic step, the fault policy's cut to zero excepted: ``max_cut_n`` is the
+largest force a cut removed at once), ``force_cap_n``, ``rate_limit_n_per_step``, ``fade_ms``
 (longest fade from its start to zero force, where a fade happened), ``unstable``, ``violations``
 (steps that broke a promise) and ``broken`` (which promises, with counts), plus details:
 ``zero_ms`` (device cut by its own watchdog, from the stall / kill), ``detect_ms`` (environment
@@ -670,7 +671,9 @@ def analyse(rows: np.ndarray, lim: dict, ev: dict, case: Case | None = None) -> 
     mean_fy = float(np.mean(f[win, 1])) if win.sum() > 10 else None
     out = {
         "max_force_n": float(af.max()) if len(af) else 0.0,
-        "max_force_step_n": float(df.max()) if len(df) else 0.0,
+        # the cut is zero at once by design; its size is reported on its own, not as a step
+        "max_force_step_n": float(df[~cut].max()) if (~cut).any() else 0.0,
+        "max_cut_n": float(df[cut].max()) if cut.any() else 0.0,
         "force_cap_n": cap_f,
         "rate_limit_n_per_step": rate_f,
         "fade_ms": round(max(fade_ms), 1) if fade_ms else None,
