@@ -10,7 +10,8 @@ steps, or with ``--json`` one JSON object:
 ``rate_hz``, ``seconds``, ``steps``, ``lateness_us`` (``p50``, ``p99``, ``p999``, ``max``: wake-up time
 minus the absolute deadline, 1 us bins, upper edges), ``step_us`` (``p50``, ``p99``: poll to device
 write), ``missed_fraction`` (steps that finished after the next deadline / steps),
-``missed_deadlines`` (whole periods skipped), ``rt_scheduling``, ``spin_us``, ``updates``,
+``missed_deadlines`` (whole periods skipped), ``rt_scheduling``, ``spin_us``, ``cpu_latency_us``
+(the idle CPUs' wake-up latency held, None when not), ``updates``,
 ``faults``, ``naive_lateness_us`` (``p50``, ``p99``, ``p999``, ``max``), ``naive_missed_fraction``,
 ``p99_ratio_naive_over_loop``, ``machine``, ``protocol_thread`` (the loop ran a clock thread),
 ``clock_ticks`` and ``clock_held`` (its ticks run, and held while Python had the tick's lock; None
@@ -134,10 +135,12 @@ def _run(settings: cfgmod.Settings, seconds: float, naive: bool) -> dict:
     return {"snap": snap, "steps": steps, "counts": counts}
 
 
-def run(rate_hz: float, seconds: float, naive_seconds: float, protocol_thread="auto", spin_us="auto") -> dict:
+def run(rate_hz: float, seconds: float, naive_seconds: float, protocol_thread="auto", spin_us="auto",
+        cpu_latency_us=0) -> dict:
     def settings(thread=protocol_thread):
         return cfgmod.load({
-            "loop": {"rate_hz": rate_hz, "protocol_thread": thread, "spin_us": spin_us},
+            "loop": {"rate_hz": rate_hz, "protocol_thread": thread, "spin_us": spin_us,
+                     "cpu_latency_us": cpu_latency_us},
             "transport": {"url": f"udp://127.0.0.1:{free_port()}"},
             "status": {"address": f"127.0.0.1:{free_port()}"},
             "device": {"driver": "sim", "kind": "planar", "hand": {"type": "constant", "wrench": [0.0, -0.5, 0.0]}},
@@ -160,6 +163,8 @@ def run(rate_hz: float, seconds: float, naive_seconds: float, protocol_thread="a
         "missed_deadlines": int(s["missed_deadlines"]),
         "rt_scheduling": bool(s["rt_scheduling"]),
         "spin_us": s["spin_ns"] / 1000.0,
+        # the idle CPUs' wake-up latency the loop held the kernel to (None: not held)
+        "cpu_latency_us": int(s["cpu_latency_us"]) if s.get("cpu_latency_us", -1) >= 0 else None,
         "updates": int(s["updates"]),
         "faults": int(s["faults_total"]),
         # the server's [loop] protocol_thread as it ran: a clock thread's ticks, and those it held
@@ -201,7 +206,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--spin-us", default="auto", metavar="US",
                     help="the server's [loop] spin_us: the spin before each deadline, us (auto: calibrated; the "
                          "compiled loops cap it at 60 %% of the period)")
+    ap.add_argument("--cpu-latency-us", default="0", metavar="US",
+                    help="the server's [loop] cpu_latency_us: the idle CPUs' wake-up latency held while it runs, us "
+                         "(default 0: idle CPUs poll; off: the OS decides)")
     args = ap.parse_args(argv)
+    if args.cpu_latency_us != "off":
+        if not args.cpu_latency_us.isdigit() or int(args.cpu_latency_us) > 1000:
+            print("hapticproxy bench loop: --cpu-latency-us must be off or a whole number of us in [0, 1000]",
+                  file=sys.stderr)
+            return 2
+        args.cpu_latency_us = int(args.cpu_latency_us)
     if args.spin_us != "auto":
         try:
             args.spin_us = float(args.spin_us)
@@ -221,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         res = {} if args.update_steps_only else run(args.rate, args.seconds, naive_s,
                                                        {"auto": "auto", "clock-thread": True, "one-thread": False}[args.loop],
-                                                       spin_us=args.spin_us)
+                                                       spin_us=args.spin_us, cpu_latency_us=args.cpu_latency_us)
     except RuntimeError as exc:
         print(f"hapticproxy bench loop: {exc}", file=sys.stderr)
         return 1
@@ -246,7 +260,9 @@ def print_report(res: dict) -> None:
     if "steps" in res:
         lat, st = res["lateness_us"], res["step_us"]
         print(f"real loop   {res['rate_hz']:g} Hz for {res['seconds']:g} s: {res['steps']} steps, {res['updates']} updates, "
-              f"faults {res['faults']}, real-time scheduling {'yes' if res['rt_scheduling'] else 'no'}")
+              f"faults {res['faults']}, real-time scheduling {'yes' if res['rt_scheduling'] else 'no'}, "
+              f"spin {res['spin_us']:.0f} us, idle CPUs "
+              + ("left to the OS" if res.get("cpu_latency_us") is None else f"wake within {res['cpu_latency_us']} us"))
         print(f"  lateness us  p50 {_us(lat, 'p50')}  p99 {_us(lat, 'p99')}  p99.9 {_us(lat, 'p999')}  "
               f"max {_us(lat, 'max')};  missed {100 * res['missed_fraction']:.3f} %")
         print(f"  step us      p50 {_us(st, 'p50')}  p99 {_us(st, 'p99')}  max {_us(st, 'max')}")

@@ -44,6 +44,7 @@ BENCH_TARGETS = {
     "codec": "hapticproxy.benchmarks.bench_codec",
     "transport": "hapticproxy.benchmarks.bench_transport",
     "loop": "hapticproxy.benchmarks.bench_loop",
+    "floor": "hapticproxy.benchmarks.bench_floor",
     "clients": "hapticproxy.benchmarks.bench_clients",
     "faults": "hapticproxy.benchmarks.bench_faults",
     "recorder": "hapticproxy.benchmarks.bench_recorder",

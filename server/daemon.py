@@ -102,10 +102,11 @@ def loop_process_main(data, shm_name: str, ring_rows: int, hmac_key: bytes | Non
     code = 0
     loop = None
     transport = None
+    latency_fd = None
     running = False
     signal.signal(signal.SIGTERM, _raise_stop)  # from here a stop unwinds through the finally below
     try:
-        from .clock import MonotonicClock, SleepClock, pin_to_cpu, set_timer_slack_ns, try_realtime
+        from .clock import MonotonicClock, SleepClock, hold_cpu_latency, pin_to_cpu, set_timer_slack_ns, try_realtime
         from .loop import HapticLoop
 
         settings = data if isinstance(data, cfgmod.Settings) else cfgmod.Settings(data, "<supervisor>")
@@ -155,6 +156,12 @@ def loop_process_main(data, shm_name: str, ring_rows: int, hmac_key: bytes | Non
             if not rt:
                 llog.warning("real-time scheduling not granted: %s", why)
         st[ST["rt_scheduling"]] = 1.0 if rt else 0.0
+        if lcfg["cpu_latency_us"] != "off":
+            latency_fd, why = hold_cpu_latency(lcfg["cpu_latency_us"])
+            if latency_fd is None:
+                llog.warning("idle CPUs' wake-up latency not held (deadlines may wake later): %s", why)
+            else:
+                st[ST["cpu_latency_us"]] = lcfg["cpu_latency_us"]
         gc.collect()
         gc.freeze()
         gc.disable()
@@ -189,6 +196,8 @@ def loop_process_main(data, shm_name: str, ring_rows: int, hmac_key: bytes | Non
                 pass
         if transport is not None:
             transport.close()
+        if latency_fd is not None:
+            os.close(latency_fd)
         st[ST["exit_code"]] = code
         st[ST["loop_state"]] = LOOP_STATES.index("stopped")
         # The supervisor owns the block and unlinks it when it closes. One that died (SIGKILL)

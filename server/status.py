@@ -79,6 +79,12 @@ def _device_fault_name(code) -> str:
     return DEV_FAULT_NAMES.get(int(code or 0), str(code))
 
 
+def _held_latency(s: dict) -> bool:
+    """The loop holds the idle CPUs' wake-up latency (-1, or a status from before the field: not)."""
+    v = s.get("cpu_latency_us")
+    return v is not None and v >= 0
+
+
 def _f(v, fmt: str = ".1f", none: str = "-") -> str:
     return none if v is None else format(v, fmt)
 
@@ -135,7 +141,9 @@ def format_status(s: dict) -> str:
         f"lateness us  p50 {lat.get('p50')}  p99 {lat.get('p99')}  p99.9 {lat.get('p999')}  "
         f"max {_f(s.get('lateness_max_us'))}",
         f"compute us   p50 {comp.get('p50')}  p99 {comp.get('p99')}  max {_f(s.get('compute_max_us'))}",
-        f"rt sched     {'yes' if s.get('rt_scheduling') else 'no'}  (spin {(s.get('spin_ns') or 0) / 1000:.0f} us)",
+        f"rt sched     {'yes' if s.get('rt_scheduling') else 'no'}  (spin {(s.get('spin_ns') or 0) / 1000:.0f} us; "
+        + (f"idle CPUs wake within {s['cpu_latency_us']:.0f} us)" if _held_latency(s)
+           else "idle CPU wake-up latency not held)"),
         f"session      {s.get('session_id', 0)}  updates {s.get('updates', 0)}  acks {s.get('acks_sent', 0)}  "
         f"env rate {_f(s.get('env_rate_hz'))} Hz  silence "
         f"{'no update yet' if silence is None else f'{silence:.0f} ms'}",

@@ -16,7 +16,7 @@ import pytest
 from server_harness import WallEnv
 
 from hapticproxy.server import telemetry
-from hapticproxy.server.clock import MonotonicClock
+from hapticproxy.server.clock import CPU_DMA_LATENCY, MonotonicClock
 from hapticproxy.server.shm import NTEL, TEL_FIELDS
 from hapticproxy.server.status import query
 
@@ -29,13 +29,14 @@ def _free_udp_port() -> int:
         return s.getsockname()[1]
 
 
-def _config(tmp_path: Path, extra: str = "") -> tuple[Path, str, str]:
+def _config(tmp_path: Path, extra: str = "", loop: str = "") -> tuple[Path, str, str]:
     url = f"udp://127.0.0.1:{_free_udp_port()}"
     status = f"127.0.0.1:{_free_udp_port()}"
     f = tmp_path / "scene.toml"
     f.write_text(f"""
 [loop]
 rate_hz = 1000.0
+{loop}
 [transport]
 url = "{url}"
 [status]
@@ -69,8 +70,8 @@ def _wait_status(address: str, proc, timeout_s: float = 120.0) -> dict:
 def server(tmp_path):
     procs = []
 
-    def start(extra: str = "", args=()):
-        cfg, url, status = _config(tmp_path, extra)
+    def start(extra: str = "", args=(), loop: str = ""):
+        cfg, url, status = _config(tmp_path, extra, loop)
         p = subprocess.Popen(HAPTICPROXY + ["serve", "--config", str(cfg), *args], stdout=subprocess.PIPE,
                              stderr=subprocess.PIPE, text=True)
         procs.append(p)
@@ -131,8 +132,12 @@ def test_status_json_and_rearm_and_stop(server):
     for key in ("rate_hz", "lateness_us", "overruns", "contacts", "session_id", "watchdog", "rt_scheduling"):
         assert key in s
     assert s["lateness_us"]["p99"] is not None
+    # [loop] cpu_latency_us = 0 (the default) held while the loop runs, where the kernel lets it
+    held = os.access(CPU_DMA_LATENCY, os.W_OK)
+    assert s["cpu_latency_us"] == (0 if held else -1)
     out = subprocess.run(HAPTICPROXY + ["status", "--address", status], capture_output=True, text=True, timeout=30)
     assert out.returncode == 0 and "lateness us" in out.stdout
+    assert ("idle CPUs wake within 0 us" if held else "wake-up latency not held") in out.stdout
     assert query(status, {"cmd": "rearm"})["ok"]
     assert "error" in query(status, {"cmd": "fly"})
     out = subprocess.run(HAPTICPROXY + ["status", "--address", status, "--stop"], capture_output=True, text=True,
@@ -271,3 +276,11 @@ def test_a_supervisor_killed_mid_contact_leaks_no_shared_memory(server):
     assert _exited(loop_pid, 20.0), "the loop process outlived its supervisor"
     assert "leaked" not in err and "resource_tracker" not in err, err
     assert not any(os.path.exists(f"/dev/shm/{b}") for b in blocks), blocks
+
+
+def test_the_idle_latency_request_can_be_left_to_the_os(server):
+    proc, url, status = server(loop='cpu_latency_us = "off"')
+    s = query(status)
+    assert s["cpu_latency_us"] == -1
+    out = subprocess.run(HAPTICPROXY + ["status", "--address", status], capture_output=True, text=True, timeout=30)
+    assert "wake-up latency not held" in out.stdout

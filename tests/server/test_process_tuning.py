@@ -1,0 +1,50 @@
+"""The loop process's tuning on the real clock (``server/clock.py``): the idle CPUs' wake-up
+latency request, held while its file stays open and withdrawn when it closes."""
+from __future__ import annotations
+
+import os
+import struct
+
+import pytest
+
+from hapticproxy.server.clock import CPU_DMA_LATENCY, hold_cpu_latency
+
+
+def test_the_request_is_the_value_as_a_native_int_and_lasts_while_the_file_is_open(tmp_path):
+    path = tmp_path / "qos"
+    path.write_bytes(b"")
+    fd, why = hold_cpu_latency(7, str(path))
+    assert fd is not None and why == ""
+    try:
+        os.fstat(fd)  # still open: the request stands
+        assert struct.unpack("i", path.read_bytes()) == (7,)
+    finally:
+        os.close(fd)
+
+
+def test_a_request_that_cannot_be_made_says_why_and_holds_nothing(tmp_path):
+    fd, why = hold_cpu_latency(0, str(tmp_path / "missing"))
+    assert fd is None and "missing" in why and "No such file" in why
+    ro = tmp_path / "ro"
+    ro.write_bytes(b"")
+    os.chmod(ro, 0o400)
+    if os.geteuid() != 0:  # root writes a read-only file anyway
+        fd, why = hold_cpu_latency(0, str(ro))
+        assert fd is None and "ro" in why
+
+
+@pytest.mark.skipif(not os.access(CPU_DMA_LATENCY, os.R_OK | os.W_OK), reason="no PM QoS device to ask")
+def test_the_kernel_keeps_the_request_until_it_is_closed():
+    """The device reads back the latency in force: the smallest request any process holds."""
+    def in_force() -> int:
+        with open(CPU_DMA_LATENCY, "rb") as f:
+            return struct.unpack("i", f.read(4))[0]
+
+    before = in_force()
+    fd, why = hold_cpu_latency(0)
+    assert fd is not None, why
+    try:
+        assert in_force() == 0
+    finally:
+        os.close(fd)
+    assert in_force() == before
