@@ -166,12 +166,33 @@ def rate_rows(which: str, seconds: float, tmp: str) -> list[dict]:
     return out
 
 
-def servo_rows(seconds: float, tmp: str, rates=(1000.0, 4000.0)) -> list[dict]:
+def servo_rows(seconds: float, tmp: str, rates=(1000.0, 4000.0), cpu_latency_us: int | None = 0) -> list[dict]:
     """The Touch's servo thread at each rate, side by side: (a) the driver's Python callback (it
     takes the GIL each tick) while a Python loop reads and writes it at the same rate; (b) the
     compiled haptic tick as the callback (``server/servo.py``), the whole server loop running
     device-clocked. Each: the servo thread's period jitter (p99 and max of |period - nominal|),
-    over ``seconds``; (b) also the ticks held while Python had the tick's lock."""
+    over ``seconds``; (b) also the ticks held while Python had the tick's lock. Both with the idle
+    CPUs' wake-up latency held at ``cpu_latency_us`` as the daemon holds it (None: the OS's;
+    ``cpu_latency_us`` in each row: what was held)."""
+    import os
+
+    from ..server.clock import hold_cpu_latency
+
+    out = []
+    latency_fd, why = (None, "") if cpu_latency_us is None else hold_cpu_latency(cpu_latency_us)
+    if cpu_latency_us is not None and latency_fd is None:
+        print(f"hapticproxy bench devices: idle CPUs' wake-up latency not held: {why}", file=sys.stderr)
+    try:
+        out = _servo_rows(seconds, tmp, rates)
+    finally:
+        if latency_fd is not None:
+            os.close(latency_fd)
+    for r in out:
+        r["cpu_latency_us"] = cpu_latency_us if latency_fd is not None else None
+    return out
+
+
+def _servo_rows(seconds: float, tmp: str, rates) -> list[dict]:
     import os
 
     from ..server import config as cfgmod
@@ -372,7 +393,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drivers", default=",".join(DRIVERS), help=f"comma-separated subset of {', '.join(DRIVERS)}")
     ap.add_argument("--steps", type=int, default=2000, help="lock-step steps of the cost rows (default 2000)")
     ap.add_argument("--seconds", type=float, default=2.0, help="real-time seconds of each rate row (default 2)")
+    ap.add_argument("--cpu-latency-us", default="0", metavar="US",
+                    help="the idle CPUs' wake-up latency held during the servo rows, as the daemon holds it "
+                         "([loop] cpu_latency_us; default 0; off: the OS decides)")
     args = ap.parse_args(argv)
+    if args.cpu_latency_us != "off":
+        if not args.cpu_latency_us.isdigit() or int(args.cpu_latency_us) > 1000:
+            print("hapticproxy bench devices: --cpu-latency-us must be off or a whole number of us in [0, 1000]",
+                  file=sys.stderr)
+            return 2
+    latency = None if args.cpu_latency_us == "off" else int(args.cpu_latency_us)
     which = [w.strip() for w in args.drivers.split(",") if w.strip()]
     bad = [w for w in which if w not in DRIVERS]
     if bad:
@@ -393,7 +423,7 @@ def main(argv: list[str] | None = None) -> int:
                 todo += [lambda w=w, f=f: [fault_row(w, f)] for f in FAULTS]
                 todo += [lambda w=w: [wrong_model_row(w)]]
                 if w == "touch":
-                    todo += [lambda: [late_ticks_row()], lambda: servo_rows(args.seconds, tmp)]
+                    todo += [lambda: [late_ticks_row()], lambda: servo_rows(args.seconds, tmp, cpu_latency_us=latency)]
                 for job in todo:
                     for r in job():
                         rows.append(r)
