@@ -11,7 +11,8 @@ steps, or with ``--json`` one JSON object:
 minus the absolute deadline, 1 us bins, upper edges), ``step_us`` (``p50``, ``p99``: poll to device
 write), ``missed_fraction`` (steps that finished after the next deadline / steps),
 ``missed_deadlines`` (whole periods skipped), ``rt_scheduling``, ``spin_us``, ``cpu_latency_us``
-(the idle CPUs' wake-up latency held, None when not), ``updates``,
+(the idle CPUs' wake-up latency held, None when not), ``clock_cpu`` (the clock thread's CPU, None
+when not pinned), ``updates``,
 ``faults``, ``naive_lateness_us`` (``p50``, ``p99``, ``p999``, ``max``), ``naive_missed_fraction``,
 ``p99_ratio_naive_over_loop``, ``machine``, ``protocol_thread`` (the loop ran a clock thread),
 ``clock_ticks`` and ``clock_held`` (its ticks run, and held while Python had the tick's lock; None
@@ -136,11 +137,11 @@ def _run(settings: cfgmod.Settings, seconds: float, naive: bool) -> dict:
 
 
 def run(rate_hz: float, seconds: float, naive_seconds: float, protocol_thread="auto", spin_us="auto",
-        cpu_latency_us=0) -> dict:
+        cpu_latency_us=0, clock_cpu="auto") -> dict:
     def settings(thread=protocol_thread):
         return cfgmod.load({
             "loop": {"rate_hz": rate_hz, "protocol_thread": thread, "spin_us": spin_us,
-                     "cpu_latency_us": cpu_latency_us},
+                     "cpu_latency_us": cpu_latency_us, "clock_cpu": clock_cpu},
             "transport": {"url": f"udp://127.0.0.1:{free_port()}"},
             "status": {"address": f"127.0.0.1:{free_port()}"},
             "device": {"driver": "sim", "kind": "planar", "hand": {"type": "constant", "wrench": [0.0, -0.5, 0.0]}},
@@ -165,6 +166,8 @@ def run(rate_hz: float, seconds: float, naive_seconds: float, protocol_thread="a
         "spin_us": s["spin_ns"] / 1000.0,
         # the idle CPUs' wake-up latency the loop held the kernel to (None: not held)
         "cpu_latency_us": int(s["cpu_latency_us"]) if s.get("cpu_latency_us", -1) >= 0 else None,
+        # the CPU the clock thread ticked on (None: not pinned, or no clock thread)
+        "clock_cpu": int(s["clock_cpu"]) if s.get("clock_cpu", -1) >= 0 else None,
         "updates": int(s["updates"]),
         "faults": int(s["faults_total"]),
         # the server's [loop] protocol_thread as it ran: a clock thread's ticks, and those it held
@@ -209,7 +212,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cpu-latency-us", default="0", metavar="US",
                     help="the server's [loop] cpu_latency_us: the idle CPUs' wake-up latency held while it runs, us "
                          "(default 0: idle CPUs poll; off: the OS decides)")
+    ap.add_argument("--clock-cpu", default="auto", metavar="CPU",
+                    help="the server's [loop] clock_cpu: the clock thread's CPU (auto: the highest; -1: not pinned)")
     args = ap.parse_args(argv)
+    if args.clock_cpu != "auto":
+        try:
+            args.clock_cpu = int(args.clock_cpu)
+        except ValueError:
+            args.clock_cpu = -2
+        if not -1 <= args.clock_cpu <= 1023:
+            print("hapticproxy bench loop: --clock-cpu must be auto, -1 or a CPU number", file=sys.stderr)
+            return 2
     if args.cpu_latency_us != "off":
         if not args.cpu_latency_us.isdigit() or int(args.cpu_latency_us) > 1000:
             print("hapticproxy bench loop: --cpu-latency-us must be off or a whole number of us in [0, 1000]",
@@ -235,7 +248,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         res = {} if args.update_steps_only else run(args.rate, args.seconds, naive_s,
                                                        {"auto": "auto", "clock-thread": True, "one-thread": False}[args.loop],
-                                                       spin_us=args.spin_us, cpu_latency_us=args.cpu_latency_us)
+                                                       spin_us=args.spin_us, cpu_latency_us=args.cpu_latency_us,
+                                                       clock_cpu=args.clock_cpu)
     except RuntimeError as exc:
         print(f"hapticproxy bench loop: {exc}", file=sys.stderr)
         return 1
@@ -262,7 +276,8 @@ def print_report(res: dict) -> None:
         print(f"real loop   {res['rate_hz']:g} Hz for {res['seconds']:g} s: {res['steps']} steps, {res['updates']} updates, "
               f"faults {res['faults']}, real-time scheduling {'yes' if res['rt_scheduling'] else 'no'}, "
               f"spin {res['spin_us']:.0f} us, idle CPUs "
-              + ("left to the OS" if res.get("cpu_latency_us") is None else f"wake within {res['cpu_latency_us']} us"))
+              + ("left to the OS" if res.get("cpu_latency_us") is None else f"wake within {res['cpu_latency_us']} us")
+              + ("" if res.get("clock_cpu") is None else f", clock thread on CPU {res['clock_cpu']}"))
         print(f"  lateness us  p50 {_us(lat, 'p50')}  p99 {_us(lat, 'p99')}  p99.9 {_us(lat, 'p999')}  "
               f"max {_us(lat, 'max')};  missed {100 * res['missed_fraction']:.3f} %")
         print(f"  step us      p50 {_us(st, 'p50')}  p99 {_us(st, 'p99')}  max {_us(st, 'max')}")

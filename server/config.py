@@ -16,7 +16,7 @@ Layout (all keys optional)::
 
     preset = "balanced"            # fast | balanced | accurate (applied first, keys override)
 
-    [loop]       rate_hz, spin_us ("auto" or us), realtime, cpu, cpu_latency_us
+    [loop]       rate_hz, spin_us ("auto" or us), realtime, cpu, clock_cpu, cpu_latency_us
     [transport]  url, hmac_key_file, max_sessions, heartbeat_interval_s, silence_timeout_s
     [model]      tool, policy, contact_frame, epsilon_m, capacity, stiffness_n_per_m,
                  damping_n_s_per_m, restitution, mu_static, mu_kinetic, gravity_m_per_s2,
@@ -106,6 +106,10 @@ class LoopConfig(_Table):
                   "spin phase before each deadline [us]; auto = measured sleep overshoot") = "auto"
     realtime: _doc(bool, "ask for SCHED_FIFO (reported in status when refused)") = True
     cpu: _num(-1, 1023, integer=True, doc="pin the loop process to this CPU (-1: no pinning)") = -1
+    clock_cpu: _doc(Union[Literal["auto"], _num(-1, 1023, integer=True)],
+                    "the CPU the clock thread ticks on, the loop's Python thread kept off it (with "
+                    "protocol_thread); auto: the highest CPU the process may use, when it may use 2 or more; "
+                    "-1: not pinned") = "auto"
     cpu_latency_us: _doc(Union[Literal["off"], _num(0, 1000, integer=True)],
                          "keep idle CPUs able to wake within this many us while the loop runs on the real "
                          "clock (Linux /dev/cpu_dma_latency, as cyclictest does; 0: idle CPUs poll instead of "

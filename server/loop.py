@@ -30,6 +30,7 @@ and the safety filter in ``control._command_out``; the energy ledger at the port
 """
 from __future__ import annotations
 
+import logging
 import os
 import time
 
@@ -599,7 +600,17 @@ class HapticLoop:
         finally:
             unlock(tk)
         self.servo = binding
-        clock = threading.Thread(target=run_clock, args=(blk,), name="hapticproxy-clock", daemon=True)
+        cpu, others, saved = self._clock_cpus()
+
+        def clock_main(blk):
+            if cpu is not None:
+                try:
+                    os.sched_setaffinity(0, {cpu})  # this thread only (Linux)
+                except OSError:
+                    pass
+            run_clock(blk)
+
+        clock = threading.Thread(target=clock_main, args=(blk,), name="hapticproxy-clock", daemon=True)
         clock.start()  # (it inherits this thread's scheduling: SCHED_FIFO when granted)
         lowered = lower_fifo_priority()  # one below the clock thread's (it inherited this one)
         try:
@@ -609,6 +620,35 @@ class HapticLoop:
             clock.join()
             if lowered is not None:
                 set_fifo_priority(lowered)
+            if saved is not None:
+                try:
+                    os.sched_setaffinity(0, saved)
+                except OSError:
+                    pass
+            self.shared.status[ST["clock_cpu"]] = -1.0
+
+    def _clock_cpus(self):
+        """``[loop] clock_cpu`` applied to this (the Python) thread: returns the clock thread's CPU
+        (None: not pinned), the CPUs this thread now keeps to, and its affinity before (None when
+        unchanged). The status says where the clock ticks; a CPU that cannot be had is logged."""
+        from .clock import clock_cpus
+
+        if not hasattr(os, "sched_setaffinity"):
+            return None, None, None
+        saved = os.sched_getaffinity(0)
+        cpu, others, why = clock_cpus(self.settings["loop"]["clock_cpu"], saved)
+        log = logging.getLogger("hapticproxy.loop")
+        if why:
+            log.warning("[loop] clock_cpu: %s; the clock thread is not pinned", why)
+        if cpu is None:
+            return None, None, None
+        try:
+            os.sched_setaffinity(0, others)
+        except OSError as exc:
+            log.warning("[loop] clock_cpu: the Python thread cannot keep off CPU %d (%s); not pinned", cpu, exc.strerror)
+            return None, None, None
+        self.shared.status[ST["clock_cpu"]] = float(cpu)
+        return cpu, others, saved
 
     def _serve_beside(self, binding, duration_s) -> None:
         """Everything Python does while another thread ticks (a clock thread, a device's servo

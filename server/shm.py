@@ -101,6 +101,8 @@ STATUS_LAYOUT = (
     # the idle CPUs' wake-up latency the loop holds the kernel to ([loop] cpu_latency_us), us;
     # -1: none held (off, the simulated clock, or refused: the daemon's log says why)
     ("cpu_latency_us", "i"),
+    # the CPU the clock thread ticks on ([loop] clock_cpu); -1: not pinned, or no clock thread
+    ("clock_cpu", "i"),
 )
 _TOOL_FIELDS = ("tool_kind", "tool_mass_kg", "tool_com_x_m", "tool_com_y_m", "tool_com_z_m", "tool_ixx_kg_m2",
                 "tool_iyy_kg_m2", "tool_izz_kg_m2", "tool_ixy_kg_m2", "tool_ixz_kg_m2", "tool_iyz_kg_m2")
@@ -223,6 +225,7 @@ class SharedState:
         s._buf[:] = b"\0" * len(s._buf)  # zero every part (a fresh mapping is, but say so)
         s.contact_hdr["seq"] = -1
         s.status[ST["cpu_latency_us"]] = -1.0
+        s.status[ST["clock_cpu"]] = -1.0
         return s
 
     @classmethod
@@ -237,6 +240,7 @@ class SharedState:
         s = cls(ring_rows, None)
         s.contact_hdr["seq"] = -1
         s.status[ST["cpu_latency_us"]] = -1.0
+        s.status[ST["clock_cpu"]] = -1.0
         return s
 
     @property

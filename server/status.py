@@ -79,9 +79,9 @@ def _device_fault_name(code) -> str:
     return DEV_FAULT_NAMES.get(int(code or 0), str(code))
 
 
-def _held_latency(s: dict) -> bool:
-    """The loop holds the idle CPUs' wake-up latency (-1, or a status from before the field: not)."""
-    v = s.get("cpu_latency_us")
+def _set(s: dict, key: str) -> bool:
+    """A status field whose -1 means "none" holds a value (a status from before the field: none)."""
+    v = s.get(key)
     return v is not None and v >= 0
 
 
@@ -142,8 +142,9 @@ def format_status(s: dict) -> str:
         f"max {_f(s.get('lateness_max_us'))}",
         f"compute us   p50 {comp.get('p50')}  p99 {comp.get('p99')}  max {_f(s.get('compute_max_us'))}",
         f"rt sched     {'yes' if s.get('rt_scheduling') else 'no'}  (spin {(s.get('spin_ns') or 0) / 1000:.0f} us; "
-        + (f"idle CPUs wake within {s['cpu_latency_us']:.0f} us)" if _held_latency(s)
-           else "idle CPU wake-up latency not held)"),
+        + (f"idle CPUs wake within {s['cpu_latency_us']:.0f} us" if _set(s, "cpu_latency_us")
+           else "idle CPU wake-up latency not held")
+        + (f"; clock thread on CPU {s['clock_cpu']:.0f})" if _set(s, "clock_cpu") else ")"),
         f"session      {s.get('session_id', 0)}  updates {s.get('updates', 0)}  acks {s.get('acks_sent', 0)}  "
         f"env rate {_f(s.get('env_rate_hz'))} Hz  silence "
         f"{'no update yet' if silence is None else f'{silence:.0f} ms'}",

@@ -17,9 +17,10 @@ def _bench_loop_json(*extra: str) -> dict:
 
 
 def test_bench_loop_prints_the_documented_keys():
-    d = _bench_loop_json("--spin-us", "300", "--cpu-latency-us", "off")
+    d = _bench_loop_json("--spin-us", "300", "--cpu-latency-us", "off", "--clock-cpu", "-1")
     assert d["rate_hz"] == 1000.0
     assert d["cpu_latency_us"] is None    # --cpu-latency-us off: the OS's idle states
+    assert d["clock_cpu"] is None         # --clock-cpu -1: not pinned
     assert d["spin_us"] == 300.0          # the [loop] spin_us it was given (under the 60 % cap at 1 kHz)
     for k in ("p50", "p99", "p999", "max"):
         assert d["lateness_us"][k] is not None and d["naive_lateness_us"][k] is not None
@@ -44,11 +45,14 @@ def test_bench_loop_runs_without_a_fault():
     assert d["faults"] == 0, d
     if os.access("/dev/cpu_dma_latency", os.W_OK):
         assert d["cpu_latency_us"] == 0  # the default, held
+    if len(os.sched_getaffinity(0)) >= 2:
+        assert d["clock_cpu"] == max(os.sched_getaffinity(0))  # the default, pinned
 
 
 @pytest.mark.parametrize("bad", [["--rate", "5"], ["--update-steps", "-1"], ["--update-steps-only", "--update-steps", "0"],
                                  ["--spin-us", "x"], ["--spin-us", "-3"], ["--spin-us", "6000"],
-                                 ["--cpu-latency-us", "-1"], ["--cpu-latency-us", "2000"], ["--cpu-latency-us", "x"]])
+                                 ["--cpu-latency-us", "-1"], ["--cpu-latency-us", "2000"], ["--cpu-latency-us", "x"],
+                                 ["--clock-cpu", "-2"], ["--clock-cpu", "x"]])
 def test_bench_loop_rejects_bad_arguments(bad):
     out = subprocess.run([sys.executable, "-m", "hapticproxy.cli.main", "bench", "loop", *bad],
                          capture_output=True, text=True, timeout=60)

@@ -77,7 +77,7 @@ def test_unknown_key_lists_the_known_ones_and_values_are_checked_once_at_load():
     with pytest.raises(cfg.ConfigError) as e:
         cfg.load({"loop": {"rtae_hz": 500}})
     assert str(e.value) == ("config loop.rtae_hz: unknown key (did you mean 'rate_hz'?); "
-                            "known: cpu, protocol_thread, rate_hz, realtime, spin_us")
+                            "known: clock_cpu, cpu, cpu_latency_us, protocol_thread, rate_hz, realtime, spin_us")
     for bad, key, why in [
         ({"loop": {"rate_hz": 50}}, "loop.rate_hz", "must be >= 100, got 50"),
         ({"loop": {"rate_hz": float("nan")}}, "loop.rate_hz", "must be finite, got nan"),

@@ -138,6 +138,14 @@ def test_status_json_and_rearm_and_stop(server):
     out = subprocess.run(HAPTICPROXY + ["status", "--address", status], capture_output=True, text=True, timeout=30)
     assert out.returncode == 0 and "lateness us" in out.stdout
     assert ("idle CPUs wake within 0 us" if held else "wake-up latency not held") in out.stdout
+    # [loop] clock_cpu = "auto": on 2 CPUs or more the clock thread ticks on the highest, the loop's
+    # Python thread (its main thread) on the others
+    allowed = sorted(os.sched_getaffinity(0))
+    if len(allowed) >= 2:
+        assert s["clock_cpu"] == allowed[-1] and f"clock thread on CPU {allowed[-1]}" in out.stdout
+        masks = _thread_cpus(int(s["pid"]))
+        assert masks[int(s["pid"])] == set(allowed[:-1])
+        assert sum(m == {allowed[-1]} for m in masks.values()) == 1  # the clock thread, alone there
     assert query(status, {"cmd": "rearm"})["ok"]
     assert "error" in query(status, {"cmd": "fly"})
     out = subprocess.run(HAPTICPROXY + ["status", "--address", status, "--stop"], capture_output=True, text=True,
@@ -278,9 +286,25 @@ def test_a_supervisor_killed_mid_contact_leaks_no_shared_memory(server):
     assert not any(os.path.exists(f"/dev/shm/{b}") for b in blocks), blocks
 
 
-def test_the_idle_latency_request_can_be_left_to_the_os(server):
-    proc, url, status = server(loop='cpu_latency_us = "off"')
+def test_the_idle_latency_and_the_clock_cpu_can_be_left_to_the_os(server):
+    proc, url, status = server(loop='cpu_latency_us = "off"\nclock_cpu = -1')
     s = query(status)
-    assert s["cpu_latency_us"] == -1
+    assert s["cpu_latency_us"] == -1 and s["clock_cpu"] == -1
     out = subprocess.run(HAPTICPROXY + ["status", "--address", status], capture_output=True, text=True, timeout=30)
-    assert "wake-up latency not held" in out.stdout
+    assert "wake-up latency not held)" in out.stdout and "clock thread on CPU" not in out.stdout
+    allowed = set(os.sched_getaffinity(0))
+    assert all(m == allowed for m in _thread_cpus(int(s["pid"])).values())
+
+
+def _thread_cpus(pid: int) -> dict[int, set[int]]:
+    """Each thread of process ``pid``: the CPUs it may run on (/proc's Cpus_allowed_list)."""
+    out = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        for line in Path(f"/proc/{pid}/task/{tid}/status").read_text().splitlines():
+            if line.startswith("Cpus_allowed_list:"):
+                cpus = set()
+                for part in line.split(":", 1)[1].strip().split(","):
+                    a, _, b = part.partition("-")
+                    cpus |= set(range(int(a), int(b or a) + 1))
+                out[int(tid)] = cpus
+    return out

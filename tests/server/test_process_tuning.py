@@ -1,13 +1,16 @@
 """The loop process's tuning on the real clock (``server/clock.py``): the idle CPUs' wake-up
-latency request, held while its file stays open and withdrawn when it closes."""
+latency request, held while its file stays open and withdrawn when it closes; where the clock
+thread ticks and where the loop's Python thread runs."""
 from __future__ import annotations
 
 import os
 import struct
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
-from hapticproxy.server.clock import CPU_DMA_LATENCY, hold_cpu_latency
+from hapticproxy.server.clock import CPU_DMA_LATENCY, clock_cpus, hold_cpu_latency
 
 
 def test_the_request_is_the_value_as_a_native_int_and_lasts_while_the_file_is_open(tmp_path):
@@ -48,3 +51,26 @@ def test_the_kernel_keeps_the_request_until_it_is_closed():
     finally:
         os.close(fd)
     assert in_force() == before
+
+
+@given(allowed=st.frozensets(st.integers(0, 63), min_size=1, max_size=8),
+       setting=st.one_of(st.just("auto"), st.just(-1), st.integers(0, 63)))
+def test_the_clock_cpu_contract(allowed, setting):
+    cpu, others, why = clock_cpus(setting, allowed)
+    if cpu is None:
+        assert others is None
+        # nothing pinned: asked for, one CPU only, or a CPU the process may not use (said why)
+        assert (setting == -1 or len(allowed) < 2) == (why == "")
+        if why:
+            assert setting not in allowed and str(setting) in why
+    else:
+        assert len(allowed) >= 2 and setting != -1
+        assert cpu in allowed and others == allowed - {cpu} and others and cpu not in others
+        assert cpu == (max(allowed) if setting == "auto" else setting) and why == ""
+
+
+def test_auto_takes_the_highest_cpu_and_leaves_python_the_rest():
+    assert clock_cpus("auto", {0, 1}) == (1, frozenset({0}), "")
+    assert clock_cpus("auto", {2, 5, 7}) == (7, frozenset({2, 5}), "")
+    assert clock_cpus(0, {0, 1}) == (0, frozenset({1}), "")
+    assert clock_cpus("auto", {3}) == (None, None, "")
