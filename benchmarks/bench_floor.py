@@ -7,7 +7,8 @@ little the thread does. This benchmark measures that floor with the loop's own w
 - **empty tick**: the compiled clock wait of the server's loop (``tick.wait_until_deadline``:
   ``clock_nanosleep`` to ``spin`` before each absolute deadline, then a spin on the clock; whole
   periods missed are skipped) in a thread tuned as the loop process is (SCHED_FIFO 80 when
-  granted, 1 ns timer slack, the daemon's calibrated spin, capped at 60 % of the period), doing
+  granted, 1 ns timer slack, the daemon's calibrated spin, capped at 60 % of the period, on the
+  CPU the server's clock thread takes), doing
   nothing at each deadline. Run with the idle CPUs' wake-up latency held at 0 us and left to the
   OS (``--cpu-latency``), alternately, at each ``--rates``;
 - **CPU gaps** (``--gap-seconds``): the same thread spinning on the clock for half of each
@@ -22,7 +23,10 @@ and latency setting: ``rate_hz``, ``cpu_latency_us`` (None: the OS's), ``spin_us
 ``rt_scheduling``, ``seconds``, ``wakes``, ``skipped`` (whole periods), ``periods``,
 ``lateness_us`` (``p50``, ``p99``, ``p999``, ``max``), ``missed_fraction``, ``late_over_100us``,
 ``steal_ms``) and ``gaps`` (per latency setting: ``seconds``, ``reads``, ``over_10us``,
-``over_100us``, ``over_1ms``, ``max_us``, ``steal_ms``), and ``machine``.
+``over_100us``, ``over_250us``, ``over_1ms``, ``miss_floor`` (per rate, "10000", "4000", "1000":
+the gaps longer than its period per second over the rate), ``max_us``, ``steal_ms``), ``cpu``
+(the CPU the measuring thread ran on, as the server's clock thread: ``[loop] clock_cpu`` auto;
+None: not pinned) and ``machine``.
 
 Timing is the machine's: run it on a quiet machine, beside ``bench loop`` for the loop's share.
 """
@@ -40,7 +44,7 @@ from numba import njit
 from ..protocol.jsonout import print_json
 from ..protocol.logs import doc_summary
 from ..server import tick
-from ..server.clock import MonotonicClock, hold_cpu_latency, set_timer_slack_ns, try_realtime
+from ..server.clock import MonotonicClock, clock_cpus, hold_cpu_latency, set_timer_slack_ns, try_realtime
 from ..server.native import monotonic_ns
 
 #: lateness histogram: 1 us bins to 100 ms, the last bin everything beyond
@@ -73,23 +77,27 @@ def _wait_deadlines(tk, periods, hist):
     return wakes, overruns, max_late
 
 
+#: the CPU-gap detector's thresholds, us: 10 us, and the periods of 10, 4 and 1 kHz (a gap longer
+#: than a period is a deadline missed, however little the tick does)
+GAP_THRESHOLDS_US = (10, 100, 250, 1000)
+
+
 @njit(nogil=True)
-def _spin_gaps(duration_ns, counts):
-    """Read the clock for ``duration_ns``; count gaps between reads over 10 us, 100 us, 1 ms
-    (``counts[0..2]``). Returns ``(reads, max_gap_ns)``."""
+def _spin_gaps(duration_ns, thresholds_ns, counts):
+    """Read the clock for ``duration_ns``; count the gaps between reads longer than each of
+    ``thresholds_ns`` (ascending) in ``counts``. Returns ``(reads, max_gap_ns)``."""
     t0 = monotonic_ns()
     prev = t0
     reads = 0
     max_gap = 0
+    lo = thresholds_ns[0]
     while prev - t0 < duration_ns:
         now = monotonic_ns()
         gap = now - prev
-        if gap > 10_000:
-            counts[0] += 1
-            if gap > 100_000:
-                counts[1] += 1
-                if gap > 1_000_000:
-                    counts[2] += 1
+        if gap > lo:
+            for i in range(thresholds_ns.shape[0]):
+                if gap > thresholds_ns[i]:
+                    counts[i] += 1
         if gap > max_gap:
             max_gap = gap
         prev = now
@@ -149,22 +157,34 @@ def empty_tick(rate_hz: float, seconds: float, spin_ns: int) -> dict:
 
 
 def cpu_gaps(seconds: float) -> dict:
-    """The CPU-gap detector for ``seconds`` of spinning (half of each second spins, half sleeps)."""
-    counts = np.zeros(3, dtype=np.int64)
+    """The CPU-gap detector for ``seconds`` of spinning (half of each second spins, half sleeps).
+    ``over_*``: the gaps longer than each threshold; ``miss_floor``: for each rate whose period
+    is a threshold, those gaps per second over the rate: the share of its deadlines a loop that
+    did nothing but wait would miss for them alone."""
+    thr = np.array([t * 1000 for t in GAP_THRESHOLDS_US], dtype=np.int64)
+    counts = np.zeros(len(thr), dtype=np.int64)
     reads = 0
     max_gap = 0
     s0 = steal_ms()
     left = seconds
     while left > 0:
         spin = min(GAP_SPIN_SHARE, left)
-        r, g = _spin_gaps(int(spin * 1e9), counts)
+        r, g = _spin_gaps(int(spin * 1e9), thr, counts)
         reads += r
         max_gap = max(max_gap, g)
         left -= spin
         if left > 0:
             time.sleep(1.0 - GAP_SPIN_SHARE)
-    return {"seconds": seconds, "reads": int(reads), "over_10us": int(counts[0]), "over_100us": int(counts[1]),
-            "over_1ms": int(counts[2]), "max_us": round(max_gap / 1000.0, 1), "steal_ms": _delta(s0, steal_ms())}
+    out = {"seconds": seconds, "reads": int(reads)}
+    out.update({_gap_key(t): int(c) for t, c in zip(GAP_THRESHOLDS_US, counts)})
+    out["miss_floor"] = {f"{1e6 / t:g}": round(int(c) / seconds / (1e6 / t), 6)
+                         for t, c in zip(GAP_THRESHOLDS_US, counts) if t >= 100}
+    out.update(max_us=round(max_gap / 1000.0, 1), steal_ms=_delta(s0, steal_ms()))
+    return out
+
+
+def _gap_key(us: int) -> str:
+    return f"over_{us // 1000}ms" if us % 1000 == 0 else f"over_{us}us"
 
 
 def run(rates: list[float], seconds: float, latencies: list[int | None], spin_us="auto", gap_seconds: float = 0.0,
@@ -179,8 +199,14 @@ def run(rates: list[float], seconds: float, latencies: list[int | None], spin_us
     except (AttributeError, OSError):
         saved = None
     rt, why = try_realtime()
+    cpu = None
+    if hasattr(os, "sched_setaffinity"):
+        saved_cpus = os.sched_getaffinity(0)
+        cpu, _others, _why = clock_cpus("auto", saved_cpus)
+        if cpu is not None:
+            os.sched_setaffinity(0, {cpu})
     _wait_deadlines(tick.new_words(1_000_000), 0, np.zeros(HIST_BINS, dtype=np.int64))  # compile first
-    _spin_gaps(0, np.zeros(3, dtype=np.int64))
+    _spin_gaps(0, np.array(GAP_THRESHOLDS_US, dtype=np.int64), np.zeros(len(GAP_THRESHOLDS_US), dtype=np.int64))
     rows, gaps = [], []
     try:
         for _ in range(rounds):
@@ -199,7 +225,9 @@ def run(rates: list[float], seconds: float, latencies: list[int | None], spin_us
                 os.sched_setscheduler(0, saved[0], saved[1])
             except OSError:
                 pass
-    return {"rows": rows, "gaps": gaps, "rt_scheduling": rt, "rt_refused": why or None,
+        if cpu is not None:
+            os.sched_setaffinity(0, saved_cpus)
+    return {"rows": rows, "gaps": gaps, "rt_scheduling": rt, "rt_refused": why or None, "cpu": cpu,
             "machine": f"{platform.machine()} {os.cpu_count()} cpus, {platform.system()} {platform.release()}"}
 
 
@@ -230,7 +258,8 @@ def _us(v) -> str:
 
 def print_report(res: dict) -> None:
     print(f"empty tick (the loop's wait, nothing done at the deadline), real-time scheduling "
-          f"{'yes' if res['rt_scheduling'] else 'no: ' + str(res['rt_refused'])}; {res['machine']}")
+          f"{'yes' if res['rt_scheduling'] else 'no: ' + str(res['rt_refused'])}, "
+          f"{'not pinned' if res['cpu'] is None else 'on CPU ' + str(res['cpu'])}; {res['machine']}")
     print(f"{'rate':>8} {'idle CPUs':>14} {'spin':>6} {'s':>5} {'wakes':>9} {'skipped':>8} "
           f"{'lateness p50/p99/p99.9/max us':>31} {'missed':>9} {'>100us':>7} {'steal':>8}")
     for r in res["rows"]:
@@ -242,9 +271,11 @@ def print_report(res: dict) -> None:
               f"{'-' if r['steal_ms'] is None else format(r['steal_ms'], 'g') + ' ms':>8}")
     for g in res["gaps"]:
         idle = "OS" if g["cpu_latency_us"] is None else f"wake <= {g['cpu_latency_us']} us"
+        floor = ", ".join(f"{float(r) / 1000:g} kHz {100 * v:.4f} %" for r, v in g["miss_floor"].items())
         print(f"CPU gaps ({idle}, {g['seconds']:g} s spinning, {g['reads']} reads): over 10 us {g['over_10us']}, "
-              f"over 100 us {g['over_100us']}, over 1 ms {g['over_1ms']}, max {g['max_us']:g} us; steal "
-              f"{'-' if g['steal_ms'] is None else format(g['steal_ms'], 'g') + ' ms'}")
+              f"over 100 us {g['over_100us']}, over 250 us {g['over_250us']}, over 1 ms {g['over_1ms']}, max "
+              f"{g['max_us']:g} us; steal {'-' if g['steal_ms'] is None else format(g['steal_ms'], 'g') + ' ms'}")
+        print(f"  deadlines missed for these gaps alone: {floor}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -33,9 +33,13 @@ def test_every_period_is_a_wake_or_a_skip():
 
 
 def test_the_gap_detector_counts_nested_thresholds():
-    counts = np.zeros(3, dtype=np.int64)
-    reads, max_gap = bfl._spin_gaps(20_000_000, counts)
-    assert reads > 1000 and counts[0] >= counts[1] >= counts[2] >= 0 and max_gap > 0
+    """A longer threshold counts no more gaps than a shorter one; one beyond the longest gap, none."""
+    thr = np.array([0, 1, 100_000, 10**12], dtype=np.int64)
+    counts = np.zeros(4, dtype=np.int64)
+    reads, max_gap = bfl._spin_gaps(20_000_000, thr, counts)
+    assert reads > 1000 and max_gap > 0
+    assert reads >= counts[0] >= counts[1] >= counts[2] and counts[0] > 0  # the clock moves between reads
+    assert counts[3] == 0 and (counts[2] > 0) == (max_gap > 100_000)
 
 
 def _floor_json(*extra: str) -> dict:
@@ -56,8 +60,15 @@ def test_bench_floor_prints_the_documented_keys():
         lat = r["lateness_us"]
         assert lat["p50"] <= lat["p99"] <= lat["p999"] <= lat["max"] + 1
         assert 0.0 <= r["missed_fraction"] <= 1.0 and isinstance(r["rt_scheduling"], bool)
-    assert len(d["gaps"]) == 2 and all(g["reads"] > 0 and g["over_10us"] >= g["over_100us"] for g in d["gaps"])
+    assert len(d["gaps"]) == 2
+    for g in d["gaps"]:
+        assert g["reads"] > 0 and g["over_10us"] >= g["over_100us"] >= g["over_250us"] >= g["over_1ms"]
+        assert g["miss_floor"] == {"10000": round(g["over_100us"] / 0.1 / 10000, 6),
+                                   "4000": round(g["over_250us"] / 0.1 / 4000, 6),
+                                   "1000": round(g["over_1ms"] / 0.1 / 1000, 6)}
     assert "machine" in d
+    if len(os.sched_getaffinity(0)) >= 2:
+        assert d["cpu"] == max(os.sched_getaffinity(0))  # where the server's clock thread ticks
 
 
 def test_bench_floor_prints_a_table_for_a_person():
