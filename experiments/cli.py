@@ -73,7 +73,8 @@ def _summary(name: str, res: dict) -> list[str]:
 
 
 def run_one(name: str, out: str, *, mode: str, quick: bool, log, layer: str | None = None,
-            velocity: str = "device", damping_credit: float | None = None, region_only: bool = False,
+            velocity: str = "device", damping_credit: float | None = None, input_credit: float | None = None,
+            budget_j: float | None = None, region_only: bool = False,
             region_controllers=None, region_rates=None) -> dict:
     if name == "tradeoff":
         from .tradeoff import run_region, run_tradeoff
@@ -93,7 +94,8 @@ def run_one(name: str, out: str, *, mode: str, quick: bool, log, layer: str | No
     if name == "zwidth":
         from .zwidth import run_zwidth
 
-        return run_zwidth(out, quick=quick, layer=layer, velocity=velocity, damping_credit=damping_credit, log=log)
+        return run_zwidth(out, quick=quick, layer=layer, velocity=velocity, damping_credit=damping_credit,
+                          input_credit=input_credit, budget_j=budget_j, log=log)
     if name == "lighttools":
         from .lighttools import run_lighttools
 
@@ -126,6 +128,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--damping-credit", type=float, default=None, metavar="SHARE",
                    help="zwidth, with --layer on: the share 0-1 of the device's damping the layer's tank credits "
                         "([passivity] damping_credit; default 1)")
+    p.add_argument("--input-credit", type=float, default=None, metavar="SHARE",
+                   help="zwidth, with --layer on: the share (0, 1] of the hand's input the tank keeps "
+                        "([passivity] input_credit; default 1; 0.45 with --budget-j 0.002: the walls setting)")
+    p.add_argument("--budget-j", type=float, default=None, metavar="J",
+                   help="zwidth, with --layer on: the tank at start ([passivity] initial_budget_j; default 0.01)")
     p.add_argument("--region-only", action="store_true",
                    help="tradeoff: only the stable-region grid (writes stable_region.json, .md, .png)")
     p.add_argument("--region-controllers", type=_names, default=None, metavar="ROW[;ROW...]",
@@ -152,6 +159,13 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--damping-credit applies to the zwidth experiment with --layer on only")
     if args.damping_credit is not None and not 0.0 <= args.damping_credit <= 1.0:
         p.error(f"--damping-credit: expected a share in [0, 1], got {args.damping_credit}")
+    for flag, v in (("--input-credit", args.input_credit), ("--budget-j", args.budget_j)):
+        if v is not None and (args.name != "zwidth" or args.layer != "on"):
+            p.error(f"{flag} applies to the zwidth experiment with --layer on only")
+    if args.input_credit is not None and not 0.0 < args.input_credit <= 1.0:
+        p.error(f"--input-credit: expected a share in (0, 1], got {args.input_credit}")
+    if args.budget_j is not None and not 0.0 <= args.budget_j <= 10.0:
+        p.error(f"--budget-j: expected J in [0, 10], got {args.budget_j}")
     if args.json and args.name not in ("zwidth", "lighttools", "all"):
         p.error("--json applies to the zwidth and lighttools experiments only")
     names = tuple(n for n in NAMES if n != "rates") if args.name == "all" else (args.name,)
@@ -164,6 +178,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             res = run_one(name, out, mode=args.mode, quick=args.quick, log=log, layer=args.layer,
                           velocity=args.velocity or "device", damping_credit=args.damping_credit,
+                          input_credit=args.input_credit, budget_j=args.budget_j,
                           region_only=args.region_only, region_controllers=args.region_controllers,
                           region_rates=args.region_rates)
         except (RuntimeError, ValueError, OSError) as exc:

@@ -140,14 +140,25 @@ def classify(ptp_m: float, force_ptp_n: float, growth: float, push_n: float, *, 
     return "unstable", f"limit cycle {why}, x{growth:.2f}"
 
 
-def layer_settings(layer: str | None, damping_credit: float | None = None) -> tuple[dict, str]:
+#: the layer's options a z-width run may set: (its argument, the ``[passivity]`` key, the flag)
+LAYER_OPTIONS = (("damping_credit", "damping_credit", "--damping-credit"),
+                 ("input_credit", "input_credit", "--input-credit"),
+                 ("budget_j", "initial_budget_j", "--budget-j"))
+
+
+def layer_settings(layer: str | None, damping_credit: float | None = None, input_credit: float | None = None,
+                   budget_j: float | None = None) -> tuple[dict, str]:
     """The ``[passivity]`` table for ``--layer`` (and ``--damping-credit``: the share of the
-    device's damping the tank credits) and a note: empty table and a note saying the option is
-    ignored when the config has no ``[passivity]`` table (the layer not merged). No ``--layer`` is
-    ``off``: the bare hold's region, whatever the server's passivity settings (with
-    ``input_credit`` below 1 the layer settles walls beyond the bound: EXPERIMENTS.md, passivity)."""
-    if damping_credit is not None and layer != "on":
-        raise ValueError("--damping-credit: applies with --layer on only")
+    device's damping the tank credits; ``--input-credit`` and ``--budget-j``: the share of the
+    hand's input the tank keeps and the tank at start, the walls setting 0.45 / 0.002) and a
+    note: empty table and a note saying the option is ignored when the config has no
+    ``[passivity]`` table (the layer not merged). No ``--layer`` is ``off``: the bare hold's
+    region, whatever the server's passivity settings (with ``input_credit`` below 1 the layer
+    settles walls beyond the bound: EXPERIMENTS.md, passivity)."""
+    given = {"damping_credit": damping_credit, "input_credit": input_credit, "budget_j": budget_j}
+    for arg, _key, flag in LAYER_OPTIONS:
+        if given[arg] is not None and layer != "on":
+            raise ValueError(f"{flag}: applies with --layer on only")
     if layer is None:
         table, note = layer_settings("off")
         return table, ("" if table else note)
@@ -161,12 +172,13 @@ def layer_settings(layer: str | None, damping_credit: float | None = None) -> tu
         return {}, (f"--layer {layer} ignored: this server has no [passivity] settings (the passivity layer, "
                     f"issue 31 item 3, is not merged); measured without a layer")
     table = {"passivity": {"enabled": layer == "on"}}
-    if damping_credit is not None:
-        table["passivity"]["damping_credit"] = damping_credit
-        try:
-            cfg.load(table)
-        except cfg.ConfigError as exc:
-            raise ValueError(f"--damping-credit: {exc}") from None
+    for arg, key, flag in LAYER_OPTIONS:
+        if given[arg] is not None:
+            table["passivity"][key] = given[arg]
+            try:
+                cfg.load(table)
+            except cfg.ConfigError as exc:
+                raise ValueError(f"{flag}: {exc}") from None
     try:
         cfg.load(table)
     except cfg.ConfigError as exc:
@@ -178,7 +190,11 @@ def layer_label(res: dict) -> str:
     """How the plots name the passivity layer's setting of a run (``run_zwidth``'s result)."""
     if res.get("layer") != "on":
         return "passivity layer off"
-    return f"passivity layer on, damping credit {res.get('damping_credit', 1.0):g}"
+    label = f"passivity layer on, damping credit {res.get('damping_credit', 1.0):g}"
+    if res.get("input_credit") not in (None, 1.0) or res.get("initial_budget_j") not in (None, 0.01):
+        label += (f", input credit {res.get('input_credit', 1.0):g}, budget "
+                  f"{1e3 * res.get('initial_budget_j', 0.01):g} mJ")
+    return label
 
 
 def device_physics(kind: str, rate_hz: float) -> tuple[float, float]:
@@ -525,12 +541,13 @@ def verdict(rate_hz: float, results: dict) -> str:
 
 def run_zwidth(out: str, *, quick: bool = False, kinds=None, rates=None, controllers=None,
                layer: str | None = None, k_grid=None, b_grid=None, plots: bool = True, velocity: str = "device",
-               damping_credit: float | None = None, log=None) -> dict:
+               damping_credit: float | None = None, input_credit: float | None = None,
+               budget_j: float | None = None, log=None) -> dict:
     """The sweep: every rate x controller x kind x (K, B); PNGs and ``zwidth.json`` in ``out``
     (None: the module's ``KINDS``, ``RATES_HZ``, ``CONTROLLERS`` and grids)."""
     kinds, rates, controllers = kinds or KINDS, rates or RATES_HZ, controllers or CONTROLLERS
     os.makedirs(out, exist_ok=True)
-    layer_table, note = layer_settings(layer, damping_credit)
+    layer_table, note = layer_settings(layer, damping_credit, input_credit, budget_j)
     if note and log:
         log(note)
     kg = tuple(k_grid or (QUICK_K_GRID if quick else K_GRID_N_PER_M))
@@ -539,6 +556,9 @@ def run_zwidth(out: str, *, quick: bool = False, kinds=None, rates=None, control
                  "ptp_max_mm": PTP_MAX_M * 1e3, "force_ptp_max_n": FORCE_PTP_MAX_FRACTION * PUSH_N,
                  "layer": layer or "off", "layer_note": note, "velocity": velocity,
                  "damping_credit": layer_table.get("passivity", {}).get("damping_credit", 1.0 if layer == "on" else None),
+                 "input_credit": layer_table.get("passivity", {}).get("input_credit", 1.0 if layer == "on" else None),
+                 "initial_budget_j": layer_table.get("passivity", {}).get("initial_budget_j",
+                                                                          0.01 if layer == "on" else None),
                  "rates": {}}
     for rate in rates:
         per_rate: dict = {}

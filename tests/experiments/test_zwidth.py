@@ -115,6 +115,15 @@ def test_command_line_writes_json_plot_and_notes_a_missing_layer(tmp_path, monke
     assert cli.main(["zwidth", "--quick", "--out", str(tmp_path / "b"), "--layer", "on", "--damping-credit", "0",
                      "--json", "--quiet"]) == 0
     assert json.loads(capsys.readouterr().out)["damping_credit"] == 0.0
+    # the walls setting reaches the runs (and the json, and the plots' titles)
+    assert cli.main(["zwidth", "--quick", "--out", str(tmp_path / "c"), "--layer", "on", "--input-credit", "0.45",
+                     "--budget-j", "0.002", "--json", "--quiet"]) == 0
+    w = json.loads(capsys.readouterr().out)
+    assert (w["input_credit"], w["initial_budget_j"], w["damping_credit"]) == (0.45, 0.002, 1.0)
+    assert Z.layer_label(w) == "passivity layer on, damping credit 1, input credit 0.45, budget 2 mJ"
+    assert Z.layer_label(out) == "passivity layer on, damping credit 1"
+    table, _ = Z.layer_settings("on", input_credit=0.45, budget_j=0.002)
+    assert table["passivity"] == {"enabled": True, "input_credit": 0.45, "initial_budget_j": 0.002}
 
 
 def test_the_damping_credit_trades_transparency_for_a_quieter_wall():
@@ -131,7 +140,10 @@ def test_the_damping_credit_trades_transparency_for_a_quieter_wall():
 
 @pytest.mark.parametrize("argv", [["zwidth", "--damping-credit", "0.5"], ["zwidth", "--layer", "off", "--damping-credit", "0"],
                                   ["zwidth", "--layer", "on", "--damping-credit", "1.5"],
-                                  ["fig6", "--layer", "on", "--damping-credit", "0"]])
+                                  ["fig6", "--layer", "on", "--damping-credit", "0"],
+                                  ["zwidth", "--input-credit", "0.45"], ["zwidth", "--layer", "on", "--input-credit", "0"],
+                                  ["zwidth", "--layer", "off", "--budget-j", "0.002"],
+                                  ["zwidth", "--layer", "on", "--budget-j", "-1"]])
 def test_a_damping_credit_without_the_layer_or_out_of_range_is_a_usage_error(tmp_path, argv):
     with pytest.raises(SystemExit) as e:
         cli.main([*argv, "--out", str(tmp_path)])
