@@ -174,21 +174,14 @@ def servo_rows(seconds: float, tmp: str, rates=(1000.0, 4000.0), cpu_latency_us:
     over ``seconds``; (b) also the ticks held while Python had the tick's lock. Both with the idle
     CPUs' wake-up latency held at ``cpu_latency_us`` as the daemon holds it (None: the OS's;
     ``cpu_latency_us`` in each row: what was held)."""
-    import os
+    from ..server.clock import HeldCpuLatency
 
-    from ..server.clock import hold_cpu_latency
-
-    out = []
-    latency_fd, why = (None, "") if cpu_latency_us is None else hold_cpu_latency(cpu_latency_us)
-    if cpu_latency_us is not None and latency_fd is None:
-        print(f"hapticproxy bench devices: idle CPUs' wake-up latency not held: {why}", file=sys.stderr)
-    try:
+    with HeldCpuLatency(cpu_latency_us) as q:
+        if q.why:
+            print(f"hapticproxy bench devices: idle CPUs' wake-up latency not held: {q.why}", file=sys.stderr)
         out = _servo_rows(seconds, tmp, rates)
-    finally:
-        if latency_fd is not None:
-            os.close(latency_fd)
     for r in out:
-        r["cpu_latency_us"] = cpu_latency_us if latency_fd is not None else None
+        r["cpu_latency_us"] = q.held
     return out
 
 
@@ -397,12 +390,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="the idle CPUs' wake-up latency held during the servo rows, as the daemon holds it "
                          "([loop] cpu_latency_us; default 0; off: the OS decides)")
     args = ap.parse_args(argv)
-    if args.cpu_latency_us != "off":
-        if not args.cpu_latency_us.isdigit() or int(args.cpu_latency_us) > 1000:
-            print("hapticproxy bench devices: --cpu-latency-us must be off or a whole number of us in [0, 1000]",
-                  file=sys.stderr)
-            return 2
-    latency = None if args.cpu_latency_us == "off" else int(args.cpu_latency_us)
+    from ..server.clock import parse_cpu_latency
+
+    try:
+        latency = parse_cpu_latency(args.cpu_latency_us)
+    except ValueError as exc:
+        print(f"hapticproxy bench devices: --cpu-latency-us {exc}", file=sys.stderr)
+        return 2
     which = [w.strip() for w in args.drivers.split(",") if w.strip()]
     bad = [w for w in which if w not in DRIVERS]
     if bad:

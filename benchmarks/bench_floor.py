@@ -44,8 +44,10 @@ from numba import njit
 from ..protocol.jsonout import print_json
 from ..protocol.logs import doc_summary
 from ..server import tick
-from ..server.clock import MonotonicClock, clock_cpus, hold_cpu_latency, set_timer_slack_ns, try_realtime
+from ..server.clock import (HeldCpuLatency, MonotonicClock, clock_cpus, pin_to_cpu, set_timer_slack_ns,
+                            try_realtime)
 from ..server.native import monotonic_ns
+from ..server.shm import percentiles
 
 #: lateness histogram: 1 us bins to 100 ms, the last bin everything beyond
 HIST_BINS = 100_001
@@ -115,14 +117,6 @@ def steal_ms() -> float | None:
         return None
 
 
-def _percentile_us(hist: np.ndarray, q: float) -> float | None:
-    n = int(hist.sum())
-    if n == 0:
-        return None
-    k = int(np.searchsorted(np.cumsum(hist), q * n, side="left"))
-    return float(k + 1)  # the bin's upper edge
-
-
 def _delta(a: float | None, b: float | None) -> float | None:
     return None if a is None or b is None else round(b - a, 1)
 
@@ -140,8 +134,9 @@ def empty_tick(rate_hz: float, seconds: float, spin_ns: int) -> dict:
     s0 = steal_ms()
     wakes, overruns, max_late = _wait_deadlines(tk, periods, hist)
     s1 = steal_ms()
-    lat = {k: _percentile_us(hist, q) for k, q in (("p50", 0.5), ("p99", 0.99), ("p999", 0.999))}
-    lat["max"] = round(max_late / 1000.0, 1)
+    pct = percentiles(hist)
+    lat = {k: pct[k] for k in ("p50", "p99", "p999")}
+    lat["max"] = round(max_late / 1000.0, 1)  # exact, not the bin
     return {
         "rate_hz": rate_hz,
         "seconds": seconds,
@@ -199,12 +194,10 @@ def run(rates: list[float], seconds: float, latencies: list[int | None], spin_us
     except (AttributeError, OSError):
         saved = None
     rt, why = try_realtime()
-    cpu = None
-    if hasattr(os, "sched_setaffinity"):
-        saved_cpus = os.sched_getaffinity(0)
-        cpu, _others, _why = clock_cpus("auto", saved_cpus)
-        if cpu is not None:
-            os.sched_setaffinity(0, {cpu})
+    saved_cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
+    cpu = clock_cpus("auto", saved_cpus)[0]  # where the server's clock thread would tick
+    if not pin_to_cpu(cpu):
+        cpu = None
     _wait_deadlines(tick.new_words(1_000_000), 0, np.zeros(HIST_BINS, dtype=np.int64))  # compile first
     _spin_gaps(0, np.array(GAP_THRESHOLDS_US, dtype=np.int64), np.zeros(len(GAP_THRESHOLDS_US), dtype=np.int64))
     rows, gaps = [], []
@@ -212,13 +205,13 @@ def run(rates: list[float], seconds: float, latencies: list[int | None], spin_us
         for _ in range(rounds):
             for rate in rates:
                 for lat in latencies:
-                    with _Latency(lat) as held:
+                    with _latency(lat) as q:
                         row = empty_tick(rate, seconds, spin_ns)
-                    rows.append({**row, "cpu_latency_us": held, "rt_scheduling": rt})
+                    rows.append({**row, "cpu_latency_us": q.held, "rt_scheduling": rt})
         if gap_seconds > 0:
             for lat in latencies:
-                with _Latency(lat) as held:
-                    gaps.append({**cpu_gaps(gap_seconds), "cpu_latency_us": held})
+                with _latency(lat) as q:
+                    gaps.append({**cpu_gaps(gap_seconds), "cpu_latency_us": q.held})
     finally:
         if saved is not None:
             try:
@@ -231,25 +224,14 @@ def run(rates: list[float], seconds: float, latencies: list[int | None], spin_us
             "machine": f"{platform.machine()} {os.cpu_count()} cpus, {platform.system()} {platform.release()}"}
 
 
-class _Latency:
-    """Hold the idle CPUs' wake-up latency at ``us`` for a ``with`` block (None: leave it to the OS).
-    Enters as the latency held (None when not: not asked, or refused)."""
+class _latency(HeldCpuLatency):
+    """The request for one run; a refusal is said on stderr (the row then says None)."""
 
-    def __init__(self, us: int | None) -> None:
-        self.us, self.fd = us, None
-
-    def __enter__(self) -> int | None:
-        if self.us is None:
-            return None
-        self.fd, why = hold_cpu_latency(self.us)
-        if self.fd is None:
-            print(f"hapticproxy bench floor: idle CPUs' wake-up latency not held: {why}", file=sys.stderr)
-            return None
-        return self.us
-
-    def __exit__(self, *exc) -> None:
-        if self.fd is not None:
-            os.close(self.fd)
+    def __enter__(self) -> HeldCpuLatency:
+        super().__enter__()
+        if self.why:
+            print(f"hapticproxy bench floor: idle CPUs' wake-up latency not held: {self.why}", file=sys.stderr)
+        return self
 
 
 def _us(v) -> str:

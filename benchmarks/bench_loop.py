@@ -137,11 +137,12 @@ def _run(settings: cfgmod.Settings, seconds: float, naive: bool) -> dict:
 
 
 def run(rate_hz: float, seconds: float, naive_seconds: float, protocol_thread="auto", spin_us="auto",
-        cpu_latency_us=0, clock_cpu="auto") -> dict:
+        cpu_latency_us: int | None = 0, clock_cpu="auto") -> dict:
     def settings(thread=protocol_thread):
         return cfgmod.load({
             "loop": {"rate_hz": rate_hz, "protocol_thread": thread, "spin_us": spin_us,
-                     "cpu_latency_us": cpu_latency_us, "clock_cpu": clock_cpu},
+                     "cpu_latency_us": "off" if cpu_latency_us is None else cpu_latency_us,
+                     "clock_cpu": clock_cpu},
             "transport": {"url": f"udp://127.0.0.1:{free_port()}"},
             "status": {"address": f"127.0.0.1:{free_port()}"},
             "device": {"driver": "sim", "kind": "planar", "hand": {"type": "constant", "wrench": [0.0, -0.5, 0.0]}},
@@ -223,12 +224,13 @@ def main(argv: list[str] | None = None) -> int:
         if not -1 <= args.clock_cpu <= 1023:
             print("hapticproxy bench loop: --clock-cpu must be auto, -1 or a CPU number", file=sys.stderr)
             return 2
-    if args.cpu_latency_us != "off":
-        if not args.cpu_latency_us.isdigit() or int(args.cpu_latency_us) > 1000:
-            print("hapticproxy bench loop: --cpu-latency-us must be off or a whole number of us in [0, 1000]",
-                  file=sys.stderr)
-            return 2
-        args.cpu_latency_us = int(args.cpu_latency_us)
+    from ..server.clock import parse_cpu_latency
+
+    try:
+        args.cpu_latency_us = parse_cpu_latency(args.cpu_latency_us)
+    except ValueError as exc:
+        print(f"hapticproxy bench loop: --cpu-latency-us {exc}", file=sys.stderr)
+        return 2
     if args.spin_us != "auto":
         try:
             args.spin_us = float(args.spin_us)

@@ -198,6 +198,36 @@ def hold_cpu_latency(max_us: int, path: str = CPU_DMA_LATENCY) -> tuple[int | No
     return fd, ""
 
 
+def parse_cpu_latency(text: str) -> int | None:
+    """A command line's ``[loop] cpu_latency_us``: "off" -> None, a whole number of us in
+    [0, 1000] -> it; anything else: ``ValueError`` saying what is taken."""
+    if text == "off":
+        return None
+    if not text.isdigit() or int(text) > 1000:
+        raise ValueError("must be off or a whole number of us in [0, 1000]")
+    return int(text)
+
+
+class HeldCpuLatency:
+    """:func:`hold_cpu_latency` for a ``with`` block (``us`` None: nothing asked), withdrawn at
+    its exit. ``held``: the latency in force inside it (None: not asked, or refused, ``why``
+    saying why)."""
+
+    def __init__(self, us: int | None) -> None:
+        self.us, self.fd, self.why, self.held = us, None, "", None
+
+    def __enter__(self) -> "HeldCpuLatency":
+        if self.us is not None:
+            self.fd, self.why = hold_cpu_latency(self.us)
+            self.held = None if self.fd is None else self.us
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+
 def clock_cpus(setting, allowed) -> tuple[int | None, frozenset | None, str]:
     """Where a clock thread ticks and where the loop's Python thread runs (``[loop] clock_cpu``).
 
@@ -221,6 +251,9 @@ def clock_cpus(setting, allowed) -> tuple[int | None, frozenset | None, str]:
 
 
 def pin_to_cpu(cpu: int | None) -> bool:
+    """Keep the calling thread on ``cpu`` (Linux: ``sched_setaffinity(0)`` is this thread; threads
+    it starts afterwards inherit it, so called before any, it pins the process). False when it
+    could not (None, no such call, not permitted)."""
     if cpu is None or not hasattr(os, "sched_setaffinity"):
         return False
     try:

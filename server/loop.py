@@ -577,7 +577,7 @@ class HapticLoop:
         them at its next pass (within a millisecond)."""
         import threading
 
-        from .clock import lower_fifo_priority, set_fifo_priority
+        from .clock import lower_fifo_priority, pin_to_cpu, set_fifo_priority
         from .servo import SB_CMD, SB_RUN, SB_TK, ServoBinding, lock, run_clock, unlock
 
         tk = self.tk
@@ -603,11 +603,7 @@ class HapticLoop:
         cpu, others, saved = self._clock_cpus()
 
         def clock_main(blk):
-            if cpu is not None:
-                try:
-                    os.sched_setaffinity(0, {cpu})  # this thread only (Linux)
-                except OSError:
-                    pass
+            pin_to_cpu(cpu)  # this thread only
             run_clock(blk)
 
         clock = threading.Thread(target=clock_main, args=(blk,), name="hapticproxy-clock", daemon=True)

@@ -407,7 +407,8 @@ def flat_rows(rows: np.ndarray) -> np.ndarray:
 
 
 def percentiles(hist: np.ndarray, qs=(0.5, 0.99, 0.999)) -> dict:
-    """Percentiles (us, bin upper edges) of a 1-us histogram; ``max`` is the highest bin hit."""
+    """Percentiles (us, bin upper edges) of a 1-us histogram of any length (its last bin holds
+    everything beyond); ``max`` is the highest bin hit."""
     h = np.asarray(hist, dtype=np.int64).copy()
     n = int(h.sum())
     out: dict = {"count": n}
@@ -419,7 +420,7 @@ def percentiles(hist: np.ndarray, qs=(0.5, 0.99, 0.999)) -> dict:
     cum = np.cumsum(h)
     for q in qs:
         idx = int(np.searchsorted(cum, q * n, side="left"))
-        out[_qname(q)] = float(min(idx, HBINS - 1) + 1)
+        out[_qname(q)] = float(min(idx, len(h) - 1) + 1)
     out["max"] = float(np.nonzero(h)[0][-1] + 1)
     return out
 

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from hapticproxy.server.clock import CPU_DMA_LATENCY, clock_cpus, hold_cpu_latency
+from hapticproxy.server.clock import CPU_DMA_LATENCY, HeldCpuLatency, clock_cpus, hold_cpu_latency, parse_cpu_latency
 
 
 def test_the_request_is_the_value_as_a_native_int_and_lasts_while_the_file_is_open(tmp_path):
@@ -74,3 +74,27 @@ def test_auto_takes_the_highest_cpu_and_leaves_python_the_rest():
     assert clock_cpus("auto", {2, 5, 7}) == (7, frozenset({2, 5}), "")
     assert clock_cpus(0, {0, 1}) == (0, frozenset({1}), "")
     assert clock_cpus("auto", {3}) == (None, None, "")
+
+
+def test_a_command_lines_latency_is_off_or_whole_us_up_to_1000():
+    assert parse_cpu_latency("off") is None and parse_cpu_latency("0") == 0 and parse_cpu_latency("1000") == 1000
+    for bad in ("-1", "1001", "x", "2.5", ""):
+        with pytest.raises(ValueError, match="off or a whole number"):
+            parse_cpu_latency(bad)
+
+
+def test_nothing_asked_holds_nothing():
+    with HeldCpuLatency(None) as q:
+        assert q.held is None and q.fd is None and q.why == ""
+
+
+@pytest.mark.skipif(not os.access(CPU_DMA_LATENCY, os.R_OK | os.W_OK), reason="no PM QoS device to ask")
+def test_the_with_block_holds_the_request_and_withdraws_it():
+    def in_force() -> int:
+        with open(CPU_DMA_LATENCY, "rb") as f:
+            return struct.unpack("i", f.read(4))[0]
+
+    before = in_force()
+    with HeldCpuLatency(0) as q:
+        assert q.held == 0 and in_force() == 0
+    assert q.fd is None and in_force() == before
