@@ -213,12 +213,12 @@ class HeldCpuLatency:
     its exit. ``held``: the latency in force inside it (None: not asked, or refused, ``why``
     saying why)."""
 
-    def __init__(self, us: int | None) -> None:
-        self.us, self.fd, self.why, self.held = us, None, "", None
+    def __init__(self, us: int | None, path: str = CPU_DMA_LATENCY) -> None:
+        self.us, self.path, self.fd, self.why, self.held = us, path, None, "", None
 
     def __enter__(self) -> "HeldCpuLatency":
         if self.us is not None:
-            self.fd, self.why = hold_cpu_latency(self.us)
+            self.fd, self.why = hold_cpu_latency(self.us, self.path)
             self.held = None if self.fd is None else self.us
         return self
 

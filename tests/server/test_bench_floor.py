@@ -33,6 +33,14 @@ def test_every_period_is_a_wake_or_a_skip():
     assert percentiles(hist, (1.0,))["p100"] >= 10_000
 
 
+def test_the_last_bin_holds_everything_beyond_and_reads_as_its_upper_edge():
+    """The floor's histogram is longer than the status's: its percentiles reach its own last bin."""
+    h = np.zeros(bfl.HIST_BINS, dtype=np.int64)
+    h[-1] = 5
+    assert percentiles(h)["p50"] == float(bfl.HIST_BINS)
+    assert percentiles(np.array([0, 3, 0, 1]))["p50"] == 2.0 and percentiles(np.array([0, 3, 0, 1]))["p999"] == 4.0
+
+
 def test_the_gap_detector_counts_nested_thresholds():
     """A longer threshold counts no more gaps than a shorter one; one beyond the longest gap, none."""
     thr = np.array([0, 1, 100_000, 10**12], dtype=np.int64)

@@ -88,6 +88,16 @@ def test_nothing_asked_holds_nothing():
         assert q.held is None and q.fd is None and q.why == ""
 
 
+def test_a_refused_request_holds_nothing_and_says_why(tmp_path):
+    with HeldCpuLatency(0, str(tmp_path / "missing")) as q:
+        assert q.held is None and q.fd is None and "missing" in q.why
+    path = tmp_path / "qos"
+    path.write_bytes(b"")
+    with HeldCpuLatency(5, str(path)) as q:
+        assert q.held == 5 and q.why == "" and struct.unpack("i", path.read_bytes()) == (5,)
+    assert q.fd is None
+
+
 @pytest.mark.skipif(not os.access(CPU_DMA_LATENCY, os.R_OK | os.W_OK), reason="no PM QoS device to ask")
 def test_the_with_block_holds_the_request_and_withdraws_it():
     def in_force() -> int:
